@@ -1,0 +1,55 @@
+"""Exceptions raised at the library's public boundary.
+
+Every message says what was expected and what was given, so a user can fix the input without
+reading the source.
+"""
+
+from __future__ import annotations
+
+
+class PointmapError(Exception):
+    """Base class of every error this library raises on purpose."""
+
+
+class ShapeError(PointmapError, ValueError):
+    """A tensor or array has the wrong shape, dtype or value range."""
+
+
+class ConventionError(PointmapError, ValueError):
+    """An input breaks a convention of docs/conventions.md (frame, units, ordering)."""
+
+
+class CheckpointError(PointmapError):
+    """A checkpoint is missing, corrupt, foreign, or does not match the architecture."""
+
+
+class ImageError(PointmapError, ValueError):
+    """An image cannot be read or is unusable (too small, not an image, wrong channels)."""
+
+
+class GraphError(PointmapError, ValueError):
+    """A pair graph is unusable (disconnected, too few images, unknown graph name)."""
+
+
+def check_shape(name: str, tensor, expected: tuple, *, hint: str = "") -> None:
+    """Raise ShapeError unless ``tensor.shape`` matches ``expected``.
+
+    ``expected`` holds ints (exact), None (any size) or strings (named sizes that must agree
+    across the dims sharing a name within this call). Example: ``check_shape("K", K, (None, 3, 3))``.
+    """
+    shape = tuple(getattr(tensor, "shape", ()))
+    if len(shape) != len(expected):
+        raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+    named: dict[str, int] = {}
+    for size, want in zip(shape, expected):
+        if want is None:
+            continue
+        if isinstance(want, str):
+            if named.setdefault(want, size) != size:
+                raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+        elif size != want:
+            raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+
+
+def _fmt(expected: tuple) -> str:
+    return "[" + ", ".join("*" if e is None else str(e) for e in expected) + "]"

@@ -1,0 +1,105 @@
+"""Pinhole cameras in the OpenCV convention (docs/conventions.md): batched, differentiable.
+
+Pixel (u, v) = integer column/row index of a pixel centre. ``K`` is [..., 3, 3] in pixels.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pointmap.errors import ShapeError
+
+
+def pixel_grid(height: int, width: int, *, device=None, dtype=torch.float32) -> torch.Tensor:
+    """[H, W, 2] pixel-centre coordinates (u, v) = (column, row)."""
+    v, u = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
+                          torch.arange(width, device=device, dtype=dtype), indexing="ij")
+    return torch.stack([u, v], dim=-1)
+
+
+def intrinsics(focal, cx, cy, *, fy=None, dtype=torch.float32) -> torch.Tensor:
+    """A [3, 3] K from a focal (fx, optionally fy) and a principal point, all in pixels."""
+    fy = focal if fy is None else fy
+    return torch.tensor([[focal, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
+
+def depth_to_points_cam(depth_z: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Unproject z-depth [..., H, W] with K [..., 3, 3] into camera-frame points [..., H, W, 3]."""
+    if depth_z.ndim < 2 or K.shape[-2:] != (3, 3):
+        raise ShapeError(f"depth_z expected [..., H, W] and K [..., 3, 3], got {list(depth_z.shape)} "
+                         f"and {list(K.shape)}")
+    h, w = depth_z.shape[-2:]
+    uv = pixel_grid(h, w, device=depth_z.device, dtype=depth_z.dtype)
+    fx = K[..., 0, 0, None, None]
+    fy = K[..., 1, 1, None, None]
+    cx = K[..., 0, 2, None, None]
+    cy = K[..., 1, 2, None, None]
+    x = (uv[..., 0] - cx) / fx * depth_z
+    y = (uv[..., 1] - cy) / fy * depth_z
+    return torch.stack([x, y, depth_z], dim=-1)
+
+
+def transform_points(T: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Apply a rigid/similarity transform T [..., 4, 4] to points [..., *, 3] (T batch broadcast
+    over the point dims: T [B, 4, 4] with pts [B, H, W, 3] works)."""
+    if T.shape[-2:] != (4, 4) or pts.shape[-1] != 3:
+        raise ShapeError(f"T expected [..., 4, 4] and pts [..., 3], got {list(T.shape)} and {list(pts.shape)}")
+    extra = pts.ndim - T.ndim + 1  # number of point dims to broadcast over
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    for _ in range(max(extra - 1, 0)):
+        R = R.unsqueeze(-3)
+        t = t.unsqueeze(-2)
+    return (R @ pts.unsqueeze(-1)).squeeze(-1) + t
+
+
+def depth_to_points_world(depth_z: torch.Tensor, K: torch.Tensor, cam2world: torch.Tensor) -> torch.Tensor:
+    """[..., H, W] depth -> [..., H, W, 3] world points."""
+    return transform_points(cam2world, depth_to_points_cam(depth_z, K))
+
+
+def project(pts_cam: torch.Tensor, K: torch.Tensor, eps: float = 1e-8):
+    """Project camera-frame points [..., N, 3] (or [..., H, W, 3]) to pixels; returns (uv, z).
+
+    K is broadcast over the point dims like ``transform_points``.
+    """
+    z = pts_cam[..., 2]
+    extra = pts_cam.ndim - K.ndim + 1
+    Kb = K
+    for _ in range(max(extra - 1, 0)):
+        Kb = Kb.unsqueeze(-3)
+    fx, fy, cx, cy = Kb[..., 0, 0], Kb[..., 1, 1], Kb[..., 0, 2], Kb[..., 1, 2]
+    zs = torch.where(z.abs() < eps, torch.full_like(z, eps), z)
+    u = fx * pts_cam[..., 0] / zs + cx
+    v = fy * pts_cam[..., 1] / zs + cy
+    return torch.stack([u, v], dim=-1), z
+
+
+def invert_rigid(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of rigid transforms [..., 4, 4] (rotation + translation, no scale)."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3:]
+    out = torch.zeros_like(T)
+    Rt = R.transpose(-1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1
+    return out
+
+
+def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """K of an image resized by (sx, sy), pixel centres at integers (u' + 0.5 = sx (u + 0.5))."""
+    K = K.clone()
+    K[..., 0, 0] *= sx
+    K[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
+    K[..., 1, 1] *= sy
+    K[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5
+    return K
+
+
+def crop_intrinsics(K: torch.Tensor, left: float, top: float) -> torch.Tensor:
+    """K after cropping ``left`` columns and ``top`` rows off the image."""
+    K = K.clone()
+    K[..., 0, 2] -= left
+    K[..., 1, 2] -= top
+    return K

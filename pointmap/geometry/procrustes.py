@@ -1,0 +1,56 @@
+"""Weighted rigid / similarity alignment of point sets (Umeyama), batched."""
+
+from __future__ import annotations
+
+import torch
+
+from pointmap.errors import ShapeError
+
+
+def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = None,
+                        *, with_scale: bool = True, eps: float = 1e-9):
+    """Find (s, R, t) minimising sum_i w_i ||s R src_i + t - dst_i||^2.
+
+    src, dst: [B, N, 3] (or [N, 3]); weights: [B, N] (or [N]), non-negative.
+    Returns s [B], R [B, 3, 3], t [B, 3] (unbatched inputs give unbatched outputs).
+    The result is a proper rotation (det = +1), with the reflection fix of Umeyama (1991).
+    """
+    unbatched = src.ndim == 2
+    if unbatched:
+        src, dst = src[None], dst[None]
+        weights = None if weights is None else weights[None]
+    if src.shape != dst.shape or src.shape[-1] != 3:
+        raise ShapeError(f"src and dst expected the same [B, N, 3] shape, got {list(src.shape)} and {list(dst.shape)}")
+    if weights is None:
+        weights = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device)
+    w = weights.clamp_min(0)
+    wsum = w.sum(-1, keepdim=True).clamp_min(eps)
+    wn = (w / wsum).unsqueeze(-1)  # [B, N, 1]
+    mu_s = (wn * src).sum(-2)
+    mu_d = (wn * dst).sum(-2)
+    xs = src - mu_s.unsqueeze(-2)
+    xd = dst - mu_d.unsqueeze(-2)
+    cov = (wn * xd).transpose(-1, -2) @ xs  # [B, 3, 3] = sum w d s^T
+    U, S, Vh = torch.linalg.svd(cov)
+    d = torch.sign(torch.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = U @ D @ Vh
+    if with_scale:
+        var_s = (wn * xs * xs).sum((-1, -2)).clamp_min(eps)
+        s = (S * torch.diagonal(D, dim1=-2, dim2=-1)).sum(-1) / var_s
+    else:
+        s = torch.ones(src.shape[0], dtype=src.dtype, device=src.device)
+    t = mu_d - s.unsqueeze(-1) * (R @ mu_s.unsqueeze(-1)).squeeze(-1)
+    if unbatched:
+        return s[0], R[0], t[0]
+    return s, R, t
+
+
+def to_matrix(s: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Build [..., 4, 4] similarity matrices from scale [...], rotation [..., 3, 3], translation [..., 3]."""
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = s[..., None, None] * R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T

@@ -1,0 +1,147 @@
+"""Loading images for the network: read, orient, convert to RGB, resize and crop to a patch multiple.
+
+The transform from the original image to the network input is kept on each View, so intrinsics can be
+reported in original pixels (docs/conventions.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pointmap.errors import ImageError
+
+PATCH = 16
+
+
+@dataclass
+class View:
+    """One image prepared for the network.
+
+    img: [3, h, w] float32 in [0, 1], h and w multiples of 16
+    original_size: (width, height) of the image as given (after EXIF orientation)
+    map_from_original: (sx, sy, left, top): u_map = (u_orig + 0.5) * sx - 0.5 - left (same for v)
+    name: file name (or ``image_007.png`` for arrays)
+    index: position in the input list
+    """
+
+    img: torch.Tensor
+    original_size: tuple
+    map_from_original: tuple
+    name: str
+    index: int
+
+    @property
+    def shape(self) -> tuple:
+        """(h, w) of the network input."""
+        return tuple(self.img.shape[-2:])
+
+
+def _read(src, index: int):
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    if isinstance(src, np.ndarray):
+        arr = src
+        name = f"image_{index:03d}.png"
+        if arr.ndim == 2:
+            arr = np.repeat(arr[..., None], 3, axis=-1)
+        if arr.ndim != 3 or arr.shape[-1] not in (1, 3, 4):
+            raise ImageError(f"image {index}: expected an HxWx3 (or HxW, HxWx4) array, got shape {arr.shape}")
+        if arr.shape[-1] == 1:
+            arr = np.repeat(arr, 3, axis=-1)
+        if arr.shape[-1] == 4:
+            arr = arr[..., :3]
+        if arr.dtype == np.uint16:
+            arr = (arr / 257.0).round().astype(np.uint8)
+        elif arr.dtype in (np.float32, np.float64):
+            if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
+                raise ImageError(f"image {index}: float arrays must be finite and in [0, 1]")
+            arr = (arr * 255).round().astype(np.uint8)
+        elif arr.dtype != np.uint8:
+            raise ImageError(f"image {index}: expected dtype uint8, uint16 or float in [0, 1], got {arr.dtype}")
+        return Image.fromarray(np.ascontiguousarray(arr)), name
+    path = Path(src)
+    if not path.exists():
+        raise ImageError(f"image not found: {path}")
+    if path.is_dir():
+        raise ImageError(f"expected an image file, got a directory: {path}")
+    try:
+        im = Image.open(path)
+        im.load()
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
+    im = ImageOps.exif_transpose(im)
+    if im.mode in ("I;16", "I;16B", "I;16L", "I"):
+        a = np.asarray(im).astype(np.float64)
+        a = (a / max(a.max(), 1.0) * 255.0).round().astype(np.uint8)
+        im = Image.fromarray(a).convert("RGB")
+    elif im.mode in ("RGBA", "LA", "P", "PA"):
+        im = im.convert("RGBA")
+        bg = Image.new("RGBA", im.size, (255, 255, 255, 255))
+        im = Image.alpha_composite(bg, im).convert("RGB")
+    elif im.mode != "RGB":
+        im = im.convert("RGB")
+    return im, path.name
+
+
+def prepare(im, size: int, *, square_ok: bool = False):
+    """Resize and centre-crop a PIL RGB image as the official ``load_images`` does.
+
+    size 224: short side to 224, centre square crop. Other sizes: long side to ``size``, centre crop to
+    multiples of 16 (a square image becomes 4:3 landscape unless ``square_ok``).
+    Returns (PIL image, (sx, sy, left, top)).
+    """
+    from PIL import Image
+
+    W, H = im.size
+    if size == 224:
+        S = min(W, H)
+    else:
+        S = max(W, H)
+    new_w, new_h = round(W * size / S), round(H * size / S)
+    resample = Image.LANCZOS if S > size else Image.BICUBIC
+    im = im.resize((new_w, new_h), resample)
+    cx, cy = new_w // 2, new_h // 2
+    if size == 224:
+        half = min(cx, cy)
+        left, top, right, bottom = cx - half, cy - half, cx + half, cy + half
+    else:
+        halfw = ((2 * cx) // PATCH) * PATCH / 2
+        halfh = ((2 * cy) // PATCH) * PATCH / 2
+        if not square_ok and new_w == new_h:
+            halfh = 3 * halfw / 4
+        left, top, right, bottom = cx - halfw, cy - halfh, cx + halfw, cy + halfh
+    im = im.crop((int(left), int(top), int(right), int(bottom)))
+    return im, (new_w / W, new_h / H, float(int(left)), float(int(top)))
+
+
+def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) -> list[View]:
+    """Read images (paths or HxWx3 uint8 arrays) and prepare them for the network.
+
+    Example:
+        >>> views = load_images([np.zeros((480, 640, 3), np.uint8)], size=512)
+        >>> views[0].img.shape, views[0].original_size
+        (torch.Size([3, 384, 512]), (640, 480))
+    """
+    if isinstance(paths_or_arrays, (str, Path, np.ndarray)):
+        paths_or_arrays = [paths_or_arrays]
+    if not isinstance(size, int) or size < PATCH or (size != 224 and size % PATCH):
+        raise ImageError(f"size expected 224 or a multiple of {PATCH} (e.g. 512), got {size!r}")
+    views = []
+    for i, src in enumerate(paths_or_arrays):
+        im, name = _read(src, i)
+        W, H = im.size
+        if min(W, H) < PATCH:
+            raise ImageError(f"image {name} is {W}x{H}: smaller than one {PATCH}x{PATCH} patch")
+        prepared, transform = prepare(im, size, square_ok=square_ok)
+        if min(prepared.size) < PATCH:
+            raise ImageError(f"image {name} ({W}x{H}) is too elongated: its crop at size {size} is "
+                             f"{prepared.size[0]}x{prepared.size[1]}, smaller than one patch")
+        img = torch.from_numpy(np.asarray(prepared, dtype=np.uint8).copy()).permute(2, 0, 1).float() / 255.0
+        views.append(View(img=img, original_size=(W, H), map_from_original=transform, name=name, index=i))
+    if not views:
+        raise ImageError("load_images expected at least one image, got none")
+    return views

@@ -1,0 +1,77 @@
+"""PairPrediction: what the network returns for a pair of views (a public contract, DESIGN.md 4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+
+from pointmap.errors import ShapeError
+
+
+@dataclass
+class PairPrediction:
+    """Both views' pointmaps in view 1's camera frame (OpenCV, see docs/conventions.md).
+
+    pts1_cam1: [B, H1, W1, 3] view-1 points in view-1's frame (scale-normalised unless metric)
+    pts2_cam1: [B, H2, W2, 3] view-2 points in view-1's frame
+    conf1, conf2: [B, H, W] confidences (>= 1 for the official heads)
+    desc1, desc2: [B, H, W, D] unit descriptors, or None for models without a descriptor head
+    desc_conf1, desc_conf2: [B, H, W] descriptor confidences, or None
+    """
+
+    pts1_cam1: torch.Tensor
+    pts2_cam1: torch.Tensor
+    conf1: torch.Tensor
+    conf2: torch.Tensor
+    desc1: torch.Tensor | None = None
+    desc2: torch.Tensor | None = None
+    desc_conf1: torch.Tensor | None = None
+    desc_conf2: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        for v, pts, conf in (("1", self.pts1_cam1, self.conf1), ("2", self.pts2_cam1, self.conf2)):
+            if pts.ndim != 4 or pts.shape[-1] != 3:
+                raise ShapeError(f"pts{v}_cam1 expected [B, H, W, 3], got {list(pts.shape)}")
+            if tuple(conf.shape) != tuple(pts.shape[:3]):
+                raise ShapeError(f"conf{v} expected {list(pts.shape[:3])}, got {list(conf.shape)}")
+        if self.pts1_cam1.shape[0] != self.pts2_cam1.shape[0]:
+            raise ShapeError(
+                f"pts1_cam1 and pts2_cam1 need the same batch size, got "
+                f"{self.pts1_cam1.shape[0]} and {self.pts2_cam1.shape[0]}"
+            )
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.pts1_cam1.shape[0])
+
+    @property
+    def has_desc(self) -> bool:
+        return self.desc1 is not None and self.desc2 is not None
+
+    def map(self, fn) -> PairPrediction:
+        """Apply ``fn`` to every tensor field (None stays None)."""
+        return replace(self, **{f.name: (None if getattr(self, f.name) is None else fn(getattr(self, f.name)))
+                                for f in fields(self)})
+
+    def __getitem__(self, idx) -> PairPrediction:
+        """Batch slice, keeping the batch dimension: ``pred[i:i+1]``; an int keeps it too."""
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1 if idx != -1 else None)
+        return self.map(lambda t: t[idx])
+
+    def to(self, *args, **kwargs) -> PairPrediction:
+        return self.map(lambda t: t.to(*args, **kwargs))
+
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    @staticmethod
+    def cat(preds: list[PairPrediction]) -> PairPrediction:
+        """Concatenate along the batch dimension (all parts must share shapes)."""
+        first = preds[0]
+        out = {}
+        for f in fields(first):
+            vals = [getattr(p, f.name) for p in preds]
+            out[f.name] = None if vals[0] is None else torch.cat(vals, 0)
+        return PairPrediction(**out)

@@ -1,0 +1,120 @@
+"""Reconstruction: a scene made of N posed views with dense depth (a public contract, DESIGN.md 4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.geometry.cameras import depth_to_points_world
+
+
+@dataclass
+class Reconstruction:
+    """Posed views with depth, confidence and colour; buildable by hand (e.g. from ground truth).
+
+    images:    [N, h, w, 3] float in [0, 1] (the maps' resolution, i.e. the network input)
+    cam2world: [N, 4, 4] OpenCV camera-to-world
+    K:         [N, 3, 3] intrinsics in ORIGINAL image pixels (see ``map_from_original``)
+    depth_z:   [N, h, w] z-depth, 0 = no value
+    conf:      [N, h, w] confidence (>= 1 for network output; anything > 0 when hand-made)
+    map_from_original: [N, 4] (sx, sy, left, top): a map pixel u_map = (u_orig + 0.5) * sx - 0.5 - left;
+        identity (1, 1, 0, 0) when the maps are at the original resolution (the default)
+    original_sizes: list of (width, height) of the original images; defaults to the map size
+    names: image names (file names for COLMAP export); default ``view_000.png`` ...
+    masks: optional [N, h, w] bool, pixels to keep (e.g. user masks); None keeps all
+    """
+
+    images: torch.Tensor
+    cam2world: torch.Tensor
+    K: torch.Tensor
+    depth_z: torch.Tensor
+    conf: torch.Tensor
+    map_from_original: torch.Tensor | None = None
+    original_sizes: list | None = None
+    names: list | None = None
+    masks: torch.Tensor | None = None
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n, h, w = self.depth_z.shape if self.depth_z.ndim == 3 else (None, None, None)
+        if n is None:
+            raise ShapeError(f"depth_z expected [N, h, w], got {list(self.depth_z.shape)}")
+        checks = {"images": (self.images, (n, h, w, 3)), "cam2world": (self.cam2world, (n, 4, 4)),
+                  "K": (self.K, (n, 3, 3)), "conf": (self.conf, (n, h, w))}
+        for name, (t, shape) in checks.items():
+            if tuple(t.shape) != shape:
+                raise ShapeError(f"{name} expected {list(shape)}, got {list(t.shape)}")
+        for name in ("images", "cam2world", "K", "depth_z", "conf"):
+            t = getattr(self, name)
+            if not torch.isfinite(t).all():
+                raise ShapeError(f"{name} contains NaN or inf values")
+        if self.map_from_original is None:
+            self.map_from_original = torch.tensor([[1.0, 1.0, 0.0, 0.0]]).repeat(n, 1)
+        if tuple(self.map_from_original.shape) != (n, 4):
+            raise ShapeError(f"map_from_original expected [{n}, 4], got {list(self.map_from_original.shape)}")
+        if self.original_sizes is None:
+            self.original_sizes = [(w, h)] * n
+        if len(self.original_sizes) != n:
+            raise ShapeError(f"original_sizes expected {n} entries, got {len(self.original_sizes)}")
+        if self.names is None:
+            self.names = [f"view_{i:03d}.png" for i in range(n)]
+        if self.masks is not None and tuple(self.masks.shape) != (n, h, w):
+            raise ShapeError(f"masks expected [{n}, {h}, {w}], got {list(self.masks.shape)}")
+
+    def __len__(self) -> int:
+        return int(self.depth_z.shape[0])
+
+    @property
+    def K_map(self) -> torch.Tensor:
+        """[N, 3, 3] intrinsics at the maps' resolution (derived from K and map_from_original)."""
+        return K_to_map(self.K, self.map_from_original)
+
+    @property
+    def pts_world(self) -> torch.Tensor:
+        """[N, h, w, 3] world points of every pixel (meaningless where depth_z == 0)."""
+        return depth_to_points_world(self.depth_z, self.K_map.to(self.depth_z.dtype),
+                                     self.cam2world.to(self.depth_z.dtype))
+
+    @property
+    def colors(self) -> torch.Tensor:
+        """[N, h, w, 3] colours in [0, 1]."""
+        return self.images
+
+    def valid(self, min_conf: float = 0.0) -> torch.Tensor:
+        """[N, h, w] bool: depth present, confidence above ``min_conf``, inside the user mask."""
+        ok = (self.depth_z > 0) & (self.conf > min_conf)
+        if self.masks is not None:
+            ok = ok & self.masks
+        return ok
+
+    def save(self, out_dir, formats=("ply", "glb", "colmap", "npz"), **kwargs):
+        """Write the reconstruction in the given formats under ``out_dir``; returns the paths written."""
+        from pointmap.io import save_reconstruction
+
+        return save_reconstruction(self, out_dir, formats=formats, **kwargs)
+
+
+def K_to_map(K: torch.Tensor, map_from_original: torch.Tensor) -> torch.Tensor:
+    """Intrinsics in original pixels -> at the map resolution (see Reconstruction.map_from_original)."""
+    sx, sy, left, top = map_from_original.to(K.dtype).unbind(-1)
+    out = K.clone()
+    out[..., 0, 0] = K[..., 0, 0] * sx
+    out[..., 1, 1] = K[..., 1, 1] * sy
+    out[..., 0, 1] = K[..., 0, 1] * sx
+    out[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5 - left
+    out[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5 - top
+    return out
+
+
+def K_to_original(K_map: torch.Tensor, map_from_original: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``K_to_map``."""
+    sx, sy, left, top = map_from_original.to(K_map.dtype).unbind(-1)
+    out = K_map.clone()
+    out[..., 0, 0] = K_map[..., 0, 0] / sx
+    out[..., 1, 1] = K_map[..., 1, 1] / sy
+    out[..., 0, 1] = K_map[..., 0, 1] / sx
+    out[..., 0, 2] = (K_map[..., 0, 2] + 0.5 + left) / sx - 0.5
+    out[..., 1, 2] = (K_map[..., 1, 2] + 0.5 + top) / sy - 0.5
+    return out
