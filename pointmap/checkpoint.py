@@ -1,0 +1,282 @@
+"""Loading and saving models: official DUSt3R/MASt3R ``.pth`` files, our safetensors format, shipped presets.
+
+Nothing here executes code from a file: official checkpoints are read with
+``torch.load(weights_only=True)`` (``argparse.Namespace`` allow-listed) and their constructor string is
+parsed with a whitelist over Python's syntax tree, never evaluated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+
+from pointmap.errors import CheckpointError
+from pointmap.model.config import PRESETS, ModelConfig
+from pointmap.model.net import PointmapNet
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+FORMAT = "pointmap/1"
+
+# --------------------------------------------------------------------------------------------------
+# constructor strings: AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), ...)
+
+
+def parse_ctor(text: str) -> tuple[str, dict]:
+    """Parse ``Name(key=value, ...)`` with values made of numbers, strings, booleans, None, ``inf``,
+    tuples and lists. Anything else (calls inside values, attributes, operators) is refused."""
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as e:
+        raise CheckpointError(f"cannot parse the architecture string {text[:120]!r}: {e.msg}") from None
+    call = tree.body
+    if not isinstance(call, ast.Call) or not isinstance(call.func, ast.Name) or call.args:
+        raise CheckpointError(f"architecture string must be Name(key=value, ...), got {text[:120]!r}")
+    kwargs = {}
+    for kw in call.keywords:
+        if kw.arg is None:
+            raise CheckpointError(f"'**' is not allowed in the architecture string {text[:120]!r}")
+        kwargs[kw.arg] = _literal(kw.value, text)
+    return call.func.id, kwargs
+
+
+def _literal(node, text):
+    if isinstance(node, ast.Constant) and isinstance(node.value, (int, float, str, bool, type(None))):
+        return node.value
+    if isinstance(node, ast.Name) and node.id in ("inf", "nan"):
+        return math.inf if node.id == "inf" else math.nan
+    if isinstance(node, ast.Name) and node.id in ("True", "False", "None"):
+        return {"True": True, "False": False, "None": None}[node.id]
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+        v = _literal(node.operand, text)
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            raise CheckpointError(f"unary sign on a non-number in {text[:120]!r}")
+        return -v if isinstance(node.op, ast.USub) else v
+    if isinstance(node, (ast.Tuple, ast.List)):
+        return tuple(_literal(e, text) for e in node.elts)
+    raise CheckpointError(f"unsupported value {ast.dump(node)[:80]} in the architecture string {text[:120]!r}")
+
+
+_CROCO_DEFAULTS = dict(enc_embed_dim=768, enc_depth=12, enc_num_heads=12, dec_embed_dim=512, dec_depth=8,
+                       dec_num_heads=16, mlp_ratio=4, patch_size=16, pos_embed="cosine", norm_im2_in_dec=True)
+_KNOWN_CLASSES = ("AsymmetricCroCo3DStereo", "AsymmetricMASt3R", "CroCoNet")
+_IGNORED_KWARGS = {"img_size", "patch_embed_cls", "landscape_only", "freeze", "desc_mode", "mask_ratio",
+                   "norm_layer", "enc_pos_embed", "dec_pos_embed"}
+
+
+def config_from_ctor(text: str) -> ModelConfig:
+    """ModelConfig from an official constructor string (see anchors-spec 1.8)."""
+    name, kw = parse_ctor(text)
+    if name not in _KNOWN_CLASSES:
+        raise CheckpointError(f"unknown architecture {name!r}: expected one of {_KNOWN_CLASSES}")
+    a = {**_CROCO_DEFAULTS, **kw}
+    pos = str(a.pop("pos_embed"))
+    if not pos.startswith("RoPE"):
+        raise CheckpointError(f"pos_embed={pos!r} is not supported (only RoPE models, e.g. 'RoPE100')")
+    if not a.pop("norm_im2_in_dec"):
+        raise CheckpointError("norm_im2_in_dec=False is not supported")
+    head = a.pop("head_type", "linear")
+    output_mode = a.pop("output_mode", "pts3d")
+    desc_dim = 0
+    if output_mode.startswith("pts3d+desc"):
+        desc_dim = int(output_mode[len("pts3d+desc"):])
+    elif output_mode != "pts3d":
+        raise CheckpointError(f"output_mode={output_mode!r} is not supported (pts3d or pts3d+descN)")
+    if head == "catmlp+dpt" and not desc_dim:
+        raise CheckpointError("head_type 'catmlp+dpt' needs output_mode 'pts3d+descN'")
+    if name == "CroCoNet":
+        head = "linear"
+    if a.get("desc_mode", "norm") != "norm":
+        raise CheckpointError(f"desc_mode={a['desc_mode']!r} is not supported (only 'norm')")
+    conf_mode = tuple(a.pop("conf_mode", ("exp", 1, math.inf)))
+    desc_conf = a.pop("desc_conf_mode", None)
+    cfg = dict(
+        enc_dim=int(a.pop("enc_embed_dim")), enc_depth=int(a.pop("enc_depth")), enc_heads=int(a.pop("enc_num_heads")),
+        dec_dim=int(a.pop("dec_embed_dim")), dec_depth=int(a.pop("dec_depth")), dec_heads=int(a.pop("dec_num_heads")),
+        mlp_ratio=float(a.pop("mlp_ratio")), patch_size=int(a.pop("patch_size")), rope_base=float(pos[4:] or 100),
+        head=head, desc_dim=desc_dim, two_confs=bool(a.pop("two_confs", False)),
+        depth_mode=tuple(a.pop("depth_mode", ("exp", -math.inf, math.inf))), conf_mode=conf_mode,
+        desc_conf_mode=tuple(desc_conf) if desc_conf is not None else conf_mode,
+        metric=name == "AsymmetricMASt3R",
+    )
+    unknown = set(a) - _IGNORED_KWARGS
+    if unknown:
+        raise CheckpointError(f"unsupported constructor arguments in {name}: {sorted(unknown)}")
+    if cfg["depth_mode"][1:] != (-math.inf, math.inf):
+        raise CheckpointError(f"depth_mode with bounds is not supported, got {cfg['depth_mode']}")
+    if cfg["patch_size"] != 16:
+        raise CheckpointError(f"patch_size={cfg['patch_size']} is not supported (16)")
+    return ModelConfig(**cfg)
+
+
+# --------------------------------------------------------------------------------------------------
+# state dicts
+
+
+def official_to_ours(state: dict, *, allow_missing_heads: bool = False) -> dict:
+    """Map an official state dict onto PointmapNet's keys (the one place that knows official names).
+
+    Our keys equal the official ones except: DPT ``scratch.layer_rn.K`` aliases are folded into
+    ``scratch.layer{K+1}_rn``; ``mask_token``, ``prediction_head.*`` and sin-cos position buffers (CroCo
+    pretraining) are dropped; a missing ``dec_blocks2`` (CroCo) is copied from ``dec_blocks``.
+    """
+    out = {}
+    for k, v in state.items():
+        if k.startswith("module."):
+            k = k[len("module."):]
+        if k in ("mask_token", "enc_pos_embed", "dec_pos_embed") or k.startswith("prediction_head."):
+            continue
+        if ".scratch.layer_rn." in k:
+            head, rest = k.split(".scratch.layer_rn.")
+            idx, tail = rest.split(".", 1)
+            alias = f"{head}.scratch.layer{int(idx) + 1}_rn.{tail}"
+            if alias in state and not torch.equal(state[alias], v):
+                raise CheckpointError(f"{k} and its alias {alias} hold different values")
+            out.setdefault(alias, v)
+            continue
+        out[k] = v
+    if not any(k.startswith("dec_blocks2.") for k in out):
+        for k, v in list(out.items()):
+            if k.startswith("dec_blocks."):
+                out["dec_blocks2." + k[len("dec_blocks."):]] = v
+    return out
+
+
+def load_state_strict(model: PointmapNet, state: dict, *, allow_missing_heads: bool = False,
+                      source: str = "checkpoint") -> None:
+    """load_state_dict that lists every missing/unexpected key and shape mismatch in one CheckpointError."""
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    if allow_missing_heads:
+        missing = [k for k in missing if not k.startswith("downstream_head")]
+    unexpected = [k for k in state if k not in own]
+    shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+              for k in state if k in own and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing keys (e.g. {missing[:4]})")
+        if unexpected:
+            parts.append(f"{len(unexpected)} unexpected keys (e.g. {unexpected[:4]})")
+        if shapes:
+            parts.append(f"{len(shapes)} shape mismatches (e.g. {shapes[:3]})")
+        raise CheckpointError(f"{source} does not match the architecture: " + "; ".join(parts))
+    model.load_state_dict(state, strict=not allow_missing_heads)
+
+
+def _torch_load(path: Path):
+    try:
+        with torch.serialization.safe_globals([argparse.Namespace]):
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - every failure becomes one clear message
+        msg = str(e).split("\n")[0][:200]
+        if "weights_only" in str(e) or "Unsupported global" in str(e) or "Unsupported operand" in str(e):
+            raise CheckpointError(f"refused to load {path}: it needs arbitrary pickled code ({msg})") from None
+        raise CheckpointError(f"cannot read {path} as a checkpoint (corrupt or truncated?): {msg}") from None
+
+
+def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapNet:
+    ckpt = _torch_load(path)
+    if not isinstance(ckpt, dict) or "model" not in ckpt:
+        raise CheckpointError(f"{path} is not a DUSt3R/MASt3R checkpoint: expected a dict with 'model' and 'args'")
+    args = ckpt.get("args")
+    ctor = getattr(args, "model", None) if args is not None else None
+    if ctor is None and isinstance(ckpt.get("croco_kwargs"), dict):
+        ctor = "CroCoNet(" + ", ".join(f"{k}={v!r}" for k, v in ckpt["croco_kwargs"].items()) + ")"
+    if not isinstance(ctor, str):
+        raise CheckpointError(f"{path} has no architecture string (args.model)")
+    cfg = config_from_ctor(ctor)
+    model = PointmapNet(cfg)
+    state = official_to_ours(ckpt["model"])
+    load_state_strict(model, state, allow_missing_heads=allow_missing_heads or "CroCoNet" in ctor,
+                      source=str(path))
+    model.provenance = {"source": "official", "path": str(path), "ctor": ctor}
+    return model
+
+
+# --------------------------------------------------------------------------------------------------
+# our format: one .safetensors file, the config and provenance as JSON in its metadata
+
+
+def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtype=None) -> Path:
+    """Write ``model`` as safetensors + JSON config (atomically). ``dtype=torch.float16`` halves the size."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        path = path.with_suffix(".safetensors")
+    tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).contiguous().cpu()
+               for k, v in model.state_dict().items()}
+    meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
+            "provenance": json.dumps(provenance or getattr(model, "provenance", {}) or {})}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    try:
+        save_file(tensors, tmp, metadata=meta)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_own(path: Path) -> PointmapNet:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            state = {k: f.get_tensor(k) for k in f.keys()}
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"cannot read {path} as safetensors (corrupt or truncated?): {e}") from None
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a pointmap checkpoint (metadata format={meta.get('format')!r})")
+    try:
+        cfg = ModelConfig.from_dict(json.loads(meta["config"]))
+    except (KeyError, json.JSONDecodeError, TypeError) as e:
+        raise CheckpointError(f"{path} has a broken config: {e}") from None
+    model = PointmapNet(cfg)
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+    load_state_strict(model, state, source=str(path))
+    model.provenance = json.loads(meta.get("provenance", "{}"))
+    return model
+
+
+def shipped_models() -> list[str]:
+    return sorted(p.stem for p in WEIGHTS_DIR.glob("*.safetensors"))
+
+
+def load_model(src, device="cpu", **kwargs):
+    """Load a model from a preset name with shipped weights, our .safetensors, an official .pth, or an
+    ONNX export (file or directory): ``pm.load_model("small")``. Returns an eval-mode model on ``device``.
+
+    ``kwargs`` go to the ONNX runner (e.g. ``providers``). Raises CheckpointError with the reason.
+    """
+    if isinstance(src, PointmapNet):
+        return src.to(device).eval()
+    if isinstance(src, str) and not os.path.sep in src and not Path(src).exists():
+        if (WEIGHTS_DIR / f"{src}.safetensors").exists():
+            return load_own(WEIGHTS_DIR / f"{src}.safetensors").to(device).eval()
+        if src in PRESETS:
+            raise CheckpointError(f"preset {src!r} has no shipped weights; shipped: {shipped_models() or 'none'}. "
+                                  f"Use PointmapNet(PRESETS[{src!r}]) for random weights or pass a checkpoint path")
+        raise CheckpointError(f"no such file or shipped model: {src!r}; shipped: {shipped_models() or 'none'}")
+    path = Path(src)
+    if not path.exists():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    if path.suffix == ".onnx" or (path.is_dir() and any(path.glob("*.onnx"))):
+        from pointmap.runtime.onnx import load_onnx
+
+        return load_onnx(path, **kwargs)
+    if path.is_dir():
+        raise CheckpointError(f"{path} is a directory without an .onnx export")
+    if path.suffix == ".safetensors":
+        return load_own(path).to(device).eval()
+    return load_official(path).to(device).eval()

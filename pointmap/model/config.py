@@ -1,0 +1,113 @@
+"""Model configuration: a frozen dataclass, and the table of presets.
+
+A config is plain data (JSON-serialisable through ``to_dict``/``from_dict``); checkpoints store it next to
+the weights. ``img_mean``/``img_std`` are the preprocessing the weights expect: the model normalises
+its [0, 1] inputs itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+from pointmap.errors import CheckpointError
+
+HEADS = ("linear", "dpt", "catmlp+dpt", "catmlp+linear")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    enc_dim: int = 1024
+    enc_depth: int = 24
+    enc_heads: int = 16
+    dec_dim: int = 768
+    dec_depth: int = 12
+    dec_heads: int = 12
+    mlp_ratio: float = 4.0
+    patch_size: int = 16
+    rope_base: float = 100.0
+    head: str = "linear"          # one of HEADS
+    desc_dim: int = 0             # > 0 for a descriptor head (catmlp+*)
+    desc_hidden_factor: float = 4.0
+    two_confs: bool = True        # descriptor head predicts its own confidence
+    depth_mode: tuple = ("exp", -math.inf, math.inf)
+    conf_mode: tuple = ("exp", 1.0, math.inf)
+    desc_conf_mode: tuple = ("exp", 0.0, math.inf)
+    dpt_layer_dims: tuple = (96, 192, 384, 768)
+    dpt_feature_dim: int = 256
+    dpt_last_dim: int = 128
+    img_mean: tuple = (0.5, 0.5, 0.5)
+    img_std: tuple = (0.5, 0.5, 0.5)
+    metric: bool = False          # outputs in metres (MASt3R metric) rather than normalised units
+
+    def __post_init__(self) -> None:
+        errors = []
+        if self.head not in HEADS:
+            errors.append(f"head expected one of {HEADS}, got {self.head!r}")
+        if self.enc_dim % self.enc_heads or (self.enc_dim // self.enc_heads) % 4:
+            errors.append(f"enc_dim/enc_heads must be a multiple of 4 (RoPE 2D), got {self.enc_dim}/{self.enc_heads}")
+        if self.dec_dim % self.dec_heads or (self.dec_dim // self.dec_heads) % 4:
+            errors.append(f"dec_dim/dec_heads must be a multiple of 4 (RoPE 2D), got {self.dec_dim}/{self.dec_heads}")
+        if "dpt" in self.head and self.dec_depth < 4:
+            errors.append(f"a DPT head needs dec_depth >= 4 (hooks at 1/2, 3/4 and the end), got {self.dec_depth}")
+        if self.head.startswith("catmlp") and self.desc_dim <= 0:
+            errors.append(f"head {self.head!r} needs desc_dim > 0, got {self.desc_dim}")
+        if not self.head.startswith("catmlp") and self.desc_dim:
+            errors.append(f"desc_dim={self.desc_dim} needs a catmlp head, got {self.head!r}")
+        for name in ("depth_mode", "conf_mode", "desc_conf_mode"):
+            mode = getattr(self, name)
+            if len(mode) != 3 or mode[0] not in ("exp", "linear", "square", "sigmoid"):
+                errors.append(f"{name} expected (kind, vmin, vmax), got {mode!r}")
+        if errors:
+            raise CheckpointError("invalid model config: " + "; ".join(errors))
+
+    @property
+    def dpt_hooks(self) -> tuple:
+        """Indices into [enc_out, dec_1, ..., dec_L] used by the DPT head (as the official one)."""
+        L = self.dec_depth
+        return (0, L * 2 // 4, L * 3 // 4, L)
+
+    @property
+    def has_desc(self) -> bool:
+        return self.desc_dim > 0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k, v in d.items():  # JSON has no inf: store it as a string
+            if isinstance(v, tuple):
+                d[k] = [("inf" if x == math.inf else "-inf" if x == -math.inf else x) for x in v]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModelConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise CheckpointError(f"unknown model config keys: {sorted(unknown)}")
+        clean = {}
+        for k, v in d.items():
+            if isinstance(v, list):
+                v = tuple(float(x) if x in ("inf", "-inf") else x for x in v)
+            clean[k] = v
+        return cls(**clean)
+
+    def replace(self, **kw) -> ModelConfig:
+        return replace(self, **kw)
+
+
+_OFFICIAL = dict(enc_dim=1024, enc_depth=24, enc_heads=16, dec_dim=768, dec_depth=12, dec_heads=12)
+
+PRESETS: dict[str, ModelConfig] = {
+    # tiny: unit tests only
+    "test": ModelConfig(enc_dim=32, enc_depth=2, enc_heads=2, dec_dim=32, dec_depth=4, dec_heads=2,
+                        head="catmlp+dpt", desc_dim=8, dpt_layer_dims=(8, 16, 24, 32), dpt_feature_dim=16,
+                        dpt_last_dim=8, desc_hidden_factor=2.0),
+    # a model that trains on two CPU cores in hours (the shipped model)
+    "small": ModelConfig(enc_dim=256, enc_depth=6, enc_heads=4, dec_dim=192, dec_depth=4, dec_heads=4,
+                         head="catmlp+linear", desc_dim=8, desc_hidden_factor=1.0),
+    # official architectures (weights from naver/dust3r and naver/mast3r load into these)
+    "dust3r_224_linear": ModelConfig(**_OFFICIAL, head="linear"),
+    "dust3r_512_linear": ModelConfig(**_OFFICIAL, head="linear"),
+    "dust3r_512_dpt": ModelConfig(**_OFFICIAL, head="dpt"),
+    "mast3r_512": ModelConfig(**_OFFICIAL, head="catmlp+dpt", desc_dim=24, two_confs=True, metric=True),
+}

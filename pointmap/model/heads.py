@@ -1,0 +1,165 @@
+"""Prediction heads: linear (pixel shuffle), DPT, and the MASt3R descriptor MLP; output transforms.
+
+Every head maps the decoder's token list ``[enc_out, dec_1, ..., dec_L]`` (dec_L normalised) of one view
+to a raw channel map [B, C, H, W]; ``postprocess`` turns it into points / confidences / descriptors
+exactly as the official ``reg_dense_depth`` / ``reg_dense_conf`` / ``reg_desc`` do.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from pointmap.model.blocks import Mlp
+from pointmap.model.config import ModelConfig
+
+
+def tokens_to_map(tokens: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """[B, h*w, C] -> [B, C, h, w]."""
+    return tokens.transpose(1, 2).reshape(tokens.shape[0], tokens.shape[2], h, w)
+
+
+class LinearHead(nn.Module):
+    """Linear(dec_dim -> C * p^2) per token, then pixel shuffle to full resolution."""
+
+    def __init__(self, dim: int, out_channels: int, patch: int) -> None:
+        super().__init__()
+        self.patch = patch
+        self.proj = nn.Linear(dim, out_channels * patch * patch)
+
+    def forward(self, tokens: list, H: int, W: int) -> torch.Tensor:
+        p = self.patch
+        return F.pixel_shuffle(tokens_to_map(self.proj(tokens[-1]), H // p, W // p), p)
+
+
+class ResidualConvUnit(nn.Module):
+    def __init__(self, ch: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(ch, ch, 3, padding=1)
+        self.conv2 = nn.Conv2d(ch, ch, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(F.relu(self.conv1(F.relu(x))))
+
+
+class FusionBlock(nn.Module):
+    """DPT feature fusion: (skip + rcu1(lateral)) -> rcu2 -> bilinear x2 (align_corners) -> 1x1 conv."""
+
+    def __init__(self, ch: int) -> None:
+        super().__init__()
+        self.resConfUnit1 = ResidualConvUnit(ch)
+        self.resConfUnit2 = ResidualConvUnit(ch)
+        self.out_conv = nn.Conv2d(ch, ch, 1)
+
+    def forward(self, x: torch.Tensor, lateral: torch.Tensor | None = None) -> torch.Tensor:
+        if lateral is not None:
+            x = x + self.resConfUnit1(lateral)
+        x = self.resConfUnit2(x)
+        x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
+        return self.out_conv(x)
+
+
+class Upsample2x(nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
+
+
+class DPT(nn.Module):
+    """Dense prediction transformer head on 4 hooked token maps (official ``DPTOutputAdapter_fix``)."""
+
+    def __init__(self, cfg: ModelConfig, out_channels: int) -> None:
+        super().__init__()
+        self.hooks = cfg.dpt_hooks
+        dims_in = (cfg.enc_dim, cfg.dec_dim, cfg.dec_dim, cfg.dec_dim)
+        ld, fd = cfg.dpt_layer_dims, cfg.dpt_feature_dim
+        self.act_postprocess = nn.ModuleList([
+            nn.Sequential(nn.Conv2d(dims_in[0], ld[0], 1), nn.ConvTranspose2d(ld[0], ld[0], 4, stride=4)),
+            nn.Sequential(nn.Conv2d(dims_in[1], ld[1], 1), nn.ConvTranspose2d(ld[1], ld[1], 2, stride=2)),
+            nn.Sequential(nn.Conv2d(dims_in[2], ld[2], 1)),
+            nn.Sequential(nn.Conv2d(dims_in[3], ld[3], 1), nn.Conv2d(ld[3], ld[3], 3, stride=2, padding=1)),
+        ])
+        self.scratch = nn.Module()
+        for i in range(4):
+            setattr(self.scratch, f"layer{i + 1}_rn", nn.Conv2d(ld[i], fd, 3, padding=1, bias=False))
+            setattr(self.scratch, f"refinenet{i + 1}", FusionBlock(fd))
+        self.head = nn.Sequential(
+            nn.Conv2d(fd, fd // 2, 3, padding=1), Upsample2x(),
+            nn.Conv2d(fd // 2, cfg.dpt_last_dim, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(cfg.dpt_last_dim, out_channels, 1),
+        )
+        self.patch = cfg.patch_size
+
+    def forward(self, tokens: list, H: int, W: int) -> torch.Tensor:
+        h, w = H // self.patch, W // self.patch
+        s = self.scratch
+        maps = [self.act_postprocess[i](tokens_to_map(tokens[k], h, w)) for i, k in enumerate(self.hooks)]
+        l1, l2, l3, l4 = (getattr(s, f"layer{i + 1}_rn")(m) for i, m in enumerate(maps))
+        p4 = s.refinenet4(l4)[:, :, : l3.shape[2], : l3.shape[3]]
+        p3 = s.refinenet3(p4, l3)
+        p2 = s.refinenet2(p3, l2)
+        p1 = s.refinenet1(p2, l1)
+        return self.head(p1)
+
+
+class DownstreamHead(nn.Module):
+    """One view's head: points + confidence (linear or DPT), plus optional MASt3R descriptors."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        kind = cfg.head.split("+")[-1]
+        if kind == "linear":
+            self.proj = nn.Linear(cfg.dec_dim, 4 * cfg.patch_size**2)
+        else:
+            self.dpt = DPT(cfg, 4)
+        if cfg.has_desc:
+            cat_dim = cfg.enc_dim + cfg.dec_dim
+            out = (cfg.desc_dim + int(cfg.two_confs)) * cfg.patch_size**2
+            self.head_local_features = Mlp(cat_dim, int(cfg.desc_hidden_factor * cat_dim), out)
+
+    def forward(self, tokens: list, H: int, W: int) -> torch.Tensor:
+        """Raw channels [B, 4 (+ desc_dim + two_confs), H, W]: x, y, z, conf, desc..., desc_conf."""
+        p = self.cfg.patch_size
+        if hasattr(self, "proj"):
+            raw = F.pixel_shuffle(tokens_to_map(self.proj(tokens[-1]), H // p, W // p), p)
+        else:
+            raw = self.dpt(tokens, H, W)
+        if self.cfg.has_desc:
+            feats = self.head_local_features(torch.cat([tokens[0], tokens[-1]], dim=-1))
+            raw = torch.cat([raw, F.pixel_shuffle(tokens_to_map(feats, H // p, W // p), p)], dim=1)
+        return raw
+
+
+def regress_points(xyz: torch.Tensor, mode: tuple) -> torch.Tensor:
+    """Official ``reg_dense_depth`` (no bounds): direction times f(norm); xyz channels-last."""
+    kind = mode[0]
+    if kind == "linear":
+        return xyz
+    d = xyz.norm(dim=-1, keepdim=True)
+    direction = xyz / d.clamp_min(1e-8)
+    if kind == "square":
+        return direction * d.square()
+    return direction * torch.expm1(d)
+
+
+def regress_conf(x: torch.Tensor, mode: tuple) -> torch.Tensor:
+    """Official ``reg_dense_conf``: vmin + exp(x) clipped, or a scaled sigmoid."""
+    kind, vmin, vmax = mode
+    if kind == "sigmoid":
+        return (vmax - vmin) * torch.sigmoid(x) + vmin
+    return vmin + x.exp().clamp(max=vmax - vmin)
+
+
+def postprocess(raw: torch.Tensor, cfg: ModelConfig) -> dict:
+    """Raw head channels [B, C, H, W] -> dict of channels-last outputs (see PairPrediction)."""
+    fmap = raw.permute(0, 2, 3, 1)
+    out = {"pts": regress_points(fmap[..., 0:3], cfg.depth_mode), "conf": regress_conf(fmap[..., 3], cfg.conf_mode)}
+    if cfg.has_desc:
+        desc = fmap[..., 4: 4 + cfg.desc_dim]
+        out["desc"] = desc / desc.norm(dim=-1, keepdim=True)
+        if cfg.two_confs:
+            out["desc_conf"] = regress_conf(fmap[..., 4 + cfg.desc_dim], cfg.desc_conf_mode)
+        else:
+            out["desc_conf"] = out["conf"].clone()
+    return out

@@ -1,0 +1,138 @@
+"""PointmapNet: siamese ViT encoder -> two cross-attending decoders -> per-view heads.
+
+Wiring only; the blocks live in blocks.py and heads.py. State-dict keys follow the official
+DUSt3R/MASt3R layout, so official checkpoints load through checkpoint.py with alias handling only.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from pointmap.errors import ShapeError
+from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
+from pointmap.model.config import ModelConfig
+from pointmap.model.heads import DownstreamHead, postprocess
+from pointmap.prediction import PairPrediction
+
+
+class PatchEmbed(nn.Module):
+    def __init__(self, patch: int, dim: int) -> None:
+        super().__init__()
+        self.proj = nn.Conv2d(3, dim, kernel_size=patch, stride=patch)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.proj(x).flatten(2).transpose(1, 2)
+
+
+class Encoded:
+    """Encoder output of a batch of images: tokens [B, N, enc_dim] and the patch grid (h, w)."""
+
+    __slots__ = ("tokens", "grid")
+
+    def __init__(self, tokens: torch.Tensor, grid: tuple) -> None:
+        self.tokens, self.grid = tokens, grid
+
+    def __getitem__(self, idx) -> Encoded:
+        return Encoded(self.tokens[idx], self.grid)
+
+
+class PointmapNet(nn.Module):
+    """``model(img1, img2) -> PairPrediction``.
+
+    img1: [B, 3, H1, W1], img2: [B, 3, H2, W2], float in [0, 1], H and W multiples of 16 (the two views
+    may differ in size). Returns (docs/conventions.md):
+      pts1_cam1 [B, H1, W1, 3], pts2_cam1 [B, H2, W2, 3] (both in view 1's camera frame),
+      conf1 [B, H1, W1], conf2 [B, H2, W2] (>= 1),
+      desc1/desc2 [B, H, W, desc_dim] unit vectors and desc_conf1/2 [B, H, W] for descriptor heads, else None.
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.patch_embed = PatchEmbed(cfg.patch_size, cfg.enc_dim)
+        self.enc_blocks = nn.ModuleList([Block(cfg.enc_dim, cfg.enc_heads, cfg.mlp_ratio) for _ in range(cfg.enc_depth)])
+        self.enc_norm = LayerNorm(cfg.enc_dim)
+        self.decoder_embed = nn.Linear(cfg.enc_dim, cfg.dec_dim)
+        self.dec_blocks = nn.ModuleList([DecoderBlock(cfg.dec_dim, cfg.dec_heads, cfg.mlp_ratio)
+                                         for _ in range(cfg.dec_depth)])
+        self.dec_blocks2 = nn.ModuleList([DecoderBlock(cfg.dec_dim, cfg.dec_heads, cfg.mlp_ratio)
+                                          for _ in range(cfg.dec_depth)])
+        self.dec_norm = LayerNorm(cfg.dec_dim)
+        self.downstream_head1 = DownstreamHead(cfg)
+        self.downstream_head2 = DownstreamHead(cfg)
+        self.register_buffer("img_mean", torch.tensor(cfg.img_mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("img_std", torch.tensor(cfg.img_std).view(1, 3, 1, 1), persistent=False)
+        self.rope = RopeCache(cfg.rope_base)
+        self.apply(init_weights)
+        w = self.patch_embed.proj.weight.data
+        nn.init.xavier_uniform_(w.view(w.shape[0], -1))
+
+    # -- checks ------------------------------------------------------------------------------------
+    def check_images(self, name: str, img: torch.Tensor) -> None:
+        p = self.cfg.patch_size
+        if not isinstance(img, torch.Tensor) or img.ndim != 4 or img.shape[1] != 3 or img.shape[2] % p or \
+                img.shape[3] % p or img.shape[2] == 0 or img.shape[3] == 0:
+            shape = list(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
+            raise ShapeError(f"{name} expected [B, 3, H, W] with H, W positive multiples of {p}, got {shape}")
+        if not img.is_floating_point():
+            raise ShapeError(f"{name} expected a float tensor in [0, 1], got dtype {img.dtype}")
+        if not torch.jit.is_tracing() and not torch.compiler.is_compiling() and img.numel():
+            lo, hi = float(img.min()), float(img.max())
+            if not (lo >= -1e-3 and hi <= 1 + 1e-3):  # also catches NaN
+                raise ShapeError(f"{name} expected values in [0, 1], got range [{lo:.3g}, {hi:.3g}]")
+
+    # -- stages ------------------------------------------------------------------------------------
+    def encode(self, img: torch.Tensor) -> Encoded:
+        """[B, 3, H, W] in [0, 1] -> Encoded (tokens after enc_norm)."""
+        p = self.cfg.patch_size
+        h, w = img.shape[-2] // p, img.shape[-1] // p
+        x = self.patch_embed((img - self.img_mean) / self.img_std)
+        rope = self.rope(h, w, self.cfg.enc_dim // self.cfg.enc_heads, x.device, x.dtype)
+        for blk in self.enc_blocks:
+            x = blk(x, rope)
+        return Encoded(self.enc_norm(x), (h, w))
+
+    def decode(self, enc1: Encoded, enc2: Encoded) -> tuple[list, list]:
+        """Both decoder branches, simultaneous exchange. Returns per view [enc, dec_1, ..., dec_L (normed)]."""
+        hd = self.cfg.dec_dim // self.cfg.dec_heads
+        r1 = self.rope(*enc1.grid, hd, enc1.tokens.device, enc1.tokens.dtype)
+        r2 = self.rope(*enc2.grid, hd, enc2.tokens.device, enc2.tokens.dtype)
+        f1, f2 = self.decoder_embed(enc1.tokens), self.decoder_embed(enc2.tokens)
+        out1, out2 = [enc1.tokens], [enc2.tokens]
+        for blk1, blk2 in zip(self.dec_blocks, self.dec_blocks2):
+            f1, f2 = blk1(f1, f2, r1, r2), blk2(f2, f1, r2, r1)
+            out1.append(f1)
+            out2.append(f2)
+        out1[-1], out2[-1] = self.dec_norm(out1[-1]), self.dec_norm(out2[-1])
+        return out1, out2
+
+    def heads(self, tok1: list, tok2: list, grid1: tuple, grid2: tuple) -> PairPrediction:
+        p = self.cfg.patch_size
+        tok1 = [t.float() for t in tok1]
+        tok2 = [t.float() for t in tok2]
+        o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p), self.cfg)
+        o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p), self.cfg)
+        return PairPrediction(pts1_cam1=o1["pts"], pts2_cam1=o2["pts"], conf1=o1["conf"], conf2=o2["conf"],
+                              desc1=o1.get("desc"), desc2=o2.get("desc"),
+                              desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"))
+
+    def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
+        """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""
+        if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
+            raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
+        tok1, tok2 = self.decode(enc1, enc2)
+        return self.heads(tok1, tok2, enc1.grid, enc2.grid)
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> PairPrediction:
+        self.check_images("img1", img1)
+        self.check_images("img2", img2)
+        if img1.shape[0] != img2.shape[0]:
+            raise ShapeError(f"img1 and img2 need the same batch size, got {img1.shape[0]} and {img2.shape[0]}")
+        if img1.shape[-2:] == img2.shape[-2:]:
+            both = self.encode(torch.cat([img1, img2], dim=0))
+            B = img1.shape[0]
+            enc1, enc2 = both[:B], both[B:]
+        else:
+            enc1, enc2 = self.encode(img1), self.encode(img2)
+        return self.decode_pair(enc1, enc2)
