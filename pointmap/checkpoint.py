@@ -175,10 +175,15 @@ def _torch_load(path: Path):
         with torch.serialization.safe_globals([argparse.Namespace]):
             return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - every failure becomes one clear message
-        msg = str(e).split("\n")[0][:200]
-        if "weights_only" in str(e) or "Unsupported global" in str(e) or "Unsupported operand" in str(e):
-            raise CheckpointError(f"refused to load {path}: it needs arbitrary pickled code ({msg})") from None
-        raise CheckpointError(f"cannot read {path} as a checkpoint (corrupt or truncated?): {msg}") from None
+        text = str(e)
+        if "Unsupported global" in text:
+            what = text.split("Unsupported global:")[1].split("was not")[0].strip()
+            raise CheckpointError(f"refused to load {path}: it needs arbitrary pickled code ({what}); only "
+                                  f"tensors, plain data and argparse.Namespace are accepted") from None
+        detail = next((ln.strip() for ln in text.splitlines() if "error" in ln.lower() or "unsupported" in ln.lower()
+                       or "magic" in ln.lower() or "zip" in ln.lower()), text.split("\n")[0])[:160]
+        raise CheckpointError(f"cannot read {path} as a checkpoint (corrupt, truncated or not a checkpoint): "
+                              f"{detail}") from None
 
 
 def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapNet:

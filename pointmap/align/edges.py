@@ -1,0 +1,195 @@
+"""Pair predictions gathered for alignment: validation, weights, scores and optimisation-resolution stacks.
+
+Every directed edge e = (i, j) carries image i's points (``pred_i``) and image j's points (``pred_j``),
+both in image i's camera frame up to an unknown similarity (the network's scale normalisation).
+For optimisation the maps are subsampled with a stride and padded to a common pixel count ``P`` so all
+edges stack into dense tensors ``[E, P, 3]``; padded or unusable pixels carry weight 0.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from pointmap.errors import GraphError, ShapeError
+
+
+def conf_to_weight(conf: torch.Tensor, transform: str = "log") -> torch.Tensor:
+    """Residual weights from confidences: 'log' (DUSt3R default, log(conf), 0 for conf <= 1),
+    'm1' (conf - 1), 'sqrt', or 'id' (conf itself). Never negative."""
+    if transform == "log":
+        w = torch.log(conf.clamp_min(1.0))
+    elif transform == "m1":
+        w = conf - 1.0
+    elif transform == "sqrt":
+        w = conf.clamp_min(0).sqrt()
+    elif transform == "id":
+        w = conf
+    else:
+        raise ValueError(f"conf_transform expected 'log', 'm1', 'sqrt' or 'id', got {transform!r}")
+    return torch.nan_to_num(w, nan=0.0, posinf=0.0).clamp_min(0.0)
+
+
+def _valid_points(pts: torch.Tensor) -> torch.Tensor:
+    return torch.isfinite(pts).all(-1)
+
+
+@dataclass
+class EdgeStack:
+    """Directed edges at the optimisation resolution.
+
+    i, j:      [E] long image indices
+    pred_i:    [E, P, 3] image i's points in i's frame (prediction scale); pred_j likewise for image j
+    w_i, w_j:  [E, P] weights (0 on padding / invalid pixels)
+    uv:        [N, P, 2] map-pixel coordinates (full map resolution) of each image's sampled pixels
+    pix_valid: [N, P] bool, real (non-padding) pixels
+    score:     [E] edge score mean(conf_i) * mean(conf_j)
+    stride:    subsampling stride used
+    """
+
+    i: torch.Tensor
+    j: torch.Tensor
+    pred_i: torch.Tensor
+    pred_j: torch.Tensor
+    w_i: torch.Tensor
+    w_j: torch.Tensor
+    uv: torch.Tensor
+    pix_valid: torch.Tensor
+    score: torch.Tensor
+    stride: int
+    keys: list
+
+    @property
+    def num_edges(self) -> int:
+        return int(self.i.shape[0])
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.uv.shape[1])
+
+
+def sample_index(h: int, w: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows and columns kept by stride-``stride`` subsampling (centre of each cell)."""
+    off = stride // 2
+    rows = torch.arange(off, h, stride)
+    cols = torch.arange(off, w, stride)
+    return rows, cols
+
+
+def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Validate the prediction dict; returns the sorted directed edge keys (self-pairs dropped)."""
+    if not isinstance(preds, dict) or not preds:
+        raise GraphError("preds expected a non-empty dict {(i, j): PairPrediction}, got "
+                         f"{type(preds).__name__} with {len(preds) if hasattr(preds, '__len__') else '?'} entries")
+    keys = []
+    for key, p in preds.items():
+        if not (isinstance(key, tuple) and len(key) == 2):
+            raise GraphError(f"preds keys expected (i, j) tuples, got {key!r}")
+        i, j = int(key[0]), int(key[1])
+        if not (0 <= i < n_images and 0 <= j < n_images):
+            raise GraphError(f"pair {key} refers to an image outside 0..{n_images - 1}")
+        if i == j:
+            warnings.warn(f"pair {key} pairs an image with itself; it carries no pose information and is "
+                          "ignored", stacklevel=3)
+            continue
+        if p.batch_size != 1:
+            raise ShapeError(f"pair {key}: expected batch size 1 per pair, got {p.batch_size}")
+        for name, pts, n in (("pts1_cam1", p.pts1_cam1, i), ("pts2_cam1", p.pts2_cam1, j)):
+            if tuple(pts.shape[1:3]) != tuple(shapes[n]):
+                raise ShapeError(f"pair {key}: {name} is {list(pts.shape[1:3])} but image {n} is "
+                                 f"{list(shapes[n])} (h, w)")
+        keys.append((i, j))
+    return sorted(keys)
+
+
+def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: int,
+                conf_transform: str = "log", dtype=torch.float32) -> EdgeStack:
+    """Subsample, weight and stack the predictions of ``keys`` (directed edges)."""
+    n = len(shapes)
+    idx = [sample_index(h, w, stride) for h, w in shapes]
+    counts = [len(r) * len(c) for r, c in idx]
+    P = max(counts)
+    uv = torch.zeros(n, P, 2, dtype=dtype)
+    pix_valid = torch.zeros(n, P, dtype=torch.bool)
+    for k, (rows, cols) in enumerate(idx):
+        vv, uu = torch.meshgrid(rows.to(dtype), cols.to(dtype), indexing="ij")
+        uv[k, :counts[k]] = torch.stack([uu, vv], -1).reshape(-1, 2)
+        pix_valid[k, :counts[k]] = True
+    E = len(keys)
+    pred_i = torch.zeros(E, P, 3, dtype=dtype)
+    pred_j = torch.zeros(E, P, 3, dtype=dtype)
+    w_i = torch.zeros(E, P, dtype=dtype)
+    w_j = torch.zeros(E, P, dtype=dtype)
+    score = torch.zeros(E, dtype=torch.float64)
+    for e, (i, j) in enumerate(keys):
+        p = preds[(i, j)]
+        for img, pts, conf, out_p, out_w in ((i, p.pts1_cam1[0], p.conf1[0], pred_i, w_i),
+                                              (j, p.pts2_cam1[0], p.conf2[0], pred_j, w_j)):
+            rows, cols = idx[img]
+            sub = pts.detach()[rows][:, cols].reshape(-1, 3).to(dtype)
+            c = conf.detach()[rows][:, cols].reshape(-1).to(dtype)
+            ok = _valid_points(sub) & torch.isfinite(c)
+            out_p[e, :counts[img]] = torch.where(ok[:, None], sub, torch.zeros_like(sub))
+            out_w[e, :counts[img]] = torch.where(ok, conf_to_weight(c, conf_transform), torch.zeros_like(c))
+        c1 = torch.nan_to_num(p.conf1.detach().double(), nan=0.0).mean()
+        c2 = torch.nan_to_num(p.conf2.detach().double(), nan=0.0).mean()
+        score[e] = c1 * c2
+    return EdgeStack(i=torch.tensor([k[0] for k in keys]), j=torch.tensor([k[1] for k in keys]),
+                     pred_i=pred_i, pred_j=pred_j, w_i=w_i, w_j=w_j, uv=uv, pix_valid=pix_valid,
+                     score=score, stride=stride, keys=list(keys))
+
+
+def drop_empty_edges(stack: EdgeStack) -> EdgeStack:
+    """Remove edges whose weights are all zero (e.g. every confidence <= 1), with a warning."""
+    alive = (stack.w_i.sum(1) > 0) & (stack.w_j.sum(1) > 0)
+    if bool(alive.all()):
+        return stack
+    dead = [stack.keys[e] for e in range(stack.num_edges) if not alive[e]]
+    warnings.warn(f"{len(dead)} pair(s) have no usable confidence (all weights zero, e.g. conf <= 1 "
+                  f"with conf_transform='log') and are ignored: {dead[:8]}{' ...' if len(dead) > 8 else ''}",
+                  stacklevel=3)
+    if not bool(alive.any()):
+        raise GraphError("every pair has zero confidence weight (all conf <= 1 with the 'log' transform?); "
+                         "nothing to align. Check the predictions or use conf_transform='id'.")
+    keep = alive.nonzero()[:, 0]
+    return EdgeStack(i=stack.i[keep], j=stack.j[keep], pred_i=stack.pred_i[keep], pred_j=stack.pred_j[keep],
+                     w_i=stack.w_i[keep], w_j=stack.w_j[keep], uv=stack.uv, pix_valid=stack.pix_valid,
+                     score=stack.score[keep], stride=stack.stride, keys=[stack.keys[e] for e in keep.tolist()])
+
+
+def check_connected(n_images: int, keys: list) -> None:
+    """Raise GraphError naming the components if the (undirected) pair graph is not connected."""
+    parent = list(range(n_images))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for i, j in keys:
+        parent[find(i)] = find(j)
+    comps: dict[int, list] = {}
+    for a in range(n_images):
+        comps.setdefault(find(a), []).append(a)
+    if len(comps) > 1:
+        groups = sorted(comps.values(), key=lambda g: g[0])
+        shown = "; ".join(str(g[:10]) + ("..." if len(g) > 10 else "") for g in groups[:5])
+        raise GraphError(f"the pair graph is disconnected: {len(groups)} groups of images share no pair "
+                         f"({shown}). Add pairs linking them (e.g. graph='complete' or a larger window).")
+
+
+def choose_stride(shapes: list[tuple[int, int]], n_edges: int, max_opt_pixels: int | None,
+                  stride: int | None) -> int:
+    """Stride giving at most ``max_opt_pixels`` sampled pixels per image (None/0 = full resolution)."""
+    if stride is not None:
+        if stride < 1:
+            raise ValueError(f"stride expected >= 1, got {stride}")
+        return int(stride)
+    if not max_opt_pixels:
+        return 1
+    biggest = max(h * w for h, w in shapes)
+    return max(1, math.ceil(math.sqrt(biggest / max_opt_pixels)))

@@ -1,0 +1,48 @@
+"""The gauge of alignment (world frame and scale): fitting the initialisation to known poses."""
+
+from __future__ import annotations
+
+import torch
+
+
+def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.det(U @ Vh))
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    return U @ D @ Vh
+
+
+def similarity_to_known(cam2world: torch.Tensor, known: dict, min_spread: float = 1e-6):
+    """(a, Ra, ta, scale_fixed) taking the initial world onto the known poses' world.
+
+    Rotation: chordal mean of R_known R_init^T. Scale: least squares on camera centres when >= 2 known
+    centres are spread out (then the scale is fixed by the user's poses), else 1 (scale stays free).
+    """
+    idx = sorted(known)
+    Rk = torch.stack([known[i][:3, :3].double() for i in idx])
+    ck = torch.stack([known[i][:3, 3].double() for i in idx])
+    Ri = cam2world[idx, :3, :3].double()
+    ci = cam2world[idx, :3, 3].double()
+    Ra = project_to_rotation((Rk @ Ri.transpose(-1, -2)).sum(0))
+    mk, mi = ck.mean(0), ci.mean(0)
+    spread_k = (ck - mk).norm(dim=-1).max() if len(idx) > 1 else torch.tensor(0.0, dtype=torch.float64)
+    spread_i = (ci - mi).norm(dim=-1).max() if len(idx) > 1 else torch.tensor(0.0, dtype=torch.float64)
+    scale_fixed = bool(len(idx) > 1 and spread_k > min_spread * max(1.0, float(ck.norm(dim=-1).max()))
+                       and spread_i > 0)
+    if scale_fixed:
+        xi = (ci - mi) @ Ra.T
+        a = float(((ck - mk) * xi).sum() / (xi * xi).sum().clamp_min(1e-300))
+        if a <= 0:
+            a = float(spread_k / spread_i)
+    else:
+        a = 1.0
+    ta = mk - a * (Ra @ mi)
+    return a, Ra, ta, scale_fixed
+
+
+def apply_similarity(a: float, Ra, ta, cam2world, depth, pw_s, pw_R, pw_t):
+    """Move an initialisation by x -> a Ra x + ta (depths and edge scales scale by a)."""
+    c2w = cam2world.clone()
+    c2w[:, :3, :3] = Ra @ cam2world[:, :3, :3]
+    c2w[:, :3, 3] = a * cam2world[:, :3, 3] @ Ra.T + ta
+    return c2w, depth * a, pw_s * a, Ra @ pw_R, a * pw_t @ Ra.T + ta

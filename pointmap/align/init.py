@@ -1,0 +1,140 @@
+"""Initialisation by a maximum spanning tree over pair scores (what DUSt3R's ``init='mst'`` does).
+
+1. Edge score: mean(conf_i) * mean(conf_j); the spanning tree maximising it (scipy MST on negated
+   scores over undirected pairs, keeping the better of the two directions).
+2. Each image's own pointmap: the ``pred_i`` of its best-scoring edge where it is the first view; its
+   focal by Weiszfeld on that map (unless known).
+3. From the root (image 0 of the strongest tree edge; world = its camera frame), walk the tree: an
+   edge touching a placed image k is aligned onto k's world points by confidence-weighted similarity
+   Procrustes, which places the new image's points; the new image's pose and depth scale come from a
+   Procrustes of its own pointmap onto those points.
+4. Every edge's similarity: Procrustes of both its maps onto the two images' world points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pointmap.align.edges import EdgeStack
+from pointmap.align.objective import rays, world_points
+from pointmap.errors import GraphError
+from pointmap.geometry.procrustes import weighted_procrustes
+
+
+@dataclass
+class InitResult:
+    cam2world: torch.Tensor   # [N, 4, 4] float64
+    depth: torch.Tensor       # [N, P] z-depth at the stack's pixels, float64
+    pw_s: torch.Tensor        # [E]
+    pw_R: torch.Tensor        # [E, 3, 3]
+    pw_t: torch.Tensor        # [E, 3]
+    tree: list                # [(k_placed, m_new, edge_index)]
+    root: int
+
+
+def spanning_tree(n_images: int, stack: EdgeStack) -> tuple[list, int]:
+    """Maximum spanning tree over undirected pairs; returns ([(a, b, best_edge)], first_edge_image)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    best: dict[tuple[int, int], int] = {}
+    for e in range(stack.num_edges):
+        a, b = int(stack.i[e]), int(stack.j[e])
+        key = (min(a, b), max(a, b))
+        if key not in best or stack.score[e] > stack.score[best[key]]:
+            best[key] = e
+    keys = list(best)
+    scores = np.array([float(stack.score[best[k]]) for k in keys])
+    # scipy drops explicit zeros and minimises: use a positive decreasing function of the score
+    cost = (scores.max() + 1.0) - scores + 1e-6
+    rows = [k[0] for k in keys]
+    cols = [k[1] for k in keys]
+    mst = minimum_spanning_tree(coo_matrix((cost, (rows, cols)), shape=(n_images, n_images)).tocsr()).tocoo()
+    tree = sorted(((int(a), int(b), best[(min(a, b), max(a, b))]) for a, b in zip(mst.row, mst.col)),
+                  key=lambda x: -float(stack.score[x[2]]))
+    if len(tree) != n_images - 1:
+        raise GraphError(f"the pair graph is disconnected: a spanning tree over {n_images} images has "
+                         f"{len(tree)} edges instead of {n_images - 1}")
+    return tree, int(stack.i[tree[0][2]])
+
+
+def own_maps(n_images: int, stack: EdgeStack) -> list[int]:
+    """Index of the best-scoring edge in which each image is the first view (its own camera frame)."""
+    own = [-1] * n_images
+    for e in range(stack.num_edges):
+        i = int(stack.i[e])
+        if own[i] < 0 or stack.score[e] > stack.score[own[i]]:
+            own[i] = e
+    missing = [n for n in range(n_images) if own[n] < 0]
+    if missing:
+        raise GraphError(f"images {missing[:10]} never appear first in a pair, so no pointmap in their own "
+                         "camera frame exists; pass both orders (i, j) and (j, i) as predict_pairs does")
+    return own
+
+
+def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
+    """Initial cam2world, depth (at the stack's pixels) and edge similarities; intrinsics as given [N]."""
+    n = stack.uv.shape[0]
+    dt = torch.float64
+    tree, root = spanning_tree(n, stack)
+    own = own_maps(n, stack)
+    ray = rays(stack.uv.to(dt), fx.to(dt), fy.to(dt), cx.to(dt), cy.to(dt))
+    cam2world = torch.eye(4, dtype=dt).repeat(n, 1, 1)
+    depth = torch.ones(n, stack.num_pixels, dtype=dt)
+    placed = torch.zeros(n, dtype=torch.bool)
+    pts_world = torch.zeros(n, stack.num_pixels, 3, dtype=dt)
+
+    def place(m: int, target: torch.Tensor, w_target: torch.Tensor):
+        """Pose + depth of image m from its own map aligned onto world points ``target``."""
+        e = own[m]
+        own_pts = stack.pred_i[e].to(dt)
+        w = stack.w_i[e].to(dt) * w_target
+        s, R, t = weighted_procrustes(own_pts, target, w)
+        cam2world[m, :3, :3] = R
+        cam2world[m, :3, 3] = t
+        depth[m] = (s * own_pts[:, 2]).clamp_min(1e-8)
+        pts_world[m] = world_points(depth[m:m + 1], ray[m:m + 1], cam2world[m:m + 1])[0]
+        placed[m] = True
+
+    # root: identity pose, depth = its own map's z
+    depth[root] = stack.pred_i[own[root]][:, 2].to(dt).clamp_min(1e-8)
+    pts_world[root] = world_points(depth[root:root + 1], ray[root:root + 1], cam2world[root:root + 1])[0]
+    placed[root] = True
+    pending = list(tree)
+    while pending:
+        for k_idx, (a, b, e) in enumerate(pending):
+            if placed[a] != placed[b]:
+                break
+        else:  # cannot happen for a spanning tree
+            raise GraphError("internal: spanning tree walk stalled")
+        pending.pop(k_idx)
+        i, j = int(stack.i[e]), int(stack.j[e])
+        k = i if placed[i] else j
+        m = j if k == i else i
+        pred_k, w_k = (stack.pred_i[e], stack.w_i[e]) if k == i else (stack.pred_j[e], stack.w_j[e])
+        pred_m, w_m = (stack.pred_j[e], stack.w_j[e]) if k == i else (stack.pred_i[e], stack.w_i[e])
+        s, R, t = weighted_procrustes(pred_k.to(dt), pts_world[k], w_k.to(dt))
+        target = s * pred_m.to(dt) @ R.T + t
+        place(m, target, w_m.to(dt))
+
+    pw_s, pw_R, pw_t = edge_similarities(stack, pts_world)
+    return InitResult(cam2world=cam2world, depth=depth, pw_s=pw_s, pw_R=pw_R, pw_t=pw_t, tree=tree, root=root)
+
+
+def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, chunk: int = 64):
+    """Per-edge similarity fitting both maps onto the current world points (batched Procrustes)."""
+    dt = pts_world.dtype
+    out_s, out_R, out_t = [], [], []
+    for start in range(0, stack.num_edges, chunk):
+        sl = slice(start, start + chunk)
+        src = torch.cat([stack.pred_i[sl], stack.pred_j[sl]], 1).to(dt)
+        dst = torch.cat([pts_world[stack.i[sl]], pts_world[stack.j[sl]]], 1)
+        w = torch.cat([stack.w_i[sl], stack.w_j[sl]], 1).to(dt)
+        s, R, t = weighted_procrustes(src, dst, w)
+        out_s.append(s)
+        out_R.append(R)
+        out_t.append(t)
+    return torch.cat(out_s), torch.cat(out_R), torch.cat(out_t)

@@ -1,0 +1,141 @@
+"""Parsing what users pass to ``global_align``: views, known intrinsics, known poses."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pointmap.errors import ConventionError, GraphError, ShapeError
+from pointmap.reconstruction import K_to_map
+
+
+@dataclass
+class ViewInfo:
+    images: list              # [h, w, 3] float32 in [0, 1] per image
+    shapes: list              # (h, w) per image
+    map_from_original: torch.Tensor  # [N, 4]
+    original_sizes: list      # (W, H) per image
+    names: list
+
+
+def parse_views(views) -> ViewInfo:
+    """Accept View objects (pointmap.images), or plain [3, h, w] tensors / arrays."""
+    if views is None or len(views) == 0:
+        raise GraphError("global_align expected a list of views (pm.load_images output), got none")
+    images, shapes, mfo, sizes, names = [], [], [], [], []
+    for k, v in enumerate(views):
+        img = v.img if hasattr(v, "img") else v
+        img = torch.as_tensor(np.asarray(img) if not torch.is_tensor(img) else img).float()
+        if img.ndim != 3 or img.shape[0] != 3:
+            raise ShapeError(f"view {k}: expected an image [3, h, w], got {list(img.shape)}")
+        h, w = int(img.shape[1]), int(img.shape[2])
+        images.append(img.permute(1, 2, 0).clamp(0, 1))
+        shapes.append((h, w))
+        mfo.append(tuple(float(x) for x in getattr(v, "map_from_original", (1.0, 1.0, 0.0, 0.0))))
+        sizes.append(tuple(int(x) for x in getattr(v, "original_size", (w, h))))
+        names.append(getattr(v, "name", f"view_{k:03d}.png"))
+    if len(set(names)) != len(names):
+        seen = {}
+        for k, nm in enumerate(names):
+            seen.setdefault(nm, []).append(k)
+        dup = {nm: ks for nm, ks in seen.items() if len(ks) > 1}
+        warnings.warn(f"duplicate image names {dup}; COLMAP export needs unique names, so later ones get "
+                      "a suffix", stacklevel=3)
+        for nm, ks in dup.items():
+            for r, k in enumerate(ks[1:], 1):
+                stem, dot, ext = nm.rpartition(".")
+                names[k] = f"{stem}_{r}.{ext}" if dot else f"{nm}_{r}"
+    _warn_duplicate_images(images)
+    return ViewInfo(images, shapes, torch.tensor(mfo, dtype=torch.float64), sizes, names)
+
+
+def _warn_duplicate_images(images: list) -> None:
+    by_shape: dict = {}
+    for k, im in enumerate(images):
+        by_shape.setdefault(tuple(im.shape), []).append(k)
+    dups = []
+    for ks in by_shape.values():
+        for a_pos, a in enumerate(ks):
+            for b in ks[a_pos + 1:]:
+                if torch.equal(images[a], images[b]):
+                    dups.append((a, b))
+    if dups:
+        warnings.warn(f"identical images {dups[:8]}: duplicates add no parallax (zero baseline between them); "
+                      "their cameras will coincide", stacklevel=4)
+
+
+def _as_tensor(x, name: str) -> torch.Tensor:
+    t = x if torch.is_tensor(x) else torch.as_tensor(np.asarray(x))
+    if not torch.isfinite(t).all():
+        raise ShapeError(f"{name} contains NaN or inf")
+    return t
+
+
+def parse_known_K(K, n: int, info: ViewInfo):
+    """Known intrinsics in ORIGINAL pixels -> (K_orig [N,3,3] float64 or None rows, known mask [N],
+    fx, fy, cx, cy [N] in map pixels (NaN where unknown)). K: None, [3, 3], [N, 3, 3] or {i: [3, 3]}."""
+    per = [None] * n
+    if K is None:
+        pass
+    elif isinstance(K, dict):
+        for i, k in K.items():
+            if not 0 <= int(i) < n:
+                raise ShapeError(f"K: image index {i} outside 0..{n - 1}")
+            per[int(i)] = _as_tensor(k, f"K[{i}]")
+    else:
+        Kt = _as_tensor(K, "K")
+        if tuple(Kt.shape) == (3, 3):
+            per = [Kt] * n
+        elif tuple(Kt.shape) == (n, 3, 3):
+            per = list(Kt)
+        else:
+            raise ShapeError(f"K expected [3, 3] (shared), [{n}, 3, 3] or a dict {{index: [3, 3]}}, "
+                             f"got {list(Kt.shape)}")
+    known = torch.tensor([k is not None for k in per])
+    fx = torch.full((n,), float("nan"), dtype=torch.float64)
+    fy, cx, cy = fx.clone(), fx.clone(), fx.clone()
+    for i, k in enumerate(per):
+        if k is None:
+            continue
+        k = k.double()
+        if tuple(k.shape) != (3, 3):
+            raise ShapeError(f"K[{i}] expected [3, 3], got {list(k.shape)}")
+        if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(float(k[2, 2]) - 1) > 1e-6:
+            raise ConventionError(f"K[{i}] expected positive focals and K[2, 2] = 1 (pixels), got {k.tolist()}")
+        Km = K_to_map(k, info.map_from_original[i])
+        fx[i], fy[i], cx[i], cy[i] = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
+    return per, known, fx, fy, cx, cy
+
+
+def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
+    """Known poses -> {index: [4, 4] tensor as given}. cam2world: None, [N, 4, 4] (all, or those in
+    ``pose_mask``) or {i: [4, 4]}. Checks that each is rigid (orthonormal rotation, det +1)."""
+    if cam2world is None:
+        if pose_mask is not None:
+            raise ShapeError("pose_mask given without cam2world")
+        return {}
+    if isinstance(cam2world, dict):
+        out = {int(i): _as_tensor(T, f"cam2world[{i}]") for i, T in cam2world.items()}
+    else:
+        T = _as_tensor(cam2world, "cam2world")
+        if tuple(T.shape) != (n, 4, 4):
+            raise ShapeError(f"cam2world expected [{n}, 4, 4] or a dict {{index: [4, 4]}}, got {list(T.shape)}")
+        mask = torch.ones(n, dtype=torch.bool) if pose_mask is None else torch.as_tensor(pose_mask).bool()
+        if tuple(mask.shape) != (n,):
+            raise ShapeError(f"pose_mask expected [{n}] bool, got {list(mask.shape)}")
+        out = {i: T[i] for i in range(n) if mask[i]}
+    for i, T in out.items():
+        if not 0 <= i < n:
+            raise ShapeError(f"cam2world: image index {i} outside 0..{n - 1}")
+        if tuple(T.shape) != (4, 4):
+            raise ShapeError(f"cam2world[{i}] expected [4, 4], got {list(T.shape)}")
+        Td = T.double()
+        R = Td[:3, :3]
+        if (R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or torch.det(R) < 0.99 \
+                or (Td[3] - torch.tensor([0, 0, 0, 1.0], dtype=torch.float64)).abs().max() > 1e-6:
+            raise ConventionError(f"cam2world[{i}] is not a rigid transform (rotation must be orthonormal "
+                                  "with det +1, last row 0 0 0 1); pass OpenCV camera-to-world matrices")
+    return out

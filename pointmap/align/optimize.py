@@ -1,0 +1,184 @@
+"""``global_align``: pair predictions -> Reconstruction (poses, intrinsics in original pixels, depth).
+
+Steps: validate the graph; stack the edges at the optimisation resolution (stride-subsampled); intrinsics
+(known, or Weiszfeld); maximum-spanning-tree initialisation; gauge (known poses, or unit mean edge scale);
+Adam or LBFGS on the chunked DUSt3R objective with early stopping (the best iterate is kept); full-
+resolution depth by fusing every edge with the final poses; a Reconstruction with a convergence report
+in ``recon.info["align"]``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import torch
+
+from pointmap.align.edges import build_stack, check_connected, check_preds, choose_stride, drop_empty_edges
+from pointmap.align.fuse import fuse_depth
+from pointmap.align.gauge import apply_similarity, similarity_to_known
+from pointmap.align.init import init_mst, own_maps
+from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
+from pointmap.align.loop import run
+from pointmap.align.objective import chunk_size_for
+from pointmap.align.params import AlignParams
+from pointmap.errors import GraphError, PointmapError
+from pointmap.geometry.focal import focal_from_pointmap
+from pointmap.reconstruction import K_to_original, Reconstruction
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Settings of dense global alignment (defaults follow DUSt3R where it has one).
+
+    optimizer: 'adam' (default), 'lbfgs', or 'none' (initialisation only)
+    niter: maximum iterations; lr / lr_min with schedule 'cosine' | 'linear' | 'constant' (Adam)
+    lr_focal: learning rate of log-focal (None = lr)
+    conf_transform: residual weight from confidence: 'log' (DUSt3R), 'm1', 'sqrt', 'id'
+    max_opt_pixels: pixels per image used while optimising (maps are stride-subsampled to fit);
+        None = full resolution. ``stride`` overrides it.
+    max_chunk_pixels: edge-pixels evaluated at once; caps the peak memory of one iteration
+    early_stop_tol / early_stop_window: stop when the loss improved by less than tol (relative)
+        over the last ``window`` iterations
+    fuse_iters: reweighting passes of the full-resolution depth fusion (0 = weighted least squares)
+    quiet: no progress bar
+    """
+
+    optimizer: str = "adam"
+    niter: int = 300
+    lr: float = 0.01
+    lr_min: float = 1e-6
+    lr_focal: float | None = None
+    schedule: str = "cosine"
+    conf_transform: str = "log"
+    max_opt_pixels: int | None = 128 * 96
+    stride: int | None = None
+    max_chunk_pixels: int = 2_000_000
+    early_stop_tol: float = 1e-4
+    early_stop_window: int = 20
+    fuse_iters: int = 2
+    quiet: bool = False
+
+
+def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
+    """Fill unknown focals by Weiszfeld on each image's own full-resolution map (fx = fy)."""
+    own = own_maps(len(shapes), stack)
+    for n in range(len(shapes)):
+        h, w = shapes[n]
+        if not known[n]:
+            cx[n], cy[n] = (w - 1) / 2, (h - 1) / 2
+            p = preds[stack.keys[own[n]]]
+            f = focal_from_pointmap(p.pts1_cam1.detach().double(), weights=p.conf1.detach().double().clamp_min(0))
+            f = float(f[0])
+            fx[n] = fy[n] = f if math.isfinite(f) and f > 0 else max(h, w)
+    return fx, fy, cx, cy
+
+
+
+def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignConfig | None = None,
+                 pose_mask=None, quiet: bool | None = None) -> Reconstruction:
+    """Align pairwise pointmaps into one scene.
+
+    views: list of ``pm.View`` (or [3, h, w] images at the maps' resolution)
+    preds: {(i, j): PairPrediction} with batch size 1, ideally both orders (as ``predict_pairs`` gives)
+    K: known intrinsics in ORIGINAL image pixels: [3, 3] shared, [N, 3, 3], or {index: [3, 3]}
+    cam2world: known OpenCV camera-to-world poses: [N, 4, 4] (all, or those where ``pose_mask``),
+        or {index: [4, 4]}. Known poses come back bit-identical (as float32); with two or more known
+        camera centres the output scale is theirs.
+    Returns a Reconstruction (K in original pixels); ``recon.info["align"]`` holds the report.
+    """
+    cfg = config or AlignConfig()
+    if quiet is not None:
+        cfg = AlignConfig(**{**asdict(cfg), "quiet": quiet})
+    t_start = time.perf_counter()
+    info = parse_views(views)
+    n = len(info.shapes)
+    if n < 2:
+        raise GraphError(f"global alignment needs at least 2 images, got {n}; for one image use the "
+                         "pair prediction of the image with itself (pm.relative_pose / pred.pts1_cam1)")
+    keys = check_preds(preds, n, info.shapes)
+    check_connected(n, keys)
+    K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
+    known_poses = parse_known_poses(cam2world, n, pose_mask)
+    stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
+    stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, cfg.conf_transform))
+    if len(stack.keys) < len(keys):
+        try:
+            check_connected(n, stack.keys)
+        except GraphError as err:
+            raise GraphError(f"after dropping zero-confidence pairs: {err}") from None
+    fx, fy, cx, cy = _initial_focals(preds, stack, info.shapes, fx, fy, cx, cy, K_known)
+    t_init = time.perf_counter()
+    init = init_mst(stack, fx, fy, cx, cy)
+    c2w, depth, pw_s, pw_R, pw_t = init.cam2world, init.depth, init.pw_s, init.pw_R, init.pw_t
+    scale_fixed = False
+    if known_poses:
+        a, Ra, ta, scale_fixed = similarity_to_known(c2w, known_poses)
+        c2w, depth, pw_s, pw_R, pw_t = apply_similarity(a, Ra, ta, c2w, depth, pw_s, pw_R, pw_t)
+    if not scale_fixed:  # free scale: make the geometric mean of edge scales 1 (about the origin)
+        a = float(torch.exp(-pw_s.log().mean()))
+        if known_poses:  # scale about a known camera's centre so that camera stays where it was given
+            anchor = c2w[min(known_poses), :3, 3].clone()
+            ta = anchor * (1 - a)
+        else:
+            ta = torch.zeros(3, dtype=torch.float64)
+        c2w, depth, pw_s, pw_R, pw_t = apply_similarity(a, torch.eye(3, dtype=torch.float64), ta,
+                                                        c2w, depth, pw_s, pw_R, pw_t)
+    # internal unit: typical depth ~ 1
+    valid_depth = depth[stack.pix_valid]
+    unit = float(valid_depth.median()) if valid_depth.numel() else 1.0
+    unit = unit if math.isfinite(unit) and unit > 0 else 1.0
+    c2w = c2w.clone()
+    c2w[:, :3, 3] /= unit
+    for i, T in known_poses.items():
+        c2w[i] = T.double()
+        c2w[i, :3, 3] /= unit
+    pose_free = torch.tensor([i not in known_poses for i in range(n)])
+    params = AlignParams(c2w, pose_free, depth / unit, fx, fy, cx, cy, ~K_known, pw_s / unit, pw_R,
+                         pw_t / unit, scale_free=not scale_fixed)
+    seconds_init = time.perf_counter() - t_init
+    chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
+    report = run(params, stack, cfg, chunk)
+    with torch.no_grad():
+        c2w_out = params.cam2world().double()
+        fxo, fyo, cxo, cyo = (x.double() for x in params.intrinsics())
+        s_o, R_o, t_o = (x.double() for x in params.pw())
+    depths, confs = fuse_depth(preds, stack.keys, info.shapes, c2w_out, fxo, fyo, cxo, cyo, s_o, R_o, t_o,
+                               cfg.conf_transform, cfg.fuse_iters)
+    return _build(info, c2w_out, (fxo, fyo, cxo, cyo), depths, confs, unit, known_poses, K_given, K_known,
+                  report={**report, "init_seconds": seconds_init, "total_seconds": time.perf_counter() - t_start,
+                          "num_images": n, "num_edges": stack.num_edges, "stride": stride,
+                          "opt_pixels_per_image": stack.num_pixels, "chunk_edges": chunk,
+                          "scale_fixed_by_known_poses": scale_fixed, "tree": init.tree,
+                          "config": asdict(cfg)})
+
+
+def _build(info, c2w, intr, depths, confs, unit, known_poses, K_given, K_known, report) -> Reconstruction:
+    n = len(info.shapes)
+    fx, fy, cx, cy = intr
+    cam2world = c2w.clone()
+    cam2world[:, :3, 3] *= unit
+    cam2world = cam2world.float()
+    for i, T in known_poses.items():
+        cam2world[i] = T.to(torch.float32)
+    K_map = torch.zeros(n, 3, 3, dtype=torch.float64)
+    K_map[:, 0, 0], K_map[:, 1, 1], K_map[:, 0, 2], K_map[:, 1, 2], K_map[:, 2, 2] = fx, fy, cx, cy, 1.0
+    K_orig = K_to_original(K_map, info.map_from_original).float()
+    for i in range(n):
+        if K_known[i]:
+            K_orig[i] = K_given[i].to(torch.float32)
+    hs = {s for s in info.shapes}
+    if len(hs) != 1:
+        raise PointmapError("images of different sizes cannot form one Reconstruction yet (it stores "
+                            f"[N, h, w] maps); got sizes {sorted(hs)}")
+    depth_z = torch.stack([d * unit for d in depths]).float()
+    conf = torch.stack(confs).float()
+    for name, t in (("cam2world", cam2world), ("K", K_orig), ("depth_z", depth_z)):
+        if not torch.isfinite(t).all():
+            raise PointmapError(f"alignment produced non-finite {name}; the predictions are degenerate "
+                                "(check confidences and that pairs overlap)")
+    return Reconstruction(images=torch.stack(info.images), cam2world=cam2world, K=K_orig, depth_z=depth_z,
+                          conf=conf, map_from_original=info.map_from_original.float(),
+                          original_sizes=list(info.original_sizes), names=list(info.names),
+                          info={"align": report})

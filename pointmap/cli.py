@@ -1,0 +1,120 @@
+"""The ``pointmap`` command: ``pair``, ``reconstruct``, ``splat``, ``demo``.
+
+Bad input ends with a one-line message on stderr and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from pointmap.errors import PointmapError
+
+log = logging.getLogger("pointmap")
+DEFAULT_MODEL = "small"
+
+
+def _model_and_size(name: str, size: int | None):
+    from pointmap.checkpoint import load_model
+
+    model = load_model(name)
+    if size is None:
+        size = int(getattr(model, "provenance", {}).get("image_size", 512))
+    return model, size
+
+
+def cmd_pair(args) -> int:
+    from pointmap.io_pair import write_pair_outputs
+
+    model, size = _model_and_size(args.model, args.size)
+    paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet)
+    for p in paths:
+        print(p)
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    from pointmap.pipeline import reconstruct
+
+    model, size = _model_and_size(args.model, args.size)
+    recon = reconstruct(model, args.images, graph=args.graph, size=size, quiet=args.quiet)
+    formats = tuple(f.strip() for f in args.export.split(",") if f.strip())
+    out = Path(args.out)
+    written = recon.save(out, formats=formats)
+    if args.splat:
+        from pointmap.splat import run as run_splat
+
+        run_splat(recon, out / "splat", quiet=args.quiet)
+    for p in written or []:
+        print(p)
+    return 0
+
+
+def cmd_splat(args) -> int:
+    from pointmap.io import load_reconstruction
+    from pointmap.splat import run as run_splat
+
+    recon = load_reconstruction(Path(args.recon))
+    run_splat(recon, Path(args.out or Path(args.recon) / "splat"), quiet=args.quiet)
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from pointmap.demo import run_demo
+
+    return run_demo(Path(args.out), model_name=args.model, quiet=args.quiet)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pointmap", description="Feed-forward 3D reconstruction from photos.")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("-v", "--verbose", action="store_true", help="log details")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    a = sub.add_parser("pair", help="pointmaps, matches and relative pose of two images")
+    a.add_argument("images", nargs=2, metavar="IMG")
+    a.add_argument("-o", "--out", required=True)
+    a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
+    a.add_argument("--size", type=int, default=None, help="network input size (224 or 512; default: the model's)")
+    a.set_defaults(fn=cmd_pair)
+
+    r = sub.add_parser("reconstruct", help="many images to poses, intrinsics and a dense cloud")
+    r.add_argument("images", nargs="+", metavar="IMG")
+    r.add_argument("-o", "--out", required=True)
+    r.add_argument("--model", default=DEFAULT_MODEL)
+    r.add_argument("--size", type=int, default=None)
+    r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
+    r.add_argument("--export", default="ply,glb,colmap,npz")
+    r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
+    r.set_defaults(fn=cmd_reconstruct)
+
+    s = sub.add_parser("splat", help="fit Gaussian splats to a saved reconstruction")
+    s.add_argument("recon", help="directory written by 'pointmap reconstruct'")
+    s.add_argument("-o", "--out", default=None)
+    s.set_defaults(fn=cmd_splat)
+
+    d = sub.add_parser("demo", help="reconstruct the demo scenes shipped with the package")
+    d.add_argument("-o", "--out", default="demo_out")
+    d.add_argument("--model", default=DEFAULT_MODEL)
+    d.set_defaults(fn=cmd_demo)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    try:
+        return args.fn(args)
+    except PointmapError as e:
+        print(f"pointmap: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("pointmap: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,110 @@
+"""Pair inference over many images: each image is encoded ONCE, decoders and heads run batched per pair.
+
+``predict_pairs`` returns both orders of every pair, as global alignment expects.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+
+import torch
+from tqdm.auto import tqdm
+
+from pointmap.errors import GraphError, ShapeError
+from pointmap.images import View
+from pointmap.prediction import PairPrediction
+
+log = logging.getLogger(__name__)
+
+
+def _as_images(views) -> list[torch.Tensor]:
+    imgs = []
+    for k, v in enumerate(views):
+        img = v.img if isinstance(v, View) else v
+        if not isinstance(img, torch.Tensor) or img.ndim != 3 or img.shape[0] != 3:
+            got = list(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
+            raise ShapeError(f"view {k} expected a View or a [3, H, W] tensor, got {got}")
+        imgs.append(img)
+    return imgs
+
+
+def directed(pairs) -> list[tuple[int, int]]:
+    """Both orders of every pair, deduplicated, in a stable order."""
+    out, seen = [], set()
+    for i, j in pairs:
+        for e in ((i, j), (j, i)):
+            if e not in seen:
+                seen.add(e)
+                out.append(e)
+    return out
+
+
+@torch.inference_mode()
+def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="cpu", progress=None) -> list:
+    """Run the encoder once per image, batching images of equal shape. Returns one Encoded per image."""
+    by_shape = defaultdict(list)
+    for k, img in enumerate(imgs):
+        by_shape[tuple(img.shape)].append(k)
+    encoded: list = [None] * len(imgs)
+    for idx in by_shape.values():
+        for s in range(0, len(idx), batch_size):
+            chunk = idx[s: s + batch_size]
+            batch = torch.stack([imgs[k] for k in chunk]).to(device)
+            model.check_images("images", batch)
+            enc = model.encode(batch)
+            for b, k in enumerate(chunk):
+                encoded[k] = enc[b: b + 1]
+            if progress is not None:
+                progress.update(len(chunk))
+    return encoded
+
+
+@torch.inference_mode()
+def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", keep_desc: bool = True,
+                  store_dtype=None, quiet: bool = False) -> dict[tuple[int, int], PairPrediction]:
+    """Predict every pair in both orders.
+
+    views: list of View (from ``load_images``) or [3, H, W] tensors in [0, 1]
+    pairs: iterable of (i, j), i != j (e.g. ``make_pairs``); (j, i) is added for each
+    Returns {(i, j): PairPrediction} with batch size 1 per entry, on the CPU; ``store_dtype``
+    (e.g. torch.float16) shrinks what is kept for many images, ``keep_desc=False`` drops descriptors.
+    """
+    imgs = _as_images(views)
+    n = len(imgs)
+    pairs = list(pairs)
+    if not pairs:
+        raise GraphError("predict_pairs needs at least one pair")
+    for i, j in pairs:
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
+    if batch_size < 1:
+        raise ShapeError(f"batch_size expected >= 1, got {batch_size}")
+    edges = directed(pairs)
+    used = sorted({k for e in edges for k in e})
+    bar = tqdm(total=len(used) + len(edges), desc="inference", unit="img|pair", disable=quiet or None)
+    enc_used = encode_views(model, [imgs[k] for k in used], batch_size, device, progress=bar)
+    enc = dict(zip(used, enc_used))
+    groups = defaultdict(list)  # pairs with the same shapes decode in one batch
+    for e in edges:
+        groups[(tuple(imgs[e[0]].shape), tuple(imgs[e[1]].shape))].append(e)
+    out: dict[tuple[int, int], PairPrediction] = {}
+    for group in groups.values():
+        for s in range(0, len(group), batch_size):
+            chunk = group[s: s + batch_size]
+            e1 = _stack([enc[i] for i, _ in chunk])
+            e2 = _stack([enc[j] for _, j in chunk])
+            pred = model.decode_pair(e1, e2)
+            if not keep_desc:
+                pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
+            pred = pred.map(lambda t: t.to("cpu", store_dtype) if store_dtype else t.cpu())
+            for b, e in enumerate(chunk):
+                out[e] = pred[b]
+            bar.update(len(chunk))
+    bar.close()
+    return out
+
+
+def _stack(encs: list):
+    first = encs[0]
+    return type(first)(torch.cat([e.tokens for e in encs], dim=0), first.grid)

@@ -1,0 +1,111 @@
+"""Outputs of ``pointmap pair``: npz with everything, a coloured PLY, PNG previews."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def atomic_write(path: Path, write_fn) -> Path:
+    """Call ``write_fn(tmp_path)`` then rename onto ``path`` (no half-written files)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=path.suffix)
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def colorize(x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Float map -> uint8 RGB with a perceptual colour map (robust 2-98% range)."""
+    import cv2
+
+    v = x[valid] if valid is not None and valid.any() else x[np.isfinite(x)]
+    lo, hi = (np.percentile(v, 2), np.percentile(v, 98)) if v.size else (0.0, 1.0)
+    norm = np.clip((x - lo) / max(hi - lo, 1e-12), 0, 1)
+    img = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    if valid is not None:
+        img = img * valid[..., None]
+    return np.ascontiguousarray(img)
+
+
+def draw_matches(img1: np.ndarray, img2: np.ndarray, xy1: np.ndarray, xy2: np.ndarray, n: int = 80) -> np.ndarray:
+    import cv2
+
+    h = max(img1.shape[0], img2.shape[0])
+    canvas = np.zeros((h, img1.shape[1] + img2.shape[1], 3), np.uint8)
+    canvas[: img1.shape[0], : img1.shape[1]] = img1
+    canvas[: img2.shape[0], img1.shape[1]:] = img2
+    if len(xy1):
+        sel = np.linspace(0, len(xy1) - 1, min(n, len(xy1))).astype(int)
+        rng = np.random.default_rng(0)
+        for k in sel:
+            c = tuple(int(x) for x in rng.integers(64, 255, 3))
+            p1 = (int(xy1[k, 0]), int(xy1[k, 1]))
+            p2 = (int(xy2[k, 0]) + img1.shape[1], int(xy2[k, 1]))
+            cv2.line(canvas, p1, p2, c, 1, cv2.LINE_AA)
+            cv2.circle(canvas, p1, 2, c, -1)
+            cv2.circle(canvas, p2, 2, c, -1)
+    return canvas
+
+
+def write_png(path: Path, rgb: np.ndarray) -> Path:
+    import cv2
+
+    def w(tmp):
+        if not cv2.imwrite(tmp, np.ascontiguousarray(rgb[..., ::-1])):
+            raise OSError(f"cannot write {path}")
+
+    return atomic_write(Path(path).with_suffix(".png"), w)
+
+
+def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet: bool = False) -> list[Path]:
+    import trimesh
+
+    from pointmap.images import load_images
+    from pointmap.matching import match
+    from pointmap.pose import focal_from_prediction, relative_pose
+
+    views = load_images([path1, path2], size=size)
+    img1, img2 = views[0].img[None], views[1].img[None]
+    with torch.inference_mode():
+        pred = model(img1, img2)
+        pred_rev = model(img2, img1)
+    pred, pred_rev = pred.map(lambda t: t.float()), pred_rev.map(lambda t: t.float())
+    m = match(pred)
+    cam2world_2 = relative_pose(pred, pred_reverse=pred_rev)[0]
+    focal1 = focal_from_prediction(pred)[0]
+    focal2 = focal_from_prediction(pred_rev)[0]
+    out.mkdir(parents=True, exist_ok=True)
+    rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    rgb2 = (views[1].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    arrays = dict(pts1_cam1=pred.pts1_cam1[0].numpy(), pts2_cam1=pred.pts2_cam1[0].numpy(),
+                  conf1=pred.conf1[0].numpy(), conf2=pred.conf2[0].numpy(), img1=rgb1, img2=rgb2,
+                  matches_xy1=m.xy1.numpy(), matches_xy2=m.xy2.numpy(), matches_score=m.score.numpy(),
+                  cam2world_2_in_1=cam2world_2.numpy(), focal1=focal1.numpy(), focal2=focal2.numpy(),
+                  map_from_original1=np.array(views[0].map_from_original),
+                  map_from_original2=np.array(views[1].map_from_original))
+    written = [atomic_write(out / "pair.npz", lambda tmp: np.savez_compressed(open(tmp, "wb"), **arrays))]
+    conf_all = np.concatenate([arrays["conf1"].ravel(), arrays["conf2"].ravel()])
+    thr = np.percentile(conf_all, 30)
+    keep1, keep2 = arrays["conf1"] >= thr, arrays["conf2"] >= thr
+    pts = np.concatenate([arrays["pts1_cam1"][keep1], arrays["pts2_cam1"][keep2]])
+    cols = np.concatenate([rgb1[keep1], rgb2[keep2]])
+    cloud = trimesh.PointCloud(pts, colors=np.concatenate([cols, np.full((len(cols), 1), 255, np.uint8)], 1))
+    written.append(atomic_write(out / "pair.ply", lambda tmp: cloud.export(tmp, file_type="ply")))
+    depth1, depth2 = arrays["pts1_cam1"][..., 2], arrays["pts2_cam1"][..., 2]
+    written.append(write_png(out / "depth1", colorize(depth1)))
+    written.append(write_png(out / "depth2", colorize(depth2)))
+    written.append(write_png(out / "conf1", colorize(np.log(arrays["conf1"]))))
+    written.append(write_png(out / "conf2", colorize(np.log(arrays["conf2"]))))
+    written.append(write_png(out / "matches", draw_matches(rgb1, rgb2, arrays["matches_xy1"], arrays["matches_xy2"])))
+    return written

@@ -1,0 +1,141 @@
+"""Reciprocal nearest-neighbour matching on descriptors (MASt3R) or pointmaps (DUSt3R).
+
+``reciprocal_nn_bruteforce`` is the obviously-correct reference (all mutual nearest neighbours);
+``reciprocal_nn_fast`` iterates forward/backward NN from a subsampled grid of seeds and keeps the seeds
+that reach a fixed point, which are exactly mutual NN pairs: its result is a subset of the reference,
+and equals it when every pixel is a seed (tested).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.prediction import PairPrediction
+
+
+@dataclass
+class Matches:
+    """xy1 [M, 2], xy2 [M, 2] pixel coordinates (u, v) in view 1 / view 2; score [M] (higher is better)."""
+
+    xy1: torch.Tensor
+    xy2: torch.Tensor
+    score: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.xy1.shape[0])
+
+
+def nearest(query: torch.Tensor, db: torch.Tensor, metric: str, chunk: int = 4096) -> torch.Tensor:
+    """Index in ``db`` [N, D] of the nearest neighbour of each ``query`` [M, D] row, computed in chunks.
+
+    metric 'dot': largest dot product (unit descriptors); 'l2': smallest Euclidean distance.
+    """
+    out = torch.empty(query.shape[0], dtype=torch.long)
+    db_sq = (db * db).sum(-1) if metric == "l2" else None
+    for s in range(0, query.shape[0], chunk):
+        q = query[s: s + chunk]
+        sim = q @ db.T
+        if metric == "l2":
+            sim = 2 * sim - db_sq  # argmax of -(|q|^2 - 2 q.d + |d|^2)
+        out[s: s + chunk] = sim.argmax(-1)
+    return out
+
+
+def reciprocal_nn_bruteforce(f1: torch.Tensor, f2: torch.Tensor, metric: str = "dot", chunk: int = 2048):
+    """All mutual nearest neighbours between f1 [N1, D] and f2 [N2, D]: (idx1 [M], idx2 [M]), sorted by idx1.
+
+    Exhaustive in float64 (row blocks only bound the memory).
+    """
+    a, b = f1.double(), f2.double()
+
+    def best(q, db):
+        out = torch.empty(q.shape[0], dtype=torch.long)
+        for s in range(0, q.shape[0], chunk):
+            sim = q[s: s + chunk] @ db.T if metric == "dot" else -torch.cdist(q[s: s + chunk], db)
+            out[s: s + chunk] = sim.argmax(1)
+        return out
+
+    nn12, nn21 = best(a, b), best(b, a)
+    idx1 = torch.arange(f1.shape[0])
+    keep = nn21[nn12] == idx1
+    return idx1[keep], nn12[keep]
+
+
+def reciprocal_nn_fast(f1: torch.Tensor, f2: torch.Tensor, seeds: torch.Tensor, metric: str = "dot",
+                       max_iter: int = 10):
+    """Mutual NN pairs reached from ``seeds`` (indices into f1) within ``max_iter`` round trips."""
+    cur = seeds.clone()
+    done1, done2 = [], []
+    for _ in range(max_iter):
+        if cur.numel() == 0:
+            break
+        fwd = nearest(f1[cur], f2, metric)
+        back = nearest(f2[fwd], f1, metric)
+        conv = back == cur
+        done1.append(cur[conv])
+        done2.append(fwd[conv])
+        cur = torch.unique(back[~conv])
+    if not done1:
+        return seeds[:0], seeds[:0]
+    i1, i2 = torch.cat(done1), torch.cat(done2)
+    key = torch.unique(i1 * f2.shape[0] + i2)  # deduplicate, sorted by idx1
+    return key // f2.shape[0], key % f2.shape[0]
+
+
+def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: str = "auto",
+          min_conf: float | None = None, border: int = 0, bruteforce: bool = False) -> Matches:
+    """Reciprocal matches between the two views of a single-pair prediction (batch size 1).
+
+    use: 'desc' (descriptors, dot product), 'pts' (pointmaps in view 1's frame, L2), or 'auto'
+    (descriptors when the model has them). subsample: seed grid step of the fast path (1 seeds every
+    pixel). min_conf drops pixels whose confidence is below it; border drops matches that close to the
+    image border. Score: sqrt(conf1 * conf2) of the matched pixels (descriptor confidences for 'desc').
+    """
+    if pred.batch_size != 1:
+        raise ShapeError(f"match expects a single pair (batch size 1), got batch size {pred.batch_size}; "
+                         f"use pred[i] to pick one")
+    if use == "auto":
+        use = "desc" if pred.has_desc else "pts"
+    if use == "desc" and not pred.has_desc:
+        raise ShapeError("use='desc' needs a model with a descriptor head (MASt3R-style); use 'pts'")
+    if use not in ("desc", "pts"):
+        raise ShapeError(f"use expected 'auto', 'desc' or 'pts', got {use!r}")
+    if use == "desc":
+        m1, m2, c1, c2, metric = pred.desc1[0], pred.desc2[0], pred.desc_conf1[0], pred.desc_conf2[0], "dot"
+    else:
+        m1, m2, c1, c2, metric = pred.pts1_cam1[0], pred.pts2_cam1[0], pred.conf1[0], pred.conf2[0], "l2"
+    H1, W1, _ = m1.shape
+    H2, W2, _ = m2.shape
+    f1, f2 = m1.reshape(-1, m1.shape[-1]).float(), m2.reshape(-1, m2.shape[-1]).float()
+    valid1 = torch.isfinite(f1).all(-1)
+    valid2 = torch.isfinite(f2).all(-1)
+    if min_conf is not None:
+        valid1 &= c1.reshape(-1) >= min_conf
+        valid2 &= c2.reshape(-1) >= min_conf
+    ids1, ids2 = valid1.nonzero()[:, 0], valid2.nonzero()[:, 0]
+    g1, g2 = f1[ids1], f2[ids2]
+    if g1.shape[0] == 0 or g2.shape[0] == 0:
+        empty = torch.zeros(0, 2)
+        return Matches(empty, empty.clone(), torch.zeros(0))
+    if bruteforce:
+        a, b = reciprocal_nn_bruteforce(g1, g2, metric)
+    else:
+        s = max(int(subsample), 1)
+        ys, xs = torch.meshgrid(torch.arange(s // 2, H1, s), torch.arange(s // 2, W1, s), indexing="ij")
+        seed_pix = (ys * W1 + xs).reshape(-1)
+        lookup = torch.full((H1 * W1,), -1, dtype=torch.long)
+        lookup[ids1] = torch.arange(ids1.numel())
+        seeds = lookup[seed_pix]
+        a, b = reciprocal_nn_fast(g1, g2, seeds[seeds >= 0], metric, max_iter)
+    p1, p2 = ids1[a], ids2[b]
+    xy1 = torch.stack([p1 % W1, p1 // W1], -1).float()
+    xy2 = torch.stack([p2 % W2, p2 // W2], -1).float()
+    score = (c1.reshape(-1)[p1].float() * c2.reshape(-1)[p2].float()).sqrt()
+    if border > 0:
+        ok = ((xy1[:, 0] >= border) & (xy1[:, 0] < W1 - border) & (xy1[:, 1] >= border) & (xy1[:, 1] < H1 - border)
+              & (xy2[:, 0] >= border) & (xy2[:, 0] < W2 - border) & (xy2[:, 1] >= border) & (xy2[:, 1] < H2 - border))
+        xy1, xy2, score = xy1[ok], xy2[ok], score[ok]
+    return Matches(xy1, xy2, score)

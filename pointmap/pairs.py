@@ -1,0 +1,92 @@
+"""Pair graphs over N images: complete, swin-k, logwin-k, oneref-i; connectivity check.
+
+Pairs are unordered ``(i, j)`` with ``i < j``; inference runs both orders of each.
+"""
+
+from __future__ import annotations
+
+from pointmap.errors import GraphError
+
+GRAPHS = "complete, swin-K, logwin-K, oneref-I (swin/logwin take a '-noncyclic' suffix)"
+
+
+def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
+    """Unordered pairs of a named graph over ``n`` images, sorted, without duplicates.
+
+    Example:
+        >>> make_pairs(4, "swin-1-noncyclic")
+        [(0, 1), (1, 2), (2, 3)]
+    """
+    if not isinstance(n, int) or n < 2:
+        raise GraphError(f"a pair graph needs at least 2 images, got {n!r}")
+    parts = graph.split("-")
+    kind = parts[0]
+    cyclic = not (len(parts) == 3 and parts[2] == "noncyclic")
+    if (len(parts) == 3 and parts[2] != "noncyclic") or len(parts) > 3:
+        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    edges: set[tuple[int, int]] = set()
+    if kind == "complete" and len(parts) == 1:
+        edges = {(i, j) for i in range(n) for j in range(i + 1, n)}
+    elif kind in ("swin", "logwin", "oneref") and len(parts) >= 2:
+        try:
+            k = int(parts[1])
+        except ValueError:
+            raise GraphError(f"graph {graph!r}: {parts[1]!r} is not an integer") from None
+        if kind == "oneref":
+            if not 0 <= k < n:
+                raise GraphError(f"oneref-{k}: reference index out of range for {n} images")
+            edges = {(min(k, j), max(k, j)) for j in range(n) if j != k}
+        else:
+            if k < 1:
+                raise GraphError(f"{kind}-{k}: window must be >= 1")
+            steps = range(1, k + 1) if kind == "swin" else [2**e for e in range(k)]
+            for i in range(n):
+                for s in steps:
+                    j = i + s
+                    if j >= n:
+                        if not cyclic:
+                            continue
+                        j %= n
+                    if i != j:
+                        edges.add((min(i, j), max(i, j)))
+    else:
+        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    return sorted(edges)
+
+
+def auto_graph(n: int) -> str:
+    """The graph ``reconstruct(graph="auto")`` uses: complete up to 12 images, then logwin/swin."""
+    if n <= 12:
+        return "complete"
+    if n <= 48:
+        return "logwin-4"
+    return "swin-3"
+
+
+def components(n: int, pairs) -> list[list[int]]:
+    """Connected components of the pair graph (lists of image indices, largest first)."""
+    parent = list(range(n))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for i, j in pairs:
+        if not (0 <= i < n and 0 <= j < n):
+            raise GraphError(f"pair ({i}, {j}) refers to an image outside 0..{n - 1}")
+        parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return sorted(groups.values(), key=lambda g: (-len(g), g[0]))
+
+
+def check_connected(n: int, pairs) -> None:
+    """Raise GraphError naming the components when the graph does not connect all ``n`` images."""
+    comps = components(n, pairs)
+    if len(comps) > 1:
+        shown = ", ".join(str(c if len(c) <= 8 else c[:8] + ["..."]) for c in comps[:4])
+        raise GraphError(f"the pair graph is disconnected: {len(comps)} components ({shown}); "
+                         f"add pairs between them or use graph='complete'")

@@ -1,0 +1,116 @@
+"""Two-view relative pose from a pair prediction: PnP-RANSAC (OpenCV) or weighted Procrustes."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.geometry.focal import focal_from_pointmap
+from pointmap.geometry.procrustes import weighted_procrustes
+from pointmap.prediction import PairPrediction
+
+
+def _conf_mask(conf: torch.Tensor, pts: torch.Tensor, keep: float) -> torch.Tensor:
+    ok = torch.isfinite(pts).all(-1) & torch.isfinite(conf)
+    if ok.sum() == 0:
+        return ok
+    thr = torch.quantile(conf[ok].float(), 1 - keep)
+    return ok & (conf >= thr)
+
+
+def _pnp(pts_cam1: np.ndarray, uv: np.ndarray, K: np.ndarray, iters: int, reproj: float):
+    import cv2
+
+    if len(pts_cam1) < 6:
+        return None, 0
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        pts_cam1.astype(np.float64), uv.astype(np.float64), K.astype(np.float64), None,
+        iterationsCount=iters, reprojectionError=reproj, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok or inliers is None:
+        return None, 0
+    R, _ = cv2.Rodrigues(rvec)
+    world2cam = np.eye(4)
+    world2cam[:3, :3], world2cam[:3, 3] = R, tvec[:, 0]
+    return np.linalg.inv(world2cam), len(inliers)
+
+
+def _pose_pnp(pts2_cam1, conf2, K2, keep, rng):
+    H, W = pts2_cam1.shape[:2]
+    mask = _conf_mask(conf2, pts2_cam1, keep).numpy()
+    v, u = np.nonzero(mask)
+    pts = pts2_cam1.numpy()[v, u]
+    uv = np.stack([u, v], -1).astype(np.float64)
+    if len(pts) > 4000:
+        sel = rng.choice(len(pts), 4000, replace=False)
+        pts, uv = pts[sel], uv[sel]
+    reproj = max(2.0, 0.01 * max(H, W))
+    if K2 is not None:
+        pose, _ = _pnp(pts, uv, K2, 1000, reproj)
+        return pose
+    # unknown focal: sweep focals (as the official MST init does) and keep the one with most inliers
+    S = max(H, W)
+    best, best_n = None, -1
+    for f in np.geomspace(S / 2, 3 * S, 21):
+        K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+        pose, n = _pnp(pts, uv, K, 100, reproj)
+        if n > best_n:
+            best, best_n, best_K = pose, n, K
+    if best is not None:
+        best, _ = _pnp(pts, uv, best_K, 1000, reproj)
+    return best
+
+
+def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairPrediction | None = None,
+                  keep: float = 0.7, seed: int = 0) -> torch.Tensor:
+    """View 2's cam2world in view 1's camera frame, [B, 4, 4] (translation in the prediction's units).
+
+    - ``pred_reverse`` (the prediction of (view 2, view 1)) given: confidence-weighted Procrustes from
+      view 2's own-frame pointmap onto its pointmap in view 1's frame. No intrinsics needed.
+    - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
+      (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
+      camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
+    ``keep``: fraction of most confident pixels used. A pose that cannot be found is NaN (never raises
+    for degenerate content; raises ShapeError for wrong inputs).
+    """
+    B = pred.batch_size
+    if K2 is None and K1 is not None and tuple(pred.pts1_cam1.shape[1:3]) == tuple(pred.pts2_cam1.shape[1:3]):
+        K2 = K1
+    if K2 is not None:
+        K2 = torch.as_tensor(K2, dtype=torch.float64)
+        if K2.shape == (3, 3):
+            K2 = K2.expand(B, 3, 3)
+        if tuple(K2.shape) != (B, 3, 3):
+            raise ShapeError(f"K2 expected [3, 3] or [{B}, 3, 3], got {list(K2.shape)}")
+    if pred_reverse is not None and pred_reverse.batch_size != B:
+        raise ShapeError(f"pred_reverse batch size {pred_reverse.batch_size} differs from pred's {B}")
+    if not 0 < keep <= 1:
+        raise ShapeError(f"keep expected in (0, 1], got {keep}")
+    out = torch.full((B, 4, 4), float("nan"), dtype=torch.float32)
+    rng = np.random.default_rng(seed)
+    for b in range(B):
+        pts2 = pred.pts2_cam1[b].detach().float().cpu()
+        conf2 = pred.conf2[b].detach().float().cpu()
+        if pred_reverse is not None:
+            own = pred_reverse.pts1_cam1[b].detach().float().cpu()
+            if own.shape != pts2.shape:
+                raise ShapeError(f"pred_reverse.pts1_cam1 {list(own.shape)} must match pred.pts2_cam1 {list(pts2.shape)}")
+            w = conf2 * pred_reverse.conf1[b].detach().float().cpu()
+            mask = _conf_mask(w, pts2, keep) & torch.isfinite(own).all(-1)
+            if mask.sum() < 3:
+                continue
+            s, R, t = weighted_procrustes(own[mask].double(), pts2[mask].double(), w[mask].double())
+            out[b] = torch.eye(4)
+            out[b, :3, :3], out[b, :3, 3] = R.float(), t.float()
+        else:
+            pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)
+            if pose is not None:
+                out[b] = torch.from_numpy(pose).float()
+    return out
+
+
+def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:
+    """[B] focal of view 1 (its own-frame pointmap) by Weiszfeld; view 2 needs the reverse prediction."""
+    if view != 1:
+        raise ShapeError("only view 1's pointmap is in its own frame; run the reverse pair for view 2")
+    return focal_from_pointmap(pred.pts1_cam1.float())

@@ -1,0 +1,11 @@
+"""Gaussian splatting from a reconstruction (InstantSplat-style): init, rasterizer, fitter, outputs.
+
+See docs/splatting.md. ``init_from`` builds Gaussians from a Reconstruction, ``rasterize`` renders
+them (tiled PyTorch on CPU, gsplat on CUDA), ``fit`` refines Gaussians and camera poses, ``run`` does
+the whole job and writes the outputs.
+"""
+
+from pointmap.splat.gaussians import Gaussians
+from pointmap.splat.rasterize import RenderOutput, rasterize
+
+__all__ = ["Gaussians", "RenderOutput", "rasterize"]

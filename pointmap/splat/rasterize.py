@@ -1,0 +1,409 @@
+"""Differentiable Gaussian-splatting rasterizer: a tiled PyTorch backend for CPU (the default and the
+reference) and an optional gsplat backend on CUDA.
+
+Conventions (docs/conventions.md): OpenCV camera, ``world2cam`` [4, 4], ``K`` [3, 3] in pixels with
+integer pixel coordinates at pixel centres, so pixel (row i, column j) is evaluated at (u, v) = (j, i).
+
+Semantics follow the 3DGS / gsplat kernels:
+
+- projection with the EWA Jacobian, camera-space x/z and y/z clamped to 1.3x the frustum for the
+  Jacobian, plus a 0.3 px^2 low-pass on the 2D covariance (``eps2d``);
+- alpha = min(0.999, opacity * exp(-q/2)); alphas below 1/255 are skipped;
+- front-to-back compositing in global depth order, a pixel stops at the first Gaussian that would
+  bring its transmittance below 1e-4 (that Gaussian is not composited);
+- the bounding radius of a Gaussian is sqrt(2 ln(255 opacity) * lambda_max), the distance beyond which
+  its alpha is below 1/255, so tile culling changes no pixel.
+
+The torch backend bins Gaussians to square tiles, sorts (tile, depth), splits each tile's list into
+fixed-size chunks and evaluates all (chunk x pixel x Gaussian) exponents as one batched matrix product
+in tile-local coordinates. Compositing is a custom autograd Function with a hand-written backward
+(the 3DGS back-to-front recurrence in vectorised form: suffix sums instead of a loop).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import NamedTuple
+
+import torch
+
+from pointmap.errors import ConventionError, ShapeError
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.999
+T_MIN = 1e-4
+
+
+class _RenderTuple(NamedTuple):
+    image: torch.Tensor   # [H, W, D]
+    alpha: torch.Tensor   # [H, W]
+    depth: torch.Tensor   # [H, W] expected z-depth (accumulated depth / alpha; 0 where alpha == 0)
+    radii: torch.Tensor   # [N] int, 0 = culled
+
+
+class RenderOutput(_RenderTuple):
+    """``(image, alpha, depth, radii)``; also ``.means2d`` [N, 2] (pixels, differentiable) and
+    ``.depth_acc`` [H, W] (sum of weight * z, not normalised)."""
+
+
+# ----------------------------------------------------------------------------------------------------
+# projection
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[N, 4] (w, x, y, z), any norm -> [N, 3, 3]."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
+
+
+def project_gaussians(means, quats, scales, world2cam, K, width, height, *, near=0.01, eps2d=0.3):
+    """EWA projection. Returns (means2d [N, 2], conics [N, 3] = (a, b, c) of the inverse 2D covariance,
+    depths [N], in_front [N] bool)."""
+    R = world2cam[:3, :3]
+    t = world2cam[:3, 3]
+    p = means @ R.T + t
+    x, y, z = p.unbind(-1)
+    in_front = z > near
+    zs = torch.where(in_front, z, torch.ones_like(z))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u = fx * x / zs + cx
+    v = fy * y / zs + cy
+    # Jacobian with x/z, y/z clamped to 1.3x the frustum (3DGS), computed without in-place ops
+    lim_xp = 1.3 * (width - cx) / fx
+    lim_xn = 1.3 * (cx + 1.0) / fx
+    lim_yp = 1.3 * (height - cy) / fy
+    lim_yn = 1.3 * (cy + 1.0) / fy
+    tx = zs * torch.minimum(torch.maximum(x / zs, -lim_xn), lim_xp)
+    ty = zs * torch.minimum(torch.maximum(y / zs, -lim_yn), lim_yp)
+    zero = torch.zeros_like(zs)
+    J = torch.stack([fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)],
+                    dim=-1).reshape(-1, 2, 3)
+    Rg = quat_to_rotmat(quats)
+    M = Rg * scales[:, None, :]                     # R diag(s)
+    T = J @ R                                       # [N, 2, 3]
+    TM = T @ M                                      # [N, 2, 3]
+    cov = TM @ TM.transpose(1, 2)                   # [N, 2, 2]
+    a = cov[:, 0, 0] + eps2d
+    b = cov[:, 0, 1]
+    c = cov[:, 1, 1] + eps2d
+    det = a * c - b * b
+    ok = in_front & (det > 0)
+    det_s = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
+    return torch.stack([u, v], dim=-1), conics, z, ok, (a, b, c, det_s)
+
+
+def _radii(cov_abc, opacities, ok):
+    a, b, c, det = cov_abc
+    mid = 0.5 * (a + c)
+    lam = mid + torch.sqrt((mid * mid - det).clamp_min(0.1))
+    o = opacities.clamp(max=1.0)
+    ext2 = 2.0 * torch.log((255.0 * o).clamp_min(1.0))
+    r = torch.ceil(torch.sqrt(ext2 * lam))
+    r = torch.where(ok & (o > ALPHA_MIN), r, torch.zeros_like(r))
+    return r
+
+
+# ----------------------------------------------------------------------------------------------------
+# tile binning
+
+
+def _bin_tiles(means2d, radii, depths, width, height, tile, chunk):
+    """Return (gid [nc, C] long, -1 = padding; chunk_tile [nc] long; n_tiles_x, n_tiles_y)."""
+    device = means2d.device
+    n = means2d.shape[0]
+    ntx = (width + tile - 1) // tile
+    nty = (height + tile - 1) // tile
+    u, v = means2d[:, 0], means2d[:, 1]
+    r = radii
+    live = r > 0
+    x0 = torch.floor((u - r) / tile).clamp(0, ntx - 1)
+    x1 = torch.floor((u + r) / tile).clamp(-1, ntx - 1)
+    y0 = torch.floor((v - r) / tile).clamp(0, nty - 1)
+    y1 = torch.floor((v + r) / tile).clamp(-1, nty - 1)
+    live = live & (u + r >= 0) & (u - r <= width - 1) & (v + r >= 0) & (v - r <= height - 1)
+    x0, x1, y0, y1 = (t.long() for t in (x0, x1, y0, y1))
+    nx = (x1 - x0 + 1).clamp_min(0)
+    ny = (y1 - y0 + 1).clamp_min(0)
+    cnt = torch.where(live, nx * ny, torch.zeros_like(nx))
+    total = int(cnt.sum())
+    if total == 0:
+        return (torch.full((0, chunk), -1, dtype=torch.long, device=device),
+                torch.zeros(0, dtype=torch.long, device=device), ntx, nty)
+    g = torch.repeat_interleave(torch.arange(n, device=device), cnt)
+    start = torch.cumsum(cnt, 0) - cnt
+    off = torch.arange(total, device=device) - start[g]
+    tx = x0[g] + off % nx[g]
+    ty = y0[g] + off // nx[g]
+    # drop tiles whose rectangle does not meet the bounding circle
+    px = torch.clamp(u[g], (tx * tile).to(u.dtype), (tx * tile + tile - 1).to(u.dtype))
+    py = torch.clamp(v[g], (ty * tile).to(v.dtype), (ty * tile + tile - 1).to(v.dtype))
+    keep = (px - u[g]) ** 2 + (py - v[g]) ** 2 <= r[g] ** 2
+    g, tx, ty = g[keep], tx[keep], ty[keep]
+    if g.numel() == 0:
+        return (torch.full((0, chunk), -1, dtype=torch.long, device=device),
+                torch.zeros(0, dtype=torch.long, device=device), ntx, nty)
+    tile_id = ty * ntx + tx
+    rank = torch.empty(n, dtype=torch.long, device=device)
+    rank[torch.argsort(depths, stable=True)] = torch.arange(n, device=device)
+    key = tile_id * n + rank[g]
+    order = torch.argsort(key)
+    g = g[order]
+    tile_id = tile_id[order]
+    n_tiles = ntx * nty
+    per_tile = torch.bincount(tile_id, minlength=n_tiles)
+    tile_start = torch.cumsum(per_tile, 0) - per_tile
+    idx_in_tile = torch.arange(g.numel(), device=device) - tile_start[tile_id]
+    chunks_per_tile = (per_tile + chunk - 1) // chunk
+    chunk_start = torch.cumsum(chunks_per_tile, 0) - chunks_per_tile
+    nc = int(chunks_per_tile.sum())
+    chunk_idx = chunk_start[tile_id] + idx_in_tile // chunk
+    gid = torch.full((nc, chunk), -1, dtype=torch.long, device=device)
+    gid[chunk_idx, idx_in_tile % chunk] = g
+    chunk_tile = torch.repeat_interleave(torch.arange(n_tiles, device=device), chunks_per_tile)
+    return gid, chunk_tile, ntx, nty
+
+
+# ----------------------------------------------------------------------------------------------------
+# compositing
+
+
+def _segmented_sums(tot, chunk_tile, n_tiles):
+    """For per-chunk totals ``tot`` [nc, P] (chunks of a tile contiguous), return (exclusive prefix,
+    exclusive suffix) within each tile, computed in float64."""
+    t64 = tot.double()
+    G = torch.cumsum(t64, 0)
+    tile_sum = torch.zeros((n_tiles,) + tot.shape[1:], dtype=torch.float64, device=tot.device)
+    tile_sum.index_add_(0, chunk_tile, t64)
+    tile_base = torch.cumsum(tile_sum, 0) - tile_sum           # sum of all earlier tiles
+    incl = G - tile_base[chunk_tile]
+    prefix = incl - t64
+    suffix = tile_sum[chunk_tile] - incl
+    return prefix.to(tot.dtype), suffix.to(tot.dtype)
+
+
+class _Composite(torch.autograd.Function):
+    """Front-to-back compositing of chunked tile lists.
+
+    Inputs: coef [nc, C, 6] (log-alpha as a quadratic in tile-local pixel coordinates), colors
+    [nc, C, D], z [nc, C], feat [P, 6] (per-pixel monomials), chunk_tile [nc], n_tiles.
+    Outputs per tile: color [T, P, D] (sum of w * c), depth [T, P] (sum of w * z), logT [T, P]
+    (log of the final transmittance).
+    """
+
+    @staticmethod
+    def forward(ctx, coef, colors, z, feat, chunk_tile, n_tiles):
+        la = torch.matmul(feat, coef.transpose(1, 2))                  # [nc, P, C]
+        a_raw = la.exp()
+        valid = a_raw >= ALPHA_MIN
+        a = a_raw.clamp(max=ALPHA_MAX)
+        l1m = torch.where(valid, torch.log1p(-a), torch.zeros_like(a))
+        cs = l1m.cumsum(-1)
+        pre, _ = _segmented_sums(cs[..., -1], chunk_tile, n_tiles)
+        log_after = cs + pre[..., None]
+        inc = valid & (log_after >= math.log(T_MIN))
+        T = (log_after - l1m).exp()
+        w = torch.where(inc, a * T, torch.zeros_like(a))
+        col_c = torch.bmm(w, colors)                                    # [nc, P, D]
+        dep_c = torch.bmm(w, z[..., None]).squeeze(-1)                  # [nc, P]
+        lt_c = torch.where(inc, l1m, torch.zeros_like(l1m)).sum(-1)      # [nc, P]
+        P, D = feat.shape[0], colors.shape[-1]
+        col = torch.zeros(n_tiles, P, D, dtype=colors.dtype, device=colors.device).index_add_(0, chunk_tile, col_c)
+        dep = torch.zeros(n_tiles, P, dtype=z.dtype, device=z.device).index_add_(0, chunk_tile, dep_c)
+        lt = torch.zeros(n_tiles, P, dtype=la.dtype, device=la.device).index_add_(0, chunk_tile, lt_c)
+        ctx.save_for_backward(a_raw, T, inc, colors, z, feat, chunk_tile)
+        ctx.n_tiles = n_tiles
+        return col, dep, lt
+
+    @staticmethod
+    def backward(ctx, g_col, g_dep, g_lt):
+        a_raw, T, inc, colors, z, feat, chunk_tile = ctx.saved_tensors
+        a = a_raw.clamp(max=ALPHA_MAX)
+        w = torch.where(inc, a * T, torch.zeros_like(a))
+        gc = g_col[chunk_tile]                                          # [nc, P, D]
+        gd = g_dep[chunk_tile]                                          # [nc, P]
+        gl = g_lt[chunk_tile]                                           # [nc, P]
+        s = torch.bmm(gc, colors.transpose(1, 2)) + gd[..., None] * z[:, None, :]   # [nc, P, C]
+        ws = w * s
+        cs = ws.cumsum(-1)
+        tot = cs[..., -1]
+        _, suf = _segmented_sums(tot, chunk_tile, ctx.n_tiles)
+        behind = tot[..., None] - cs + (suf + gl)[..., None]     # sum_{j>k} w_j s_j + dL/dlogT
+        g_a = T * s - behind / (1.0 - a)
+        g_la = torch.where(inc & (a_raw < ALPHA_MAX), g_a * a_raw, torch.zeros_like(a))
+        g_coef = torch.matmul(g_la.transpose(1, 2), feat)                # [nc, C, 6]
+        wt = w.transpose(1, 2)
+        g_colors = torch.bmm(wt, gc) if ctx.needs_input_grad[1] else None
+        g_z = torch.bmm(wt, gd[..., None]).squeeze(-1) if ctx.needs_input_grad[2] else None
+        return g_coef, g_colors, g_z, None, None, None
+
+
+_FEAT_CACHE: dict = {}
+
+
+def _tile_features(tile, dtype, device):
+    key = (tile, dtype, str(device))
+    if key not in _FEAT_CACHE:
+        ly, lx = torch.meshgrid(torch.arange(tile, dtype=dtype, device=device),
+                                torch.arange(tile, dtype=dtype, device=device), indexing="ij")
+        lx, ly = lx.reshape(-1), ly.reshape(-1)
+        _FEAT_CACHE[key] = torch.stack([lx * lx, lx * ly, ly * ly, lx, ly, torch.ones_like(lx)], dim=-1)
+    return _FEAT_CACHE[key]
+
+
+def _rasterize_torch(means, quats, scales, opacities, colors, world2cam, K, width, height, background,
+                     near, eps2d, tile, chunk):
+    means2d, conics, depths, ok, cov_abc = project_gaussians(means, quats, scales, world2cam, K, width,
+                                                             height, near=near, eps2d=eps2d)
+    with torch.no_grad():
+        radii = _radii(tuple(t.detach() for t in cov_abc), opacities.detach(), ok)
+        gid, chunk_tile, ntx, nty = _bin_tiles(means2d.detach(), radii, depths.detach(), width, height,
+                                               tile, chunk)
+    D = colors.shape[-1]
+    dtype = means2d.dtype
+    n_tiles = ntx * nty
+    P = tile * tile
+    pad = gid < 0
+    gi = gid.clamp_min(0)
+    # tile origin of each chunk
+    tx0 = ((chunk_tile % ntx) * tile).to(dtype)[:, None]
+    ty0 = ((chunk_tile // ntx) * tile).to(dtype)[:, None]
+    flat = gi.reshape(-1)
+    m2 = means2d.index_select(0, flat).reshape(*gi.shape, 2)
+    cn = conics.index_select(0, flat).reshape(*gi.shape, 3)
+    mx = m2[..., 0] - tx0
+    my = m2[..., 1] - ty0
+    ca, cb, cc = cn.unbind(-1)
+    logo = torch.log(opacities.clamp_min(1e-12)).index_select(0, flat).reshape(gi.shape)
+    const = -0.5 * (ca * mx * mx + 2 * cb * mx * my + cc * my * my) + logo
+    coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, ca * mx + cb * my, cb * mx + cc * my, const], dim=-1)
+    pad_coef = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, -1e4], dtype=dtype, device=means.device)
+    coef = torch.where(pad[..., None], pad_coef, coef)   # padding slots: alpha = 0
+    col_s = colors.index_select(0, flat).reshape(*gi.shape, D)
+    z_s = depths.index_select(0, flat).reshape(gi.shape)
+    feat = _tile_features(tile, dtype, means.device)
+    col, dep, lt = _Composite.apply(coef, col_s, z_s, feat, chunk_tile, n_tiles)
+
+    def untile(x):
+        x = x.reshape(nty, ntx, tile, tile, *x.shape[2:]).transpose(1, 2)
+        return x.reshape(nty * tile, ntx * tile, *x.shape[4:])[:height, :width]
+
+    img = untile(col)
+    dep_acc = untile(dep)
+    Tf = untile(lt).exp()
+    if background is not None:
+        img = img + Tf[..., None] * background
+    alpha = 1.0 - Tf
+    depth = torch.where(alpha > 1e-6, dep_acc / alpha.clamp_min(1e-6), torch.zeros_like(dep_acc))
+    out = RenderOutput(img, alpha, depth, radii.to(torch.int32))
+    out.means2d = means2d
+    out.depth_acc = dep_acc
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# gsplat backend (CUDA only, imported lazily)
+
+_GSPLAT_STATE: dict = {}
+
+
+def _gsplat_available(device) -> bool:
+    if "ok" not in _GSPLAT_STATE:
+        ok = False
+        if torch.cuda.is_available():
+            try:
+                import gsplat  # noqa: F401
+
+                ok = True
+            except Exception as e:  # ImportError, OSError (JIT toolchain), ...
+                _GSPLAT_STATE["err"] = repr(e)
+        else:
+            _GSPLAT_STATE["err"] = "CUDA is not available"
+        _GSPLAT_STATE["ok"] = ok
+    return _GSPLAT_STATE["ok"] and torch.device(device).type == "cuda"
+
+
+def _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, width, height, background,
+                      near, eps2d):
+    import gsplat
+
+    Kg = K.clone()
+    Kg[0, 2] = K[0, 2] + 0.5   # gsplat puts pixel centres at i + 0.5
+    Kg[1, 2] = K[1, 2] + 0.5
+    bg = None if background is None else background.reshape(1, -1)
+    colors_in = torch.cat([colors, torch.zeros_like(colors[:, :1])], -1)
+    img, alpha, meta = gsplat.rasterization(
+        means, quats, scales, opacities, colors_in, world2cam[None], Kg[None], width, height,
+        near_plane=near, eps2d=eps2d, packed=False, render_mode="RGB+ED", backgrounds=None)
+    rgb = img[0, ..., :-1]
+    depth = img[0, ..., -1]
+    a = alpha[0, ..., 0]
+    if bg is not None:
+        rgb = rgb + (1.0 - a)[..., None] * bg
+    radii = meta["radii"][0]
+    if radii.ndim == 2:
+        radii = radii.max(-1).values
+    out = RenderOutput(rgb, a, depth, radii.to(torch.int32))
+    out.means2d = meta["means2d"][0]
+    out.depth_acc = depth * a
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# public entry point
+
+
+def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, height, background=None, *,
+              backend: str = "torch", near: float = 0.01, eps2d: float = 0.3, tile: int = 8,
+              chunk: int = 32) -> RenderOutput:
+    """Render Gaussians into one pinhole camera.
+
+    means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (standard deviations, not log),
+    opacities [N] in [0, 1], colors [N, D] (any channels, typically RGB), world2cam [4, 4] (OpenCV),
+    K [3, 3] (pixels, zero skew), background [D] or None (black).
+    Returns ``RenderOutput(image [H, W, D], alpha [H, W], depth [H, W], radii [N])``; all inputs
+    (world2cam included) receive gradients. ``backend``: "torch" (default), "gsplat" (CUDA; falls back
+    to torch with a warning when unavailable) or "auto" (gsplat when available).
+    """
+    width, height = int(width), int(height)
+    if width <= 0 or height <= 0:
+        raise ShapeError(f"width and height must be positive, got {width}x{height}")
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ShapeError(f"means expected [N, 3], got {list(means.shape)}")
+    n = means.shape[0]
+    for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,)),
+                           ("world2cam", world2cam, (4, 4)), ("K", K, (3, 3))):
+        if tuple(t.shape) != shape:
+            raise ShapeError(f"{name} expected {list(shape)}, got {list(t.shape)}")
+    if colors.ndim != 2 or colors.shape[0] != n:
+        raise ShapeError(f"colors expected [N, D] with N = {n}, got {list(colors.shape)}")
+    if background is not None and tuple(background.shape) != (colors.shape[1],):
+        raise ShapeError(f"background expected [{colors.shape[1]}], got {list(background.shape)}")
+    Kd = K.detach()
+    if abs(float(Kd[0, 1])) > 1e-9 or float(Kd[0, 0]) <= 0 or float(Kd[1, 1]) <= 0:
+        raise ConventionError("K must have positive focals and zero skew")
+    if tile < 1 or chunk < 1:
+        raise ShapeError(f"tile and chunk must be >= 1, got {tile}, {chunk}")
+    if backend not in ("torch", "gsplat", "auto"):
+        raise ShapeError(f"backend must be 'torch', 'gsplat' or 'auto', got {backend!r}")
+    if backend in ("gsplat", "auto"):
+        if _gsplat_available(means.device):
+            return _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, width, height,
+                                     background, near, eps2d)
+        if backend == "gsplat" and not _GSPLAT_STATE.get("warned"):
+            warnings.warn(f"gsplat backend unavailable ({_GSPLAT_STATE.get('err', 'tensors not on CUDA')}); "
+                          "using the torch rasterizer", RuntimeWarning, stacklevel=2)
+            _GSPLAT_STATE["warned"] = True
+    dtype = means.dtype
+    world2cam = world2cam.to(dtype)
+    K = K.to(dtype)
+    if background is not None:
+        background = background.to(colors.dtype)
+    return _rasterize_torch(means, quats, scales, opacities, colors, world2cam, K, width, height, background,
+                            near, eps2d, tile, chunk)
