@@ -134,8 +134,8 @@ def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: 
             ok = _valid_points(sub) & torch.isfinite(c)
             out_p[e, :counts[img]] = torch.where(ok[:, None], sub, torch.zeros_like(sub))
             out_w[e, :counts[img]] = torch.where(ok, conf_to_weight(c, conf_transform), torch.zeros_like(c))
-        c1 = torch.nan_to_num(p.conf1.detach().double(), nan=0.0).mean()
-        c2 = torch.nan_to_num(p.conf2.detach().double(), nan=0.0).mean()
+        c1, c2 = (torch.where(torch.isfinite(c), c, torch.zeros_like(c)).mean()
+                  for c in (p.conf1.detach().double(), p.conf2.detach().double()))
         score[e] = c1 * c2
     return EdgeStack(i=torch.tensor([k[0] for k in keys]), j=torch.tensor([k[1] for k in keys]),
                      pred_i=pred_i, pred_j=pred_j, w_i=w_i, w_j=w_j, uv=uv, pix_valid=pix_valid,
@@ -147,13 +147,13 @@ def drop_empty_edges(stack: EdgeStack) -> EdgeStack:
     alive = (stack.w_i.sum(1) > 0) & (stack.w_j.sum(1) > 0)
     if bool(alive.all()):
         return stack
+    if not bool(alive.any()):
+        raise GraphError("every pair has zero confidence weight (all conf <= 1 with the 'log' transform?); "
+                         "nothing to align. Check the predictions or use conf_transform='id'.")
     dead = [stack.keys[e] for e in range(stack.num_edges) if not alive[e]]
     warnings.warn(f"{len(dead)} pair(s) have no usable confidence (all weights zero, e.g. conf <= 1 "
                   f"with conf_transform='log') and are ignored: {dead[:8]}{' ...' if len(dead) > 8 else ''}",
                   stacklevel=3)
-    if not bool(alive.any()):
-        raise GraphError("every pair has zero confidence weight (all conf <= 1 with the 'log' transform?); "
-                         "nothing to align. Check the predictions or use conf_transform='id'.")
     keep = alive.nonzero()[:, 0]
     return EdgeStack(i=stack.i[keep], j=stack.j[keep], pred_i=stack.pred_i[keep], pred_j=stack.pred_j[keep],
                      w_i=stack.w_i[keep], w_j=stack.w_j[keep], uv=stack.uv, pix_valid=stack.pix_valid,

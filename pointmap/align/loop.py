@@ -47,7 +47,8 @@ def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int) -> dict:
         base_lrs = [g["lr"] for g in opt.param_groups]
     elif cfg.optimizer == "lbfgs":
         opt = torch.optim.LBFGS([p for g in params.param_groups(1.0) for p in g["params"]], lr=1.0,
-                                max_iter=1, history_size=20, line_search_fn="strong_wolfe")
+                                max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=0.0, tolerance_change=0.0)
     else:
         raise ValueError(f"optimizer expected 'adam', 'lbfgs' or 'none', got {cfg.optimizer!r}")
     for it in range(cfg.niter):

@@ -39,6 +39,7 @@ def chunk_residual_sum(pts_world: torch.Tensor, s: torch.Tensor, R: torch.Tensor
     sR = s[:, None, None] * R
     total = pts_world.new_zeros(())
     for idx, pred, w in ((i, stack.pred_i[sl], stack.w_i[sl]), (j, stack.pred_j[sl], stack.w_j[sl])):
+        pred, w = pred.to(sR.dtype), w.to(sR.dtype)  # no-op in the float32 optimiser
         aligned = pred @ sR.transpose(-1, -2) + t[:, None, :]
         diff = pts_world[idx] - aligned
         # sqrt of a clamped square: the gradient stays finite at an exact zero residual
@@ -81,4 +82,4 @@ def loss_and_grad(pts_world: torch.Tensor, s: torch.Tensor, R: torch.Tensor, t: 
 
 def chunk_size_for(stack: EdgeStack, max_chunk_pixels: int) -> int:
     """Edges per chunk so that one chunk holds at most ``max_chunk_pixels`` edge-pixels (>= 1)."""
-    return max(1, int(max_chunk_pixels // max(1, stack.num_pixels)))
+    return max(1, min(stack.num_edges, int(max_chunk_pixels // max(1, stack.num_pixels))))

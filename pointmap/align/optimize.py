@@ -23,7 +23,7 @@ from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
 from pointmap.align.loop import run
 from pointmap.align.objective import chunk_size_for
 from pointmap.align.params import AlignParams
-from pointmap.errors import GraphError, PointmapError
+from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.reconstruction import K_to_original, Reconstruction
 
@@ -97,6 +97,9 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     if n < 2:
         raise GraphError(f"global alignment needs at least 2 images, got {n}; for one image use the "
                          "pair prediction of the image with itself (pm.relative_pose / pred.pts1_cam1)")
+    if len(set(info.shapes)) != 1:
+        raise ShapeError("images of different sizes cannot form one Reconstruction yet (it stores "
+                         f"[N, h, w] maps); got sizes (h, w) {sorted(set(info.shapes))}")
     keys = check_preds(preds, n, info.shapes)
     check_connected(n, keys)
     K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
@@ -168,10 +171,6 @@ def _build(info, c2w, intr, depths, confs, unit, known_poses, K_given, K_known, 
     for i in range(n):
         if K_known[i]:
             K_orig[i] = K_given[i].to(torch.float32)
-    hs = {s for s in info.shapes}
-    if len(hs) != 1:
-        raise PointmapError("images of different sizes cannot form one Reconstruction yet (it stores "
-                            f"[N, h, w] maps); got sizes {sorted(hs)}")
     depth_z = torch.stack([d * unit for d in depths]).float()
     conf = torch.stack(confs).float()
     for name, t in (("cam2world", cam2world), ("K", K_orig), ("depth_z", depth_z)):

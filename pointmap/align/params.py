@@ -4,7 +4,7 @@ cam2world_n = base_n @ se3_exp(xi_n)          (xi frozen at 0 for known poses)
 f_n         = exp(log_f_n)                    (fx = fy; known intrinsics are constants)
 depth_n     = exp(log_depth_n)                [N, P] at the stack's pixels
 S_e         = s_e [R0_e exp(phi_e) | t0_e + dt_e],  log s_e = log s0_e + dls_e
-              (centred to zero mean when the scale is free, which fixes the gauge)
+              (mean of log s held at its initial value when the scale is free: fixes the gauge)
 Everything is in a normalised world (scene scale ~1); see optimize.py for the scaling.
 """
 
@@ -31,6 +31,7 @@ class AlignParams(torch.nn.Module):
         self.register_buffer("pw_R0", pw_R.to(dtype))
         self.register_buffer("pw_t0", pw_t.to(dtype))
         self.register_buffer("pw_ls0", pw_s.log().to(dtype))
+        self.register_buffer("pw_ls_mean", pw_s.log().mean().to(dtype))
         self.scale_free = scale_free
         self.xi = torch.nn.Parameter(torch.zeros(n, 6, dtype=dtype))
         self.log_f = torch.nn.Parameter(fx.log().to(dtype))
@@ -59,7 +60,7 @@ class AlignParams(torch.nn.Module):
     def pw(self):
         ls = self.pw_ls0 + self.pw_dls
         if self.scale_free:
-            ls = ls - ls.mean()
+            ls = ls - ls.mean() + self.pw_ls_mean
         R = self.pw_R0 @ axis_angle_to_matrix(self.pw_phi)
         return torch.exp(ls), R, self.pw_t0 + self.pw_dt
 

@@ -47,7 +47,7 @@ def transform_points(T: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     extra = pts.ndim - T.ndim + 1  # number of point dims to broadcast over
     R = T[..., :3, :3]
     t = T[..., :3, 3]
-    for _ in range(max(extra - 1, 0)):
+    for _ in range(max(extra, 0)):
         R = R.unsqueeze(-3)
         t = t.unsqueeze(-2)
     return (R @ pts.unsqueeze(-1)).squeeze(-1) + t
@@ -66,7 +66,7 @@ def project(pts_cam: torch.Tensor, K: torch.Tensor, eps: float = 1e-8):
     z = pts_cam[..., 2]
     extra = pts_cam.ndim - K.ndim + 1
     Kb = K
-    for _ in range(max(extra - 1, 0)):
+    for _ in range(max(extra, 0)):
         Kb = Kb.unsqueeze(-3)
     fx, fy, cx, cy = Kb[..., 0, 0], Kb[..., 1, 1], Kb[..., 0, 2], Kb[..., 1, 2]
     zs = torch.where(z.abs() < eps, torch.full_like(z, eps), z)

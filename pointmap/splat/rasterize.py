@@ -191,57 +191,101 @@ def _segmented_sums(tot, chunk_tile, n_tiles):
 class _Composite(torch.autograd.Function):
     """Front-to-back compositing of chunked tile lists.
 
-    Inputs: coef [nc, C, 6] (log-alpha as a quadratic in tile-local pixel coordinates), colors
-    [nc, C, D], z [nc, C], feat [P, 6] (per-pixel monomials), chunk_tile [nc], n_tiles.
-    Outputs per tile: color [T, P, D] (sum of w * c), depth [T, P] (sum of w * z), logT [T, P]
-    (log of the final transmittance).
+    Inputs: per-Gaussian ``g6`` [N, 6] = (u, v, conic a, b, c, log opacity) and ``vals`` [N, D+1] (colour
+    channels and z-depth); the binning ``gid`` [nc, C] (-1 = padding), ``origin`` [nc, 2] (tile-origin pixel
+    of each chunk), ``feat`` [P, 6] (per-pixel monomials of tile-local coordinates), ``chunk_tile`` [nc].
+    The log-alpha of every (chunk slot, pixel) is one GEMM of per-slot coefficients with ``feat``.
+    Outputs per tile: acc [T, P, D+1] (sum of weight * vals) and logT [T, P] (log final transmittance).
+    Entries with alpha < 1/255 are zeroed; entries after a pixel's termination are masked (only when
+    any pixel terminates, which is checked with one reduction). Every big temporary is updated in place.
     """
 
     @staticmethod
-    def forward(ctx, coef, colors, z, feat, chunk_tile, n_tiles):
-        la = torch.matmul(feat, coef.transpose(1, 2))                  # [nc, P, C]
-        a_raw = la.exp()
-        valid = a_raw >= ALPHA_MIN
-        a = a_raw.clamp(max=ALPHA_MAX)
-        l1m = torch.where(valid, torch.log1p(-a), torch.zeros_like(a))
-        cs = l1m.cumsum(-1)
-        pre, _ = _segmented_sums(cs[..., -1], chunk_tile, n_tiles)
-        log_after = cs + pre[..., None]
-        inc = valid & (log_after >= math.log(T_MIN))
-        T = (log_after - l1m).exp()
-        w = torch.where(inc, a * T, torch.zeros_like(a))
-        col_c = torch.bmm(w, colors)                                    # [nc, P, D]
-        dep_c = torch.bmm(w, z[..., None]).squeeze(-1)                  # [nc, P]
-        lt_c = torch.where(inc, l1m, torch.zeros_like(l1m)).sum(-1)      # [nc, P]
-        P, D = feat.shape[0], colors.shape[-1]
-        col = torch.zeros(n_tiles, P, D, dtype=colors.dtype, device=colors.device).index_add_(0, chunk_tile, col_c)
-        dep = torch.zeros(n_tiles, P, dtype=z.dtype, device=z.device).index_add_(0, chunk_tile, dep_c)
-        lt = torch.zeros(n_tiles, P, dtype=la.dtype, device=la.device).index_add_(0, chunk_tile, lt_c)
-        ctx.save_for_backward(a_raw, T, inc, colors, z, feat, chunk_tile)
+    def forward(ctx, g6, vals, gid, origin, feat, chunk_tile, n_tiles):
+        pad = gid < 0
+        gi = gid.clamp_min(0).reshape(-1)
+        sl = g6.index_select(0, gi).reshape(*gid.shape, 6)
+        mx = sl[..., 0] - origin[:, 0:1]
+        my = sl[..., 1] - origin[:, 1:2]
+        ca, cb, cc, logo = sl[..., 2], sl[..., 3], sl[..., 4], sl[..., 5]
+        px = ca * mx + cb * my                                          # (conic @ m)_x
+        py = cb * mx + cc * my
+        const = logo - 0.5 * (px * mx + py * my)
+        coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, px, py, const.masked_fill_(pad, -1e4)], dim=-1)
+        vals = vals.index_select(0, gi).reshape(*gid.shape, vals.shape[-1])
+        # layout [nc, C, P]: Gaussians of a chunk along dim 1, the tile's pixels contiguous along dim 2
+        a = torch.matmul(coef, feat.T)                                  # log alpha (one folded GEMM)
+        a.exp_()
+        torch.nn.functional.threshold_(a, ALPHA_MIN, 0.0)                # alpha < 1/255 -> 0
+        a.clamp_(max=ALPHA_MAX)
+        l1m = torch.rsub(a, 1.0).log_()                                 # log(1 - alpha), 0 where skipped
+        log_after = l1m.cumsum(1)
+        pre, _ = _segmented_sums(log_after[:, -1], chunk_tile, n_tiles)
+        log_after.add_(pre[:, None])                                    # log T after each Gaussian
+        term = None
+        if log_after.numel() and float(log_after.min()) < math.log(T_MIN):
+            term = log_after >= math.log(T_MIN)                          # Gaussians before termination
+            l1m.mul_(term)
+        lt_c = l1m.sum(1)                                               # [nc, P]
+        T = log_after.sub_(l1m).exp_()
+        if term is not None:
+            T.mul_(term)                                                # T = 0 past termination
+        del l1m
+        w = a * T
+        acc_c = torch.bmm(w.transpose(1, 2), vals)                      # [nc, P, D+1]
+        P = feat.shape[0]
+        acc = torch.zeros(n_tiles, P, vals.shape[-1], dtype=vals.dtype, device=vals.device)
+        acc.index_add_(0, chunk_tile, acc_c)
+        lt = torch.zeros(n_tiles, P, dtype=a.dtype, device=a.device).index_add_(0, chunk_tile, lt_c)
+        ctx.save_for_backward(a, T, vals, feat, chunk_tile, term if term is not None else torch.empty(0),
+                              gi, pad, mx, my, sl)
         ctx.n_tiles = n_tiles
-        return col, dep, lt
+        ctx.n = g6.shape[0]
+        return acc, lt
 
     @staticmethod
-    def backward(ctx, g_col, g_dep, g_lt):
-        a_raw, T, inc, colors, z, feat, chunk_tile = ctx.saved_tensors
-        a = a_raw.clamp(max=ALPHA_MAX)
-        w = torch.where(inc, a * T, torch.zeros_like(a))
-        gc = g_col[chunk_tile]                                          # [nc, P, D]
-        gd = g_dep[chunk_tile]                                          # [nc, P]
-        gl = g_lt[chunk_tile]                                           # [nc, P]
-        s = torch.bmm(gc, colors.transpose(1, 2)) + gd[..., None] * z[:, None, :]   # [nc, P, C]
-        ws = w * s
-        cs = ws.cumsum(-1)
-        tot = cs[..., -1]
+    def backward(ctx, g_acc, g_lt):
+        a, T, vals, feat, chunk_tile, term, gi, pad, mx, my, sl = ctx.saved_tensors
+        w = a * T
+        gv = g_acc.index_select(0, chunk_tile)                          # [nc, P, D+1]
+        s = torch.bmm(vals, gv.transpose(1, 2))                         # dL/dw, [nc, C, P]
+        g_vals = torch.bmm(w, gv) if ctx.needs_input_grad[1] else None
+        ws = w.mul_(s)
+        cs = ws.cumsum(1)
+        del ws, w
+        tot = cs[:, -1].clone()
         _, suf = _segmented_sums(tot, chunk_tile, ctx.n_tiles)
-        behind = tot[..., None] - cs + (suf + gl)[..., None]     # sum_{j>k} w_j s_j + dL/dlogT
-        g_a = T * s - behind / (1.0 - a)
-        g_la = torch.where(inc & (a_raw < ALPHA_MAX), g_a * a_raw, torch.zeros_like(a))
-        g_coef = torch.matmul(g_la.transpose(1, 2), feat)                # [nc, C, 6]
-        wt = w.transpose(1, 2)
-        g_colors = torch.bmm(wt, gc) if ctx.needs_input_grad[1] else None
-        g_z = torch.bmm(wt, gd[..., None]).squeeze(-1) if ctx.needs_input_grad[2] else None
-        return g_coef, g_colors, g_z, None, None, None
+        tot.add_(suf).add_(g_lt.index_select(0, chunk_tile))
+        # behind_k = sum_{j > k} w_j s_j + dL/dlogT  (in place in cs)
+        behind = cs.neg_().add_(tot[:, None])
+        behind.div_(torch.rsub(a, 1.0))
+        g_la = s.mul_(T).sub_(behind)                                   # dL/dalpha
+        del behind
+        g_la.mul_(a)                                                    # dL/dlog(alpha); 0 where skipped
+        if term.numel():
+            g_la.mul_(term)
+        if a.numel() and float(a.max()) >= ALPHA_MAX:
+            g_la.mul_(a < ALPHA_MAX)                                    # clamped alphas have no gradient
+        g = torch.matmul(g_la, feat).masked_fill_(pad[..., None], 0.0)   # dL/dcoef, [nc, C, 6]
+        g0, g1, g2, g3, g4, g5 = g.unbind(-1)
+        ca, cb, cc = sl[..., 2], sl[..., 3], sl[..., 4]
+        px = ca * mx + cb * my
+        py = cb * mx + cc * my
+        g_slot = torch.stack([
+            g3 * ca + g4 * cb - g5 * px,                                # d/du
+            g3 * cb + g4 * cc - g5 * py,                                # d/dv
+            -0.5 * (g0 + g5 * mx * mx) + g3 * mx,                        # d/da
+            -g1 + g3 * my + g4 * mx - g5 * mx * my,                     # d/db
+            -0.5 * (g2 + g5 * my * my) + g4 * my,                        # d/dc
+            g5,                                                         # d/dlog(opacity)
+        ], dim=-1).reshape(-1, 6)
+        g_g6 = torch.zeros(ctx.n, 6, dtype=g.dtype, device=g.device).index_add_(0, gi, g_slot)
+        g_v = None
+        if g_vals is not None:
+            g_vals.masked_fill_(pad[..., None], 0.0)
+            g_v = torch.zeros(ctx.n, g_vals.shape[-1], dtype=g_vals.dtype, device=g_vals.device)
+            g_v.index_add_(0, gi, g_vals.reshape(-1, g_vals.shape[-1]))
+        return g_g6, g_v, None, None, None, None, None
 
 
 _FEAT_CACHE: dict = {}
@@ -269,26 +313,12 @@ def _rasterize_torch(means, quats, scales, opacities, colors, world2cam, K, widt
     dtype = means2d.dtype
     n_tiles = ntx * nty
     P = tile * tile
-    pad = gid < 0
-    gi = gid.clamp_min(0)
-    # tile origin of each chunk
-    tx0 = ((chunk_tile % ntx) * tile).to(dtype)[:, None]
-    ty0 = ((chunk_tile // ntx) * tile).to(dtype)[:, None]
-    flat = gi.reshape(-1)
-    m2 = means2d.index_select(0, flat).reshape(*gi.shape, 2)
-    cn = conics.index_select(0, flat).reshape(*gi.shape, 3)
-    mx = m2[..., 0] - tx0
-    my = m2[..., 1] - ty0
-    ca, cb, cc = cn.unbind(-1)
-    logo = torch.log(opacities.clamp_min(1e-12)).index_select(0, flat).reshape(gi.shape)
-    const = -0.5 * (ca * mx * mx + 2 * cb * mx * my + cc * my * my) + logo
-    coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, ca * mx + cb * my, cb * mx + cc * my, const], dim=-1)
-    pad_coef = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, -1e4], dtype=dtype, device=means.device)
-    coef = torch.where(pad[..., None], pad_coef, coef)   # padding slots: alpha = 0
-    col_s = colors.index_select(0, flat).reshape(*gi.shape, D)
-    z_s = depths.index_select(0, flat).reshape(gi.shape)
+    origin = torch.stack([(chunk_tile % ntx) * tile, (chunk_tile // ntx) * tile], dim=-1).to(dtype)
+    g6 = torch.cat([means2d, conics, torch.log(opacities.clamp_min(1e-12)).to(dtype)[:, None]], dim=-1)
+    vals = torch.cat([colors, depths[:, None].to(colors.dtype)], dim=-1)
     feat = _tile_features(tile, dtype, means.device)
-    col, dep, lt = _Composite.apply(coef, col_s, z_s, feat, chunk_tile, n_tiles)
+    acc, lt = _Composite.apply(g6, vals, gid, origin, feat, chunk_tile, n_tiles)
+    col, dep = acc[..., :D], acc[..., D]
 
     def untile(x):
         x = x.reshape(nty, ntx, tile, tile, *x.shape[2:]).transpose(1, 2)

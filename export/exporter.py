@@ -1,0 +1,209 @@
+"""torch -> ONNX: export the graphs, convert precision, check parity, write the sidecar, atomically.
+
+``export_model(model, out_dir)`` is the library entry point; ``python -m export`` wraps it.
+The output directory holds ``model.onnx`` (or ``encoder.onnx`` + ``decoder.onnx`` with ``split=True``),
+``<graph>.onnx.data`` files when the weights pass 2 GB, and ``pointmap_export.json`` (also embedded in
+each graph's metadata under the key ``pointmap``), which ``pointmap.runtime.onnx.load_onnx`` reads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import io
+import json
+import logging
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+from export.graphs import graph_specs
+from pointmap.errors import CheckpointError
+from pointmap.model.net import PointmapNet
+from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR
+
+log = logging.getLogger(__name__)
+
+DEFAULT_OPSET = 18
+PROTO_LIMIT = 2 * 1024**3 - 64 * 1024**2  # protobuf's 2 GB limit, with room for the graph itself
+
+
+def _versions() -> dict:
+    import onnx
+    import onnxruntime
+
+    out = {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__}
+    try:
+        import onnxscript
+
+        out["onnxscript"] = onnxscript.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        from importlib.metadata import version
+
+        out["pointmap"] = version("pointmap")
+    except Exception:  # noqa: BLE001 - not installed as a distribution (running from the repo)
+        out["pointmap"] = "unknown"
+    return out
+
+
+def param_bytes(model: torch.nn.Module) -> int:
+    return sum(t.numel() * t.element_size() for t in model.state_dict().values())
+
+
+def _rename_dims(ir_model, spec: dict) -> None:
+    """Give every graph input/output dimension a readable name (torch.export writes '16*s7' etc.)."""
+    import onnx_ir as ir
+
+    names = {**spec["inputs"], **spec["outputs"]}
+    for v in list(ir_model.graph.inputs) + list(ir_model.graph.outputs):
+        dims = names.get(v.name)
+        if dims is None or v.shape is None or len(v.shape) != len(dims):
+            continue
+        v.shape = ir.Shape([ir.SymbolicDim(d) if isinstance(d, str) else int(d) for d in dims])
+
+
+def export_graphs(model: PointmapNet, tmp: Path, *, split: bool, opset: int, external: bool,
+                  quiet: bool = True) -> list[dict]:
+    """Export the graph(s) of ``model`` into ``tmp``; returns the specs with measured export seconds."""
+    specs = graph_specs(model, split)
+    for spec in specs:
+        t0 = time.perf_counter()
+        chatter = contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext()
+        with warnings.catch_warnings(), chatter:
+            warnings.simplefilter("ignore")
+            try:
+                prog = torch.onnx.export(
+                    spec["wrapper"].eval(), spec["args"], dynamo=True, opset_version=opset,
+                    input_names=list(spec["inputs"]), output_names=list(spec["outputs"]),
+                    dynamic_shapes=spec["dynamic_shapes"], optimize=True, verbose=False,
+                )
+            except Exception as e:
+                raise CheckpointError(f"ONNX export of the {spec['role']} graph failed: "
+                                      f"{type(e).__name__}: {str(e).splitlines()[0][:400]}") from e
+        _rename_dims(prog.model, spec)
+        path = tmp / spec["file"]
+        prog.save(str(path), external_data=external)
+        spec["export_seconds"] = round(time.perf_counter() - t0, 1)
+        log.info("exported %s in %.1f s", path.name, spec["export_seconds"])
+    return specs
+
+
+def stamp(graph: Path, meta: dict) -> None:
+    """Embed the sidecar JSON in a graph's metadata (weights kept where they are: external or inline)."""
+    import onnx
+
+    proto = onnx.load(str(graph), load_external_data=False)
+    del proto.metadata_props[:]
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
+    proto.producer_name = "pointmap-export"
+    onnx.save(proto, str(graph))
+
+
+def _atomic_publish(tmp: Path, out: Path) -> None:
+    """Move the finished temp dir to ``out``; an existing export there is replaced, anything else kept."""
+    if out.exists():
+        if out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        elif out.is_dir() and (out / SIDECAR).exists():
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+            return
+        else:
+            raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
+    os.replace(tmp, out)
+
+
+def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int = DEFAULT_OPSET,
+                 fp16: bool = False, quantize: str | None = None, parity: str = "standard",
+                 provenance: dict | None = None, external_data: bool | None = None, quiet: bool = True) -> dict:
+    """Export ``model`` to ``out_dir`` (written atomically) and return the sidecar dict.
+
+    split: encoder graph + decoder/heads graph instead of one graph.
+    fp16 / quantize="int8": convert the exported graph(s) (fp16 keeps float32 inputs/outputs; int8 is
+    onnxruntime dynamic quantisation of the MatMul weights). Only one of the two.
+    parity: "full" (224x224, 512x384, 384x512 at batch 1 and 3, plus a mixed-orientation pair),
+    "standard" (the three resolutions at batch 1, 224x224 at batch 3), "quick" (224x224, batch 1), or
+    "none". fp32 exports must pass max|onnx - torch| <= 1e-4 (1 + max|torch|) per output, or
+    CheckpointError is raised and nothing is written; fp16/int8 record their error instead.
+    external_data: None = only when the weights exceed protobuf's 2 GB limit.
+    """
+    from export.parity import PARITY_CASES, check_parity
+    from export.precision import convert_fp16, quantize_int8
+
+    if not isinstance(model, PointmapNet):
+        raise CheckpointError(f"export needs a PointmapNet (PyTorch) model, got {type(model).__name__}")
+    if fp16 and quantize:
+        raise ValueError("choose one of fp16 and quantize, not both")
+    if quantize not in (None, "int8"):
+        raise ValueError(f"quantize expected None or 'int8', got {quantize!r}")
+    if parity not in PARITY_CASES and parity != "none":
+        raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
+    if opset < 17:
+        raise ValueError(f"opset expected >= 17 (LayerNormalization), got {opset}")
+    model = model.float().eval().cpu()
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    nbytes = param_bytes(model)
+    external = bool(external_data) if external_data is not None else nbytes > PROTO_LIMIT
+    precision = "fp16" if fp16 else "int8" if quantize else "fp32"
+    try:
+        specs = export_graphs(model, tmp, split=split, opset=opset, external=external, quiet=quiet)
+        if precision != "fp32":
+            for spec in specs:
+                t0 = time.perf_counter()
+                conv = convert_fp16 if fp16 else quantize_int8
+                conv(tmp / spec["file"], external=external)
+                spec["convert_seconds"] = round(time.perf_counter() - t0, 1)
+        meta = {
+            "format": FORMAT,
+            "architecture": model.cfg.to_dict(),
+            "split": split,
+            "precision": precision,
+            "opset": opset,
+            "preprocessing": {
+                "input": "RGB float32 [B, 3, H, W] in [0, 1]; H and W positive multiples of patch_size "
+                         "(each view may have its own size); the mean/std normalisation is inside the graph",
+                "patch_size": model.cfg.patch_size, "mean": list(model.cfg.img_mean), "std": list(model.cfg.img_std),
+            },
+            "postprocessing": "inside the graph: points exp-normalised (depth_mode), conf = vmin + exp (conf_mode), "
+                              "descriptors unit-norm; all outputs channels-last (docs/conventions.md)",
+            "graphs": {s["role"]: {"file": s["file"], "inputs": s["inputs"], "outputs": s["outputs"],
+                                   "dtype_io": "float32", "external_data": external} for s in specs},
+            "provenance": {
+                **(provenance or getattr(model, "provenance", None) or {}),
+                "exporter": "torch.onnx.export(dynamo=True)", "created": _dt.datetime.now(_dt.timezone.utc)
+                .isoformat(timespec="seconds"), "versions": _versions(), "parameters_bytes_fp32": nbytes,
+                "export_seconds": {s["role"]: s["export_seconds"] for s in specs},
+            },
+        }
+        for spec in specs:  # the graphs carry their description even when copied alone
+            stamp(tmp / spec["file"], meta)
+        if parity != "none":
+            from pointmap.runtime.onnx import load_onnx
+
+            runner = load_onnx(tmp)
+            report = check_parity(model, runner, PARITY_CASES[parity], strict=precision == "fp32")
+            meta["parity"] = report
+            del runner
+            if not report["passed"]:
+                worst = max(report["cases"], key=lambda c: c["worst_ratio"])
+                raise CheckpointError(
+                    f"ONNX parity check failed: worst {worst['worst_output']} at {worst['case']} differs by "
+                    f"{worst['worst_ratio']:.3g}x the tolerance 1e-4 (1 + max|ref|); nothing was written")
+        (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
+        _atomic_publish(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return meta

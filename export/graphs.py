@@ -1,0 +1,101 @@
+"""What gets exported: thin nn.Module wrappers around PointmapNet with plain-tensor inputs and outputs.
+
+* ``FullGraph``:    img1 [B, 3, H1, W1], img2 [B, 3, H2, W2] -> pts1_cam1, pts2_cam1, conf1, conf2 (+ desc...)
+* ``EncoderGraph``: img [B, 3, H, W] -> tokens [B, H/16, W/16, enc_dim]   (run once per image)
+* ``DecoderGraph``: tokens1 [B, h1, w1, enc_dim], tokens2 [B, h2, w2, enc_dim] -> the same outputs as FullGraph
+
+The token grid travels as the shape of the token tensor, so the decoder graph needs no extra inputs and
+every size stays symbolic (dynamic batch, H, W; the two views may differ in size). RoPE tables are built
+inside the graph from the grid shape (Range, Cos, Sin), there are no complex numbers and no custom ops.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from pointmap.model.net import Encoded, PointmapNet
+from pointmap.runtime.onnx import DECODER_GRAPH, ENCODER_GRAPH, FULL_GRAPH, output_names
+
+MAX_GRID = 512  # largest token grid side the dynamic shapes allow (8192 pixels)
+
+
+def _outputs(model: PointmapNet, pred) -> tuple:
+    return tuple(getattr(pred, n) for n in output_names(model.cfg))
+
+
+class FullGraph(nn.Module):
+    """Both views encoded separately (so they may differ in size), then decoders + heads."""
+
+    def __init__(self, model: PointmapNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple:
+        m = self.model
+        return _outputs(m, m.decode_pair(m.encode(img1), m.encode(img2)))
+
+
+class EncoderGraph(nn.Module):
+    def __init__(self, model: PointmapNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, img: torch.Tensor) -> torch.Tensor:
+        enc = self.model.encode(img)
+        h, w = enc.grid
+        return enc.tokens.reshape(img.shape[0], h, w, self.model.cfg.enc_dim)
+
+
+class DecoderGraph(nn.Module):
+    def __init__(self, model: PointmapNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, tokens1: torch.Tensor, tokens2: torch.Tensor) -> tuple:
+        encs = []
+        for t in (tokens1, tokens2):
+            B, h, w, C = t.shape
+            encs.append(Encoded(t.reshape(B, h * w, C), (h, w)))
+        return _outputs(self.model, self.model.decode_pair(*encs))
+
+
+def graph_specs(model: PointmapNet, split: bool) -> list[dict]:
+    """For each graph to export: file name, wrapper, example inputs, dynamic shapes, and the names of
+    every input/output dimension (written into the graph and the sidecar)."""
+    cfg = model.cfg
+    p, C = cfg.patch_size, cfg.enc_dim
+    B = torch.export.Dim("batch", min=1, max=1024)
+    dims = {k: torch.export.Dim(k, min=1, max=MAX_GRID) for k in ("gh1", "gw1", "gh2", "gw2", "gh", "gw")}
+    # example sizes: batch 2, odd and unequal grids, so nothing specialises to 1 or to a square
+    ex1, ex2 = torch.rand(2, 3, 5 * p, 7 * p), torch.rand(2, 3, 6 * p, 4 * p)
+    outs = output_names(cfg)
+
+    view = {"pts1_cam1": 1, "pts2_cam1": 2, "conf1": 1, "conf2": 2, "desc1": 1, "desc2": 2,
+            "desc_conf1": 1, "desc_conf2": 2}
+    pix = {}
+    for n in outs:
+        v = view[n]
+        tail = [3] if n.startswith("pts") else [cfg.desc_dim] if n in ("desc1", "desc2") else []
+        pix[n] = ["batch", f"height{v}", f"width{v}", *tail]
+    if not split:
+        return [dict(
+            file=FULL_GRAPH, role="full", wrapper=FullGraph(model), args=(ex1, ex2),
+            dynamic_shapes={"img1": {0: B, 2: p * dims["gh1"], 3: p * dims["gw1"]},
+                            "img2": {0: B, 2: p * dims["gh2"], 3: p * dims["gw2"]}},
+            inputs={"img1": ["batch", 3, "height1", "width1"], "img2": ["batch", 3, "height2", "width2"]},
+            outputs=pix,
+        )]
+    tok1 = torch.rand(2, 5, 7, C)
+    tok2 = torch.rand(2, 6, 4, C)
+    return [
+        dict(file=ENCODER_GRAPH, role="encoder", wrapper=EncoderGraph(model), args=(ex1,),
+             dynamic_shapes={"img": {0: B, 2: p * dims["gh"], 3: p * dims["gw"]}},
+             inputs={"img": ["batch", 3, "height", "width"]},
+             outputs={"tokens": ["batch", "grid_h", "grid_w", C]}),
+        dict(file=DECODER_GRAPH, role="decoder", wrapper=DecoderGraph(model), args=(tok1, tok2),
+             dynamic_shapes={"tokens1": {0: B, 1: dims["gh1"], 2: dims["gw1"]},
+                             "tokens2": {0: B, 1: dims["gh2"], 2: dims["gw2"]}},
+             inputs={"tokens1": ["batch", "grid_h1", "grid_w1", C], "tokens2": ["batch", "grid_h2", "grid_w2", C]},
+             outputs=pix),
+    ]

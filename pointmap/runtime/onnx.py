@@ -1,0 +1,297 @@
+"""Run a PointmapNet exported by ``python -m export`` through onnxruntime.
+
+``load_onnx(path)`` returns an :class:`OnnxPointmapModel` with the PyTorch model's call contract::
+
+    model = pm.load_model("exports/small")        # a directory written by the exporter, or one .onnx file
+    pred = model(img1, img2)                      # [B, 3, H, W] float in [0, 1] -> PairPrediction
+    enc = model.encode(img)                       # Encoded(tokens [B, N, enc_dim], grid (h, w))
+    pred = model.decode_pair(enc1, enc2)          # decoders + heads on cached encoder outputs
+
+Inputs are checked exactly as ``PointmapNet`` checks them (same ShapeError messages); normalisation and
+the output transforms are inside the graphs. An export made with ``--split`` has an encoder graph (run
+once per image) and a decoder+heads graph (run per pair); a single-graph export still supports
+``encode``/``decode_pair`` (so ``pm.predict_pairs`` works), but then re-encodes each image per pair.
+
+onnxruntime is imported lazily: ``import pointmap`` does not need it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pointmap.errors import CheckpointError, ShapeError
+from pointmap.model.config import ModelConfig
+from pointmap.model.net import Encoded, PointmapNet
+from pointmap.prediction import PairPrediction
+
+log = logging.getLogger(__name__)
+
+# -- the export format (shared with export/, which imports these names) ------------------------------
+FORMAT = "pointmap-onnx/1"
+SIDECAR = "pointmap_export.json"          # next to the graphs; also embedded in each graph's metadata
+METADATA_KEY = "pointmap"                 # ModelProto.metadata_props key holding the sidecar JSON
+FULL_GRAPH, ENCODER_GRAPH, DECODER_GRAPH = "model.onnx", "encoder.onnx", "decoder.onnx"
+PRED_FIELDS = ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2")
+
+PROVIDER_ALIASES = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "trt": "TensorrtExecutionProvider",
+    "dml": "DmlExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+}
+_AUTO_ORDER = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+
+
+def output_names(cfg: ModelConfig) -> list[str]:
+    """Graph outputs of a full or decoder graph, in this order (PairPrediction field names)."""
+    return list(PRED_FIELDS if cfg.has_desc else PRED_FIELDS[:4])
+
+
+def _ort():
+    try:
+        import onnxruntime
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise CheckpointError("running an ONNX export needs onnxruntime: pip install 'pointmap[export]'") from None
+    return onnxruntime
+
+
+def resolve_providers(providers=None) -> list:
+    """``None``/"cpu" -> CPU; "auto" -> TensorRT, CUDA, CPU (those installed); names or aliases
+    ("cuda", "tensorrt") or (name, options) tuples as onnxruntime takes them. CPU is always appended
+    as the fallback. Raises CheckpointError for a provider this onnxruntime build does not have."""
+    ort = _ort()
+    available = ort.get_available_providers()
+    if providers is None:
+        providers = ["CPUExecutionProvider"]
+    elif isinstance(providers, str):
+        providers = [p for p in _AUTO_ORDER if p in available] if providers == "auto" else [providers]
+    out = []
+    for p in providers:
+        name, opts = (p if isinstance(p, tuple) else (p, None))
+        name = PROVIDER_ALIASES.get(str(name).lower(), name)
+        if name not in available:
+            raise CheckpointError(f"onnxruntime provider {name!r} is not available here; available: {available}")
+        out.append((name, opts) if opts else name)
+    if "CPUExecutionProvider" not in [p[0] if isinstance(p, tuple) else p for p in out]:
+        out.append("CPUExecutionProvider")
+    return out
+
+
+def session_options(threads: int | None = None):
+    """Tuned session options: all graph optimisations, sequential execution, ``threads`` intra-op
+    threads (default: onnxruntime's choice, one per physical core)."""
+    ort = _ort()
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    if threads is not None:
+        if int(threads) < 1:
+            raise ValueError(f"threads expected >= 1, got {threads}")
+        so.intra_op_num_threads = int(threads)
+        so.inter_op_num_threads = 1
+    so.log_severity_level = 3  # errors only: the dynamo graphs make ORT warn about unused initialisers
+    return so
+
+
+def read_metadata(path) -> dict:
+    """The sidecar of an export: from ``DIR/pointmap_export.json`` or from a graph's metadata."""
+    path = Path(path)
+    if path.is_dir():
+        side = path / SIDECAR
+        if side.exists():
+            try:
+                meta = json.loads(side.read_text())
+            except json.JSONDecodeError as e:
+                raise CheckpointError(f"{side} is not valid JSON: {e}") from None
+        else:
+            graphs = sorted(path.glob("*.onnx"))
+            if not graphs:
+                raise CheckpointError(f"{path} holds no .onnx graph and no {SIDECAR}")
+            meta = read_metadata(graphs[0])
+    else:
+        import onnx
+
+        try:
+            proto = onnx.load(str(path), load_external_data=False)
+        except Exception as e:  # noqa: BLE001 - any parse failure is a bad file
+            raise CheckpointError(f"cannot read {path} as an ONNX model (corrupt or truncated?): {e}") from None
+        props = {p.key: p.value for p in proto.metadata_props}
+        if METADATA_KEY not in props:
+            side = path.parent / SIDECAR
+            if side.exists():
+                return read_metadata(path.parent)
+            raise CheckpointError(f"{path} is not a pointmap ONNX export (no '{METADATA_KEY}' metadata, "
+                                  f"no {SIDECAR} beside it)")
+        meta = json.loads(props[METADATA_KEY])
+    if meta.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: unsupported export format {meta.get('format')!r} (expected {FORMAT!r})")
+    return meta
+
+
+class _ImageBatch:
+    """What ``encode`` returns for a single-graph export: the images themselves, encoded later per pair.
+    Quacks like Encoded (``tokens``, ``grid``, slicing, ``type(x)(tokens, grid)``)."""
+
+    __slots__ = ("tokens", "grid")
+
+    def __init__(self, tokens: torch.Tensor, grid: tuple) -> None:
+        self.tokens, self.grid = tokens, grid
+
+    def __getitem__(self, idx) -> _ImageBatch:
+        return _ImageBatch(self.tokens[idx], self.grid)
+
+
+class OnnxPointmapModel:
+    """onnxruntime-backed model with PointmapNet's call contract (see the module docstring).
+
+    Attributes: ``cfg`` (ModelConfig), ``meta`` (the export sidecar), ``split`` (encoder/decoder graphs),
+    ``providers`` (the session's providers), ``path``. Tensors go in and come out on the CPU.
+    """
+
+    check_images = PointmapNet.check_images  # the very same checks and messages as the PyTorch model
+
+    def __init__(self, path, meta: dict, providers=None, threads: int | None = None) -> None:
+        ort = _ort()
+        self.path = Path(path)
+        self.meta = meta
+        try:
+            self.cfg = ModelConfig.from_dict(meta["architecture"])
+        except (KeyError, TypeError) as e:
+            raise CheckpointError(f"{path}: export metadata has no usable architecture ({e})") from None
+        self.split = bool(meta.get("split"))
+        self.precision = meta.get("precision", "fp32")
+        self.provenance = meta.get("provenance", {})
+        self._out_names = output_names(self.cfg)
+        provs = resolve_providers(providers)
+        so = session_options(threads)
+        files = [ENCODER_GRAPH, DECODER_GRAPH] if self.split else [FULL_GRAPH]
+        self._sessions = {}
+        for f in files:
+            gp = self.path / f
+            if not gp.exists():
+                raise CheckpointError(f"{self.path} is missing {f} (listed as {'split' if self.split else 'full'} export)")
+            try:
+                self._sessions[f] = ort.InferenceSession(str(gp), sess_options=so, providers=provs)
+            except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
+                raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
+        self.providers = next(iter(self._sessions.values())).get_providers()
+        self._warned_unsplit = False
+
+    # -- torch.nn.Module look-alikes, so code written for PointmapNet runs unchanged -------------------
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+    def eval(self) -> OnnxPointmapModel:
+        return self
+
+    def to(self, *args, **kwargs) -> OnnxPointmapModel:
+        """No-op (the session's providers decide where it runs; tensors stay on the CPU)."""
+        return self
+
+    def __repr__(self) -> str:
+        kind = "split" if self.split else "single graph"
+        return f"OnnxPointmapModel({str(self.path)!r}, {kind}, {self.precision}, providers={self.providers})"
+
+    # -- helpers --------------------------------------------------------------------------------------
+    @staticmethod
+    def _np(t: torch.Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+    def _run(self, graph: str, feeds: dict, names: list[str]) -> list[np.ndarray]:
+        return self._sessions[graph].run(names, feeds)
+
+    def _prediction(self, outs: list[np.ndarray]) -> PairPrediction:
+        return PairPrediction(**{n: torch.from_numpy(o) for n, o in zip(self._out_names, outs)})
+
+    def _check_pair(self, img1: torch.Tensor, img2: torch.Tensor) -> None:
+        self.check_images("img1", img1)
+        self.check_images("img2", img2)
+        if img1.shape[0] != img2.shape[0]:
+            raise ShapeError(f"img1 and img2 need the same batch size, got {img1.shape[0]} and {img2.shape[0]}")
+
+    # -- the PointmapNet contract ---------------------------------------------------------------------
+    def __call__(self, img1: torch.Tensor, img2: torch.Tensor) -> PairPrediction:
+        return self.forward(img1, img2)
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> PairPrediction:
+        self._check_pair(img1, img2)
+        if not self.split:
+            outs = self._run(FULL_GRAPH, {"img1": self._np(img1), "img2": self._np(img2)}, self._out_names)
+            return self._prediction(outs)
+        if img1.shape[-2:] == img2.shape[-2:]:  # one encoder run for both views, as PointmapNet does
+            both = self.encode(torch.cat([img1, img2], dim=0))
+            B = img1.shape[0]
+            return self.decode_pair(both[:B], both[B:])
+        return self.decode_pair(self.encode(img1), self.encode(img2))
+
+    def encode(self, img: torch.Tensor):
+        """[B, 3, H, W] in [0, 1] -> Encoded(tokens [B, h*w, enc_dim], grid (h, w)), h = H / patch.
+
+        Inputs are not range-checked here (as PointmapNet.encode); callers check with ``check_images``.
+        For a single-graph export this defers the work to ``decode_pair``."""
+        if not isinstance(img, torch.Tensor) or img.ndim != 4:
+            got = list(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
+            raise ShapeError(f"img expected [B, 3, H, W], got {got}")
+        p = self.cfg.patch_size
+        grid = (int(img.shape[-2]) // p, int(img.shape[-1]) // p)
+        if not self.split:
+            if not self._warned_unsplit:
+                log.warning("%s is a single-graph export: each image is re-encoded for every pair; "
+                            "export with --split to encode once per image", self.path)
+                self._warned_unsplit = True
+            return _ImageBatch(img, grid)
+        (tok,) = self._run(ENCODER_GRAPH, {"img": self._np(img)}, ["tokens"])
+        B, h, w, C = tok.shape
+        return Encoded(torch.from_numpy(tok).reshape(B, h * w, C), (h, w))
+
+    def decode_pair(self, enc1, enc2) -> PairPrediction:
+        """Decoders and heads on two Encoded batches of equal batch size -> PairPrediction."""
+        if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
+            raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
+        if isinstance(enc1, _ImageBatch) or isinstance(enc2, _ImageBatch):
+            if not (isinstance(enc1, _ImageBatch) and isinstance(enc2, _ImageBatch)):
+                raise ShapeError("decode_pair got one deferred and one real encoding; use this model's encode for both")
+            outs = self._run(FULL_GRAPH, {"img1": self._np(enc1.tokens), "img2": self._np(enc2.tokens)},
+                             self._out_names)
+            return self._prediction(outs)
+        feeds = {}
+        for name, enc in (("tokens1", enc1), ("tokens2", enc2)):
+            t = enc.tokens
+            h, w = enc.grid
+            if t.ndim != 3 or t.shape[1] != h * w or t.shape[2] != self.cfg.enc_dim:
+                raise ShapeError(f"{name} expected [B, {h}*{w}, {self.cfg.enc_dim}] for grid {(h, w)}, "
+                                 f"got {list(t.shape)}")
+            feeds[name] = self._np(t).reshape(t.shape[0], h, w, t.shape[2])
+        return self._prediction(self._run(DECODER_GRAPH, feeds, self._out_names))
+
+
+def load_onnx(path, providers=None, threads: int | None = None, **kwargs) -> OnnxPointmapModel:
+    """Load an export written by ``python -m export``: its directory, or one of its .onnx files.
+
+    providers: None (CPU), "auto" (TensorRT > CUDA > CPU, those installed), or a list of onnxruntime
+    provider names / aliases ("cuda", "tensorrt") / (name, options) tuples.
+    threads: intra-op threads (default: onnxruntime's choice). Raises CheckpointError with the reason.
+    Other keyword arguments (e.g. ``device`` from ``pm.load_model``) are accepted and ignored, except
+    a non-CPU ``device`` without an explicit ``providers``, which selects "auto".
+    """
+    device = kwargs.pop("device", None)
+    if kwargs:
+        raise TypeError(f"load_onnx got unexpected arguments: {sorted(kwargs)}")
+    if providers is None and device is not None and str(device) != "cpu":
+        providers = "auto"
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise CheckpointError(f"ONNX export not found: {path}")
+    meta = read_metadata(path)
+    root = path if path.is_dir() else path.parent
+    return OnnxPointmapModel(root, meta, providers=providers, threads=threads)

@@ -1,0 +1,170 @@
+"""An analytic test scene: cameras inside a box room with two spheres, depth by exact ray casting.
+
+``make_scene`` gives ground-truth cameras and depth; ``gt_preds`` turns them into PairPredictions as a
+perfect network would (both maps in view 1's frame, each pair at its own random scale), optionally with
+noise and outliers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from pointmap.images import View
+from pointmap.prediction import PairPrediction
+
+ROOM = 4.0
+SPHERES = [((0.0, 0.0, 0.0), 1.0), ((1.6, 0.6, -0.4), 0.6), ((-1.2, -0.8, 1.0), 0.5)]
+SCENE_SIZE = 2 * ROOM
+
+
+def look_at(centre, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """OpenCV cam2world looking from ``centre`` at ``target`` (y down)."""
+    z = np.asarray(target, float) - np.asarray(centre, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(np.asarray(up, float), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, centre
+    return T
+
+
+def ray_cast(cam2world: np.ndarray, K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """z-depth [h, w] of the room + spheres."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d = d_cam @ cam2world[:3, :3].T  # world direction, scaled so that t = z-depth
+    o = cam2world[:3, 3]
+    t_best = np.full((h, w), np.inf)
+    for axis in range(3):
+        for wall in (-ROOM, ROOM):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (wall - o[axis]) / d[..., axis]
+            t_best = np.where((t > 1e-6) & (t < t_best), t, t_best)
+    for c, r in SPHERES:
+        oc = o - np.asarray(c)
+        a = (d * d).sum(-1)
+        b = 2 * (d * oc).sum(-1)
+        cc = oc @ oc - r * r
+        disc = b * b - 4 * a * cc
+        sq = np.sqrt(np.clip(disc, 0, None))
+        t = (-b - sq) / (2 * a)
+        t_best = np.where((disc > 0) & (t > 1e-6) & (t < t_best), t, t_best)
+    return t_best
+
+
+def texture(pts_world: np.ndarray) -> np.ndarray:
+    """A smooth colourful texture [.., 3] in [0, 1] from world positions."""
+    return 0.5 + 0.5 * np.stack([np.sin(3 * pts_world[..., 0] + 1), np.sin(2.3 * pts_world[..., 1] + 2),
+                                 np.sin(2.7 * pts_world[..., 2] + 0.5 * pts_world[..., 0])], -1)
+
+
+def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0)):
+    """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal."""
+    rng = np.random.default_rng(seed)
+    cams, Ks, depths = [], [], []
+    for k in range(n):
+        ang = 2 * math.pi * k / n * 0.6 + rng.uniform(-0.1, 0.1)
+        centre = np.array([3.0 * math.cos(ang), rng.uniform(-0.8, 0.8), 3.0 * math.sin(ang)])
+        target = rng.uniform(-0.5, 0.5, 3)
+        T = look_at(centre, target)
+        f = rng.uniform(*focal_range)
+        K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        cams.append(T)
+        Ks.append(K)
+        depths.append(ray_cast(T, K, h, w))
+    cam2world = np.stack(cams)
+    K = np.stack(Ks)
+    depth = np.stack(depths)
+    pts_cam = depth_to_cam(depth, K)
+    pts_world = pts_cam @ np.transpose(cam2world[:, None, :3, :3], (0, 1, 3, 2)) + cam2world[:, None, None, :3, 3]
+    images = texture(pts_world)
+    return {"cam2world": cam2world, "K": K, "depth": depth, "pts_world": pts_world, "images": images}
+
+
+def depth_to_cam(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    n, h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x = (u[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None] * depth
+    y = (v[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None] * depth
+    return np.stack([x, y, depth], -1)
+
+
+def views_of(scene) -> list[View]:
+    out = []
+    for k, im in enumerate(scene["images"]):
+        h, w = im.shape[:2]
+        out.append(View(img=torch.from_numpy(im).permute(2, 0, 1).float(), original_size=(w, h),
+                        map_from_original=(1.0, 1.0, 0.0, 0.0), name=f"img_{k:02d}.jpg", index=k))
+    return out
+
+
+def gt_preds(scene, pairs, *, seed: int = 0, noise: float = 0.0, outliers: float = 0.0,
+             pair_rot_deg: float = 0.0, conf: float = 3.0, dtype=torch.float32) -> dict:
+    """PairPredictions for (i, j) and (j, i) of every pair: exact (noise=0) or perturbed.
+
+    noise: relative per-pixel depth-direction noise (std); outliers: fraction of pixels moved randomly by
+    up to 30% of their depth (with low confidence); pair_rot_deg: per-prediction random rotation of view
+    2's map about view 1 (a pose error of the 'network').
+    """
+    rng = np.random.default_rng(seed)
+    c2w, pw = scene["cam2world"], scene["pts_world"]
+    out = {}
+    for a, b in pairs:
+        for i, j in ((a, b), (b, a)):
+            w2c = np.linalg.inv(c2w[i])
+            p1 = pw[i] @ w2c[:3, :3].T + w2c[:3, 3]
+            p2 = pw[j] @ w2c[:3, :3].T + w2c[:3, 3]
+            c1 = np.full(p1.shape[:2], conf)
+            c2 = np.full(p2.shape[:2], conf)
+            if pair_rot_deg:
+                axis = rng.normal(size=3)
+                axis *= math.radians(pair_rot_deg) / np.linalg.norm(axis)
+                Rp = torch.from_numpy(axis).double()
+                from pointmap.geometry.rotations import axis_angle_to_matrix
+                Rm = axis_angle_to_matrix(Rp).numpy()
+                p2 = p2 @ Rm.T
+            for p, c in ((p1, c1), (p2, c2)):
+                if noise:
+                    p *= 1 + noise * rng.standard_normal(p.shape[:2])[..., None]
+                if outliers:
+                    m = rng.random(p.shape[:2]) < outliers
+                    p[m] *= 1 + rng.uniform(-0.3, 0.3, (int(m.sum()), 3))
+                    c[m] = 1.2
+                if noise or outliers:
+                    c += rng.uniform(0, 1, c.shape)
+            s = rng.uniform(0.3, 3.0)  # the network's unknown per-pair scale
+            out[(i, j)] = PairPrediction(
+                pts1_cam1=torch.from_numpy(p1 * s)[None].to(dtype), pts2_cam1=torch.from_numpy(p2 * s)[None].to(dtype),
+                conf1=torch.from_numpy(c1)[None].to(dtype), conf2=torch.from_numpy(c2)[None].to(dtype))
+    return out
+
+
+def complete_pairs(n: int) -> list:
+    return [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+
+def chain_pairs(n: int, window: int = 2) -> list:
+    return [(i, j) for i in range(n) for j in range(i + 1, min(n, i + window + 1))]
+
+
+def pose_errors(cam2world_est: np.ndarray, cam2world_gt: np.ndarray):
+    """(max rotation error deg, max centre error / scene size, similarity) after Sim(3) on centres+rotations."""
+    from pointmap.align.gauge import project_to_rotation
+
+    est = torch.as_tensor(cam2world_est, dtype=torch.float64)
+    gt = torch.as_tensor(cam2world_gt, dtype=torch.float64)
+    Ra = project_to_rotation((gt[:, :3, :3] @ est[:, :3, :3].transpose(-1, -2)).sum(0))
+    ce, cg = est[:, :3, 3], gt[:, :3, 3]
+    me, mg = ce.mean(0), cg.mean(0)
+    x = (ce - me) @ Ra.T
+    a = float(((cg - mg) * x).sum() / (x * x).sum())
+    c_al = a * x + mg
+    R_al = Ra @ est[:, :3, :3]
+    cos = ((R_al.transpose(-1, -2) @ gt[:, :3, :3]).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    rot = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+    centre = (c_al - cg).norm(dim=-1) / SCENE_SIZE
+    return float(rot.max()), float(centre.max()), a

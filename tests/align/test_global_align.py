@@ -1,0 +1,95 @@
+"""global_align on ground-truth pointmaps of an analytic scene (tests/align/scene.py)."""
+
+import numpy as np
+import pytest
+import torch
+
+from pointmap.align import AlignConfig, global_align
+from scene import (SCENE_SIZE, chain_pairs, complete_pairs, gt_preds, make_scene, pose_errors, views_of)
+
+QUIET = AlignConfig(quiet=True)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(6, 32, 48, seed=1)
+
+
+def _errors(recon, sc):
+    rot, centre, a = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    focal = float(np.abs(recon.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1).max())
+    depth = float(np.median(np.abs(recon.depth_z.numpy() * a / sc["depth"] - 1)))
+    return rot, centre, focal, depth
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
+def test_noise_free_recovers_everything(scene, optimizer):
+    preds = gt_preds(scene, complete_pairs(6), seed=2)
+    recon = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, optimizer=optimizer, niter=60))
+    rot, centre, focal, depth = _errors(recon, scene)
+    assert rot < 0.1 and centre < 0.005 and focal < 0.005 and depth < 1e-3, (rot, centre, focal, depth)
+    assert torch.isfinite(recon.pts_world).all()
+    rep = recon.info["align"]
+    assert rep["num_edges"] == 30 and rep["iterations"] >= 1 and rep["final_loss"] <= rep["init_loss"]
+
+
+def test_sparse_graph_and_original_pixels(scene):
+    """Chain graph (each image paired with its next two) and maps that are a 2x downscale + crop of the
+    original: K comes back in ORIGINAL pixels."""
+    preds = gt_preds(scene, chain_pairs(6, 2), seed=3)
+    views = views_of(scene)
+    for v in views:  # pretend the originals were 2x larger with 3 px cut off the left of the resized map
+        v.original_size = (2 * 48 + 6, 64)
+        v.map_from_original = (0.5, 0.5, 1.5, 0.0)
+    recon = global_align(views, preds, config=QUIET)
+    rot, centre, _, _ = _errors(recon, scene)
+    assert rot < 0.1 and centre < 0.005
+    f_orig = scene["K"][:, 0, 0] * 2
+    cx_orig = ((scene["K"][:, 0, 2] + 0.5 + 1.5) / 0.5) - 0.5
+    assert np.allclose(recon.K[:, 0, 0].numpy(), f_orig, rtol=5e-3)
+    assert np.allclose(recon.K[:, 0, 2].numpy(), cx_orig, atol=1e-3)
+    assert np.allclose(recon.K_map[:, 0, 0].numpy(), scene["K"][:, 0, 0], rtol=5e-3)
+
+
+def test_noise_and_outliers_degrade_gracefully(scene):
+    preds = gt_preds(scene, complete_pairs(6), seed=4, noise=0.01, outliers=0.03, pair_rot_deg=0.5)
+    init = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, optimizer="none"))
+    recon = global_align(views_of(scene), preds, config=QUIET)
+    rot0, centre0, _, _ = _errors(init, scene)
+    rot, centre, focal, depth = _errors(recon, scene)
+    assert rot < 0.5 and centre < 0.01 and focal < 0.02 and depth < 0.02, (rot, centre, focal, depth)
+    assert rot <= rot0 + 1e-3  # optimisation improves on (or keeps) the spanning-tree initialisation
+    assert recon.info["align"]["final_loss"] < recon.info["align"]["init_loss"]
+
+
+def test_downsampled_optimisation_matches_full_resolution(scene):
+    preds = gt_preds(scene, complete_pairs(6), seed=5, noise=0.005)
+    full = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, stride=1, niter=100))
+    sub = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, stride=3, niter=100))
+    assert sub.info["align"]["opt_pixels_per_image"] < full.info["align"]["opt_pixels_per_image"] / 8
+    rot_f, c_f, _, _ = _errors(full, scene)
+    rot_s, c_s, _, _ = _errors(sub, scene)
+    assert rot_s < 0.3 and rot_f < 0.3 and c_s < 0.01
+    assert sub.depth_z.shape == full.depth_z.shape == (6, 32, 48)  # depth is always full resolution
+
+
+def test_chunk_size_does_not_change_the_result(scene):
+    preds = gt_preds(scene, complete_pairs(6), seed=6, noise=0.01)
+    a = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=20, max_chunk_pixels=10**9))
+    b = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=20, max_chunk_pixels=2000))
+    assert b.info["align"]["chunk_edges"] == 1 and a.info["align"]["chunk_edges"] == 30
+    assert torch.allclose(a.cam2world, b.cam2world, atol=1e-4)
+    assert abs(a.info["align"]["final_loss"] - b.info["align"]["final_loss"]) < 1e-5
+
+
+def test_scene_scale_is_consistent(scene):
+    """All cameras share one scale: the ratio of estimated to true camera distances is constant."""
+    preds = gt_preds(scene, complete_pairs(6), seed=7)
+    recon = global_align(views_of(scene), preds, config=QUIET)
+    c_est = recon.cam2world[:, :3, 3].double().numpy()
+    c_gt = scene["cam2world"][:, :3, 3]
+    d_est = np.linalg.norm(c_est[:, None] - c_est[None], axis=-1)[np.triu_indices(6, 1)]
+    d_gt = np.linalg.norm(c_gt[:, None] - c_gt[None], axis=-1)[np.triu_indices(6, 1)]
+    ratio = d_est / d_gt
+    assert ratio.std() / ratio.mean() < 1e-3
+    assert SCENE_SIZE > 0

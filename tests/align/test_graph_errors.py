@@ -1,0 +1,111 @@
+"""Unusable inputs: clear errors or warnings, never NaNs."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from pointmap.align import AlignConfig, global_align
+from pointmap.errors import GraphError, ShapeError
+from pointmap.prediction import PairPrediction
+from scene import complete_pairs, gt_preds, make_scene, views_of
+
+QUIET = AlignConfig(quiet=True, niter=30)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(4, 32, 48, seed=21)
+
+
+def test_disconnected_graph(scene):
+    preds = gt_preds(scene, [(0, 1), (2, 3)], seed=1)
+    with pytest.raises(GraphError, match=r"disconnected.*\[0, 1\]; \[2, 3\]"):
+        global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_single_image(scene):
+    preds = gt_preds(scene, [(0, 1)], seed=1)
+    with pytest.raises(GraphError, match="at least 2 images"):
+        global_align(views_of(scene)[:1], preds, config=QUIET)
+
+
+def test_empty_preds(scene):
+    with pytest.raises(GraphError, match="non-empty dict"):
+        global_align(views_of(scene), {}, config=QUIET)
+
+
+def test_pair_index_out_of_range(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    with pytest.raises(GraphError, match="outside 0..2"):
+        global_align(views_of(scene)[:3], preds, config=QUIET)
+
+
+def test_one_direction_only_is_explained(scene):
+    preds = {k: v for k, v in gt_preds(scene, complete_pairs(4), seed=1).items() if k[0] < k[1]}
+    with pytest.raises(GraphError, match="never appear first"):
+        global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_wrong_map_size(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    p = preds[(0, 1)]
+    preds[(0, 1)] = PairPrediction(p.pts1_cam1[:, :16], p.pts2_cam1, p.conf1[:, :16], p.conf2)
+    with pytest.raises(ShapeError, match=r"pair \(0, 1\)"):
+        global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_all_low_confidence_pairs(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1, conf=1.0)
+    with pytest.raises(GraphError, match="zero confidence weight"):
+        global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_some_low_confidence_pairs_warn_and_still_align(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    low = gt_preds(scene, [(0, 1)], seed=1, conf=1.0)
+    preds.update(low)
+    with pytest.warns(UserWarning, match="no usable confidence"):
+        recon = global_align(views_of(scene), preds, config=QUIET)
+    assert recon.info["align"]["num_edges"] == 10
+    assert torch.isfinite(recon.cam2world).all() and torch.isfinite(recon.depth_z).all()
+
+
+def test_low_confidence_disconnecting_the_graph(scene):
+    preds = gt_preds(scene, [(0, 1), (1, 2), (2, 3)], seed=1)
+    preds.update(gt_preds(scene, [(1, 2)], seed=1, conf=1.0))
+    with pytest.warns(UserWarning), pytest.raises(GraphError, match="after dropping zero-confidence"):
+        global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_duplicate_images_warn_without_nans(scene):
+    """Image 3 is an exact copy of image 0 (same pixels, same camera)."""
+    sc = {k: v.copy() for k, v in scene.items()}
+    for key in ("cam2world", "K", "depth", "pts_world", "images"):
+        sc[key][3] = sc[key][0]
+    preds = gt_preds(sc, complete_pairs(4), seed=2)
+    with pytest.warns(UserWarning, match=r"identical images \[\(0, 3\)\]"):
+        recon = global_align(views_of(sc), preds, config=QUIET)
+    assert torch.isfinite(recon.cam2world).all() and torch.isfinite(recon.depth_z).all()
+    assert float((recon.cam2world[0, :3, 3] - recon.cam2world[3, :3, 3]).norm()) < 1e-3
+
+
+def test_nan_pixels_are_ignored(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=3)
+    for p in preds.values():
+        p.pts2_cam1[0, :4, :4] = float("nan")
+        p.conf1[0, -3:, -3:] = float("inf")
+    recon = global_align(views_of(scene), preds, config=QUIET)
+    assert torch.isfinite(recon.depth_z).all() and torch.isfinite(recon.cam2world).all()
+
+
+def test_self_pairs_are_ignored_with_a_warning(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=4)
+    preds[(1, 1)] = preds[(1, 2)]
+    with pytest.warns(UserWarning, match="with itself"):
+        recon = global_align(views_of(scene), preds, config=QUIET)
+    assert recon.info["align"]["num_edges"] == 12
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isfinite(recon.K.numpy()).all()

@@ -1,0 +1,74 @@
+"""RoPE2D and the output transforms, checked against slow formula-by-formula references."""
+
+import math
+
+import torch
+
+from pointmap.model.blocks import apply_rope, patch_positions, rope_tables
+from pointmap.model.config import PRESETS
+from pointmap.model.heads import regress_conf, regress_points
+
+
+def rope_reference(x, pos, base):
+    """x [N, D] one head; rotate channel i with i + D/4 inside each half, angle = pos * base^(-2k/(D/2))."""
+    N, D = x.shape
+    half, q = D // 2, D // 4
+    out = x.clone().double()
+    for n in range(N):
+        for h, p in enumerate((pos[n, 0], pos[n, 1])):  # first half: row, second half: column
+            for k in range(q):
+                theta = float(p) * base ** (-2 * k / half)
+                i, j = h * half + k, h * half + k + q
+                a, b = float(x[n, i]), float(x[n, j])
+                out[n, i] = a * math.cos(theta) - b * math.sin(theta)
+                out[n, j] = b * math.cos(theta) + a * math.sin(theta)
+    return out
+
+
+def test_rope_rotates_row_then_column_halves_with_rotate_half_pairing():
+    torch.manual_seed(0)
+    pos = patch_positions(3, 5)
+    x = torch.randn(pos.shape[0], 16)
+    cos, sin = rope_tables(pos, 16, 100.0, torch.float64)
+    fast = apply_rope(x.double()[None, None], cos, sin)[0, 0]
+    assert torch.allclose(fast, rope_reference(x, pos, 100.0), atol=1e-10)
+
+
+def test_rope_attention_scores_depend_only_on_relative_position():
+    torch.manual_seed(1)
+    q, k = torch.randn(1, 1, 1, 32).double(), torch.randn(1, 1, 1, 32).double()
+
+    def score(pq, pk):
+        cq, sq = rope_tables(torch.tensor([pq]), 32, 100.0, torch.float64)
+        ck, sk = rope_tables(torch.tensor([pk]), 32, 100.0, torch.float64)
+        return float((apply_rope(q, cq, sq) * apply_rope(k, ck, sk)).sum())
+
+    assert abs(score((2, 3), (5, 1)) - score((7, 10), (10, 8))) < 1e-5  # tables are float32 angles
+    assert abs(score((2, 3), (5, 1)) - score((2, 3), (5, 2))) > 1e-2
+
+
+def test_patch_positions_are_row_major_row_col_pairs():
+    pos = patch_positions(2, 3)
+    assert pos.tolist() == [[0, 0], [0, 1], [0, 2], [1, 0], [1, 1], [1, 2]]
+
+
+def test_points_keep_direction_and_their_norm_becomes_expm1_of_the_raw_norm():
+    raw = torch.tensor([[0.3, -0.4, 1.2], [0.0, 0.0, 0.0], [-2.0, 1.0, 0.5]])
+    pts = regress_points(raw, ("exp", -math.inf, math.inf))
+    d = raw.norm(dim=-1)
+    assert torch.allclose(pts.norm(dim=-1), torch.expm1(d), atol=1e-6)
+    nz = d > 0
+    assert torch.allclose(pts[nz] / pts[nz].norm(dim=-1, keepdim=True), raw[nz] / d[nz, None], atol=1e-6)
+    assert torch.equal(pts[1], torch.zeros(3))
+
+
+def test_confidence_is_one_plus_exp_and_descriptor_confidence_is_exp():
+    x = torch.tensor([-3.0, 0.0, 2.5])
+    assert torch.allclose(regress_conf(x, ("exp", 1.0, math.inf)), 1 + x.exp())
+    assert torch.allclose(regress_conf(x, ("exp", 0.0, math.inf)), x.exp())
+    assert torch.allclose(regress_conf(x, ("sigmoid", 0.0, 2.0)), 2 * torch.sigmoid(x))
+
+
+def test_dpt_hooks_are_encoder_output_and_decoder_layers_at_half_three_quarters_and_end():
+    assert PRESETS["dust3r_512_dpt"].dpt_hooks == (0, 6, 9, 12)
+    assert PRESETS["mast3r_512"].dpt_hooks == (0, 6, 9, 12)

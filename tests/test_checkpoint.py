@@ -1,0 +1,148 @@
+"""Checkpoints: official .pth files (safely), our safetensors format, shipped names, clear failures."""
+
+import argparse
+import math
+
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.checkpoint import config_from_ctor, parse_ctor
+
+TINY_CTOR = ("AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', img_size=(512, 512), "
+             "head_type='catmlp+dpt', output_mode='pts3d+desc8', depth_mode=('exp', -inf, inf), "
+             "conf_mode=('exp', 1, inf), enc_embed_dim=32, enc_depth=2, enc_num_heads=2, dec_embed_dim=32, "
+             "dec_depth=4, dec_num_heads=2, two_confs=True, desc_conf_mode=('exp', 0, inf))")
+
+
+def official_style_state(model):
+    """Our state dict written the way the official code saves it: DPT alias keys and a mask token."""
+    sd = dict(model.state_dict())
+    for k in list(sd):
+        if ".scratch.layer" in k and "_rn." in k:
+            i = int(k.split(".scratch.layer")[1][0])
+            sd[k.replace(f".scratch.layer{i}_rn.", f".scratch.layer_rn.{i - 1}.")] = sd[k]
+    sd["mask_token"] = torch.zeros(1, 1, 32)
+    return sd
+
+
+def tiny_official(tmp_path):
+    cfg = config_from_ctor(TINY_CTOR)
+    cfg = cfg.replace(dpt_layer_dims=(96, 192, 384, 768))
+    torch.manual_seed(0)
+    model = pm.PointmapNet(cfg).eval()
+    path = tmp_path / "official.pth"
+    torch.save({"model": official_style_state(model), "args": argparse.Namespace(model=TINY_CTOR, lr=1e-4), "epoch": 3},
+               path)
+    return model, path
+
+
+def test_the_constructor_grammar_reads_keywords_numbers_strings_tuples_and_inf():
+    name, kw = parse_ctor("Net(a=1, b=-2.5, c='x', d=(1, 'y', -inf), e=True, f=None, g=[inf])")
+    assert name == "Net"
+    assert kw == {"a": 1, "b": -2.5, "c": "x", "d": (1, "y", -math.inf), "e": True, "f": None, "g": (math.inf,)}
+
+
+@pytest.mark.parametrize("text", ["__import__('os').system('ls')", "Net(a=os.system('x'))", "Net(a=1+2)",
+                                  "Net(**kw)", "Net(a=f(1))", "Net(1)"])
+def test_the_constructor_grammar_refuses_anything_but_literals(text):
+    with pytest.raises(pm.CheckpointError):
+        parse_ctor(text)
+
+
+def test_an_official_checkpoint_with_alias_keys_and_a_namespace_loads_into_identical_outputs(tmp_path):
+    model, path = tiny_official(tmp_path)
+    loaded = pm.load_model(path)
+    a, b = torch.rand(1, 3, 32, 48), torch.rand(1, 3, 32, 48)
+    with torch.no_grad():
+        ref, got = model(a, b), loaded(a, b)
+    for name, t in ref.as_dict().items():
+        assert torch.equal(t, getattr(got, name)), name
+    assert loaded.cfg.desc_dim == 8 and loaded.cfg.two_confs
+
+
+def test_a_croco_checkpoint_without_second_decoder_gets_a_copy_of_the_first(tmp_path):
+    from pointmap.checkpoint import official_to_ours
+
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    sd = {k: v for k, v in model.state_dict().items() if not k.startswith("dec_blocks2.")}
+    out = official_to_ours(sd)
+    assert torch.equal(out["dec_blocks2.0.attn.qkv.weight"], sd["dec_blocks.0.attn.qkv.weight"])
+
+
+def test_mismatched_keys_and_shapes_are_all_listed(tmp_path):
+    model, path = tiny_official(tmp_path)
+    with torch.serialization.safe_globals([argparse.Namespace]):
+        ck = torch.load(path, weights_only=True)
+    del ck["model"]["enc_norm.weight"]
+    ck["model"]["extra.weight"] = torch.zeros(1)
+    ck["model"]["decoder_embed.bias"] = torch.zeros(5)
+    torch.save(ck, tmp_path / "broken.pth")
+    with pytest.raises(pm.CheckpointError) as e:
+        pm.load_model(tmp_path / "broken.pth")
+    msg = str(e.value)
+    assert "missing" in msg and "enc_norm.weight" in msg and "extra.weight" in msg and "decoder_embed.bias" in msg
+
+
+def test_a_checkpoint_that_needs_pickled_code_is_refused_without_running_it(tmp_path):
+    marker = tmp_path / "pwned"
+
+    class Evil:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    torch.save({"model": {}, "args": Evil()}, tmp_path / "evil.pth")
+    with pytest.raises(pm.CheckpointError, match="arbitrary pickled code"):
+        pm.load_model(tmp_path / "evil.pth")
+    assert not marker.exists()
+
+
+def test_truncated_corrupt_and_foreign_files_give_one_line_errors(tmp_path):
+    model, path = tiny_official(tmp_path)
+    data = path.read_bytes()
+    (tmp_path / "trunc.pth").write_bytes(data[: len(data) // 2])
+    (tmp_path / "text.pth").write_text("not a checkpoint")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pth")
+    for name, pattern in [("trunc.pth", "cannot read"), ("text.pth", "cannot read"), ("foreign.pth", "not a DUSt3R")]:
+        with pytest.raises(pm.CheckpointError, match=pattern):
+            pm.load_model(tmp_path / name)
+    with pytest.raises(pm.CheckpointError, match="not found"):
+        pm.load_model(tmp_path / "missing.pth")
+
+
+def test_unknown_architectures_are_named_in_the_error(tmp_path):
+    torch.save({"model": {}, "args": argparse.Namespace(model="ResNet50(depth=50)")}, tmp_path / "r.pth")
+    with pytest.raises(pm.CheckpointError, match="unknown architecture 'ResNet50'"):
+        pm.load_model(tmp_path / "r.pth")
+    with pytest.raises(pm.CheckpointError, match="pos_embed='cosine'"):
+        config_from_ctor("AsymmetricCroCo3DStereo(pos_embed='cosine')")
+
+
+def test_our_format_round_trips_exactly_and_keeps_provenance(tmp_path, tiny_model):
+    path = pm.save_model(tiny_model, tmp_path / "m", provenance={"image_size": 224, "steps": 5})
+    assert path.suffix == ".safetensors" and not list(tmp_path.glob("*.tmp"))
+    loaded = pm.load_model(path)
+    assert loaded.cfg == tiny_model.cfg and loaded.provenance["image_size"] == 224
+    for k, v in tiny_model.state_dict().items():
+        assert torch.equal(v, loaded.state_dict()[k]), k
+
+
+def test_half_precision_files_load_back_as_float32_within_half_precision_error(tmp_path, tiny_model):
+    path = pm.save_model(tiny_model, tmp_path / "m16.safetensors", dtype=torch.float16)
+    loaded = pm.load_model(path)
+    w = loaded.state_dict()["enc_norm.weight"]
+    assert w.dtype == torch.float32
+    assert torch.allclose(w, tiny_model.state_dict()["enc_norm.weight"], atol=1e-2)
+
+
+def test_a_safetensors_file_from_another_project_is_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    save_file({"w": torch.zeros(2)}, str(tmp_path / "other.safetensors"))
+    with pytest.raises(pm.CheckpointError, match="not a pointmap checkpoint"):
+        pm.load_model(tmp_path / "other.safetensors")
+
+
+def test_unknown_names_list_what_is_shipped():
+    with pytest.raises(pm.CheckpointError, match="no such file or shipped model"):
+        pm.load_model("nonexistent_model_name")

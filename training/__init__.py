@@ -1,0 +1,1 @@
+"""Training: losses, the shared loop (DDP through torchrun), pretraining and supervised training."""

@@ -1,0 +1,78 @@
+"""Training configuration: a dataclass, filled from defaults, an optional JSON file, then CLI overrides."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import MISSING, asdict, dataclass, fields
+
+
+@dataclass
+class TrainConfig:
+    task: str = "train"            # "train" (pointmaps + matching) or "pretrain" (cross-view completion)
+    data: str = ""                 # shard root of training pairs (python -m data.render --kind pairs)
+    eval_data: str = ""            # shard root of the held-out pairs (never trained on)
+    out: str = "runs/train"        # checkpoints, logs
+    preset: str = "small"          # model preset (pointmap.model.PRESETS)
+    init: str = ""                 # "", a pretraining checkpoint, our .safetensors, or an official .pth
+    resume: bool = True            # continue from out/last.pt when it exists
+    size: int = 224                # training resolution (long side)
+    batch_size: int = 8            # per process
+    steps: int = 20000
+    lr: float = 2e-4
+    min_lr: float = 1e-6
+    warmup: int = 500
+    weight_decay: float = 0.05
+    clip: float = 1.0
+    alpha: float = 0.2             # confidence regulariser of the regression loss
+    metric: bool = False           # metric regression (GT scale for both)
+    match_weight: float = 0.075    # weight of the InfoNCE matching loss
+    n_corr: int = 1024             # correspondences per pair for the matching loss
+    temperature: float = 0.05
+    mask_ratio: float = 0.9        # pretraining
+    ckpt_every: int = 200
+    eval_every: int = 1000
+    eval_pairs: int = 64
+    log_every: int = 10
+    seed: int = 0
+    workers: int = 1               # data-loading processes
+    threads: int = 0               # torch threads (0: torch default)
+    max_minutes: float = 0.0       # stop (after a checkpoint) when this wall time is spent; 0 = no limit
+    quiet: bool = False
+
+    @classmethod
+    def from_args(cls, argv=None) -> TrainConfig:
+        p = argparse.ArgumentParser(description="pointmap training (see docs/training.md)")
+        p.add_argument("--config", default=None, help="JSON file with config values (CLI flags override it)")
+        for f in fields(cls):
+            default = f.default if f.default is not MISSING else None
+            if isinstance(default, bool):
+                p.add_argument(f"--{f.name}", type=_bool, default=None, metavar="BOOL")
+            else:
+                p.add_argument(f"--{f.name}", type=type(default), default=None)
+        ns = p.parse_args(argv)
+        values = {}
+        if ns.config:
+            with open(ns.config) as fh:
+                values.update(json.load(fh))
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            p.error(f"unknown keys in {ns.config}: {sorted(unknown)}")
+        values.update({k: v for k, v in vars(ns).items() if k != "config" and v is not None})
+        cfg = cls(**values)
+        if cfg.task not in ("train", "pretrain"):
+            p.error(f"--task expected 'train' or 'pretrain', got {cfg.task!r}")
+        if not cfg.data:
+            p.error("--data is required (a directory of shards written by python -m data.render)")
+        return cfg
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _bool(s: str) -> bool:
+    if s.lower() in ("1", "true", "yes", "on"):
+        return True
+    if s.lower() in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected a boolean, got {s!r}")

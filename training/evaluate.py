@@ -1,0 +1,72 @@
+"""Held-out evaluation of a pair model: relative pose (RRA/RTA@15), depth AbsRel, matching precision."""
+
+from __future__ import annotations
+
+import torch
+
+from pointmap.geometry.cameras import invert_rigid
+from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
+from pointmap.matching import match
+from pointmap.pose import relative_pose
+
+
+def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
+    """AbsRel of a depth map after median scale alignment (the prediction is scale-free)."""
+    p, g = pred_z[valid], gt_z[valid]
+    if p.numel() == 0:
+        return float("nan")
+    scale = torch.median(g) / torch.median(p).clamp_min(1e-12)
+    return float(((p * scale - g).abs() / g).mean())
+
+
+def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
+    """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
+    (only matches whose view-1 pixel has a GT correspondence count), and their number."""
+    if not pred.has_desc:
+        return float("nan"), 0
+    m = match(pred)
+    if len(m) == 0:
+        return 0.0, 0
+    u, v = m.xy1[:, 0].long(), m.xy1[:, 1].long()
+    gt = corr[v, u]
+    ok = torch.isfinite(gt).all(-1)
+    if ok.sum() == 0:
+        return float("nan"), 0
+    err = (gt[ok] - m.xy2[ok]).norm(dim=-1)
+    return float((err < tol).float().mean()), int(ok.sum())
+
+
+@torch.inference_mode()
+def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
+    """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred)."""
+    rot_err, tr_err, rels, precs = [], [], [], []
+    n = min(n_pairs, len(dataset))
+    for s in range(0, n, batch_size):
+        items = [dataset[k] for k in range(s, min(s + batch_size, n))]
+        groups: dict = {}
+        for it in items:  # batch items of equal shapes together
+            key = (tuple(it[0]["img"].shape), tuple(it[1]["img"].shape))
+            groups.setdefault(key, []).append(it)
+        for its in groups.values():
+            v1 = {k: torch.stack([it[0][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid", "corr")}
+            v2 = {k: torch.stack([it[1][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid")}
+            pred = model(v1["img"], v2["img"])
+            pred_rev = model(v2["img"], v1["img"])
+            cam2world_pred = relative_pose(pred, pred_reverse=pred_rev)
+            cam2world_gt = invert_rigid(v1["cam2world"].double()) @ v2["cam2world"].double()
+            ok = torch.isfinite(cam2world_pred).all(-1).all(-1)
+            re = relative_rotation_error_deg(cam2world_pred[..., :3, :3].double(), cam2world_gt[..., :3, :3])
+            te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
+            rot_err += torch.where(ok, re, torch.full_like(re, 180.0)).tolist()
+            tr_err += torch.where(ok, te, torch.full_like(te, 180.0)).tolist()
+            for b in range(len(its)):
+                rels.append(abs_rel(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b]))
+                p, cnt = match_precision(pred[b], v1["corr"][b])
+                if cnt:
+                    precs.append(p)
+    rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
+    rels_t = torch.tensor([r for r in rels if r == r])
+    return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
+            "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
+            "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
+            "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"), "pairs": float(len(rot))}

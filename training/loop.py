@@ -1,0 +1,252 @@
+"""The training loop shared by pretraining and supervised training.
+
+Resumable exactly: a checkpoint holds model, optimiser, scheduler, RNG states and the step; the data
+order is a pure function of (seed, step, rank), so a resumed run sees the batches it would have seen.
+Runs single-process or under ``torchrun`` (DDP: gloo on CPU, nccl on GPU).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import random
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from tqdm.auto import tqdm
+
+from training.config import TrainConfig
+
+
+# -- distributed ----------------------------------------------------------------------------------
+def setup_distributed():
+    """(rank, world, device); initialises the process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if world > 1 and not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+    device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if torch.cuda.is_available() else "cpu")
+    return rank, world, device
+
+
+# -- data order -----------------------------------------------------------------------------------
+def batch_indices(step: int, rank: int, world: int, batch: int, n: int, seed: int) -> list[int]:
+    """Dataset indices of (step, rank): consecutive slices of per-epoch permutations (a pure function)."""
+    per_step = batch * world
+    start = step * per_step + rank * batch
+    out = []
+    for k in range(start, start + batch):
+        epoch, pos = divmod(k, n)
+        g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+        out.append(int(torch.randperm(n, generator=g)[pos]))
+    return out
+
+
+class StepBatches(torch.utils.data.Sampler):
+    """Batch sampler from ``start_step`` to ``steps`` following ``batch_indices``."""
+
+    def __init__(self, n, batch, steps, start_step, rank, world, seed):
+        self.args = (n, batch, steps, start_step, rank, world, seed)
+        self._perm_cache = {}
+
+    def __iter__(self):
+        n, batch, steps, start, rank, world, seed = self.args
+        for step in range(start, steps):
+            per_step = batch * world
+            first = step * per_step + rank * batch
+            idx = []
+            for k in range(first, first + batch):
+                epoch, pos = divmod(k, n)
+                if epoch not in self._perm_cache:
+                    g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+                    self._perm_cache = {epoch: torch.randperm(n, generator=g)}
+                idx.append(int(self._perm_cache[epoch][pos]))
+            yield idx
+
+    def __len__(self):
+        return max(self.args[2] - self.args[3], 0)
+
+
+# -- optimisation ---------------------------------------------------------------------------------
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """AdamW (0.9, 0.95); no weight decay on biases, norms, tokens."""
+    decay, no_decay = [], []
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        (no_decay if p.ndim < 2 or "token" in name else decay).append(p)
+    groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+    return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
+
+
+def lr_factor(step: int, cfg: TrainConfig) -> float:
+    """Linear warmup then cosine decay to min_lr (as a factor of lr)."""
+    if step < cfg.warmup:
+        return (step + 1) / cfg.warmup
+    t = min((step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1), 1.0)
+    return (cfg.min_lr + (cfg.lr - cfg.min_lr) * 0.5 * (1 + math.cos(math.pi * t))) / cfg.lr
+
+
+# -- checkpoints ----------------------------------------------------------------------------------
+def _rng_state() -> dict:
+    np_state = np.random.get_state()
+    py = random.getstate()
+    return {"torch": torch.get_rng_state(), "numpy_keys": torch.from_numpy(np_state[1].astype(np.int64)),
+            "numpy_pos": int(np_state[2]), "py_version": py[0], "py_internal": torch.tensor(py[1], dtype=torch.int64),
+            "py_gauss": py[2]}
+
+
+def _set_rng_state(s: dict) -> None:
+    torch.set_rng_state(s["torch"])
+    np.random.set_state(("MT19937", s["numpy_keys"].numpy().astype(np.uint32), s["numpy_pos"], 0, 0.0))
+    random.setstate((s["py_version"], tuple(int(v) for v in s["py_internal"].tolist()), s["py_gauss"]))
+
+
+def save_checkpoint(path: Path, model, optimizer, scheduler, step: int, cfg: TrainConfig, extra=None) -> None:
+    """Atomic write (temp file + rename) of everything needed to resume exactly."""
+    state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+             "step": step, "rng": _rng_state(), "train_config": cfg.to_dict(),
+             "model_config": _unwrap(model).cfg.to_dict(), "kind": cfg.task, "extra": extra or {}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def load_checkpoint(path: Path) -> dict:
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _unwrap(model):
+    return model.module if hasattr(model, "module") else model
+
+
+# -- logging --------------------------------------------------------------------------------------
+class Logger:
+    """CSV (always) and TensorBoard (when installed) on rank 0."""
+
+    def __init__(self, out: Path, enabled: bool) -> None:
+        self.enabled, self.out = enabled, out
+        self.tb = None
+        if enabled:
+            out.mkdir(parents=True, exist_ok=True)
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.tb = SummaryWriter(str(out / "tb"))
+            except Exception:  # noqa: BLE001 - TensorBoard is optional
+                self.tb = None
+
+    def log(self, kind: str, step: int, values: dict) -> None:
+        if not self.enabled:
+            return
+        path = self.out / f"{kind}.csv"
+        new = not path.exists()
+        with open(path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=["step", "time", *values.keys()])
+            if new:
+                w.writeheader()
+            w.writerow({"step": step, "time": round(time.time(), 1), **values})
+        if self.tb is not None:
+            for k, v in values.items():
+                self.tb.add_scalar(f"{kind}/{k}", v, step)
+            self.tb.flush()
+
+
+# -- the loop -------------------------------------------------------------------------------------
+def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eval_fn=None) -> dict:
+    """Train ``model`` with ``step_fn(model, batch, step) -> (loss, metrics dict)``.
+
+    Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
+    every ``ckpt_every`` steps to ``out/last.pt``. Returns the last metrics.
+    """
+    rank, world, device = setup_distributed()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    out = Path(cfg.out)
+    torch.manual_seed(cfg.seed + rank)
+    np.random.seed(cfg.seed + rank)
+    random.seed(cfg.seed + rank)
+    model.to(device)
+    optimizer = make_optimizer(model, cfg)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
+    start = 0
+    last = out / "last.pt"
+    if cfg.resume and last.exists():
+        ck = load_checkpoint(last)
+        model.load_state_dict(ck["model"])
+        optimizer.load_state_dict(ck["optimizer"])
+        scheduler.load_state_dict(ck["scheduler"])
+        start = int(ck["step"])
+        if world == 1:
+            _set_rng_state(ck["rng"])
+    ddp_model = model
+    if world > 1:
+        ddp_model = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    logger = Logger(out, rank == 0)
+    sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed)
+    loader = torch.utils.data.DataLoader(dataset, batch_sampler=sampler, collate_fn=collate,
+                                         num_workers=cfg.workers, persistent_workers=False,
+                                         prefetch_factor=4 if cfg.workers > 0 else None)
+    bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, disable=cfg.quiet or rank != 0, dynamic_ncols=True)
+    t0, seen, metrics = time.time(), 0, {}
+    step = start
+    use_bf16 = device.type == "cuda" and torch.cuda.is_bf16_supported()
+    model.train()
+    for batch in loader:
+        batch = _to(batch, device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+            loss, metrics = step_fn(ddp_model, batch, step)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss is {float(loss)} at step {step}: lower --lr or check the data")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        seen += cfg.batch_size * world
+        rate = seen / max(time.time() - t0, 1e-9)
+        metrics = {"loss": float(loss), "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
+                   "pairs_per_s": rate, **metrics}
+        bar.update(1)
+        bar.set_postfix(loss=f"{float(loss):.4f}", pairs_s=f"{rate:.2f}")
+        if step % cfg.log_every == 0:
+            logger.log("train", step, metrics)
+        stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
+        if rank == 0 and (step % cfg.ckpt_every == 0 or step == cfg.steps or stop):
+            save_checkpoint(last, model, optimizer, scheduler, step, cfg)
+        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):
+            model.eval()
+            ev = eval_fn(model)
+            model.train()
+            logger.log("eval", step, ev)
+            metrics.update({f"eval_{k}": v for k, v in ev.items()})
+            tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
+        if stop:
+            break
+    bar.close()
+    if world > 1:
+        dist.barrier()
+    return {"step": step, **metrics}
+
+
+def _to(batch, device):
+    if isinstance(batch, torch.Tensor):
+        return batch.to(device, non_blocking=True)
+    if isinstance(batch, dict):
+        return {k: _to(v, device) for k, v in batch.items()}
+    if isinstance(batch, (list, tuple)):
+        return type(batch)(_to(v, device) for v in batch)
+    return batch

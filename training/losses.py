@@ -1,0 +1,113 @@
+"""Training losses: cross-view completion (CroCo), confidence-aware pointmap regression (DUSt3R),
+InfoNCE matching on descriptors (MASt3R). Pure functions of tensors; batches follow DESIGN.md 4."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from pointmap.geometry.cameras import depth_to_points_cam, invert_rigid, transform_points
+
+
+def patchify(img: torch.Tensor, patch: int) -> torch.Tensor:
+    """[B, 3, H, W] -> [B, N, patch*patch*3] in row-major patch order (matches the token order)."""
+    B, C, H, W = img.shape
+    x = img.reshape(B, C, H // patch, patch, W // patch, patch)
+    return x.permute(0, 2, 4, 3, 5, 1).reshape(B, (H // patch) * (W // patch), patch * patch * C)
+
+
+def completion_loss(pred_patches: torch.Tensor, img: torch.Tensor, mask: torch.Tensor, patch: int,
+                    eps: float = 1e-6) -> torch.Tensor:
+    """CroCo loss: MSE on per-patch normalised pixels of the MASKED patches only.
+
+    pred_patches [B, N, p*p*3]; img [B, 3, H, W]; mask [B, N] bool, True = masked (to reconstruct).
+    """
+    target = patchify(img, patch)
+    mean = target.mean(-1, keepdim=True)
+    var = target.var(-1, keepdim=True)
+    target = (target - mean) / (var + eps).sqrt()
+    per_patch = ((pred_patches - target) ** 2).mean(-1)
+    m = mask.float()
+    return (per_patch * m).sum() / m.sum().clamp_min(1)
+
+
+def gt_points_cam1(view1: dict, view2: dict):
+    """Ground-truth pointmaps of both views in view 1's camera frame: ([B,H1,W1,3], [B,H2,W2,3])."""
+    p1 = depth_to_points_cam(view1["depth_z"], view1["K"])
+    p2_cam2 = depth_to_points_cam(view2["depth_z"], view2["K"])
+    cam2_to_cam1 = invert_rigid(view1["cam2world"]) @ view2["cam2world"]
+    return p1, transform_points(cam2_to_cam1, p2_cam2)
+
+
+def _mean_dist(p1, p2, v1, v2):
+    """Mean distance to the origin over the valid pixels of both views, [B]."""
+    d = (p1.norm(dim=-1) * v1).flatten(1).sum(1) + (p2.norm(dim=-1) * v2).flatten(1).sum(1)
+    n = v1.flatten(1).sum(1) + v2.flatten(1).sum(1)
+    return d / n.clamp_min(1)
+
+
+def regression_loss(pred, view1: dict, view2: dict, alpha: float = 0.2, metric: bool = False):
+    """DUSt3R confidence-aware regression: per view, mean over valid pixels of conf*||P - X|| - alpha*log conf.
+
+    P and X are the predicted and GT pointmaps in view 1's frame, each divided by its own mean distance over
+    both views' valid pixels (metric mode: the GT scale is used for both). Returns (loss, details dict).
+    """
+    gt1, gt2 = gt_points_cam1(view1, view2)
+    v1, v2 = view1["valid"].float(), view2["valid"].float()
+    pr1, pr2 = pred.pts1_cam1.float(), pred.pts2_cam1.float()
+    s_gt = _mean_dist(gt1, gt2, v1, v2).clamp_min(1e-8)[:, None, None, None]
+    s_pr = s_gt if metric else _mean_dist(pr1, pr2, v1, v2).clamp_min(1e-8)[:, None, None, None]
+    total, details = 0.0, {}
+    for name, pr, gt, v, conf in (("1", pr1, gt1, v1, pred.conf1), ("2", pr2, gt2, v2, pred.conf2)):
+        err = (pr / s_pr - gt / s_gt).norm(dim=-1)
+        conf = conf.float()
+        per_px = conf * err - alpha * torch.log(conf)
+        n = v.sum().clamp_min(1)
+        total = total + (per_px * v).sum() / n
+        details[f"regr{name}"] = float(((err * v).sum() / n).detach())
+    return total, details
+
+
+def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, n_corr: int = 2048,
+                  temperature: float = 0.05, generator: torch.Generator | None = None):
+    """InfoNCE in both directions on descriptors of corresponding pixels (MASt3R).
+
+    desc1 [B, H1, W1, D], desc2 [B, H2, W2, D] unit descriptors; corr [B, H1, W1, 2] (u, v) pixel of
+    each view-1 pixel in view 2, NaN where not co-visible. Up to ``n_corr`` correspondences per pair.
+    Returns (loss, accuracy of the argmax match) averaged over pairs that have >= 8 correspondences.
+    """
+    B, H1, W1, _ = desc1.shape
+    H2, W2 = desc2.shape[1:3]
+    losses, accs = [], []
+    for b in range(B):
+        c = corr[b].reshape(-1, 2)
+        ok = torch.isfinite(c).all(-1)
+        u2, v2 = c[:, 0].round(), c[:, 1].round()
+        ok &= (u2 >= 0) & (u2 < W2) & (v2 >= 0) & (v2 < H2)
+        idx1 = ok.nonzero()[:, 0]
+        if idx1.numel() < 8:
+            continue
+        if idx1.numel() > n_corr:
+            idx1 = idx1[torch.randperm(idx1.numel(), generator=generator)[:n_corr]]
+        idx2 = (v2[idx1] * W2 + u2[idx1]).long()
+        # one view-2 pixel may be hit twice: keep the first, so that targets are unique
+        idx2, first = _unique_first(idx2)
+        idx1 = idx1[first]
+        d1 = desc1[b].reshape(-1, desc1.shape[-1])[idx1].float()
+        d2 = desc2[b].reshape(-1, desc2.shape[-1])[idx2].float()
+        logits = d1 @ d2.T / temperature
+        target = torch.arange(len(idx1), device=logits.device)
+        losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
+        accs.append((logits.argmax(1) == target).float().mean())
+    if not losses:
+        zero = desc1.sum() * 0
+        return zero, 0.0
+    return torch.stack(losses).mean(), float(torch.stack(accs).mean())
+
+
+def _unique_first(x: torch.Tensor):
+    """Unique values of x and the index of their first occurrence."""
+    uniq, inv = torch.unique(x, return_inverse=True)
+    first = torch.full((uniq.numel(),), x.numel(), dtype=torch.long)
+    first.scatter_reduce_(0, inv, torch.arange(x.numel()), reduce="amin")
+    return x[first], first

@@ -1,0 +1,61 @@
+"""Cross-view completion pretraining (CroCo): ``python -m training.pretrain --data DIR ...``.
+
+The checkpoint (out/last.pt) initialises supervised training: ``python -m training.train --init out/last.pt``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from pointmap.model import PRESETS
+from pointmap.model.pretrain import CrossViewCompletion
+from training.config import TrainConfig
+from training.loop import fit
+from training.losses import completion_loss
+from training.train import collate
+
+
+def make_step(cfg: TrainConfig):
+    def step_fn(model, batch, step):
+        view1, view2 = batch
+        pred, mask = model(view1["img"], view2["img"])
+        loss = completion_loss(pred, view1["img"], mask, PRESETS[cfg.preset].patch_size)
+        return loss, {}
+
+    return step_fn
+
+
+@torch.inference_mode()
+def completion_eval(model, dataset, n: int = 32) -> dict:
+    """Held-out completion loss with fixed masks."""
+    g = torch.Generator().manual_seed(0)
+    losses = []
+    for k in range(min(n, len(dataset))):
+        v1, v2 = dataset[k]
+        img1, img2 = v1["img"][None], v2["img"][None]
+        N = (img1.shape[-2] // model.cfg.patch_size) * (img1.shape[-1] // model.cfg.patch_size)
+        mask = model.random_mask(1, N, generator=g)
+        pred, mask = model(img1, img2, mask)
+        losses.append(float(completion_loss(pred, img1, mask, model.cfg.patch_size)))
+    return {"completion_loss": sum(losses) / max(len(losses), 1)}
+
+
+def main(argv=None) -> int:
+    from data.datasets import PairDataset
+
+    cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
+    model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
+    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, seed=cfg.seed)
+    eval_fn = None
+    if cfg.eval_data:
+        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False)
+        eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
+    result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
+    print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
