@@ -46,19 +46,43 @@ def _pose_pnp(pts2_cam1, conf2, K2, keep, rng):
         pts, uv = pts[sel], uv[sel]
     reproj = max(2.0, 0.01 * max(H, W))
     if K2 is not None:
-        pose, _ = _pnp(pts, uv, K2, 1000, reproj)
-        return pose
-    # unknown focal: sweep focals (as the official MST init does) and keep the one with most inliers
+        return _pnp(pts, uv, K2, 1000, reproj)[0]
+    # unknown focal: sweep 21 focals (as the official MST init), score each pose by a truncated quadratic
+    # reprojection cost over all points, then refine the focal by golden-section search around the best.
     S = max(H, W)
-    best, best_n = None, -1
-    for f in np.geomspace(S / 2, 3 * S, 21):
+
+    def cost_at(f, iters=100):
         K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
-        pose, n = _pnp(pts, uv, K, 100, reproj)
-        if n > best_n:
-            best, best_n, best_K = pose, n, K
-    if best is not None:
-        best, _ = _pnp(pts, uv, best_K, 1000, reproj)
-    return best
+        pose, _ = _pnp(pts, uv, K, iters, reproj)
+        if pose is None:
+            return np.inf, None
+        world2cam = np.linalg.inv(pose)
+        Xc = pts @ world2cam[:3, :3].T + world2cam[:3, 3]
+        z = np.maximum(Xc[:, 2], 1e-9)
+        proj = Xc[:, :2] / z[:, None] * f + K[:2, 2]
+        err = np.linalg.norm(proj - uv, axis=1)
+        err[Xc[:, 2] <= 0] = reproj
+        return float(np.mean(np.minimum(err, reproj) ** 2)), pose
+
+    grid = np.geomspace(S / 2, 3 * S, 21)
+    costs = [cost_at(f)[0] for f in grid]
+    k = int(np.argmin(costs))
+    if not np.isfinite(costs[k]):
+        return None
+    lo, hi = np.log(grid[max(k - 1, 0)]), np.log(grid[min(k + 1, len(grid) - 1)])
+    g = (np.sqrt(5) - 1) / 2
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    ca, cb = cost_at(np.exp(a))[0], cost_at(np.exp(b))[0]
+    for _ in range(12):
+        if ca < cb:
+            hi, b, cb = b, a, ca
+            a = hi - g * (hi - lo)
+            ca = cost_at(np.exp(a))[0]
+        else:
+            lo, a, ca = a, b, cb
+            b = lo + g * (hi - lo)
+            cb = cost_at(np.exp(b))[0]
+    return cost_at(np.exp((lo + hi) / 2), iters=1000)[1]
 
 
 def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairPrediction | None = None,

@@ -193,7 +193,10 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             _set_rng_state(ck["rng"])
     ddp_model = model
     if world > 1:
-        ddp_model = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+        # the DPT's last fusion block has an unused lateral unit (kept for official-key compatibility)
+        ddp_model = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None,
+            find_unused_parameters=any("dpt" in n for n, _ in model.named_parameters()))
     logger = Logger(out, rank == 0)
     sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed)
     loader = torch.utils.data.DataLoader(dataset, batch_sampler=sampler, collate_fn=collate,
@@ -208,8 +211,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         batch = _to(batch, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
             loss, metrics = step_fn(ddp_model, batch, step)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss is {float(loss)} at step {step}: lower --lr or check the data")
+        loss_value = float(loss.detach())
+        if not math.isfinite(loss_value):
+            raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
@@ -218,10 +222,10 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         step += 1
         seen += cfg.batch_size * world
         rate = seen / max(time.time() - t0, 1e-9)
-        metrics = {"loss": float(loss), "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
+        metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
                    "pairs_per_s": rate, **metrics}
         bar.update(1)
-        bar.set_postfix(loss=f"{float(loss):.4f}", pairs_s=f"{rate:.2f}")
+        bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
         if step % cfg.log_every == 0:
             logger.log("train", step, metrics)
         stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes

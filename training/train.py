@@ -44,16 +44,15 @@ def collate(items):
 
 
 def make_step(cfg: TrainConfig):
-    gen = torch.Generator().manual_seed(cfg.seed)
-
     def step_fn(model, batch, step):
+        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # a function of the step: resumable
         view1, view2 = batch
         pred = model(view1["img"], view2["img"])
         loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
         if pred.has_desc and cfg.match_weight > 0:
             lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
             loss = loss + cfg.match_weight * lm
-            details.update(match_loss=float(lm), match_acc=acc)
+            details.update(match_loss=float(lm.detach()), match_acc=acc)
         return loss, details
 
     return step_fn

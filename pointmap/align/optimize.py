@@ -154,6 +154,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                           "num_images": n, "num_edges": stack.num_edges, "stride": stride,
                           "opt_pixels_per_image": stack.num_pixels, "chunk_edges": chunk,
                           "scale_fixed_by_known_poses": scale_fixed, "tree": init.tree,
+                          "known_pose_indices": sorted(known_poses),
+                          "known_K_indices": [k for k in range(n) if K_known[k]],
                           "config": asdict(cfg)})
 
 

@@ -132,40 +132,47 @@ def _bin_tiles(means2d, radii, depths, width, height, tile, chunk):
     nx = (x1 - x0 + 1).clamp_min(0)
     ny = (y1 - y0 + 1).clamp_min(0)
     cnt = torch.where(live, nx * ny, torch.zeros_like(nx))
-    total = int(cnt.sum())
+    # generate (Gaussian, tile) pairs with Gaussians in depth order, then a stable sort by tile id
+    # gives (tile, depth) order; a small-integer stable sort is a cheap radix sort
+    by_depth = torch.argsort(depths, stable=True)
+    cnt_d = cnt.index_select(0, by_depth)
+    total = int(cnt_d.sum())
     if total == 0:
         return (torch.full((0, chunk), -1, dtype=torch.long, device=device),
                 torch.zeros(0, dtype=torch.long, device=device), ntx, nty)
-    g = torch.repeat_interleave(torch.arange(n, device=device), cnt)
-    start = torch.cumsum(cnt, 0) - cnt
-    off = torch.arange(total, device=device) - start[g]
-    tx = x0[g] + off % nx[g]
-    ty = y0[g] + off // nx[g]
+    g = torch.repeat_interleave(by_depth, cnt_d)
+    start = torch.cumsum(cnt_d, 0) - cnt_d
+    off = torch.arange(total, device=device) - torch.repeat_interleave(start, cnt_d)
+    # (index_select is much faster than advanced indexing on CPU)
+    nxg = nx.index_select(0, g)
+    ty_off = torch.div(off, nxg, rounding_mode="floor")
+    tx = x0.index_select(0, g) + (off - ty_off * nxg)
+    ty = y0.index_select(0, g) + ty_off
     # drop tiles whose rectangle does not meet the bounding circle
-    px = torch.clamp(u[g], (tx * tile).to(u.dtype), (tx * tile + tile - 1).to(u.dtype))
-    py = torch.clamp(v[g], (ty * tile).to(v.dtype), (ty * tile + tile - 1).to(v.dtype))
-    keep = (px - u[g]) ** 2 + (py - v[g]) ** 2 <= r[g] ** 2
-    g, tx, ty = g[keep], tx[keep], ty[keep]
+    ug, vg, rg = u.index_select(0, g), v.index_select(0, g), r.index_select(0, g)
+    px = torch.minimum(torch.maximum(ug, (tx * tile).to(u.dtype)), (tx * tile + tile - 1).to(u.dtype))
+    py = torch.minimum(torch.maximum(vg, (ty * tile).to(v.dtype)), (ty * tile + tile - 1).to(v.dtype))
+    keep = ((px - ug) ** 2 + (py - vg) ** 2 <= rg * rg).nonzero().squeeze(1)
+    g = g.index_select(0, keep)
     if g.numel() == 0:
         return (torch.full((0, chunk), -1, dtype=torch.long, device=device),
                 torch.zeros(0, dtype=torch.long, device=device), ntx, nty)
-    tile_id = ty * ntx + tx
-    rank = torch.empty(n, dtype=torch.long, device=device)
-    rank[torch.argsort(depths, stable=True)] = torch.arange(n, device=device)
-    key = tile_id * n + rank[g]
-    order = torch.argsort(key)
-    g = g[order]
-    tile_id = tile_id[order]
+    tile_id = (ty * ntx + tx).index_select(0, keep)
+    small = torch.int16 if ntx * nty < 2 ** 15 else torch.int32
+    tile_id, order = torch.sort(tile_id.to(small), stable=True)
+    g = g.index_select(0, order)
+    tile_id = tile_id.long()
     n_tiles = ntx * nty
     per_tile = torch.bincount(tile_id, minlength=n_tiles)
     tile_start = torch.cumsum(per_tile, 0) - per_tile
-    idx_in_tile = torch.arange(g.numel(), device=device) - tile_start[tile_id]
+    idx_in_tile = torch.arange(g.numel(), device=device) - tile_start.index_select(0, tile_id)
     chunks_per_tile = (per_tile + chunk - 1) // chunk
     chunk_start = torch.cumsum(chunks_per_tile, 0) - chunks_per_tile
     nc = int(chunks_per_tile.sum())
-    chunk_idx = chunk_start[tile_id] + idx_in_tile // chunk
-    gid = torch.full((nc, chunk), -1, dtype=torch.long, device=device)
-    gid[chunk_idx, idx_in_tile % chunk] = g
+    slot = chunk_start.index_select(0, tile_id) * chunk + idx_in_tile
+    gid = torch.full((nc * chunk,), -1, dtype=torch.long, device=device)
+    gid.index_copy_(0, slot, g)
+    gid = gid.reshape(nc, chunk)
     chunk_tile = torch.repeat_interleave(torch.arange(n_tiles, device=device), chunks_per_tile)
     return gid, chunk_tile, ntx, nty
 
@@ -222,14 +229,14 @@ class _Composite(torch.autograd.Function):
         log_after = l1m.cumsum(1)
         pre, _ = _segmented_sums(log_after[:, -1], chunk_tile, n_tiles)
         log_after.add_(pre[:, None])                                    # log T after each Gaussian
-        term = None
+        stop = None
         if log_after.numel() and float(log_after.min()) < math.log(T_MIN):
-            term = log_after >= math.log(T_MIN)                          # Gaussians before termination
-            l1m.mul_(term)
+            stop = log_after < math.log(T_MIN)                           # at or after a pixel's termination
+            l1m.masked_fill_(stop, 0.0)
         lt_c = l1m.sum(1)                                               # [nc, P]
         T = log_after.sub_(l1m).exp_()
-        if term is not None:
-            T.mul_(term)                                                # T = 0 past termination
+        if stop is not None:
+            T.masked_fill_(stop, 0.0)                                   # T = 0 from termination on
         del l1m
         w = a * T
         acc_c = torch.bmm(w.transpose(1, 2), vals)                      # [nc, P, D+1]
@@ -237,7 +244,7 @@ class _Composite(torch.autograd.Function):
         acc = torch.zeros(n_tiles, P, vals.shape[-1], dtype=vals.dtype, device=vals.device)
         acc.index_add_(0, chunk_tile, acc_c)
         lt = torch.zeros(n_tiles, P, dtype=a.dtype, device=a.device).index_add_(0, chunk_tile, lt_c)
-        ctx.save_for_backward(a, T, vals, feat, chunk_tile, term if term is not None else torch.empty(0),
+        ctx.save_for_backward(a, T, vals, feat, chunk_tile, stop if stop is not None else torch.empty(0),
                               gi, pad, mx, my, sl)
         ctx.n_tiles = n_tiles
         ctx.n = g6.shape[0]
@@ -245,7 +252,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_acc, g_lt):
-        a, T, vals, feat, chunk_tile, term, gi, pad, mx, my, sl = ctx.saved_tensors
+        a, T, vals, feat, chunk_tile, stop, gi, pad, mx, my, sl = ctx.saved_tensors
         w = a * T
         gv = g_acc.index_select(0, chunk_tile)                          # [nc, P, D+1]
         s = torch.bmm(vals, gv.transpose(1, 2))                         # dL/dw, [nc, C, P]
@@ -262,10 +269,10 @@ class _Composite(torch.autograd.Function):
         g_la = s.mul_(T).sub_(behind)                                   # dL/dalpha
         del behind
         g_la.mul_(a)                                                    # dL/dlog(alpha); 0 where skipped
-        if term.numel():
-            g_la.mul_(term)
+        if stop.numel():
+            g_la.masked_fill_(stop, 0.0)
         if a.numel() and float(a.max()) >= ALPHA_MAX:
-            g_la.mul_(a < ALPHA_MAX)                                    # clamped alphas have no gradient
+            g_la.masked_fill_(a >= ALPHA_MAX, 0.0)                      # clamped alphas have no gradient
         g = torch.matmul(g_la, feat).masked_fill_(pad[..., None], 0.0)   # dL/dcoef, [nc, C, 6]
         g0, g1, g2, g3, g4, g5 = g.unbind(-1)
         ca, cb, cc = sl[..., 2], sl[..., 3], sl[..., 4]
@@ -390,7 +397,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, wid
 
 
 def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, height, background=None, *,
-              backend: str = "torch", near: float = 0.01, eps2d: float = 0.3, tile: int = 8,
+              backend: str = "torch", near: float = 0.01, eps2d: float = 0.3, tile: int = 4,
               chunk: int = 32) -> RenderOutput:
     """Render Gaussians into one pinhole camera.
 

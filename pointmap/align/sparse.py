@@ -1,0 +1,184 @@
+"""Sparse refinement on matches (bundle adjustment in the spirit of MASt3R's second stage).
+
+Each match (xy_i in image i, xy_j in image j, map pixels) defines a 3D point on image i's ray at xy_i,
+its depth d = d0 exp(delta) starting from the dense depth. Poses (cam2world = base @ se3_exp(xi)),
+focal (one log-factor per image, fx and fy scaled together) and optionally the principal point are
+optimised with the depths on the robust (Cauchy) reprojection error of the points into image j, plus a
+weak prior delta^2 that fixes the scale gauge. LBFGS with a strong-Wolfe line search.
+The dense depth maps are then rescaled per image by the median depth change of their matches.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.geometry.rotations import se3_exp
+from pointmap.reconstruction import K_to_original, Reconstruction
+
+
+@dataclass(frozen=True)
+class SparseConfig:
+    """niter: LBFGS iterations; robust_px: Cauchy scale in map pixels (None: min(2, max(h, w) / 100)); depth_prior: weight of delta^2
+    (in px^2 per unit log-depth^2); optimize_focal / optimize_pp: which intrinsics move;
+    min_score: matches with a lower score are dropped; max_matches_per_pair: random subsample cap."""
+
+    niter: int = 100
+    robust_px: float | None = None
+    depth_prior: float = 0.01
+    optimize_focal: bool = True
+    optimize_pp: bool = False
+    min_score: float = 0.0
+    max_matches_per_pair: int = 4096
+    quiet: bool = False
+
+
+def _unpack(m):
+    if isinstance(m, (tuple, list)):
+        xy1, xy2 = m[0], m[1]
+        score = m[2] if len(m) > 2 else None
+    else:
+        xy1, xy2, score = m.xy1, m.xy2, getattr(m, "score", None)
+    xy1 = torch.as_tensor(xy1, dtype=torch.float64).reshape(-1, 2)
+    xy2 = torch.as_tensor(xy2, dtype=torch.float64).reshape(-1, 2)
+    score = torch.ones(len(xy1), dtype=torch.float64) if score is None else torch.as_tensor(score, dtype=torch.float64).reshape(-1)
+    if not (len(xy1) == len(xy2) == len(score)):
+        raise ShapeError(f"matches expected xy1 [M, 2], xy2 [M, 2], score [M], got {len(xy1)}, {len(xy2)}, {len(score)}")
+    return xy1, xy2, score
+
+
+def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed: int = 0):
+    """Flatten {(i, j): matches} into tensors, keeping matches inside both images with depth at xy_i."""
+    n, h, w = recon.depth_z.shape
+    g = torch.Generator().manual_seed(seed)
+    I, J, A, B, S = [], [], [], [], []
+    for (i, j), m in matches.items():
+        if i == j:
+            continue
+        xy1, xy2, score = _unpack(m)
+        keep = (score > cfg.min_score) & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
+        for xy in (xy1, xy2):
+            keep &= (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
+        idx = keep.nonzero()[:, 0]
+        if len(idx) > cfg.max_matches_per_pair:
+            idx = idx[torch.randperm(len(idx), generator=g)[: cfg.max_matches_per_pair]]
+        u = xy1[idx, 0].round().long()
+        v = xy1[idx, 1].round().long()
+        d0 = recon.depth_z[i].double()[v, u]
+        ok = d0 > 0
+        idx = idx[ok]
+        I.append(torch.full((len(idx),), i))
+        J.append(torch.full((len(idx),), j))
+        A.append(xy1[idx])
+        B.append(xy2[idx])
+        S.append(score[idx].clamp_min(0))
+    if not I or sum(len(x) for x in I) == 0:
+        raise ShapeError("refine_matches: no usable matches (inside both images, with depth at xy1)")
+    return torch.cat(I), torch.cat(J), torch.cat(A), torch.cat(B), torch.cat(S)
+
+
+def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig | None = None,
+                   fixed_poses=(), fixed_intrinsics=()) -> Reconstruction:
+    """Refine poses and intrinsics of ``recon`` on 2D matches; returns a new Reconstruction.
+
+    matches: {(i, j): (xy_i [M, 2], xy_j [M, 2], score [M])} in MAP pixels (the network input, as
+        ``pm.match`` returns), or objects with ``xy1``, ``xy2``, ``score``.
+    fixed_poses: indices whose cam2world stays bit-identical (if empty, the image with the most matches
+        is held fixed to pin the frame); fixed_intrinsics: indices (or True for all) with K kept as is.
+    """
+    cfg = config or SparseConfig()
+    t0 = time.perf_counter()
+    n = len(recon)
+    I, J, xy_i, xy_j, score = gather_matches(recon, matches, cfg)
+    fixed_poses = sorted(int(i) for i in fixed_poses)
+    if not fixed_poses:
+        fixed_poses = [int(torch.bincount(torch.cat([I, J]), minlength=n).argmax())]
+    fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in (fixed_intrinsics or ())}
+    K0 = recon.K_map.double()
+    unit = float(recon.depth_z[recon.depth_z > 0].double().median())
+    base = recon.cam2world.double().clone()
+    base[:, :3, 3] /= unit
+    d0 = recon.depth_z.double()[I, xy_i[:, 1].round().long(), xy_i[:, 0].round().long()] / unit
+    pose_free = torch.tensor([k not in fixed_poses for k in range(n)], dtype=torch.float64)[:, None]
+    f_free = torch.tensor([cfg.optimize_focal and k not in fixed_K for k in range(n)], dtype=torch.float64)
+    pp_free = torch.tensor([cfg.optimize_pp and k not in fixed_K for k in range(n)], dtype=torch.float64)[:, None]
+    size = torch.tensor([float(recon.depth_z.shape[2]), float(recon.depth_z.shape[1])], dtype=torch.float64)
+    xi = torch.zeros(n, 6, dtype=torch.float64, requires_grad=True)
+    dlf = torch.zeros(n, dtype=torch.float64, requires_grad=True)
+    dpp = torch.zeros(n, 2, dtype=torch.float64, requires_grad=True)
+    delta = torch.zeros(len(I), dtype=torch.float64, requires_grad=True)
+    wts = score / score.mean().clamp_min(1e-12)
+    h, w = recon.depth_z.shape[1:]
+    sig2 = (cfg.robust_px if cfg.robust_px else min(2.0, max(h, w) / 100)) ** 2
+
+    def state():
+        c2w = base @ se3_exp(xi * pose_free)
+        scale = torch.exp(dlf * f_free)
+        fx, fy = K0[:, 0, 0] * scale, K0[:, 1, 1] * scale
+        pp = K0[:, :2, 2] + dpp * pp_free * size / 100
+        return c2w, fx, fy, pp
+
+    def residuals():
+        c2w, fx, fy, pp = state()
+        d = d0 * torch.exp(delta)
+        ray = torch.stack([(xy_i[:, 0] - pp[I, 0]) / fx[I], (xy_i[:, 1] - pp[I, 1]) / fy[I], torch.ones_like(d)], -1)
+        pw = (c2w[I, :3, :3] @ (d[:, None] * ray)[..., None])[..., 0] + c2w[I, :3, 3]
+        Rj = c2w[J, :3, :3]
+        pc = (Rj.transpose(-1, -2) @ (pw - c2w[J, :3, 3])[..., None])[..., 0]
+        z = pc[:, 2].clamp_min(1e-6)
+        uv = torch.stack([fx[J] * pc[:, 0] / z + pp[J, 0], fy[J] * pc[:, 1] / z + pp[J, 1]], -1)
+        return (uv - xy_j).norm(dim=-1), pc[:, 2]
+
+    def loss_fn():
+        r, _ = residuals()
+        robust = sig2 * torch.log1p(r * r / sig2)
+        return (wts * robust).mean() + cfg.depth_prior * (delta * delta).mean()
+
+    with torch.no_grad():
+        r0, _ = residuals()
+    opt = torch.optim.LBFGS([xi, dlf, dpp, delta], lr=1.0, max_iter=cfg.niter, max_eval=cfg.niter * 2,
+                            history_size=20, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                            tolerance_change=1e-14)
+    evals = [0]
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        evals[0] += 1
+        return loss
+
+    loss0 = float(loss_fn().detach())
+    opt.step(closure)
+    with torch.no_grad():
+        final = float(loss_fn())
+        r1, z1 = residuals()
+        c2w, fx, fy, pp = state()
+    if not (math.isfinite(final) and torch.isfinite(c2w).all()) or final > loss0:
+        return replace(recon, info={**recon.info, "sparse": {"applied": False, "reason": "did not improve",
+                                                                 "init_loss": loss0, "final_loss": final}})
+    cam2world = c2w.clone()
+    cam2world[:, :3, 3] *= unit
+    cam2world = cam2world.float()
+    for k in fixed_poses:
+        cam2world[k] = recon.cam2world[k]
+    K_map = K0.clone()
+    K_map[:, 0, 0], K_map[:, 1, 1], K_map[:, :2, 2] = fx, fy, pp
+    K = K_to_original(K_map, recon.map_from_original.double()).float()
+    for k in fixed_K:
+        K[k] = recon.K[k]
+    depth = recon.depth_z.clone()
+    ratio = torch.exp(delta.detach())
+    for k in range(n):
+        sel = I == k
+        if int(sel.sum()) >= 8:
+            depth[k] = depth[k] * float(ratio[sel].median())
+    report = {"applied": True, "num_matches": int(len(I)), "evaluations": evals[0], "init_loss": loss0,
+              "final_loss": final, "median_reproj_px_before": float(r0.median()),
+              "median_reproj_px_after": float(r1.median()), "fixed_poses": fixed_poses,
+              "seconds": time.perf_counter() - t0, "config": asdict(cfg)}
+    return replace(recon, cam2world=cam2world, K=K, depth_z=depth, info={**recon.info, "sparse": report})

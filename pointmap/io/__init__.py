@@ -1,0 +1,55 @@
+"""Exports of a Reconstruction: PLY, GLB, COLMAP (bin/txt), npz. All files are written atomically."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pointmap.io.colmap import write_colmap
+from pointmap.io.glb import write_glb
+from pointmap.io.npz import load_npz, write_npz
+from pointmap.io.ply import read_ply, write_ply
+from pointmap.io.points import confidence_mask, select_points
+
+FORMATS = ("ply", "glb", "colmap", "colmap_txt", "npz")
+
+
+def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"), *, min_conf: float | None = None,
+                        conf_percentile: float | None = None, max_points: int | None = None,
+                        colmap_max_points: int | None = 100_000, colmap_text: bool = False,
+                        shared_camera: bool | None = None, seed: int = 0) -> dict:
+    """Write ``recon`` under ``out_dir``; returns {format: path or [paths]}.
+
+    formats: any of "ply" (points.ply), "glb" (scene.glb), "colmap" (sparse/0/*.bin),
+        "colmap_txt" (sparse/0/*.txt), "npz" (reconstruction.npz).
+    Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
+    ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
+    ``colmap_max_points`` the COLMAP points3D (dense clouds slow 3DGS trainers down; None = all).
+    """
+    if isinstance(formats, str):
+        formats = tuple(f.strip() for f in formats.split(",") if f.strip())
+    bad = [f for f in formats if f not in FORMATS]
+    if bad:
+        raise ValueError(f"formats expected a subset of {FORMATS}, got {bad}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict = {}
+    if "ply" in formats or "glb" in formats:
+        pts = select_points(recon, min_conf, conf_percentile, max_points, seed)
+        if "ply" in formats:
+            write_ply(out / "points.ply", pts.xyz, pts.rgb, pts.conf)
+            written["ply"] = out / "points.ply"
+        if "glb" in formats:
+            write_glb(out / "scene.glb", recon, pts)
+            written["glb"] = out / "scene.glb"
+    if "colmap" in formats or "colmap_txt" in formats:
+        pts = select_points(recon, min_conf, conf_percentile, colmap_max_points, seed)
+        written["colmap"] = write_colmap(recon, out / "sparse" / "0", pts, binary="colmap" in formats,
+                                         text=colmap_text or "colmap_txt" in formats, shared_camera=shared_camera)
+    if "npz" in formats:
+        write_npz(out / "reconstruction.npz", recon)
+        written["npz"] = out / "reconstruction.npz"
+    return written
+
+
+__all__ = ["confidence_mask", "load_npz", "read_ply", "save_reconstruction", "select_points", "write_colmap",
+           "write_glb", "write_npz", "write_ply"]

@@ -1,0 +1,53 @@
+"""Choosing which pixels of a reconstruction become exported points (confidence thresholds, masks)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
+                    percentile: float | None = None) -> torch.Tensor:
+    """[N, h, w] bool. ``min_conf``: absolute, keep conf > min_conf (raw network confidence, >= 1; the
+    official demos use 3 for DUSt3R and 1.5 for MASt3R). ``percentile`` in [0, 100): relative, keep
+    conf >= that percentile of all finite confidences (50 keeps the most confident half). Both may be
+    combined (a pixel must pass both)."""
+    keep = torch.isfinite(conf)
+    if min_conf is not None:
+        keep &= conf > min_conf
+    if percentile is not None:
+        if not 0 <= percentile < 100:
+            raise ValueError(f"conf percentile expected in [0, 100), got {percentile}")
+        vals = conf[torch.isfinite(conf)].double()
+        if vals.numel():
+            thr = float(np.percentile(vals.numpy(), percentile))
+            keep &= conf >= thr
+    return keep
+
+
+@dataclass
+class PointSet:
+    xyz: np.ndarray        # [M, 3] float64 world
+    rgb: np.ndarray        # [M, 3] uint8
+    conf: np.ndarray       # [M] float32
+    image: np.ndarray      # [M] int: source image
+    uv_map: np.ndarray     # [M, 2] float: source pixel (map resolution)
+
+
+def select_points(recon, min_conf: float | None = None, conf_percentile: float | None = None,
+                  max_points: int | None = None, seed: int = 0) -> PointSet:
+    """Valid pixels (depth > 0, inside recon.masks, confidence thresholds) as a point set; a random
+    subset of ``max_points`` if given."""
+    keep = recon.valid() & confidence_mask(recon.conf, min_conf, conf_percentile)
+    n_idx, v, u = keep.nonzero(as_tuple=True)
+    if max_points is not None and len(n_idx) > max_points:
+        g = torch.Generator().manual_seed(seed)
+        sel = torch.randperm(len(n_idx), generator=g)[:max_points].sort().values
+        n_idx, v, u = n_idx[sel], v[sel], u[sel]
+    pts = recon.pts_world.double() if recon.depth_z.dtype != torch.float64 else recon.pts_world
+    xyz = pts[n_idx, v, u].numpy()
+    rgb = (recon.images[n_idx, v, u].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    return PointSet(xyz=xyz, rgb=rgb, conf=recon.conf[n_idx, v, u].numpy().astype(np.float32),
+                    image=n_idx.numpy(), uv_map=torch.stack([u, v], -1).numpy().astype(np.float64))

@@ -1,0 +1,144 @@
+"""``reconstruct``: photos -> Reconstruction in one call (load_images -> make_pairs -> predict_pairs ->
+global_align [-> refine_matches]), with a cost estimate printed before the long steps start."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import torch
+
+from pointmap.align.optimize import AlignConfig, global_align
+from pointmap.errors import GraphError, ShapeError
+from pointmap.io.points import confidence_mask
+
+# Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
+ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
+FUSE_SECONDS_PER_EDGE_PIXEL = 1.2e-7
+INFER_SECONDS_PER_PAIR_512_LARGE = 66.0   # official-size DUSt3R 512 DPT on this CPU (anchors-spec 5.6)
+LARGE_MODEL_PARAMS = 571e6
+
+
+def auto_graph(n_images: int) -> str:
+    """complete up to 12 images (<= 66 pairs); logwin-3 up to 40 (offsets 1, 2, 4: short and long
+    range, ~3N pairs); logwin-4 beyond (offsets up to 8, ~4N pairs)."""
+    if n_images <= 12:
+        return "complete"
+    return "logwin-3" if n_images <= 40 else "logwin-4"
+
+
+def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
+                  device: str = "cpu") -> dict:
+    """Rough time (s) and peak memory (GB) of inference and alignment, before running them."""
+    cfg = config or AlignConfig()
+    h, w = map_hw
+    E = 2 * n_pairs
+    P = h * w
+    if cfg.stride or cfg.max_opt_pixels:
+        stride = cfg.stride or max(1, math.ceil(math.sqrt(P / cfg.max_opt_pixels)))
+        P_opt = math.ceil(h / stride) * math.ceil(w / stride)
+    else:
+        P_opt = P
+    params = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else LARGE_MODEL_PARAMS
+    per_pair = INFER_SECONDS_PER_PAIR_512_LARGE * (params / LARGE_MODEL_PARAMS) * (P / (512 * 384))
+    if str(device).startswith("cuda"):
+        per_pair /= 100.0
+    preds_bytes = E * P * 4 * 8            # two pointmaps + two confidences, float32
+    stack_bytes = E * P_opt * 4 * 8
+    chunk_bytes = min(cfg.max_chunk_pixels, E * P_opt) * 4 * 40
+    return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": per_pair * n_pairs,
+            "align_seconds": ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
+            + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters),
+            "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}
+
+
+def masks_to_maps(masks, views) -> torch.Tensor:
+    """Per-image masks (True = keep) at the ORIGINAL size (H, W) or at the map size -> [N, h, w] bool."""
+    if len(masks) != len(views):
+        raise ShapeError(f"masks expected one per image ({len(views)}), got {len(masks)}")
+    out = []
+    for k, (m, v) in enumerate(zip(masks, views)):
+        m = torch.as_tensor(np.asarray(m)).bool()
+        h, w = v.shape
+        W, H = v.original_size
+        if tuple(m.shape) == (h, w):
+            out.append(m)
+            continue
+        if tuple(m.shape) != (H, W):
+            raise ShapeError(f"mask {k} expected the original size ({H}, {W}) or the map size ({h}, {w}), "
+                             f"got {tuple(m.shape)}")
+        sx, sy, left, top = v.map_from_original
+        u = ((torch.arange(w) + 0.5 + left) / sx - 0.5).round().long().clamp(0, W - 1)
+        vv = ((torch.arange(h) + 0.5 + top) / sy - 0.5).round().long().clamp(0, H - 1)
+        out.append(m[vv][:, u])
+    return torch.stack(out)
+
+
+def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512, batch_size: int = 8,
+                K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
+                conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
+                quiet: bool = False, device: str = "cpu"):
+    """Photos to a Reconstruction.
+
+    graph: "auto" (see ``auto_graph``) or any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...)
+    K / cam2world / pose_mask: known intrinsics (ORIGINAL pixels) / poses, as ``global_align`` takes them
+    masks: optional per-image bool masks (True = keep), original or map size; masked pixels are left
+        out of the alignment and of the exports
+    min_conf / conf_percentile: confidence filter of the output points (absolute raw confidence, and/or
+        keep conf >= that percentile); stored in ``recon.masks`` and applied by ``recon.save``
+    refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
+        or pointmaps; uses ``pm.match``)
+    """
+    from pointmap.images import load_images
+    from pointmap.inference import predict_pairs
+    from pointmap.pairs import make_pairs
+
+    cfg = align or AlignConfig(quiet=quiet)
+    views = load_images(paths_or_arrays, size=size)
+    n = len(views)
+    if n < 2:
+        raise GraphError(f"reconstruct needs at least 2 images, got {n}")
+    graph = auto_graph(n) if graph == "auto" else graph
+    pairs = make_pairs(n, graph)
+    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device)
+    if not quiet:
+        print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
+              f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
+              f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
+    preds = predict_pairs(model, views, pairs, batch_size=batch_size)
+    user_masks = masks_to_maps(masks, views) if masks is not None else None
+    if user_masks is not None:
+        preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}
+    recon = global_align(views, preds, K=K, cam2world=cam2world, config=cfg, pose_mask=pose_mask)
+    if refine:
+        from pointmap.align.sparse import SparseConfig, refine_matches
+        from pointmap.matching import match
+
+        scfg = refine if isinstance(refine, SparseConfig) else SparseConfig(quiet=quiet)
+        matches = {}
+        for i, j in pairs:
+            m = match(preds[(i, j)])
+            matches[(i, j)] = m
+        known = recon.info["align"].get("known_pose_indices", [])
+        recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
+                               fixed_intrinsics=True if K is not None and not isinstance(K, dict) else
+                               (list(K) if isinstance(K, dict) else ()))
+    keep = confidence_mask(recon.conf, min_conf, conf_percentile)
+    if user_masks is not None:
+        keep &= user_masks
+    recon.masks = keep
+    recon.info["pipeline"] = {"graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
+                              "conf_percentile": conf_percentile, "refined": bool(refine)}
+    return recon
+
+
+def _mask_pred(pred, m1, m2):
+    from dataclasses import replace
+
+    return replace(pred, conf1=pred.conf1 * m1[None].to(pred.conf1.dtype),
+                   conf2=pred.conf2 * m2[None].to(pred.conf2.dtype))
+
+
+def _fmt_s(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"

@@ -1,0 +1,79 @@
+import math
+
+import kornia
+import pytest
+import torch
+
+from pointmap.geometry import (
+    axis_angle_to_matrix, depth_to_points_cam, focal_from_pointmap, invert_rigid, project, random_rotation,
+    rotation_angle, se3_exp, to_matrix, transform_points, weighted_procrustes,
+)
+
+
+def test_axis_angle_agrees_with_kornia_and_is_smooth_at_zero():
+    torch.manual_seed(0)
+    aa = torch.randn(50, 3, dtype=torch.float64)
+    assert torch.allclose(axis_angle_to_matrix(aa), kornia.geometry.conversions.axis_angle_to_rotation_matrix(aa),
+                          atol=1e-10)
+    small = torch.tensor([[1e-9, 0, 0]], dtype=torch.float64, requires_grad=True)
+    R = axis_angle_to_matrix(small)
+    R.sum().backward()
+    assert torch.isfinite(small.grad).all()
+
+
+def test_se3_exp_agrees_with_kornia():
+    torch.manual_seed(1)
+    xi = torch.randn(20, 6, dtype=torch.float64)
+    ref = kornia.geometry.liegroup.Se3.exp(torch.cat([xi[:, :3], xi[:, 3:]], -1)).matrix()
+    assert torch.allclose(se3_exp(xi), ref, atol=1e-9)
+
+
+def test_rotation_angle_is_accurate_for_tiny_and_large_angles():
+    for ang in (1e-6, 0.3, 3.1):
+        R = axis_angle_to_matrix(torch.tensor([0.0, 0.0, ang], dtype=torch.float64))
+        assert abs(float(rotation_angle(R)) - ang) < 1e-9
+
+
+def test_weighted_procrustes_recovers_a_similarity_and_ignores_zero_weight_outliers():
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    R = random_rotation(g)
+    dst = 2.5 * src @ R.T + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    w = torch.ones(200, dtype=torch.float64)
+    dst[:20] += 10
+    w[:20] = 0
+    s, R_est, t = weighted_procrustes(src, dst, w)
+    assert abs(float(s) - 2.5) < 1e-9 and torch.allclose(R_est, R, atol=1e-9)
+    T = to_matrix(s, R_est, t)
+    assert torch.allclose(transform_points(T, src[20:]), dst[20:], atol=1e-9)
+
+
+def test_procrustes_never_returns_a_reflection():
+    src = torch.randn(30, 3, dtype=torch.float64)
+    dst = src * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # a mirror image
+    _, R, _ = weighted_procrustes(src, dst)
+    assert abs(float(torch.det(R)) - 1) < 1e-9
+
+
+def test_unproject_then_project_returns_the_pixel_grid():
+    K = torch.tensor([[80.0, 0, 31.5], [0, 90.0, 23.5], [0, 0, 1]])
+    depth = 1 + torch.rand(48, 64)
+    uv, z = project(depth_to_points_cam(depth, K), K)
+    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
+    assert torch.allclose(uv, torch.stack([u, v], -1), atol=1e-3) and torch.allclose(z, depth)
+
+
+def test_invert_rigid_is_the_matrix_inverse():
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = random_rotation(torch.Generator().manual_seed(3))
+    T[:3, 3] = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    assert torch.allclose(invert_rigid(T), torch.linalg.inv(T), atol=1e-12)
+
+
+@pytest.mark.parametrize("f", [50.0, 120.0, 400.0])
+def test_weiszfeld_focal_recovers_the_focal_of_an_exact_pointmap_even_with_outliers(f):
+    K = torch.tensor([[f, 0, 31.5], [0, f, 23.5], [0, 0, 1]])
+    pts = depth_to_points_cam(2 + torch.rand(48, 64), K)[None]
+    pts[0, :5, :5] *= torch.tensor([3.0, 0.2, 1.0])  # corrupt 25 pixels
+    est = focal_from_pointmap(pts)
+    assert math.isclose(float(est), f, rel_tol=1e-3)

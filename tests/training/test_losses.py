@@ -1,0 +1,101 @@
+import torch
+
+import pointmap as pm
+from pointmap.geometry import depth_to_points_cam
+from training.losses import completion_loss, gt_points_cam1, matching_loss, patchify, regression_loss
+
+
+def test_patchify_follows_the_row_major_token_order():
+    img = torch.arange(2 * 3 * 32 * 48, dtype=torch.float32).reshape(2, 3, 32, 48)
+    p = patchify(img, 16)
+    assert p.shape == (2, 6, 768)
+    assert p[1, 4, 0] == img[1, 0, 16, 16] and p[1, 4, 2] == img[1, 2, 16, 16] and p[0, 2, 3] == img[0, 0, 0, 33]
+
+
+def test_completion_loss_is_zero_for_the_normalised_target_and_ignores_visible_patches():
+    img = torch.rand(2, 3, 32, 32)
+    t = patchify(img, 16)
+    target = (t - t.mean(-1, keepdim=True)) / (t.var(-1, keepdim=True) + 1e-6).sqrt()
+    mask = torch.tensor([[True, False, True, False], [False, False, True, True]])
+    assert completion_loss(target, img, mask, 16) < 1e-8
+    noisy = target.clone()
+    noisy[~mask] += 5.0  # visible patches do not count
+    assert completion_loss(noisy, img, mask, 16) < 1e-8
+    noisy[mask] += 1.0
+    assert abs(float(completion_loss(noisy, img, mask, 16)) - 1.0) < 1e-5
+
+
+def make_views(B=2, H=16, W=24):
+    K = torch.tensor([[20.0, 0, 11.5], [0, 20.0, 7.5], [0, 0, 1]]).expand(B, 3, 3)
+    c2w1 = torch.eye(4).expand(B, 4, 4).clone()
+    c2w2 = c2w1.clone()
+    c2w2[:, 0, 3] = 0.5
+    c2w1[:, 2, 3] = -1.0  # a world frame different from camera 1
+    c2w2[:, 2, 3] = -1.0
+    v1 = dict(K=K, cam2world=c2w1, depth_z=2 + torch.rand(B, H, W), valid=torch.ones(B, H, W, dtype=torch.bool))
+    v2 = dict(K=K, cam2world=c2w2, depth_z=2 + torch.rand(B, H, W), valid=torch.ones(B, H, W, dtype=torch.bool))
+    return v1, v2
+
+
+def test_ground_truth_of_view_two_is_expressed_in_camera_one():
+    v1, v2 = make_views()
+    _, p2 = gt_points_cam1(v1, v2)
+    own = depth_to_points_cam(v2["depth_z"], v2["K"])
+    assert torch.allclose(p2 - own, torch.tensor([0.5, 0, 0]).expand_as(p2), atol=1e-5)
+
+
+def pred_from(p1, p2, conf=1.0):
+    B, H, W, _ = p1.shape
+    return pm.PairPrediction(p1, p2, torch.full((B, H, W), conf), torch.full((B, H, W), conf))
+
+
+def test_regression_loss_is_zero_for_ground_truth_at_any_scale_unless_metric():
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    loss, _ = regression_loss(pred_from(3 * g1, 3 * g2), v1, v2)
+    assert float(loss) < 1e-5
+    metric, _ = regression_loss(pred_from(3 * g1, 3 * g2), v1, v2, metric=True)
+    assert float(metric) > 1.0
+
+
+def test_regression_loss_weighs_errors_by_confidence_and_rewards_confidence_by_its_log():
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    off = pred_from(g1 + 0.3, g2 + 0.3, conf=1.0)
+    l1, d = regression_loss(off, v1, v2, alpha=0.2)
+    l2, _ = regression_loss(pred_from(g1 + 0.3, g2 + 0.3, conf=2.0), v1, v2, alpha=0.2)
+    err = d["regr1"] + d["regr2"]
+    assert abs(float(l1) - err) < 1e-4
+    assert abs(float(l2) - (2 * err - 2 * 0.2 * torch.log(torch.tensor(2.0)))) < 1e-4
+
+
+def test_invalid_pixels_do_not_contribute():
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    bad1 = g1.clone()
+    bad1[:, :4] = 100.0
+    v1["valid"][:, :4] = False
+    loss, _ = regression_loss(pred_from(bad1, g2), v1, v2)
+    assert float(loss) < 1e-5
+
+
+def test_matching_loss_is_low_for_matching_descriptors_and_high_for_shuffled_ones():
+    torch.manual_seed(0)
+    B, H, W, D = 1, 12, 16, 32
+    desc1 = torch.nn.functional.normalize(torch.randn(B, H, W, D), dim=-1)
+    corr = torch.full((B, H, W, 2), float("nan"))
+    corr[0, 2:10, 3:13, 0] = torch.arange(3, 13).float() + 1  # shift by one column
+    corr[0, 2:10, 3:13, 1] = torch.arange(2, 10).float()[:, None]
+    desc2 = torch.nn.functional.normalize(torch.randn(B, H, W, D), dim=-1)
+    desc2[0, 2:10, 4:14] = desc1[0, 2:10, 3:13]
+    good, acc = matching_loss(desc1, desc2, corr, n_corr=64, temperature=0.05)
+    shuffled, acc_bad = matching_loss(desc1, torch.roll(desc2, 3, dims=2), corr, n_corr=64, temperature=0.05)
+    assert acc == 1.0 and float(good) < 0.05
+    assert float(shuffled) > 2.0 and acc_bad < 0.2
+
+
+def test_matching_loss_without_correspondences_is_a_differentiable_zero():
+    desc = torch.nn.functional.normalize(torch.randn(1, 4, 4, 8), dim=-1).requires_grad_()
+    loss, acc = matching_loss(desc, desc, torch.full((1, 4, 4, 2), float("nan")))
+    loss.backward()
+    assert float(loss) == 0 and acc == 0.0 and desc.grad is not None
