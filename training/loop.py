@@ -51,8 +51,9 @@ def batch_indices(step: int, rank: int, world: int, batch: int, n: int, seed: in
 class StepBatches(torch.utils.data.Sampler):
     """Batch sampler from ``start_step`` to ``steps`` following ``batch_indices``."""
 
-    def __init__(self, n, batch, steps, start_step, rank, world, seed):
+    def __init__(self, n, batch, steps, start_step, rank, world, seed, n_aspects: int = 1):
         self.args = (n, batch, steps, start_step, rank, world, seed)
+        self.n_aspects = n_aspects
         self._perm_cache = {}
 
     def __iter__(self):
@@ -67,6 +68,10 @@ class StepBatches(torch.utils.data.Sampler):
                     g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
                     self._perm_cache = {epoch: torch.randperm(n, generator=g)}
                 idx.append(int(self._perm_cache[epoch][pos]))
+            if self.n_aspects > 1:  # one aspect ratio per step (same on every rank), a function of the step
+                g = torch.Generator().manual_seed(seed * 7_919 + step)
+                aspect = int(torch.randint(self.n_aspects, (), generator=g))
+                idx = [(i, aspect) for i in idx]
             yield idx
 
     def __len__(self):
@@ -198,7 +203,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             model, device_ids=[device.index] if device.type == "cuda" else None,
             find_unused_parameters=any("dpt" in n for n, _ in model.named_parameters()))
     logger = Logger(out, rank == 0)
-    sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed)
+    n_aspects = len(getattr(dataset, "aspects", [None]))
+    sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects)
     loader = torch.utils.data.DataLoader(dataset, batch_sampler=sampler, collate_fn=collate,
                                          num_workers=cfg.workers, persistent_workers=False,
                                          prefetch_factor=4 if cfg.workers > 0 else None)

@@ -39,8 +39,13 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
 
 
 def collate(items):
-    """Stack a list of (view1, view2) dicts into batched dicts (all items share shapes)."""
-    return tuple({k: torch.stack([it[v][k] for it in items]) for k in items[0][v]} for v in (0, 1))
+    """Stack a list of (view1, view2) dicts into batched dicts (all items share shapes); non-tensor
+    fields (scene names, indices) become lists."""
+    def one(v):
+        return {k: torch.stack([it[v][k] for it in items]) if isinstance(items[0][v][k], torch.Tensor)
+                else [it[v][k] for it in items] for k in items[0][v]}
+
+    return one(0), one(1)
 
 
 def make_step(cfg: TrainConfig):

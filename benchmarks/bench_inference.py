@@ -1,0 +1,142 @@
+"""Inference speed: per-pair latency, FLOPs and achieved GFLOP/s next to the float32 matmul ceiling, and
+encoder-cached N-image inference against naive per-pair encoding (as the official inference does).
+
+    python benchmarks/bench_inference.py --presets small dust3r_224_linear --sizes 224 512 --runs 5
+    python benchmarks/bench_inference.py --official /path/to/dust3r   # adds the official model, same run
+
+Prints markdown tables; results are recorded in docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+import pointmap as pm
+
+SHAPES = {224: (224, 224), 512: (384, 512)}
+
+
+def median_time(fn, runs: int, warmup: int = 1) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def matmul_ceiling(n: int = 2048, runs: int = 5) -> float:
+    """Achieved GFLOP/s of a float32 n x n matmul (the practical ceiling of this CPU)."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    t = median_time(lambda: a @ b, runs)
+    return 2 * n**3 / t / 1e9
+
+
+def flops_of(fn) -> int:
+    with FlopCounterMode(display=False) as fc:
+        fn()
+    return fc.get_total_flops()
+
+
+def bench_pairs(presets, sizes, runs, ceiling, official=None):
+    rows = []
+    for name in presets:
+        model = pm.PointmapNet(pm.PRESETS[name]).eval()
+        for size in sizes:
+            H, W = SHAPES[size]
+            a, b = torch.rand(1, 3, H, W), torch.rand(1, 3, H, W)
+            with torch.inference_mode():
+                fn = lambda: model(a, b)  # noqa: E731
+                flops = flops_of(fn)
+                t = median_time(fn, runs)
+            rows.append((name, f"{H}x{W}", t, flops / 1e9, flops / t / 1e9, 100 * flops / t / 1e9 / ceiling))
+            print(f"  {name} {H}x{W}: {t:.3f} s", file=sys.stderr, flush=True)
+            if official and name.startswith(("dust3r", "mast3r")):
+                t_off = official_time(official, name, H, W, runs)
+                rows.append((f"official {name}", f"{H}x{W}", t_off, flops / 1e9, flops / t_off / 1e9,
+                             100 * flops / t_off / 1e9 / ceiling))
+        del model
+    print("\n| model | input | median s/pair | GFLOP/pair | GFLOP/s | % of matmul ceiling |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.1f} | {r[4]:.1f} | {r[5]:.0f}% |")
+
+
+def official_time(path, name, H, W, runs):
+    """Time the official model of the same architecture (random weights) on the same input."""
+    sys.path[:0] = [path, f"{path}/croco"]
+    from dust3r.model import AsymmetricCroCo3DStereo  # noqa: F401  (official code, never committed)
+    from mast3r.model import AsymmetricMASt3R  # noqa: F401
+
+    head = {"dust3r_224_linear": "linear", "dust3r_512_linear": "linear", "dust3r_512_dpt": "dpt"}.get(name)
+    inf = float("inf")
+    kw = dict(pos_embed="RoPE100", img_size=(512, 512), depth_mode=("exp", -inf, inf), conf_mode=("exp", 1, inf),
+              enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, dec_num_heads=12,
+              landscape_only=False)
+    if head:
+        net = AsymmetricCroCo3DStereo(head_type=head, output_mode="pts3d", **kw)
+    else:
+        net = AsymmetricMASt3R(head_type="catmlp+dpt", output_mode="pts3d+desc24", two_confs=True,
+                               desc_conf_mode=("exp", 0, inf), **kw)
+    net.eval()
+    v = lambda i: dict(img=torch.rand(1, 3, H, W) * 2 - 1, true_shape=torch.tensor([[H, W]]), instance=[str(i)])  # noqa: E731
+    v1, v2 = v(0), v(1)
+    with torch.inference_mode():
+        return median_time(lambda: net(v1, v2), runs)
+
+
+def bench_cache(preset, size, counts, runs):
+    """Complete graph over N images: our path (encoder once per image, batched decoders) vs naive
+    per-pair forward of both orders (every image re-encoded in every pair, as the official inference)."""
+    model = pm.PointmapNet(pm.PRESETS[preset]).eval()
+    H, W = SHAPES[size]
+    print(f"\n| N images ({preset}, {H}x{W}, complete graph) | directed pairs | cached s | naive per-pair s | speed-up |")
+    print("|---|---|---|---|---|")
+    for n in counts:
+        views = [torch.rand(3, H, W) for _ in range(n)]
+        pairs = pm.make_pairs(n)
+
+        def cached():
+            pm.predict_pairs(model, views, pairs, batch_size=8, quiet=True)
+
+        def naive():
+            with torch.inference_mode():
+                for i, j in pairs:
+                    model(views[i][None], views[j][None])
+                    model(views[j][None], views[i][None])
+
+        tc, tn = median_time(cached, runs, 0), median_time(naive, runs, 0)
+        print(f"| {n} | {2 * len(pairs)} | {tc:.2f} | {tn:.2f} | {tn / tc:.2f}x |", flush=True)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--presets", nargs="+", default=["small", "dust3r_224_linear"])
+    p.add_argument("--sizes", nargs="+", type=int, default=[224, 512])
+    p.add_argument("--runs", type=int, default=5)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--cache-preset", default="small")
+    p.add_argument("--cache-counts", nargs="+", type=int, default=[2, 4, 8, 16])
+    p.add_argument("--official", default=None, help="path to an official dust3r checkout (with croco) to compare")
+    p.add_argument("--quick", action="store_true", help="small preset only, 3 runs, N up to 8")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.presets, a.runs, a.cache_counts, a.sizes = ["small"], 3, [2, 4, 8], [224]
+    torch.set_num_threads(a.threads)
+    ceiling = matmul_ceiling()
+    print(f"threads: {a.threads}; float32 matmul ceiling (2048^3): {ceiling:.1f} GFLOP/s")
+    bench_pairs(a.presets, a.sizes, a.runs, ceiling, a.official)
+    bench_cache(a.cache_preset, a.sizes[0], a.cache_counts, max(1, a.runs // 2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""Training-step speed of a preset: pairs/s and achieved GFLOP/s next to the float32 matmul ceiling, and
+(with --data) the data-loading time per batch, which must stay well below the step time.
+
+    python benchmarks/bench_train.py --preset small --size 224 --batch 8 --threads 2 [--data SHARDS]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pointmap as pm  # noqa: E402
+from benchmarks.bench_inference import matmul_ceiling  # noqa: E402
+from training.config import TrainConfig  # noqa: E402
+from training.train import collate, make_step  # noqa: E402
+
+
+def synthetic_batch(B, H, W):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "training"))
+    from synthetic import PlanePairs
+
+    data = PlanePairs(B, H, W)
+    return collate([data[i] for i in range(B)])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="small")
+    p.add_argument("--size", type=int, default=224)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--data", default=None, help="shard root: also time data loading")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    ceiling = matmul_ceiling()
+    model = pm.PointmapNet(pm.PRESETS[a.preset]).train()
+    cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
+    step = make_step(cfg)
+    opt = torch.optim.AdamW(model.parameters(), 1e-4)
+    batch = synthetic_batch(a.batch, a.size, a.size)
+
+    def one():
+        loss, _ = step(model, batch, 0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    with FlopCounterMode(display=False) as fc:
+        loss, _ = step(model, batch, 0)
+        loss.backward()
+    flops = fc.get_total_flops()
+    one()
+    times = []
+    for _ in range(a.steps):
+        t = time.perf_counter()
+        one()
+        times.append(time.perf_counter() - t)
+    t = statistics.median(times)
+    print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s\n")
+    print("| preset | input | batch | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling |")
+    print("|---|---|---|---|---|---|---|---|")
+    print(f"| {a.preset} | {a.size}x{a.size} | {a.batch} | {t:.2f} | {a.batch / t:.2f} | {flops / 1e9:.1f} | "
+          f"{flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% |")
+    if a.data:
+        from data.datasets import PairDataset
+
+        ds = PairDataset(a.data, size=a.size, augment=True)
+        t0 = time.perf_counter()
+        n = a.batch * 3
+        items = [ds[i % len(ds)] for i in range(n)]
+        per_batch = (time.perf_counter() - t0) / 3
+        collate(items[: a.batch])
+        print(f"\ndata loading: {per_batch:.3f} s per batch of {a.batch} on one process "
+              f"({100 * per_batch / t:.0f}% of a training step)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
