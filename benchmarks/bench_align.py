@@ -36,11 +36,7 @@ def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
     pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, window + 1)})
     preds = gt_preds(sc, pairs, seed=seed, noise=0.01, outliers=0.02, pair_rot_deg=0.3)
     del sc["pts_world"]
-    return sc, views_of_light(sc, views_of), preds, pairs, np, torch
-
-
-def views_of_light(sc, views_of):
-    return views_of(sc)
+    return sc, views_of(sc), preds, pairs, np, torch
 
 
 def run_one(n: int, h: int, w: int, window: int, official: str | None, niter: int) -> dict:
@@ -103,7 +99,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 25, 50, 100])
     ap.add_argument("--hw", type=int, nargs=2, default=[384, 512], metavar=("H", "W"))
     ap.add_argument("--window", type=int, default=2)
-    ap.add_argument("--niter", type=int, default=300)
+    ap.add_argument("--niter", type=int, default=100)
     ap.add_argument("--png", default="bench_align.png")
     ap.add_argument("--official", default=None, help="path to an official dust3r checkout (with croco)")
     ap.add_argument("--official-max", type=int, default=25, help="largest image count run with --official")

@@ -1,0 +1,408 @@
+"""Torch datasets over rendered shards (layout: docs/data.md; item contract: DESIGN.md section 4).
+
+- ``PairDataset(root, size=224, augment=True, split="train")``: items ``(view1, view2)``, dicts with
+  ``img [3, H, W]`` float32 in [0, 1], ``K [3, 3]``, ``cam2world [4, 4]``, ``depth_z [H, W]``,
+  ``valid [H, W]`` bool, ``pts_world [H, W, 3]``, ``pts_cam1 [H, W, 3]`` (points in view 1's camera
+  frame) and, in view 1 only, ``corr [H, W, 2]`` (pixel of each view-1 pixel in view 2, NaN where not
+  co-visible). Index with an int (square ``size`` x ``size`` output) or with ``(index, aspect)``
+  tuples from ``AspectBatchSampler`` (one aspect ratio per batch).
+- ``MultiViewDataset(root, size=None)``: one item per scene with all its views stacked, for
+  alignment and splatting evaluation.
+- ``heldout(root_dir)``: renders (once) and opens the fixed evaluation set from reserved seeds.
+
+Augmentation (``augment=True``): random order swap, random resized crop (K, depth, valid and corr
+updated consistently; depth and masks resampled with nearest neighbour), colour jitter (brightness,
+contrast, saturation, hue), white balance, exposure/gamma, blur and sensor noise.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset, Sampler
+
+from data.geom import decode_corr
+from data.shards import ShardError, ShardReader, completed_shards, load_json, read_npz, read_png
+from pointmap.errors import ShapeError
+
+SPLITS = ("train", "val", "all")
+
+
+def aspect_sizes(size: int) -> list[tuple[int, int]]:
+    """Training resolutions (H, W) for a long side ``size``, all multiples of 16: square, landscape
+    and portrait (for 224: 224x224, 160x224, 224x160)."""
+    if not isinstance(size, (int, np.integer)) or size < 32 or size % 16:
+        raise ShapeError(f"size expected a multiple of 16 >= 32, got {size!r}")
+    short = max(16, int(size * 5 / 7 / 16 + 0.5) * 16)
+    return [(size, size), (short, size), (size, short)]
+
+
+def _split_of(scene_index: int, seed: int, val_percent: float) -> str:
+    h = zlib.crc32(f"{seed}:{scene_index}".encode()) % 10000
+    return "val" if h < val_percent * 100 else "train"
+
+
+class _ShardStore:
+    """Opens shards lazily, per process (each DataLoader worker builds its own tar indexes)."""
+
+    def __init__(self, root: Path, entries: list[dict]):
+        self.root = root
+        self.names = [e["name"] for e in entries]
+        self._readers: dict[int, ShardReader] = {}
+
+    def reader(self, k: int) -> ShardReader:
+        r = self._readers.get(k)
+        if r is None:
+            r = self._readers[k] = ShardReader(self.root / self.names[k])
+        return r
+
+    def __getstate__(self):
+        return {"root": self.root, "names": self.names, "_readers": {}}
+
+
+def _open_root(root, verify):
+    root = Path(root)
+    if not root.is_dir():
+        raise ShardError(f"dataset directory {root} does not exist")
+    cfg_path = root / "config.json"
+    if not cfg_path.is_file():
+        raise ShardError(f"{root} has no config.json: not a directory written by `python -m data.render`")
+    config = load_json(cfg_path)
+    entries, _ = completed_shards(root, verify=verify, warn=True)
+    if not entries:
+        raise ShardError(f"{root} has no complete, valid shard")
+    return root, config, entries
+
+
+def _load_view(reader: ShardReader, scene: str, meta: dict, k: int):
+    rgb = read_png(reader.read(f"{scene}/view-{k}.png"))
+    depth = read_npz(reader.read(f"{scene}/view-{k}.npz"))["depth_z"]
+    v = meta["views"][k]
+    return rgb, depth, np.array(v["K"], np.float64), np.array(v["cam2world"], np.float64)
+
+
+# ---------------------------------------------------------------------------------------------------
+# augmentation helpers (numpy, per view)
+
+
+def _crop_box(rng, src_w, src_h, out_w, out_h, scale_range, center=False):
+    """A crop (x0, y0, cw, ch) of the source with the output's aspect ratio."""
+    ar = out_w / out_h
+    max_w = min(src_w, src_h * ar)
+    s = 1.0 if center else math.sqrt(rng.uniform(*scale_range))
+    cw = max_w * s
+    ch = cw / ar
+    if center:
+        return (src_w - cw) / 2, (src_h - ch) / 2, cw, ch
+    return rng.uniform(0, src_w - cw), rng.uniform(0, src_h - ch), cw, ch
+
+
+def _apply_crop(rgb, depth, K, box, out_w, out_h):
+    """Crop + resize with the exact K update. The box (x0, y0, cw, ch) is in edge coordinates (pixel
+    i spans [i, i + 1]); output pixel centre u' samples source u = (u' + 0.5) * cw / out_w + x0 - 0.5.
+    Returns (rgb, depth, K, A) with A [2, 3] mapping source pixel coordinates to output ones."""
+    x0, y0, cw, ch = box
+    sx, sy = out_w / cw, out_h / ch
+    A = np.array([[sx, 0, (0.5 - x0) * sx - 0.5], [0, sy, (0.5 - y0) * sy - 0.5]], np.float64)  # src -> dst
+    if abs(sx - 1) < 1e-9 and abs(sy - 1) < 1e-9 and float(x0).is_integer() and float(y0).is_integer():
+        x0i, y0i = int(x0), int(y0)
+        rgb2 = rgb[y0i:y0i + out_h, x0i:x0i + out_w]
+        depth2 = depth[y0i:y0i + out_h, x0i:x0i + out_w]
+    else:
+        src = rgb
+        if min(sx, sy) < 0.8:  # anti-alias before shrinking
+            sigma = 0.45 / min(sx, sy)
+            src = cv2.GaussianBlur(rgb, (0, 0), sigmaX=sigma)
+        rgb2 = cv2.warpAffine(src, A, (out_w, out_h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        depth2 = cv2.warpAffine(depth, A, (out_w, out_h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                                borderValue=0)
+    K2 = K.copy()
+    K2[0, 0] *= sx
+    K2[1, 1] *= sy
+    K2[0, 2] = A[0, 0] * K[0, 2] + A[0, 2]
+    K2[1, 2] = A[1, 1] * K[1, 2] + A[1, 2]
+    return np.ascontiguousarray(rgb2), np.ascontiguousarray(depth2), K2, A
+
+
+def _warp_corr(corr, A1, A2, out_w, out_h, src_h, src_w):
+    """Resample view 1's corr with view 1's crop (nearest) and map its values through view 2's crop."""
+    if np.allclose(A1, [[1, 0, 0], [0, 1, 0]]) and corr.shape[:2] == (out_h, out_w):
+        c = corr.copy()
+    else:
+        c = cv2.warpAffine(corr, A1, (out_w, out_h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=(np.nan, np.nan))
+    out = np.empty_like(c)
+    out[..., 0] = A2[0, 0] * c[..., 0] + A2[0, 2]
+    out[..., 1] = A2[1, 1] * c[..., 1] + A2[1, 2]
+    return out
+
+
+def _photometric(rng, rgb):
+    x = rgb.astype(np.float32) / 255.0
+    if rng.random() < 0.8:  # colour jitter
+        x = x * rng.uniform(0.7, 1.3)                                         # brightness
+        m = x.mean()
+        x = (x - m) * rng.uniform(0.7, 1.3) + m                               # contrast
+        g = x.mean(-1, keepdims=True)
+        x = g + (x - g) * rng.uniform(0.6, 1.4)                               # saturation
+        if rng.random() < 0.3:                                                # hue: rotate about grey axis
+            a = rng.uniform(-0.3, 0.3)
+            k = np.ones(3, np.float32) / math.sqrt(3)
+            c, s = math.cos(a), math.sin(a)
+            Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], np.float32)
+            R = c * np.eye(3, dtype=np.float32) + s * Kx + (1 - c) * np.outer(k, k)
+            x = x @ R.T
+    if rng.random() < 0.3:   # white balance
+        x = x * rng.uniform(0.85, 1.15, 3).astype(np.float32)
+    if rng.random() < 0.3:   # exposure / gamma
+        x = np.clip(x, 0, None) ** rng.uniform(0.7, 1.4)
+    if rng.random() < 0.15:  # defocus / motion-ish blur
+        k = int(rng.choice([3, 5]))
+        x = cv2.GaussianBlur(x, (k, k), 0)
+    if rng.random() < 0.25:  # sensor noise
+        x = x + rng.normal(0, rng.uniform(0.005, 0.03), x.shape).astype(np.float32)
+    return np.clip(x, 0, 1).astype(np.float32)
+
+
+def _to_view(rgb_f, depth, K, cam2world, world2cam1):
+    pts_cam = _unproject(depth, K)
+    valid = depth > 0
+    pts_world = pts_cam @ cam2world[:3, :3].T + cam2world[:3, 3]
+    pts_cam1 = pts_world @ world2cam1[:3, :3].T + world2cam1[:3, 3]
+    pts_world[~valid] = 0
+    pts_cam1[~valid] = 0
+    return {
+        "img": torch.from_numpy(np.ascontiguousarray(rgb_f.transpose(2, 0, 1))),
+        "K": torch.from_numpy(K.astype(np.float32)),
+        "cam2world": torch.from_numpy(cam2world.astype(np.float32)),
+        "depth_z": torch.from_numpy(depth.astype(np.float32)),
+        "valid": torch.from_numpy(valid),
+        "pts_world": torch.from_numpy(pts_world.astype(np.float32)),
+        "pts_cam1": torch.from_numpy(pts_cam1.astype(np.float32)),
+    }
+
+
+def _unproject(depth, K):
+    h, w = depth.shape
+    x = (np.arange(w) - K[0, 2]) / K[0, 0]
+    y = (np.arange(h) - K[1, 2]) / K[1, 1]
+    d = depth.astype(np.float64)
+    return np.stack([x[None, :] * d, y[:, None] * d, d], -1)
+
+
+def _inv(T):
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+class PairDataset(Dataset):
+    """Pairs from shards written with ``--kind pairs`` (see module docstring for the item layout).
+
+    root: dataset directory. size: long side of the output (multiple of 16). augment: random
+    augmentation (off: deterministic centre crop + resize only when the rendered size differs).
+    split: "train", "val" (a fixed ~``val_percent`` % of scenes, chosen by hashing the scene id) or
+    "all". verify: check every shard's sha256 before use (shards that fail are reported and skipped).
+    """
+
+    def __init__(self, root, size: int = 224, augment: bool = True, split: str = "train", *,
+                 val_percent: float = 2.0, crop_scale=(0.5, 1.0), swap_p: float = 0.5, verify: bool = True):
+        if split not in SPLITS:
+            raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
+        if not 0 <= val_percent <= 100:
+            raise ValueError(f"val_percent expected in [0, 100], got {val_percent}")
+        lo, hi = crop_scale
+        if not 0 < lo <= hi <= 1:
+            raise ValueError(f"crop_scale expected 0 < lo <= hi <= 1, got {crop_scale}")
+        self.aspects = aspect_sizes(size)
+        self.size = size
+        self.augment = bool(augment)
+        self.crop_scale = (float(lo), float(hi))
+        self.swap_p = float(swap_p)
+        self.root, self.config, entries = _open_root(root, verify)
+        if self.config.get("kind") != "pairs":
+            raise ShardError(f"{self.root} was rendered with --kind {self.config.get('kind')}; PairDataset needs "
+                             "--kind pairs (MultiViewDataset reads view sets)")
+        self._store = _ShardStore(self.root, entries)
+        seed = int(self.config.get("seed", 0))
+        items = []
+        for k, _ in enumerate(entries):
+            r = self._store.reader(k)
+            for scene in r.scenes():
+                meta = r.meta(scene)
+                if split != "all" and _split_of(meta["scene"], seed, val_percent) != split:
+                    continue
+                for i, j in meta["pairs"]:
+                    items.append((k, scene, i, j))
+        self._store._readers.clear()
+        self.items = items
+        if not items:
+            raise ShardError(f"{self.root}: no pairs in split {split!r}")
+        self._rng = None
+        self._rng_seed = None
+
+    def __len__(self):
+        return len(self.items)
+
+    def _get_rng(self):
+        seed = torch.initial_seed()
+        if self._rng is None or self._rng_seed != seed:
+            self._rng = np.random.default_rng(seed % (2**63))
+            self._rng_seed = seed
+        return self._rng
+
+    def __getitem__(self, index):
+        if isinstance(index, tuple):
+            index, aspect = index
+            if not 0 <= aspect < len(self.aspects):
+                raise IndexError(f"aspect index expected in [0, {len(self.aspects)}), got {aspect}")
+        else:
+            aspect = 0
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} pairs")
+        out_h, out_w = self.aspects[aspect]
+        k, scene, i, j = self.items[index]
+        reader = self._store.reader(k)
+        meta = reader.meta(scene)
+        corr_pack = read_npz(reader.read(f"{scene}/pair-{i}-{j}.npz"))
+        corr = decode_corr(corr_pack["corr_12"])
+        rng = self._get_rng() if self.augment else None
+        if self.augment and rng.random() < self.swap_p:
+            i, j = j, i
+            corr = decode_corr(corr_pack["corr_21"])
+        rgb1, d1, K1, T1 = _load_view(reader, scene, meta, i)
+        rgb2, d2, K2, T2 = _load_view(reader, scene, meta, j)
+        h, w = d1.shape
+        box1 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment)
+        rgb1, d1, K1, A1 = _apply_crop(rgb1, d1, K1, box1, out_w, out_h)
+        box2 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment)
+        if self.augment:  # centre view 2's crop on where view 1's crop content lands, so they overlap
+            x0, y0, cw, ch = box2
+            seen = _warp_corr(corr, A1, np.array([[1.0, 0, 0], [0, 1.0, 0]]), out_w, out_h, h, w)
+            seen = seen[np.isfinite(seen).all(-1)]
+            if len(seen):
+                cu, cv = np.median(seen, 0) + 0.5 + rng.normal(0, 0.15, 2) * (cw, ch)
+                x0 = float(np.clip(cu - cw / 2, 0, w - cw))
+                y0 = float(np.clip(cv - ch / 2, 0, h - ch))
+                box2 = (x0, y0, cw, ch)
+        rgb2, d2, K2, A2 = _apply_crop(rgb2, d2, K2, box2, out_w, out_h)
+        corr = _warp_corr(corr, A1, A2, out_w, out_h, h, w)
+        # a correspondence survives only if it lands inside view 2's crop on a pixel with depth
+        u, v = corr[..., 0], corr[..., 1]
+        with np.errstate(invalid="ignore"):
+            inside = (u > -0.5) & (u < out_w - 0.5) & (v > -0.5) & (v < out_h - 0.5) & (d1 > 0)
+        ui = np.clip(np.rint(np.nan_to_num(u)), 0, out_w - 1).astype(np.int64)
+        vi = np.clip(np.rint(np.nan_to_num(v)), 0, out_h - 1).astype(np.int64)
+        inside &= d2[vi, ui] > 0
+        corr[~inside] = np.nan
+        if self.augment:
+            f1, f2 = _photometric(rng, rgb1), _photometric(rng, rgb2)
+        else:
+            f1, f2 = rgb1.astype(np.float32) / 255.0, rgb2.astype(np.float32) / 255.0
+        w2c1 = _inv(T1)
+        view1 = _to_view(f1, d1, K1, T1, w2c1)
+        view2 = _to_view(f2, d2, K2, T2, w2c1)
+        view1["corr"] = torch.from_numpy(np.ascontiguousarray(corr, np.float32))
+        for v_, idx in ((view1, i), (view2, j)):
+            v_["scene"] = f"{meta['seed']}:{meta['scene']}"
+            v_["view_index"] = idx
+        return view1, view2
+
+
+class AspectBatchSampler(Sampler):
+    """Batches of ``(index, aspect)`` tuples with one aspect ratio per batch (shuffled, seeded; call
+    ``set_epoch`` for a new order each epoch)."""
+
+    def __init__(self, dataset_len: int, batch_size: int, n_aspects: int = 3, *, shuffle: bool = True,
+                 seed: int = 0, drop_last: bool = True, weights=None):
+        if dataset_len < 1 or batch_size < 1 or n_aspects < 1:
+            raise ValueError(f"AspectBatchSampler expected positive sizes, got len={dataset_len}, "
+                             f"batch_size={batch_size}, n_aspects={n_aspects}")
+        self.n, self.bs, self.na = int(dataset_len), int(batch_size), int(n_aspects)
+        self.shuffle, self.seed, self.drop_last = shuffle, int(seed), drop_last
+        w = np.ones(n_aspects) if weights is None else np.asarray(weights, np.float64)
+        if w.shape != (n_aspects,) or w.min() < 0 or w.sum() <= 0:
+            raise ValueError(f"weights expected {n_aspects} non-negative numbers, got {weights!r}")
+        self.p = w / w.sum()
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int):
+        self.epoch = int(epoch)
+
+    def __len__(self):
+        return self.n // self.bs if self.drop_last else math.ceil(self.n / self.bs)
+
+    def __iter__(self):
+        rng = np.random.default_rng([self.seed, self.epoch])
+        order = rng.permutation(self.n) if self.shuffle else np.arange(self.n)
+        for b in range(len(self)):
+            idx = order[b * self.bs:(b + 1) * self.bs]
+            a = int(rng.choice(self.na, p=self.p))
+            yield [(int(i), a) for i in idx]
+
+
+class MultiViewDataset(Dataset):
+    """One item per scene: ``img [N, 3, H, W]``, ``K [N, 3, 3]``, ``cam2world [N, 4, 4]``,
+    ``depth_z [N, H, W]``, ``valid [N, H, W]``, ``overlap [N, N]`` (fraction of view i's pixels seen by
+    view j) and ``scene`` (id string). Images are as rendered (no augmentation); works on shards of
+    either kind."""
+
+    def __init__(self, root, *, split: str = "all", val_percent: float = 2.0, verify: bool = True):
+        if split not in SPLITS:
+            raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
+        self.root, self.config, entries = _open_root(root, verify)
+        self._store = _ShardStore(self.root, entries)
+        seed = int(self.config.get("seed", 0))
+        self.items = []
+        for k, _ in enumerate(entries):
+            r = self._store.reader(k)
+            for scene in r.scenes():
+                idx = int(scene.split("-")[1])
+                if split == "all" or _split_of(idx, seed, val_percent) == split:
+                    self.items.append((k, scene))
+        self._store._readers.clear()
+        if not self.items:
+            raise ShardError(f"{self.root}: no scenes in split {split!r}")
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, index):
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} scenes")
+        k, scene = self.items[index]
+        reader = self._store.reader(k)
+        meta = reader.meta(scene)
+        imgs, depths, Ks, Ts = [], [], [], []
+        for v in range(len(meta["views"])):
+            rgb, d, K, T = _load_view(reader, scene, meta, v)
+            imgs.append(rgb.transpose(2, 0, 1).astype(np.float32) / 255.0)
+            depths.append(d)
+            Ks.append(K)
+            Ts.append(T)
+        depth = np.stack(depths).astype(np.float32)
+        return {
+            "img": torch.from_numpy(np.stack(imgs)), "K": torch.from_numpy(np.stack(Ks).astype(np.float32)),
+            "cam2world": torch.from_numpy(np.stack(Ts).astype(np.float32)), "depth_z": torch.from_numpy(depth),
+            "valid": torch.from_numpy(depth > 0), "overlap": torch.tensor(meta["overlap"], dtype=torch.float32),
+            "scene": f"{meta['seed']}:{meta['scene']}", "kind": meta["kind"],
+        }
+
+
+def collate_pairs(batch):
+    """Collate ``(view1, view2)`` items into two dicts of batched tensors (strings become lists)."""
+    out = []
+    for side in range(2):
+        views = [b[side] for b in batch]
+        d = {}
+        for key in views[0]:
+            vals = [v[key] for v in views]
+            d[key] = torch.stack(vals) if isinstance(vals[0], torch.Tensor) else vals
+        out.append(d)
+    return tuple(out)

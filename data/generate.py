@@ -1,0 +1,318 @@
+"""Generation at scale: scenes -> rendered view sets -> shards (run as ``python -m data.render``).
+
+Scene ``i`` of a run with seed ``s`` is drawn from ``np.random.default_rng([s, i])`` alone, so any
+shard can be rendered on any machine, in any order, by any worker, and comes out byte-identical.
+Shard ``k`` holds scenes ``[k * shard_size, (k + 1) * shard_size)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import queue
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data.cameras import CameraConfig, DegenerateScene, sample_views
+from data.geom import encode_corr
+from data.scene import make_scene
+from data.shards import (FORMAT, ShardError, completed_shards, json_bytes, load_json, npz_bytes, png_bytes,
+                         sha256_bytes, sha256_file, shard_name, sidecar_name, tar_bytes, write_atomic)
+
+# Seeds in this range are reserved for held-out evaluation sets (data.heldout); training runs refuse them.
+RESERVED_SEEDS = range(2**31 - 1000, 2**31)
+GENERATOR_VERSION = 1
+SCENE_ATTEMPTS = 8
+
+
+@dataclass(frozen=True)
+class GenConfig:
+    kind: str = "pairs"            # "pairs": corr stored for every accepted pair; "views": N-view sets
+    scenes: int = 100
+    views: int = 4                 # views rendered per scene
+    size: int = 224                # long image side
+    shard_size: int = 16           # scenes per shard
+    seed: int = 0
+    low_texture_share: float = 0.15
+    overlap_lo: float = 0.15
+    overlap_hi: float = 0.95
+    version: int = GENERATOR_VERSION
+    format: str = FORMAT
+
+    def __post_init__(self):
+        if self.kind not in ("pairs", "views"):
+            raise ValueError(f"kind expected 'pairs' or 'views', got {self.kind!r}")
+        for name, lo in (("scenes", 1), ("views", 2 if self.kind == "pairs" else 1), ("size", 32), ("shard_size", 1)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < lo:
+                raise ValueError(f"{name} expected an int >= {lo}, got {v!r}")
+        if self.size % 16:
+            raise ValueError(f"size expected a multiple of 16, got {self.size}")
+        if not isinstance(self.seed, int) or self.seed < 0 or self.seed >= 2**31:
+            raise ValueError(f"seed expected an int in [0, 2**31), got {self.seed!r}")
+        if not 0 <= self.low_texture_share <= 1:
+            raise ValueError(f"low_texture_share expected in [0, 1], got {self.low_texture_share}")
+        if not 0 <= self.overlap_lo <= self.overlap_hi <= 1:
+            raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap_lo}, {self.overlap_hi}")
+
+    @property
+    def n_shards(self) -> int:
+        return (self.scenes + self.shard_size - 1) // self.shard_size
+
+    def camera(self) -> CameraConfig:
+        return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi))
+
+
+def scene_rng(seed: int, index: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed), int(index)])
+
+
+def render_scene(index: int, cfg: GenConfig, renderer):
+    """Draw scene ``index`` and render its view set. Returns (tar members, meta)."""
+    rng = scene_rng(cfg.seed, index)
+    cam = cfg.camera()
+    for attempt in range(SCENE_ATTEMPTS):
+        scene = make_scene(rng, low_texture_share=cfg.low_texture_share)
+        try:
+            vs = sample_views(rng, scene, renderer, cfg.views, cfg.size, cam)
+        except DegenerateScene:
+            continue
+        pairs = vs.pairs(cfg.overlap_lo, cfg.overlap_hi)
+        if cfg.kind == "pairs" and not pairs:
+            continue
+        break
+    else:
+        raise RuntimeError(f"scene {index}: no usable scene in {SCENE_ATTEMPTS} attempts (seed {cfg.seed})")
+    prefix = f"scene-{index:08d}"
+    v0 = vs.views[0]
+    meta = {
+        "format": FORMAT, "scene": index, "seed": cfg.seed, "kind": scene.kind, "low_texture": scene.low_texture,
+        "attempt": attempt, "width": v0.width, "height": v0.height,
+        "views": [{"K": v.K.tolist(), "cam2world": v.cam2world.tolist(), "move": v.move, "ref": v.ref}
+                  for v in vs.views],
+        "overlap": np.round(vs.overlap, 6).tolist(), "pairs": [list(p) for p in pairs],
+    }
+    members = [(f"{prefix}/meta.json", json_bytes(meta))]
+    for k, v in enumerate(vs.views):
+        members.append((f"{prefix}/view-{k}.png", png_bytes(v.rgb)))
+        members.append((f"{prefix}/view-{k}.npz", npz_bytes({"depth_z": v.depth.astype(np.float32)})))
+    if cfg.kind == "pairs":
+        for i, j in pairs:
+            members.append((f"{prefix}/pair-{i}-{j}.npz",
+                            npz_bytes({"corr_12": encode_corr(vs.corr(i, j)), "corr_21": encode_corr(vs.corr(j, i))})))
+    return members, meta
+
+
+def render_shard(shard: int, cfg: GenConfig, out: Path, renderer, progress=None) -> dict:
+    """Render all scenes of one shard and write it atomically (tar first, then its sidecar)."""
+    lo = shard * cfg.shard_size
+    hi = min(lo + cfg.shard_size, cfg.scenes)
+    members, n_pairs, n_views = [], 0, 0
+    for i in range(lo, hi):
+        m, meta = render_scene(i, cfg, renderer)
+        members += m
+        n_pairs += len(meta["pairs"])
+        n_views += len(meta["views"])
+        if progress is not None:
+            progress(1)
+    data = tar_bytes(members)
+    write_atomic(out / shard_name(shard), data)
+    entry = {"index": shard, "name": shard_name(shard), "sha256": sha256_bytes(data), "bytes": len(data),
+             "scenes": [lo, hi], "pairs": n_pairs, "views": n_views}
+    write_atomic(out / sidecar_name(shard), json_bytes(entry))
+    return entry
+
+
+def shard_is_complete(out: Path, shard: int) -> bool:
+    side, tar = out / sidecar_name(shard), out / shard_name(shard)
+    if not (side.is_file() and tar.is_file()):
+        return False
+    try:
+        entry = load_json(side)
+    except (OSError, ValueError):
+        return False
+    return tar.stat().st_size == entry.get("bytes") and sha256_file(tar) == entry.get("sha256")
+
+
+def write_manifest(out: Path, cfg: GenConfig) -> dict:
+    """Rebuild ``manifest.json`` from the sidecars present (deterministic content, no timestamps)."""
+    entries, problems = completed_shards(out, verify=False, warn=False)
+    manifest = {"format": FORMAT, "config": asdict(cfg), "complete": len(entries) == cfg.n_shards,
+                "shards": entries, "pairs": sum(e["pairs"] for e in entries),
+                "views": sum(e["views"] for e in entries)}
+    write_atomic(out / "manifest.json", json_bytes(manifest))
+    return manifest
+
+
+def prepare_out(out: Path, cfg: GenConfig) -> None:
+    """Create ``out`` with ``config.json``, or check an existing one matches (resume needs the same config)."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "config.json"
+    want = asdict(cfg)
+    if path.exists():
+        have = load_json(path)
+        if have != want:
+            diff = {k: (have.get(k), want.get(k)) for k in set(have) | set(want) if have.get(k) != want.get(k)}
+            raise ShardError(f"{out} holds shards of another configuration (existing vs requested: {diff}); "
+                             "use a new --out directory")
+    else:
+        write_atomic(path, json_bytes(want))
+    _remove_stale_temps(out)
+
+
+def _remove_stale_temps(out: Path) -> None:
+    """Delete temporary files left by killed writers on this host (their process no longer exists)."""
+    import socket
+    host = socket.gethostname()
+    for tmp in out.glob(f".*.tmp-{host}-*"):
+        try:
+            pid = int(tmp.name.rsplit("-", 1)[1])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+            alive = pid != os.getpid()
+        except ProcessLookupError:
+            alive = False
+        except PermissionError:
+            alive = True
+        if not alive:
+            tmp.unlink(missing_ok=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# workers
+
+_Q = None
+
+
+def _worker_init(q):
+    global _Q
+    _Q = q
+    import cv2
+    cv2.setNumThreads(1)
+
+
+def _worker_shard(args):
+    shard, cfg_dict, out = args
+    from data.render import get_renderer
+    cfg = GenConfig(**cfg_dict)
+    return render_shard(shard, cfg, Path(out), get_renderer(), progress=lambda n: _Q.put(n))
+
+
+def generate(out, cfg: GenConfig, *, shards: range | None = None, workers: int = 1, progress: bool = True,
+             log=print) -> dict:
+    """Render the shards in ``shards`` (default: all) that are not complete yet; returns the manifest."""
+    from tqdm import tqdm
+    out = Path(out)
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers expected an int >= 1, got {workers!r}")
+    prepare_out(out, cfg)
+    shards = range(cfg.n_shards) if shards is None else shards
+    if len(shards) and (shards.start < 0 or shards.stop > cfg.n_shards):
+        raise ValueError(f"shard range {shards.start}:{shards.stop} outside 0:{cfg.n_shards}")
+    todo = [s for s in shards if not shard_is_complete(out, s)]
+    skipped = len(shards) - len(todo)
+    n_scenes = sum(min((s + 1) * cfg.shard_size, cfg.scenes) - s * cfg.shard_size for s in todo)
+    if skipped and log:
+        log(f"resume: {skipped} of {len(shards)} shards already complete, {len(todo)} to render")
+    bar = tqdm(total=n_scenes, unit="scene", disable=not progress, dynamic_ncols=True, desc="render")
+    t0 = time.time()
+    pairs = 0
+    try:
+        if workers == 1 or len(todo) <= 1:
+            from data.render import get_renderer
+            r = get_renderer()
+            for s in todo:
+                pairs += render_shard(s, cfg, out, r, progress=bar.update)["pairs"]
+                bar.set_postfix(pairs=pairs)
+        else:
+            ctx = mp.get_context("spawn")
+            q = ctx.Queue()
+            with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(q,)) as pool:
+                results = [pool.apply_async(_worker_shard, ((s, asdict(cfg), str(out)),)) for s in todo]
+                pending = list(results)
+                while pending:
+                    try:
+                        bar.update(q.get(timeout=0.2))
+                    except queue.Empty:
+                        pass
+                    for r in [r for r in pending if r.ready()]:
+                        pairs += r.get()["pairs"]  # re-raises a worker's exception here
+                        bar.set_postfix(pairs=pairs)
+                        pending.remove(r)
+                while True:
+                    try:
+                        bar.update(q.get_nowait())
+                    except queue.Empty:
+                        break
+    finally:
+        bar.close()
+    manifest = write_manifest(out, cfg)
+    dt = time.time() - t0
+    if log and todo:
+        log(f"rendered {len(todo)} shards, {n_scenes} scenes, {pairs} pairs in {dt:.1f} s "
+            f"({pairs / max(dt, 1e-9):.1f} pairs/s); dataset now has {manifest['pairs']} pairs in "
+            f"{len(manifest['shards'])}/{cfg.n_shards} shards")
+    return manifest
+
+
+def parse_shards(text: str | None, n: int) -> range:
+    if text is None:
+        return range(n)
+    try:
+        a, b = text.split(":")
+        lo = int(a) if a else 0
+        hi = int(b) if b else n
+    except ValueError:
+        raise ValueError(f"--shards expected A:B (e.g. 0:10, 10:), got {text!r}") from None
+    if not 0 <= lo <= hi <= n:
+        raise ValueError(f"--shards {text} outside the run's 0:{n} shards")
+    return range(lo, hi)
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="python -m data.render", description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", required=True, help="output directory (created; re-running resumes)")
+    p.add_argument("--kind", choices=("pairs", "views"), default="pairs")
+    p.add_argument("--scenes", type=int, required=True, help="number of scenes")
+    p.add_argument("--views", type=int, default=4, help="views rendered per scene (pairs: all good pairs among them)")
+    p.add_argument("--size", type=int, default=224, help="long image side in pixels (multiple of 16)")
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--shard-size", type=int, default=16, help="scenes per shard")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shards", default=None, help="A:B: render only shards A..B-1 (cluster job arrays)")
+    p.add_argument("--low-texture-share", type=float, default=0.15)
+    p.add_argument("--overlap", type=float, nargs=2, default=(0.15, 0.95), metavar=("LO", "HI"))
+    p.add_argument("--quiet", action="store_true")
+    return p
+
+
+def main(argv=None, *, _allow_reserved: bool = False) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.seed in RESERVED_SEEDS and not _allow_reserved:
+            raise ValueError(f"seed {args.seed} is reserved for held-out evaluation sets "
+                             f"({RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}); pick another")
+        cfg = GenConfig(kind=args.kind, scenes=args.scenes, views=args.views, size=args.size,
+                        shard_size=args.shard_size, seed=args.seed, low_texture_share=args.low_texture_share,
+                        overlap_lo=args.overlap[0], overlap_hi=args.overlap[1])
+        shards = parse_shards(args.shards, cfg.n_shards)
+        if args.workers < 1:
+            raise ValueError(f"--workers expected >= 1, got {args.workers}")
+        generate(args.out, cfg, shards=shards, workers=args.workers, progress=not args.quiet,
+                 log=None if args.quiet else (lambda s: print(s, file=sys.stderr)))
+    except (ValueError, ShardError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

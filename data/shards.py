@@ -1,0 +1,219 @@
+"""Shards on disk: deterministic, atomic, checksummed (format described in docs/data.md).
+
+A dataset directory holds ``config.json`` (how it was generated), ``shard-NNNNNN.tar`` files (plain
+uncompressed tar, members in a fixed order with zeroed metadata), one ``shard-NNNNNN.json`` sidecar
+per completed shard (its sha256, size and counts: the sidecar is written after the tar, so a shard
+counts as complete only when both exist and agree), and ``manifest.json`` (config + every sidecar,
+rebuilt at the end of each run). Images are PNG, arrays ``.npz`` written with fixed zip metadata, so
+the same inputs give the same bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import socket
+import tarfile
+import warnings
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pointmap.errors import PointmapError
+
+FORMAT = "pointmap-synth/1"
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+class ShardError(PointmapError):
+    """A shard or dataset directory is missing, corrupt (checksum mismatch) or of another config."""
+
+
+def shard_name(index: int) -> str:
+    return f"shard-{index:06d}.tar"
+
+
+def sidecar_name(index: int) -> str:
+    return f"shard-{index:06d}.json"
+
+
+# ---------------------------------------------------------------------------------------------------
+# deterministic encoders / decoders
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise PointmapError(f"png_bytes expected uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:  # pragma: no cover
+        raise PointmapError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def read_png(data: bytes) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ShardError("a PNG member could not be decoded")
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def npz_bytes(arrays: dict) -> bytes:
+    """A standard ``.npz`` (readable by ``np.load``) with fixed zip metadata: same arrays, same bytes."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(arrays):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue(), compresslevel=1)
+    return out.getvalue()
+
+
+def read_npz(data: bytes) -> dict:
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def json_bytes(obj) -> bytes:
+    return (json.dumps(obj, sort_keys=True, indent=1) + "\n").encode()
+
+
+# ---------------------------------------------------------------------------------------------------
+# atomic writes
+
+
+def _tmp_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
+
+
+def write_atomic(path, data: bytes) -> None:
+    """Write ``data`` to a temporary file next to ``path``, fsync, then ``os.replace``: readers see
+    the old file or the complete new one, never a torn one."""
+    path = Path(path)
+    tmp = _tmp_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def tar_bytes(members: list) -> bytes:
+    """An uncompressed tar of (name, bytes) members in the given order, with zeroed metadata."""
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode="w", format=tarfile.USTAR_FORMAT) as tf:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            info.mtime = 0
+            info.mode = 0o644
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            tf.addfile(info, io.BytesIO(data))
+    return out.getvalue()
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------------
+# reading
+
+
+class ShardReader:
+    """Random access to the members of one shard tar (index built once, then seek + read)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ShardError(f"shard {self.path} does not exist")
+        self.index: dict[str, tuple[int, int]] = {}
+        try:
+            with tarfile.open(self.path, "r:") as tf:
+                for m in tf:
+                    if m.isfile():
+                        self.index[m.name] = (m.offset_data, m.size)
+        except tarfile.TarError as e:
+            raise ShardError(f"shard {self.path} is not a readable tar: {e}") from e
+
+    def names(self):
+        return list(self.index)
+
+    def read(self, name: str) -> bytes:
+        if name not in self.index:
+            raise ShardError(f"shard {self.path} has no member {name!r}")
+        off, size = self.index[name]
+        with open(self.path, "rb") as f:
+            f.seek(off)
+            data = f.read(size)
+        if len(data) != size:
+            raise ShardError(f"shard {self.path} is truncated at member {name!r}")
+        return data
+
+    def scenes(self) -> list[str]:
+        """Scene prefixes (``scene-XXXXXXXX``) in stored order."""
+        seen = []
+        for n in self.index:
+            p = n.split("/", 1)[0]
+            if p.startswith("scene-") and (not seen or seen[-1] != p):
+                seen.append(p)
+        return seen
+
+    def meta(self, scene: str) -> dict:
+        return json.loads(self.read(f"{scene}/meta.json"))
+
+
+def load_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def completed_shards(root, *, verify: bool = True, warn: bool = True) -> tuple[list[dict], list[str]]:
+    """Sidecars of the shards in ``root`` that are complete and (if ``verify``) match their sha256.
+
+    Returns (good entries sorted by index, problems). Problems (missing tar, size or checksum
+    mismatch, unreadable sidecar) are reported with a warning and the shard is left out.
+    """
+    root = Path(root)
+    good, problems = [], []
+    for side in sorted(root.glob("shard-*.json")):
+        try:
+            entry = load_json(side)
+            tar = root / entry["name"]
+        except (OSError, ValueError, KeyError) as e:
+            problems.append(f"{side.name}: unreadable sidecar ({e})")
+            continue
+        if not tar.is_file():
+            problems.append(f"{entry['name']}: listed but missing")
+            continue
+        if tar.stat().st_size != entry["bytes"]:
+            problems.append(f"{entry['name']}: size {tar.stat().st_size} != {entry['bytes']} in its sidecar")
+            continue
+        if verify and sha256_file(tar) != entry["sha256"]:
+            problems.append(f"{entry['name']}: sha256 mismatch (corrupt or modified); not used")
+            continue
+        good.append(entry)
+    if warn:
+        for p in problems:
+            warnings.warn(f"{root}: shard skipped: {p}", stacklevel=2)
+    good.sort(key=lambda e: e["index"])
+    return good, problems

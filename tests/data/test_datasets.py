@@ -1,0 +1,132 @@
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from data.datasets import AspectBatchSampler, MultiViewDataset, PairDataset, aspect_sizes, collate_pairs
+from data.shards import ShardError
+
+
+def _check_contract(v1, v2, h, w, *, need_covis=True):
+    for v in (v1, v2):
+        assert v["img"].shape == (3, h, w) and v["img"].dtype == torch.float32
+        assert 0 <= v["img"].min() and v["img"].max() <= 1
+        assert v["K"].shape == (3, 3) and v["cam2world"].shape == (4, 4)
+        assert v["K"].dtype == torch.float32 and v["cam2world"].dtype == torch.float32
+        assert v["depth_z"].shape == (h, w) and v["valid"].dtype == torch.bool
+        assert torch.equal(v["valid"], v["depth_z"] > 0)
+        assert v["pts_cam1"].shape == (h, w, 3)
+    assert v1["corr"].shape == (h, w, 2) and "corr" not in v2
+    covis = torch.isfinite(v1["corr"]).all(-1)
+    assert not (covis & ~v1["valid"]).any()
+    assert covis.any() or not need_covis
+
+
+def _reprojection_error(v1, v2):
+    """Pixel distance between the stored corr and the projection of view 1's points into view 2."""
+    covis = torch.isfinite(v1["corr"]).all(-1)
+    T = torch.linalg.inv(v2["cam2world"].double()) @ v1["cam2world"].double()
+    p = v1["pts_cam1"].double()[covis] @ T[:3, :3].T + T[:3, 3]
+    K = v2["K"].double()
+    uv = torch.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], -1)
+    return (uv - v1["corr"].double()[covis]).norm(dim=-1)
+
+
+def test_pair_items_follow_the_design_contract_without_augmentation(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, augment=False, split="all")
+    assert len(ds) >= 4
+    v1, v2 = ds[0]
+    _check_contract(v1, v2, 64, 64)
+    # pts_cam1 of view 1 is its own unprojected depth; stored corr agrees with the projection exactly
+    err = _reprojection_error(v1, v2)
+    assert (err <= 0.5).float().mean() >= 0.98
+
+
+def test_augmented_pairs_keep_crop_intrinsics_and_correspondences_consistent(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+    torch.manual_seed(0)
+    errs, with_covis, n = [], 0, 0
+    for k in range(len(ds)):
+        for aspect in range(3):
+            v1, v2 = ds[(k, aspect)]
+            h, w = ds.aspects[aspect]
+            _check_contract(v1, v2, h, w, need_covis=False)
+            errs.append(_reprojection_error(v1, v2))
+            with_covis += int(len(errs[-1]) > 0)
+            n += 1
+    assert with_covis >= 0.8 * n  # view 2's crop follows view 1's content
+    err = torch.cat(errs)
+    # nearest-neighbour resampling of depth moves a pixel's 3D point by up to half a source pixel
+    assert err.median() < 0.5 and torch.quantile(err, 0.95) < 1.5
+
+
+def test_order_swap_uses_the_stored_reverse_correspondences(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all", swap_p=1.0, crop_scale=(1.0, 1.0))
+    v1, v2 = ds[0]
+    k, scene, i, j = ds.items[0]
+    assert v1["view_index"] == j and v2["view_index"] == i
+    assert (_reprojection_error(v1, v2) <= 0.75).float().mean() > 0.95
+
+
+def test_aspect_batch_sampler_gives_one_aspect_ratio_per_batch(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+    sampler = AspectBatchSampler(len(ds), batch_size=2, seed=1)
+    batches = list(sampler)
+    assert len(batches) == len(ds) // 2
+    for b in batches:
+        assert len({a for _, a in b}) == 1
+    loader = DataLoader(ds, batch_sampler=sampler, collate_fn=collate_pairs, num_workers=0)
+    shapes = set()
+    for v1, v2 in loader:
+        assert v1["img"].shape[0] == 2 and v1["img"].shape == v2["img"].shape
+        shapes.add(tuple(v1["img"].shape[-2:]))
+    assert shapes <= set(aspect_sizes(64))
+
+
+def test_aspect_sizes_are_multiples_of_16():
+    assert aspect_sizes(224) == [(224, 224), (160, 224), (224, 160)]
+    assert all(h % 16 == 0 and w % 16 == 0 for h, w in aspect_sizes(512))
+    with pytest.raises(ValueError, match="multiple of 16"):
+        aspect_sizes(100)
+
+
+def test_train_and_val_splits_are_disjoint_and_cover_all(tiny_pairs):
+    all_ = PairDataset(tiny_pairs, size=64, split="all", verify=False)
+    tr = PairDataset(tiny_pairs, size=64, split="train", val_percent=50, verify=False)
+    va = PairDataset(tiny_pairs, size=64, split="val", val_percent=50, verify=False)
+    assert set(tr.items).isdisjoint(va.items) and set(tr.items) | set(va.items) == set(all_.items)
+
+
+def test_multiview_dataset_stacks_the_views_of_a_scene(tiny_pairs):
+    ds = MultiViewDataset(tiny_pairs)
+    item = ds[0]
+    n = item["img"].shape[0]
+    assert n == 3 and item["K"].shape == (n, 3, 3) and item["cam2world"].shape == (n, 4, 4)
+    assert item["depth_z"].shape == item["valid"].shape == item["img"].shape[:1] + item["img"].shape[2:]
+    assert item["overlap"].shape == (n, n) and torch.allclose(item["overlap"].diagonal(), torch.ones(n))
+
+
+def test_datasets_validate_their_arguments(tiny_pairs, tmp_path):
+    with pytest.raises(ValueError, match="split expected"):
+        PairDataset(tiny_pairs, split="test")
+    with pytest.raises(ShardError, match="does not exist"):
+        PairDataset(tmp_path / "nope")
+    with pytest.raises(ShardError, match="config.json"):
+        PairDataset(tmp_path)
+    ds = PairDataset(tiny_pairs, size=64, split="all", verify=False)
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+    with pytest.raises(IndexError):
+        ds[(0, 5)]
+
+
+def test_heldout_set_is_rendered_once_from_the_reserved_seed(tmp_path):
+    import data
+    from data.generate import RESERVED_SEEDS
+    ds = data.heldout(tmp_path, kind="views", size=64, scenes=1, views=2)
+    assert ds.config["seed"] == data.HELDOUT_SEED and data.HELDOUT_SEED in RESERVED_SEEDS
+    tar = next((tmp_path / "heldout-views-64").glob("shard-*.tar"))
+    before = tar.stat().st_mtime_ns
+    data.heldout(tmp_path, kind="views", size=64, scenes=1, views=2)
+    assert tar.stat().st_mtime_ns == before
+    assert np.isfinite(ds[0]["depth_z"].numpy()).all()

@@ -1,0 +1,107 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from data.generate import GenConfig, generate, main, parse_shards
+from data.shards import ShardError, completed_shards
+
+ROOT = Path(__file__).resolve().parents[2]
+ARGS = ["--scenes", "5", "--shard-size", "1", "--size", "64", "--views", "2", "--seed", "5", "--quiet"]
+
+
+def _run(out, extra=()):
+    env = dict(os.environ, PYOPENGL_PLATFORM="egl", PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "data.render", "--out", str(out), *ARGS, *extra], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def _files(d):
+    return {p.name: p.read_bytes() for p in sorted(Path(d).iterdir()) if p.is_file()}
+
+
+def test_a_run_killed_mid_way_and_restarted_gives_byte_identical_shards(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    p = _run(a)
+    assert p.wait(timeout=300) == 0, p.stderr.read().decode()
+    killed = _run(b)
+    deadline = time.time() + 300
+    while not (b / "shard-000001.json").exists():  # wait until some, but not all, shards are done
+        assert killed.poll() is None, "run finished before it could be killed"
+        assert time.time() < deadline
+        time.sleep(0.05)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert not (b / "shard-000004.json").exists()
+    p = _run(b)
+    assert p.wait(timeout=300) == 0, p.stderr.read().decode()
+    fa, fb = _files(a), _files(b)
+    assert fa.keys() == fb.keys()  # no temporary files left behind either
+    for name in fa:
+        assert fa[name] == fb[name], name
+    manifest = json.loads(fa["manifest.json"])
+    assert manifest["complete"] and len(manifest["shards"]) == 5
+
+
+def test_a_shard_with_a_wrong_checksum_is_reported_not_used_and_re_rendered(tmp_path):
+    cfg = GenConfig(kind="pairs", scenes=2, views=2, size=64, shard_size=1, seed=11)
+    generate(tmp_path, cfg, progress=False, log=None)
+    good = (tmp_path / "shard-000001.tar").read_bytes()
+    bad = bytearray(good)
+    bad[700] ^= 0xFF
+    (tmp_path / "shard-000001.tar").write_bytes(bytes(bad))
+    with pytest.warns(UserWarning, match="sha256 mismatch"):
+        entries, problems = completed_shards(tmp_path)
+    assert [e["index"] for e in entries] == [0] and len(problems) == 1
+    from data.datasets import PairDataset
+    with pytest.warns(UserWarning, match="shard-000001.tar"):
+        ds = PairDataset(tmp_path, size=64, split="all")
+    assert {k for k, *_ in ds.items} == {0}
+    generate(tmp_path, cfg, progress=False, log=None)  # resume notices and re-renders it
+    assert (tmp_path / "shard-000001.tar").read_bytes() == good
+
+
+def test_shard_ranges_render_only_their_shards_and_merge_into_one_manifest(tmp_path):
+    cfg = GenConfig(kind="views", scenes=3, views=2, size=64, shard_size=1, seed=3)
+    generate(tmp_path, cfg, shards=range(1, 2), progress=False, log=None)
+    assert [p.name for p in sorted(tmp_path.glob("shard-*.tar"))] == ["shard-000001.tar"]
+    generate(tmp_path, cfg, shards=range(0, 1), progress=False, log=None)
+    generate(tmp_path, cfg, shards=range(2, 3), progress=False, log=None)
+    m = json.loads((tmp_path / "manifest.json").read_text())
+    assert m["complete"] and [s["index"] for s in m["shards"]] == [0, 1, 2]
+
+
+def test_two_workers_write_the_same_bytes_as_one(tmp_path):
+    cfg = GenConfig(kind="pairs", scenes=2, views=2, size=64, shard_size=1, seed=21)
+    generate(tmp_path / "one", cfg, workers=1, progress=False, log=None)
+    generate(tmp_path / "two", cfg, workers=2, progress=False, log=None)
+    assert _files(tmp_path / "one") == _files(tmp_path / "two")
+
+
+def test_cli_rejects_bad_arguments_with_exit_code_2(tmp_path, capsys):
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "0"]) == 2
+    assert "scenes expected" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "2", "--size", "100"]) == 2
+    assert "multiple of 16" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "2", "--seed", str(2**31 - 5)]) == 2
+    assert "reserved" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "2", "--shards", "1:9"]) == 2
+    assert "outside" in capsys.readouterr().err
+
+
+def test_resuming_with_another_configuration_is_refused(tmp_path):
+    generate(tmp_path, GenConfig(kind="views", scenes=1, views=1, size=64, seed=1), progress=False, log=None)
+    with pytest.raises(ShardError, match="another configuration"):
+        generate(tmp_path, GenConfig(kind="views", scenes=1, views=1, size=64, seed=2), progress=False, log=None)
+
+
+def test_shard_range_parsing():
+    assert parse_shards("2:5", 10) == range(2, 5)
+    assert parse_shards(":3", 10) == range(0, 3) and parse_shards("7:", 10) == range(7, 10)
+    with pytest.raises(ValueError, match="A:B"):
+        parse_shards("3", 10)
