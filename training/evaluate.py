@@ -11,12 +11,16 @@ from pointmap.pose import relative_pose
 
 
 def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
-    """AbsRel of a depth map after median scale alignment (the prediction is scale-free)."""
-    p, g = pred_z[valid], gt_z[valid]
+    """AbsRel of a depth map after median scale alignment (the prediction is scale-free); pixels predicted
+    behind the camera count with their full relative error."""
+    p, g = pred_z[valid].double(), gt_z[valid].double()
     if p.numel() == 0:
         return float("nan")
-    scale = torch.median(g) / torch.median(p).clamp_min(1e-12)
-    return float(((p * scale - g).abs() / g).mean())
+    front = p > 0
+    if front.sum() == 0:
+        return 1.0
+    scale = torch.median(g[front] / p[front])
+    return float(((p.clamp_min(0) * scale - g).abs() / g).mean())
 
 
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:

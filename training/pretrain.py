@@ -47,10 +47,10 @@ def main(argv=None) -> int:
 
     cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
     model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
-    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, seed=cfg.seed)
+    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, split="train")
     eval_fn = None
     if cfg.eval_data:
-        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False)
+        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False, split="all")
         eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
     result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})

@@ -68,10 +68,10 @@ def main(argv=None) -> int:
 
     cfg = TrainConfig.from_args(argv)
     model = build_model(cfg)
-    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, seed=cfg.seed)
+    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, split="train")
     eval_fn = None
     if cfg.eval_data:
-        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False)
+        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False, split="all")
         eval_fn = lambda m: evaluate_pairs(m, eval_set, cfg.eval_pairs)  # noqa: E731
     result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})

@@ -1,0 +1,103 @@
+"""Two-view relative pose on held-out rendered pairs: the model (from its own pointmaps) against an
+OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Reported overall and by
+category (scene kind, low texture, wide baseline = true rotation > 30 degrees).
+
+    python benchmarks/bench_pose.py --data HELDOUT_SHARDS --model small [--pairs 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pointmap as pm  # noqa: E402
+from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
+
+
+def sift_pose(img1: np.ndarray, img2: np.ndarray, K1: np.ndarray, K2: np.ndarray):
+    """cam2world of view 2 in view 1's frame (unit translation) from SIFT + 5-point RANSAC, or None."""
+    sift = cv2.SIFT_create(4000)
+    g1, g2 = (cv2.cvtColor(i, cv2.COLOR_RGB2GRAY) for i in (img1, img2))
+    k1, d1 = sift.detectAndCompute(g1, None)
+    k2, d2 = sift.detectAndCompute(g2, None)
+    if d1 is None or d2 is None or len(k1) < 8 or len(k2) < 8:
+        return None
+    matches = cv2.BFMatcher().knnMatch(d1, d2, k=2)
+    good = [m[0] for m in matches if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    if len(good) < 8:
+        return None
+    p1 = np.float64([k1[m.queryIdx].pt for m in good])
+    p2 = np.float64([k2[m.trainIdx].pt for m in good])
+    # normalise with each camera's intrinsics, then the essential matrix in normalised coordinates
+    n1 = cv2.undistortPoints(p1[:, None], K1, None)[:, 0]
+    n2 = cv2.undistortPoints(p2[:, None], K2, None)[:, 0]
+    E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / K1[0, 0])
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
+    world2cam2 = np.eye(4)
+    world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
+    return np.linalg.inv(world2cam2)
+
+
+def errors(est, gt):
+    if est is None or not np.isfinite(est).all():
+        return 180.0, 180.0
+    e, g = torch.as_tensor(est, dtype=torch.float64), torch.as_tensor(gt, dtype=torch.float64)
+    return float(relative_rotation_error_deg(e[:3, :3], g[:3, :3])), float(translation_angle_deg(e[:3, 3], g[:3, 3]))
+
+
+def main(argv=None) -> int:
+    from data.datasets import PairDataset
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", required=True, help="held-out shards (never trained on)")
+    p.add_argument("--model", default="small")
+    p.add_argument("--pairs", type=int, default=200)
+    p.add_argument("--threads", type=int, default=2)
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    model = pm.load_model(a.model)
+    ds = PairDataset(a.data, size=int(getattr(model, "provenance", {}).get("image_size", 224)), augment=False,
+                     split="all")
+    res = defaultdict(lambda: defaultdict(list))
+    n = min(a.pairs, len(ds))
+    for idx in range(n):
+        v1, v2 = ds[idx]
+        k, scene, i, j = ds.items[idx]
+        meta = ds._store.reader(k).meta(scene)
+        gt = (torch.linalg.inv(v1["cam2world"].double()) @ v2["cam2world"].double()).numpy()
+        cats = ["all", meta["kind"], "low-texture" if meta["low_texture"] else "textured"]
+        if errors(np.eye(4), gt)[0] > 30:
+            cats.append("wide (>30 deg)")
+        with torch.inference_mode():
+            pred = model(v1["img"][None], v2["img"][None])
+            rev = model(v2["img"][None], v1["img"][None])
+        ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
+        to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
+        base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
+        for name, est in (("model", ours), ("sift+E (known K)", base)):
+            r, t = errors(est, gt)
+            for c in cats:
+                res[c][name].append((r, t))
+    print(f"{n} held-out pairs from {a.data}; model {a.model!r}\n")
+    print("| category | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for c in sorted(res, key=lambda c: (c != "all", c)):
+        for name, vals in res[c].items():
+            v = np.array(vals)
+            print(f"| {c} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {100 * np.mean(v[:, 1] < 15):.0f}% | "
+                  f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
