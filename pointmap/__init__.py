@@ -24,13 +24,15 @@ from pointmap.reconstruction import Reconstruction
 __version__ = "0.1.0"
 
 # heavier parts load on first use
-_LAZY = {"global_align": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat"}
+_LAZY = {"global_align": "pointmap.align", "refine_matches": "pointmap.align", "AlignConfig": "pointmap.align",
+         "SparseConfig": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat",
+         "io": "pointmap.io"}
 
 
 def __getattr__(name):
     if name in _LAZY:
         mod = import_module(_LAZY[name])
-        return mod if name == "splat" else getattr(mod, name)
+        return mod if name in ("splat", "io") else getattr(mod, name)
     raise AttributeError(f"module 'pointmap' has no attribute {name!r}")
 
 
@@ -38,5 +40,5 @@ __all__ = [
     "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "ModelConfig", "PRESETS",
     "PairPrediction", "PointmapError", "PointmapNet", "Reconstruction", "ShapeError", "View", "__version__",
     "check_connected", "global_align", "load_images", "load_model", "make_pairs", "match", "predict_pairs",
-    "reconstruct", "relative_pose", "save_model", "splat",
+    "reconstruct", "relative_pose", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
 ]

@@ -39,7 +39,8 @@ def cmd_reconstruct(args) -> int:
     from pointmap.pipeline import reconstruct
 
     model, size = _model_and_size(args.model, args.size)
-    recon = reconstruct(model, args.images, graph=args.graph, size=size, quiet=args.quiet)
+    recon = reconstruct(model, args.images, graph=args.graph, size=size, min_conf=args.min_conf,
+                        conf_percentile=args.conf_percentile, refine=args.refine, quiet=args.quiet)
     formats = tuple(f.strip() for f in args.export.split(",") if f.strip())
     out = Path(args.out)
     written = recon.save(out, formats=formats)
@@ -47,16 +48,21 @@ def cmd_reconstruct(args) -> int:
         from pointmap.splat import run as run_splat
 
         run_splat(recon, out / "splat", quiet=args.quiet)
-    for p in written or []:
-        print(p)
+    for fmt, paths in (written or {}).items():
+        for path in paths if isinstance(paths, (list, tuple)) else [paths]:
+            print(f"{fmt}: {path}")
     return 0
 
 
 def cmd_splat(args) -> int:
-    from pointmap.io import load_reconstruction
+    from pointmap.io import load_npz
     from pointmap.splat import run as run_splat
 
-    recon = load_reconstruction(Path(args.recon))
+    src = Path(args.recon)
+    npz = src / "reconstruction.npz" if src.is_dir() else src
+    if not npz.exists():
+        raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    recon = load_npz(npz)
     run_splat(recon, Path(args.out or Path(args.recon) / "splat"), quiet=args.quiet)
     return 0
 
@@ -87,6 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--size", type=int, default=None)
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
     r.add_argument("--export", default="ply,glb,colmap,npz")
+    r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
+                   help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
+    r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
+                   help="keep pixels above this percentile of confidence per image (0-100)")
+    r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
     r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
     r.set_defaults(fn=cmd_reconstruct)
 

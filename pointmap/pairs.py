@@ -54,15 +54,6 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
     return sorted(edges)
 
 
-def auto_graph(n: int) -> str:
-    """The graph ``reconstruct(graph="auto")`` uses: complete up to 12 images, then logwin/swin."""
-    if n <= 12:
-        return "complete"
-    if n <= 48:
-        return "logwin-4"
-    return "swin-3"
-
-
 def components(n: int, pairs) -> list[list[int]]:
     """Connected components of the pair graph (lists of image indices, largest first)."""
     parent = list(range(n))

@@ -1,5 +1,6 @@
 """Global alignment: pairwise pointmaps -> poses, intrinsics and dense depth (docs/alignment.md)."""
 
 from pointmap.align.optimize import AlignConfig, global_align
+from pointmap.align.sparse import SparseConfig, refine_matches
 
-__all__ = ["AlignConfig", "global_align"]
+__all__ = ["AlignConfig", "SparseConfig", "global_align", "refine_matches"]

@@ -61,6 +61,7 @@ class EdgeStack:
     score: torch.Tensor
     stride: int
     keys: list
+    num_terms: float | None = None
 
     @property
     def num_edges(self) -> int:

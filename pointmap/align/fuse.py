@@ -16,13 +16,13 @@ from pointmap.geometry.cameras import pixel_grid
 
 
 def _edge_points_cam(pred, side: int, s, R, t, world2cam):
-    pts = (pred.pts1_cam1 if side == 0 else pred.pts2_cam1)[0].detach().to(torch.float64)
-    conf = (pred.conf1 if side == 0 else pred.conf2)[0].detach().to(torch.float64)
+    pts = (pred.pts1_cam1 if side == 0 else pred.pts2_cam1)[0].detach().to(torch.float32)
+    conf = (pred.conf1 if side == 0 else pred.conf2)[0].detach().to(torch.float32)
     ok = torch.isfinite(pts).all(-1) & torch.isfinite(conf)
     pts = torch.where(ok[..., None], pts, torch.zeros_like(pts))
-    A = world2cam[:3, :3] @ (s * R)
-    b = world2cam[:3, :3] @ t + world2cam[:3, 3]
-    return pts @ A.T + b, ok, conf
+    A = (world2cam[:3, :3] @ (s * R)).float()
+    b = (world2cam[:3, :3] @ t + world2cam[:3, 3]).float()
+    return torch.addmm(b, pts.reshape(-1, 3), A.T).reshape(pts.shape), ok, conf
 
 
 def fuse_depth(preds: dict, keys: list, shapes: list, cam2world: torch.Tensor, fx, fy, cx, cy,
@@ -39,7 +39,7 @@ def fuse_depth(preds: dict, keys: list, shapes: list, cam2world: torch.Tensor, f
     for k, (h, w) in enumerate(shapes):
         uv = pixel_grid(h, w, dtype=torch.float64)
         ray.append(torch.stack([(uv[..., 0] - cx[k]) / fx[k], (uv[..., 1] - cy[k]) / fy[k],
-                                torch.ones(h, w, dtype=torch.float64)], -1))
+                                torch.ones(h, w, dtype=torch.float64)], -1).float())
     by_image: dict[int, list] = {k: [] for k in range(n)}
     for e, (i, j) in enumerate(keys):
         by_image[i].append((e, 0))
@@ -49,9 +49,9 @@ def fuse_depth(preds: dict, keys: list, shapes: list, cam2world: torch.Tensor, f
         h, w = shapes[k]
         r = ray[k]
         rr = (r * r).sum(-1)
-        conf_max = torch.zeros(h, w, dtype=torch.float64)
-        depth = torch.zeros(h, w, dtype=torch.float64)
-        for it in range(iters + 1):
+        conf_max = torch.zeros(h, w)
+        depth = torch.zeros(h, w)
+        for it in range(iters + 1):  # accumulate in float64, per-edge work in float32
             num = torch.zeros(h, w, dtype=torch.float64)
             den = torch.zeros(h, w, dtype=torch.float64)
             for e, side in by_image[k]:
@@ -68,7 +68,7 @@ def fuse_depth(preds: dict, keys: list, shapes: list, cam2world: torch.Tensor, f
                 num += wgt * (r * Y).sum(-1)
                 den += wgt * rr
             depth = torch.where(den > 0, num / den.clamp_min(1e-300), torch.zeros_like(num))
-            depth = torch.where(depth > 0, depth, torch.zeros_like(depth))
-        depths.append(depth)
+            depth = torch.where(depth > 0, depth, torch.zeros_like(depth)).float()
+        depths.append(depth.double())
         confs.append(conf_max)
     return depths, confs

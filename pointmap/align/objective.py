@@ -40,17 +40,19 @@ def chunk_residual_sum(pts_world: torch.Tensor, s: torch.Tensor, R: torch.Tensor
     total = pts_world.new_zeros(())
     for idx, pred, w in ((i, stack.pred_i[sl], stack.w_i[sl]), (j, stack.pred_j[sl], stack.w_j[sl])):
         pred, w = pred.to(sR.dtype), w.to(sR.dtype)  # no-op in the float32 optimiser
-        aligned = pred @ sR.transpose(-1, -2) + t[:, None, :]
-        diff = pts_world[idx] - aligned
-        # sqrt of a clamped square: the gradient stays finite at an exact zero residual
-        dist = (diff * diff).sum(-1).clamp_min(1e-20).sqrt()
+        aligned = torch.baddbmm(t[:, None, :], pred, sR.transpose(-1, -2))
+        diff = pts_world.index_select(0, idx) - aligned
+        # sqrt of a shifted square: the gradient stays finite at an exact zero residual
+        dist = (diff.square().sum(-1) + 1e-20).sqrt()
         total = total + (w * dist).sum()
     return total
 
 
 def num_terms(stack: EdgeStack) -> float:
-    """Normaliser: number of weighted pixel terms (constant over iterations)."""
-    return float((stack.w_i > 0).sum() + (stack.w_j > 0).sum())
+    """Normaliser: number of weighted pixel terms (constant over iterations; cached on the stack)."""
+    if stack.num_terms is None:
+        stack.num_terms = float((stack.w_i > 0).sum() + (stack.w_j > 0).sum())
+    return stack.num_terms
 
 
 def loss_reference(pts_world, s, R, t, stack: EdgeStack) -> torch.Tensor:

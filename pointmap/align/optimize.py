@@ -46,18 +46,18 @@ class AlignConfig:
     """
 
     optimizer: str = "adam"
-    niter: int = 300
+    niter: int = 100
     lr: float = 0.01
     lr_min: float = 1e-6
     lr_focal: float | None = None
     schedule: str = "cosine"
     conf_transform: str = "log"
-    max_opt_pixels: int | None = 128 * 96
+    max_opt_pixels: int | None = 96 * 64
     stride: int | None = None
     max_chunk_pixels: int = 2_000_000
     early_stop_tol: float = 1e-4
     early_stop_window: int = 20
-    fuse_iters: int = 2
+    fuse_iters: int = 1
     quiet: bool = False
 
 
@@ -95,8 +95,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     info = parse_views(views)
     n = len(info.shapes)
     if n < 2:
-        raise GraphError(f"global alignment needs at least 2 images, got {n}; for one image use the "
-                         "pair prediction of the image with itself (pm.relative_pose / pred.pts1_cam1)")
+        raise GraphError(f"global alignment needs at least 2 images, got {n}; for a single image run the "
+                         "model on (img, img) and use pred.pts1_cam1 (its own camera frame) directly")
     if len(set(info.shapes)) != 1:
         raise ShapeError("images of different sizes cannot form one Reconstruction yet (it stores "
                          f"[N, h, w] maps); got sizes (h, w) {sorted(set(info.shapes))}")

@@ -1,0 +1,90 @@
+"""reconstruct() glue, with stand-ins for the network modules (pairs, inference, matching) that return
+ground truth of the analytic scene."""
+
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from pointmap.align import AlignConfig
+from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
+from scene import gt_preds, make_scene, pose_errors
+
+
+@pytest.fixture
+def fake_stack(monkeypatch):
+    sc = make_scene(5, 32, 48, seed=51)
+    calls = {}
+
+    def make_pairs(n, graph):
+        calls["graph"] = graph
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+    def predict_pairs(model, views, pairs, batch_size=8):
+        calls["pairs"] = list(pairs)
+        return gt_preds(sc, pairs, seed=1)
+
+    def match(pred):
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+
+    for name, fns in (("pointmap.pairs", {"make_pairs": make_pairs}), ("pointmap.inference", {"predict_pairs": predict_pairs}),
+                      ("pointmap.matching", {"match": match})):
+        mod = types.ModuleType(name)
+        mod.__dict__.update(fns)
+        monkeypatch.setitem(sys.modules, name, mod)
+    images = [(im * 255).astype(np.uint8) for im in sc["images"]]
+    return sc, images, calls
+
+
+def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
+    sc, images, calls = fake_stack
+    # 48x32 arrays at size=48: no resize, no crop (48 and 32 are multiples of 16)
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), min_conf=2.0)
+    err = capsys.readouterr().err
+    assert "5 images, graph complete: 10 pairs" in err and "peak memory" in err
+    assert calls["graph"] == "complete" and len(calls["pairs"]) == 10
+    rot, centre, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    assert rot < 0.1 and centre < 0.005
+    assert recon.masks.all()  # conf 3 > 2 everywhere
+    assert recon.info["pipeline"]["pairs"] == 10
+    written = recon.save(tmp_path, formats=("colmap", "ply"))
+    assert (tmp_path / "sparse/0/images.bin").exists() and written["ply"].stat().st_size > 0
+
+
+def test_reconstruct_masks_and_percentile(fake_stack):
+    sc, images, _ = fake_stack
+    masks = [np.ones((32, 48), bool) for _ in images]
+    masks[2][:, :10] = False
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=0.0,
+                        quiet=True)
+    assert not recon.masks[2, :, :10].any() and recon.masks[2, :, 10:].all()
+
+
+def test_masks_to_maps_from_original_size():
+    from pointmap.images import load_images
+
+    views = load_images([np.zeros((120, 200, 3), np.uint8)], size=64)  # -> 64 x ~38 resize, crop to 64x32
+    h, w = views[0].shape
+    m = np.zeros((120, 200), bool)
+    m[:, 100:] = True  # right half of the original
+    mm = masks_to_maps([m], views)[0]
+    assert mm.shape == (h, w) and mm[:, : w // 2 - 1].sum() == 0 and mm[:, w // 2 + 1:].all()
+    with pytest.raises(Exception, match="mask 0 expected"):
+        masks_to_maps([np.zeros((5, 5), bool)], views)
+
+
+def test_auto_graph_and_estimates():
+    assert auto_graph(5) == "complete" and auto_graph(30) == "logwin-3" and auto_graph(200) == "logwin-4"
+    small = estimate_cost(10, 30, (384, 512))
+    big = estimate_cost(100, 400, (384, 512))
+    assert big["align_seconds"] > small["align_seconds"] > 0 and big["memory_gb"] > small["memory_gb"] > 0
+
+
+def test_single_image_is_a_clear_error(fake_stack):
+    from pointmap.errors import GraphError
+
+    _, images, _ = fake_stack
+    with pytest.raises(GraphError, match="at least 2 images"):
+        reconstruct(None, images[:1], size=48, quiet=True)

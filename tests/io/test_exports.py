@@ -1,0 +1,172 @@
+"""Exports read back by independent readers (pycolmap, trimesh) and checked against their sources."""
+
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from recon_factory import make_recon  # noqa: E402
+
+from pointmap.io import confidence_mask, load_npz, read_ply, save_reconstruction, select_points  # noqa: E402
+from pointmap.io.atomic import atomic_open  # noqa: E402
+from pointmap.io.colmap import rotation_to_quaternion  # noqa: E402
+
+pycolmap = pytest.importorskip("pycolmap")
+
+
+def _check_colmap(model_dir, recon):
+    rec = pycolmap.Reconstruction(str(model_dir))
+    assert rec.num_images() == len(recon) and rec.num_points3D() > 0
+    names = sorted(im.name for im in rec.images.values())
+    assert names == sorted(recon.names)
+    worst = 0.0
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (100, 75)
+        k = recon.names.index(im.name)
+        # pose: COLMAP cam_from_world is the inverse of our cam2world
+        M = np.asarray(im.cam_from_world().matrix())
+        w2c = np.linalg.inv(recon.cam2world[k].double().numpy())
+        assert np.allclose(M, w2c[:3], atol=1e-6)
+        if len(im.points2D) == 0:
+            continue
+        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in im.points2D])
+        xy = np.array([p.xy for p in im.points2D])
+        uv = cam.img_from_cam((xyz @ M[:, :3].T + M[:, 3]))
+        worst = max(worst, float(np.abs(uv - xy).max()))
+    assert worst < 1.0 and worst < 1e-3  # well inside the 1 px contract
+    return rec
+
+
+def test_colmap_binary_reprojects_at_original_resolution(tmp_path):
+    recon = make_recon()
+    written = save_reconstruction(recon, tmp_path, formats=("colmap",), colmap_max_points=None)
+    assert {p.name for p in written["colmap"]} == {"cameras.bin", "images.bin", "points3D.bin"}
+    rec = _check_colmap(tmp_path / "sparse" / "0", recon)
+    assert rec.num_points3D() == int(recon.valid().sum())
+    # an independent check of the pixel convention: the observation of the point from map pixel (u, v)
+    # of image k is the ORIGINAL pixel (u + 0.5 + left) / sx - 0.5, plus COLMAP's 0.5 offset
+    pts = select_points(recon)
+    k, (u, v) = int(pts.image[100]), pts.uv_map[100]
+    im = [im for im in rec.images.values() if im.name == recon.names[k]][0]
+    obs = [p for p in im.points2D if np.allclose(rec.points3D[p.point3D_id].xyz, pts.xyz[100])][0]
+    assert np.allclose(obs.xy, [(u + 0.5 + 2.0) / 0.36, (v + 0.5 + 1.0) / 0.36], atol=1e-9)
+    # and with our own projection using K in original pixels
+    w2c = np.linalg.inv(recon.cam2world[k].double().numpy())
+    pc = w2c[:3, :3] @ pts.xyz[100] + w2c[:3, 3]
+    K = recon.K[k].double().numpy()
+    assert np.allclose(K[:2, :2] @ (pc[:2] / pc[2]) + K[:2, 2] + 0.5, obs.xy, atol=1e-4)
+
+
+def test_colmap_text_only_is_readable_and_has_two_lines_per_image(tmp_path):
+    recon = make_recon(n=4, seed=1)
+    save_reconstruction(recon, tmp_path, formats=("colmap_txt",), colmap_max_points=500)
+    model = tmp_path / "sparse" / "0"
+    assert not (model / "images.bin").exists()
+    lines = [ln for ln in (model / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(lines) == 2 * 4
+    rec = _check_colmap(model, recon)
+    assert rec.num_points3D() == 500
+
+
+def test_colmap_shared_camera_and_empty_observations(tmp_path):
+    recon = make_recon(n=3)
+    recon.K[:] = recon.K[0]
+    recon.masks = torch.zeros_like(recon.conf, dtype=torch.bool)
+    recon.masks[0, 5:10, 5:10] = True  # only image 0 has points
+    save_reconstruction(recon, tmp_path, formats=("colmap", "colmap_txt"))
+    rec = _check_colmap(tmp_path / "sparse" / "0", recon)
+    assert len(rec.cameras) == 1 and rec.num_points3D() == 25
+    lines = [ln for ln in (tmp_path / "sparse/0/images.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(lines) == 6 and lines[3] == "" and lines[5] == ""
+
+
+def test_ply_roundtrip_and_trimesh(tmp_path):
+    import trimesh
+
+    recon = make_recon()
+    save_reconstruction(recon, tmp_path, formats=("ply",), min_conf=3.0)
+    data = read_ply(tmp_path / "points.ply")
+    keep = recon.valid() & (recon.conf > 3.0)
+    assert len(data["x"]) == int(keep.sum()) and float(data["confidence"].min()) > 3.0
+    pts = recon.pts_world[keep].numpy()
+    assert np.allclose(np.stack([data["x"], data["y"], data["z"]], -1), pts, atol=1e-5)
+    rgb = (recon.images[keep].numpy() * 255).round().astype(np.uint8)
+    assert np.array_equal(np.stack([data["red"], data["green"], data["blue"]], -1), rgb)
+    cloud = trimesh.load(tmp_path / "points.ply")
+    assert len(cloud.vertices) == len(pts)
+    header = (tmp_path / "points.ply").read_bytes()[:400]
+    assert b"binary_little_endian" in header and b"property float confidence" in header
+
+
+def test_glb_has_cloud_and_frustums(tmp_path):
+    import trimesh
+
+    recon = make_recon(n=3)
+    save_reconstruction(recon, tmp_path, formats=("glb",), max_points=1000)
+    scene = trimesh.load(tmp_path / "scene.glb")
+    geoms = list(scene.geometry.values())
+    clouds = [g for g in geoms if isinstance(g, trimesh.PointCloud)]
+    paths = [g for g in geoms if isinstance(g, trimesh.path.Path3D)]
+    assert len(clouds) == 1 and len(clouds[0].vertices) == 1000
+    assert len(paths) == 3
+    # each frustum's apex is the camera centre
+    centres = recon.cam2world[:, :3, 3].numpy()
+    for c in centres:
+        assert min(np.linalg.norm(p.vertices - c, axis=1).min() for p in paths) < 1e-4
+
+
+def test_npz_roundtrip(tmp_path):
+    recon = make_recon(with_mask=True)
+    save_reconstruction(recon, tmp_path, formats=("npz",))
+    back = load_npz(tmp_path / "reconstruction.npz")
+    for name in ("images", "cam2world", "K", "depth_z", "conf", "map_from_original", "masks"):
+        assert torch.equal(getattr(back, name), getattr(recon, name)), name
+    assert back.names == recon.names and back.original_sizes == recon.original_sizes
+    assert back.info["align"]["final_loss"] == 0.1
+
+
+def test_recon_save_all_formats_and_no_temp_files(tmp_path):
+    recon = make_recon()
+    written = recon.save(tmp_path, formats=("ply", "glb", "colmap", "npz"))
+    assert set(written) == {"ply", "glb", "colmap", "npz"}
+    leftovers = [p for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
+    assert not leftovers
+    with pytest.raises(ValueError, match="formats expected"):
+        recon.save(tmp_path, formats=("obj",))
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "x.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_open(target) as f:
+            f.write(b"partial")
+            raise RuntimeError("boom")
+    assert target.read_bytes() == b"old" and len(list(tmp_path.iterdir())) == 1
+
+
+def test_confidence_thresholds():
+    conf = torch.arange(1, 101, dtype=torch.float32).reshape(1, 10, 10)
+    assert int(confidence_mask(conf, min_conf=50).sum()) == 50
+    assert int(confidence_mask(conf, percentile=90).sum()) == 10  # >= the 90th percentile (90.1)
+    assert int(confidence_mask(conf, min_conf=95, percentile=50).sum()) == 5
+    with pytest.raises(ValueError, match="percentile"):
+        confidence_mask(conf, percentile=100)
+
+
+def test_quaternion_matches_rotation():
+    from pointmap.geometry.rotations import random_rotation
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(50):
+        R = random_rotation(g).numpy()
+        w, x, y, z = rotation_to_quaternion(R)
+        Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                       [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        assert np.allclose(Rq, R, atol=1e-12) and w >= 0
