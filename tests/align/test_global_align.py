@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from pointmap.align import AlignConfig, global_align
-from scene import (SCENE_SIZE, chain_pairs, complete_pairs, gt_preds, make_scene, pose_errors, views_of)
+from align_scene import (SCENE_SIZE, chain_pairs, complete_pairs, gt_preds, make_scene, pose_errors, views_of)
 
 QUIET = AlignConfig(quiet=True)
 

@@ -9,7 +9,7 @@ import torch
 from pointmap.align import AlignConfig, global_align
 from pointmap.errors import GraphError, ShapeError
 from pointmap.prediction import PairPrediction
-from scene import complete_pairs, gt_preds, make_scene, views_of
+from align_scene import complete_pairs, gt_preds, make_scene, views_of
 
 QUIET = AlignConfig(quiet=True, niter=30)
 

@@ -6,7 +6,7 @@ import torch
 
 from pointmap.align import AlignConfig, global_align
 from pointmap.errors import ConventionError, ShapeError
-from scene import complete_pairs, gt_preds, make_scene, pose_errors, views_of
+from align_scene import complete_pairs, gt_preds, make_scene, pose_errors, views_of
 
 QUIET = AlignConfig(quiet=True)
 

@@ -9,7 +9,7 @@ from pointmap.align.fuse import fuse_depth
 from pointmap.align.init import edge_similarities, init_mst
 from pointmap.align.objective import loss_and_grad, loss_reference
 from pointmap.align.params import AlignParams
-from scene import complete_pairs, gt_preds, make_scene, pose_errors
+from align_scene import complete_pairs, gt_preds, make_scene, pose_errors
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import torch
 
 from pointmap.align import AlignConfig
 from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
-from scene import gt_preds, make_scene, pose_errors
+from align_scene import gt_preds, make_scene, pose_errors
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ import torch
 from pointmap.align.sparse import SparseConfig, refine_matches
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
-from scene import make_scene, pose_errors, ray_cast
+from align_scene import make_scene, pose_errors, ray_cast
 
 CFG = SparseConfig(quiet=True)
 
