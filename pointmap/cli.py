@@ -47,7 +47,7 @@ def cmd_reconstruct(args) -> int:
     if args.splat:
         from pointmap.splat import run as run_splat
 
-        run_splat(recon, out / "splat", quiet=args.quiet)
+        run_splat(recon, out / "splat", quiet=args.quiet, time_budget=args.splat_budget or None)
     for fmt, paths in (written or {}).items():
         for path in paths if isinstance(paths, (list, tuple)) else [paths]:
             print(f"{fmt}: {path}")
@@ -63,7 +63,7 @@ def cmd_splat(args) -> int:
     if not npz.exists():
         raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
     recon = load_npz(npz)
-    run_splat(recon, Path(args.out or Path(args.recon) / "splat"), quiet=args.quiet)
+    run_splat(recon, Path(args.out or Path(args.recon) / "splat"), quiet=args.quiet, time_budget=args.splat_budget or None)
     return 0
 
 
@@ -99,11 +99,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pixels above this percentile of confidence per image (0-100)")
     r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
     r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
+    r.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
+                   help="wall-clock seconds the splat fit may take (0: no limit)")
     r.set_defaults(fn=cmd_reconstruct)
 
     s = sub.add_parser("splat", help="fit Gaussian splats to a saved reconstruction")
     s.add_argument("recon", help="directory written by 'pointmap reconstruct'")
     s.add_argument("-o", "--out", default=None)
+    s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
+                   help="wall-clock seconds the fit may take (0: no limit)")
     s.set_defaults(fn=cmd_splat)
 
     d = sub.add_parser("demo", help="reconstruct the demo scenes shipped with the package")

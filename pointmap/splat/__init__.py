@@ -5,7 +5,10 @@ them (tiled PyTorch on CPU, gsplat on CUDA), ``fit`` refines Gaussians and camer
 the whole job and writes the outputs.
 """
 
+from pointmap.splat.fit import SplatFit, auto_budget, fit
 from pointmap.splat.gaussians import Gaussians
+from pointmap.splat.init import init_from
+from pointmap.splat.outputs import run
 from pointmap.splat.rasterize import RenderOutput, rasterize
 
-__all__ = ["Gaussians", "RenderOutput", "rasterize"]
+__all__ = ["Gaussians", "RenderOutput", "SplatFit", "auto_budget", "fit", "init_from", "rasterize", "run"]

@@ -110,8 +110,10 @@ class Gaussians:
         quats = torch.zeros(n, 4)
         quats[:, 0] = 1.0
         logit = float(np.log(opacity / (1.0 - opacity)))
-        return cls(means=points.clone(), quats=quats, log_scales=scale.clamp_min(1e-8).log()[:, None].repeat(1, 3),
-                   opacity_logits=torch.full((n,), logit), sh_dc=rgb_to_sh_dc(torch.as_tensor(rgb, dtype=torch.float32)),
+        log_scales = scale.clamp_min(1e-8).log()[:, None].repeat(1, 3)
+        sh_dc = rgb_to_sh_dc(torch.as_tensor(rgb, dtype=torch.float32))
+        return cls(means=points.clone(), quats=quats, log_scales=log_scales,
+                   opacity_logits=torch.full((n,), logit), sh_dc=sh_dc,
                    conf=None if conf is None else torch.as_tensor(conf, dtype=torch.float32))
 
     # --- 3DGS PLY ---
@@ -184,5 +186,6 @@ class Gaussians:
             rest = take([f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k).transpose(1, 2)
             sh_rest = rest.contiguous() if rest.abs().max() > 0 else None
         return cls(means=take(["x", "y", "z"]), quats=take(["rot_0", "rot_1", "rot_2", "rot_3"]),
-                   log_scales=take(["scale_0", "scale_1", "scale_2"]), opacity_logits=arr[:, col["opacity"]].clone(),
+                   log_scales=take(["scale_0", "scale_1", "scale_2"]),
+                   opacity_logits=arr[:, col["opacity"]].clone(),
                    sh_dc=take(["f_dc_0", "f_dc_1", "f_dc_2"]), sh_rest=sh_rest)

@@ -414,7 +414,8 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     if means.ndim != 2 or means.shape[1] != 3:
         raise ShapeError(f"means expected [N, 3], got {list(means.shape)}")
     n = means.shape[0]
-    for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,)),
+    for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
+                           ("opacities", opacities, (n,)),
                            ("world2cam", world2cam, (4, 4)), ("K", K, (3, 3))):
         if tuple(t.shape) != shape:
             raise ShapeError(f"{name} expected {list(shape)}, got {list(t.shape)}")

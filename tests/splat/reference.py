@@ -37,7 +37,7 @@ def reference_render(means, quats, scales, opacities, colors, world2cam, K, widt
     for i in order.tolist():
         p = Rw @ means[i] + tw
         x, y, z = p[0], p[1], p[2]
-        if float(z) <= near:
+        if float(z.detach()) <= near:
             continue
         u = fx * x / z + cx
         v = fy * y / z + cy
@@ -51,7 +51,7 @@ def reference_render(means, quats, scales, opacities, colors, world2cam, K, widt
         cov3 = Rg @ S @ Rg.T
         cov2 = J @ Rw @ cov3 @ Rw.T @ J.T + eps2d * torch.eye(2, dtype=dt)
         det = cov2[0, 0] * cov2[1, 1] - cov2[0, 1] ** 2
-        if float(det) <= 0:
+        if float(det.detach()) <= 0:
             continue
         inv = torch.linalg.inv(cov2)
         dx = uu - u

@@ -1,0 +1,386 @@
+"""Joint optimisation of Gaussians and camera poses against the photos (InstantSplat-style).
+
+- Adam with per-parameter learning rates (InstantSplat's: colour 0.025, opacity 0.05, scale 0.05,
+  rotation 0.01, positions 1.6e-4 x scene extent with a per-point multiplier 1 + 99 (1 - sigmoid(conf))
+  implemented as a reparametrisation, so less confident points move faster);
+- loss 0.8 L1 + 0.2 (1 - SSIM) (kornia, 11x11 window), one view per step, black background;
+- per-view pose deltas in se(3), composed inside the graph as world2cam_i = exp(xi_i) world2cam_init_i;
+  view 0 is anchored (it fixes the gauge);
+- coarse-to-fine: the first part of the run renders at half resolution (cheap, and poses converge
+  there), the rest at the working resolution;
+- optional densify/prune (clone Gaussians with large screen-space gradients, drop transparent ones).
+
+The budget (working resolution, steps, Gaussians) is chosen by ``auto_budget``: on CPU it is sized so
+that a 2-6 view scene fits in about two minutes; with CUDA it uses InstantSplat's settings.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pointmap.errors import ShapeError
+from pointmap.geometry.cameras import invert_rigid, scale_intrinsics
+from pointmap.geometry.rotations import se3_exp
+from pointmap.reconstruction import Reconstruction
+from pointmap.splat.gaussians import Gaussians
+from pointmap.splat.rasterize import rasterize
+
+
+# ----------------------------------------------------------------------------------------------------
+# budget
+
+
+def auto_budget(n_views: int, map_size: tuple[int, int], device: str | torch.device = "cpu") -> dict:
+    """Working resolution (long side), steps and Gaussian count for a scene of ``n_views`` views whose
+    maps are ``map_size`` = (width, height)."""
+    long_side = max(map_size)
+    if torch.device(device).type == "cuda":
+        return {"max_side": min(long_side, 512), "steps": 1000, "max_gaussians": None, "coarse_frac": 0.0}
+    # CPU: about 0.5 s CPU per step at 256x192 with 10k Gaussians (render + SSIM + backward + Adam),
+    # a quarter of that at half resolution; 70 % of the steps run at half resolution.
+    return {"max_side": min(long_side, 256), "steps": 160, "max_gaussians": 10_000, "coarse_frac": 0.7}
+
+
+# ----------------------------------------------------------------------------------------------------
+# helpers
+
+
+def _resize_image(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[h, w, C] -> [height, width, C] (area-like antialiased bilinear)."""
+    if img.shape[0] == height and img.shape[1] == width:
+        return img
+    x = img.permute(2, 0, 1)[None]
+    x = F.interpolate(x, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return x[0].permute(1, 2, 0).contiguous()
+
+
+def _size_for(width: int, height: int, max_side: int) -> tuple[int, int]:
+    s = min(1.0, max_side / max(width, height))
+    return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+
+def _ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two [H, W, 3] images (kornia, 11x11 Gaussian window)."""
+    import kornia
+
+    return kornia.metrics.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11).mean()
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    l1 = (render - target).abs().mean()
+    if ssim_weight <= 0:
+        return l1
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - _ssim(render, target))
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+def _check_image(image, name="image") -> torch.Tensor:
+    img = torch.as_tensor(np.asarray(image) if not isinstance(image, torch.Tensor) else image)
+    if img.ndim != 3 or img.shape[-1] != 3:
+        raise ShapeError(f"{name} expected [H, W, 3], got {list(img.shape)}")
+    if img.dtype == torch.uint8:
+        img = img.float() / 255.0
+    img = img.float()
+    if float(img.min()) < -1e-3 or float(img.max()) > 1 + 1e-3:
+        raise ShapeError(f"{name} values expected in [0, 1] (or uint8), got range "
+                         f"[{float(img.min()):.3g}, {float(img.max()):.3g}]")
+    return img
+
+
+def _check_pose(T, name) -> torch.Tensor:
+    T = torch.as_tensor(T, dtype=torch.float32)
+    if tuple(T.shape) != (4, 4):
+        raise ShapeError(f"{name} expected [4, 4], got {list(T.shape)}")
+    return T
+
+
+def _check_K(K) -> torch.Tensor:
+    K = torch.as_tensor(K, dtype=torch.float32)
+    if tuple(K.shape) != (3, 3):
+        raise ShapeError(f"K expected [3, 3], got {list(K.shape)}")
+    return K
+
+
+def _render_params(g: Gaussians):
+    return g.means, g.quats, g.scales, g.opacities, g.colors
+
+
+# ----------------------------------------------------------------------------------------------------
+# result
+
+
+@dataclass
+class SplatFit:
+    """Result of ``fit``: fitted Gaussians and refined cameras (DESIGN.md section 4 contract)."""
+
+    gaussians: Gaussians
+    cam2world: torch.Tensor          # [N, 4, 4] refined (view 0 unchanged)
+    cam2world_init: torch.Tensor     # [N, 4, 4] as given
+    K: torch.Tensor                  # [N, 3, 3] at the maps' resolution
+    size: tuple                      # (width, height) of the maps
+    history: list = field(default_factory=list)
+    seconds: float = 0.0
+    config: dict = field(default_factory=dict)
+
+    def render(self, cam2world, K, width: int, height: int, background=None, *,
+               return_all: bool = False):
+        """Render the fitted Gaussians from an OpenCV ``cam2world`` with ``K`` for an image of
+        ``width`` x ``height``; returns [H, W, 3] in [0, 1] (or the full RenderOutput)."""
+        cam2world = _check_pose(cam2world, "cam2world")
+        K = _check_K(K)
+        bg = None if background is None else torch.as_tensor(background, dtype=torch.float32)
+        with torch.no_grad():
+            out = rasterize(*_render_params(self.gaussians), invert_rigid(cam2world), K, width, height, bg,
+                            backend=self.config.get("backend", "torch"))
+        return out if return_all else out.image.clamp(0, 1)
+
+    def align_view(self, image, cam2world_init, K, steps: int = 100, *, max_side: int | None = None,
+                   lr_rot: float = 2e-3, lr_trans: float | None = None, progress: bool = False):
+        """Test-time pose alignment: optimise the pose of ``image`` (Gaussians frozen) starting from
+        ``cam2world_init``; ``K`` refers to ``image``'s pixels. Returns the refined cam2world [4, 4]."""
+        img = _check_image(image)
+        c2w0 = _check_pose(cam2world_init, "cam2world_init")
+        K = _check_K(K)
+        if steps < 0:
+            raise ShapeError(f"steps must be >= 0, got {steps}")
+        H, W = img.shape[:2]
+        max_side = max_side or self.config.get("max_side", max(W, H))
+        levels = _levels(W, H, max_side, coarse=0.5)
+        g = self.gaussians
+        params = [t.detach() for t in _render_params(g)]
+        lr_trans = lr_trans if lr_trans is not None else 1e-3 * self.config.get("depth_scale", 1.0)
+        rho = torch.zeros(3, requires_grad=True)
+        phi = torch.zeros(3, requires_grad=True)
+        opt = torch.optim.Adam([{"params": [rho], "lr": lr_trans}, {"params": [phi], "lr": lr_rot}])
+        w2c0 = invert_rigid(c2w0)
+        best, best_loss = w2c0.clone(), float("inf")
+        targets = {lv: (_resize_image(img, *lv), scale_intrinsics(K, lv[0] / W, lv[1] / H)) for lv in levels}
+        for it in range(steps):
+            frac = it / max(steps, 1)
+            lv = levels[0] if (len(levels) > 1 and frac < 0.5) else levels[-1]
+            target, Ks = targets[lv]
+            for grp, base in zip(opt.param_groups, (lr_trans, lr_rot)):
+                grp["lr"] = base * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+            w2c = se3_exp(torch.cat([rho, phi])) @ w2c0
+            out = rasterize(*params, w2c, Ks, lv[0], lv[1])
+            loss = photometric_loss(out.image, target)
+            if lv == levels[-1] and float(loss.detach()) < best_loss:
+                best_loss, best = float(loss.detach()), w2c.detach().clone()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        if steps == 0 or best_loss == float("inf"):
+            best = (se3_exp(torch.cat([rho, phi])) @ w2c0).detach()
+        return invert_rigid(best)
+
+    def to_reconstruction(self, recon: Reconstruction) -> Reconstruction:
+        """A new Reconstruction equal to ``recon`` but with the refined cam2world."""
+        if len(recon) != self.cam2world.shape[0]:
+            raise ShapeError(f"reconstruction has {len(recon)} views, the fit {self.cam2world.shape[0]}")
+        info = dict(recon.info)
+        info["splat_refined_poses"] = True
+        return replace(recon, cam2world=self.cam2world.to(recon.cam2world.dtype).clone(), info=info)
+
+
+def _levels(width: int, height: int, max_side: int, coarse: float) -> list:
+    fine = _size_for(width, height, max_side)
+    if coarse <= 0:
+        return [fine]
+    c = _size_for(width, height, max(16, max(fine) // 2))
+    return [c, fine] if c != fine else [fine]
+
+
+# ----------------------------------------------------------------------------------------------------
+# fitting
+
+
+def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, optimize_poses: bool = True, *,
+        max_side: int | None = None, coarse_frac: float | None = None, lr: dict | None = None,
+        pose_lr: tuple = (1e-3, 3e-4), ssim_weight: float = 0.2, densify: bool = False,
+        densify_every: int = 100, densify_grad: float = 2e-4, background=None, backend: str = "auto",
+        seed: int = 0, progress: bool = True, time_budget: float | None = None, callback=None) -> SplatFit:
+    """Refine ``gaussians`` (and, with ``optimize_poses``, the cameras of views 1..N-1) against the
+    reconstruction's images.
+
+    steps / max_side (working resolution, long side) / coarse_frac (fraction of steps at half
+    resolution) default to ``auto_budget``. ``lr`` overrides per-parameter learning rates (keys
+    means, sh_dc, opacity, scales, quats); ``pose_lr`` = (rotation rad/step, translation as a fraction
+    of the scene extent per step), both decayed 10x over the run. ``time_budget`` (seconds) stops early.
+    """
+    if not isinstance(recon, Reconstruction):
+        raise ShapeError(f"fit expects a pointmap Reconstruction, got {type(recon).__name__}")
+    if not isinstance(gaussians, Gaussians):
+        raise ShapeError(f"fit expects Gaussians (from pm.splat.init_from), got {type(gaussians).__name__}")
+    if len(gaussians) == 0:
+        raise ShapeError("fit needs at least one Gaussian")
+    if steps is not None and steps < 0:
+        raise ShapeError(f"steps must be >= 0, got {steps}")
+    t_start = time.perf_counter()
+    device = torch.device("cpu")
+    n, h, w = recon.depth_z.shape
+    budget = auto_budget(n, (w, h), device)
+    steps = budget["steps"] if steps is None else int(steps)
+    max_side = budget["max_side"] if max_side is None else int(max_side)
+    coarse_frac = budget["coarse_frac"] if coarse_frac is None else float(coarse_frac)
+    if backend == "auto":
+        backend = "torch"   # parameters live on the CPU here; gsplat is used when they are on CUDA
+    rates = {"means": 1.6e-4, "sh_dc": 0.025, "opacity": 0.05, "scales": 0.05, "quats": 0.01}
+    rates.update(lr or {})
+    gen = torch.Generator().manual_seed(seed)
+
+    # images and intrinsics at each resolution level
+    levels = _levels(w, h, max_side, 0.5 if coarse_frac > 0 else 0.0)
+    K_map = recon.K_map.float()
+    data = {lv: ([_resize_image(recon.images[i].float(), *lv) for i in range(n)],
+                 scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
+    w2c_init = invert_rigid(recon.cam2world.float())
+    g0 = gaussians.detach().to(torch.float32)
+
+    # scales: ``extent`` as 3DGS (1.1 x the camera spread, for positions) and ``depth_scale`` (median
+    # camera-to-Gaussian distance, for pose translations)
+    centres = recon.cam2world[:, :3, 3].float()
+    depth_scale = float(torch.cdist(g0.means[:: max(1, len(g0) // 4000)], centres).median())
+    spread = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
+    extent = max(spread, 0.05 * depth_scale)
+    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32)
+
+    # parameters; positions are base + mult * offset so Adam's step is scaled per point
+    conf = g0.conf if g0.conf is not None else torch.full((len(g0),), 10.0)
+    params = {
+        "offset": torch.zeros_like(g0.means), "sh_dc": g0.sh_dc.clone(), "opacity": g0.opacity_logits.clone(),
+        "scales": g0.log_scales.clone(), "quats": g0.quats.clone(),
+    }
+    base = g0.means.clone()
+    mult = 1.0 + 99.0 * (1.0 - torch.sigmoid(conf.float()))
+    for t in params.values():
+        t.requires_grad_(True)
+    anchor = torch.ones(n, 1)
+    anchor[0] = 0.0
+    rho = torch.zeros(n, 3, requires_grad=True)
+    phi = torch.zeros(n, 3, requires_grad=True)
+
+    def make_opt():
+        groups = [{"params": [params["offset"]], "lr": rates["means"] * extent, "name": "means"},
+                  {"params": [params["sh_dc"]], "lr": rates["sh_dc"], "name": "sh_dc"},
+                  {"params": [params["opacity"]], "lr": rates["opacity"], "name": "opacity"},
+                  {"params": [params["scales"]], "lr": rates["scales"], "name": "scales"},
+                  {"params": [params["quats"]], "lr": rates["quats"], "name": "quats"}]
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    opt = make_opt()
+    pose_groups = [{"params": [phi], "lr": pose_lr[0]}, {"params": [rho], "lr": pose_lr[1] * depth_scale}]
+    pose_opt = torch.optim.Adam(pose_groups,
+                                eps=1e-15) if optimize_poses and n > 1 else None
+
+    def current_gaussians():
+        return Gaussians(means=base + mult[:, None] * params["offset"], quats=params["quats"],
+                         log_scales=params["scales"], opacity_logits=params["opacity"], sh_dc=params["sh_dc"])
+
+    grad_acc = torch.zeros(len(base))
+    grad_cnt = torch.zeros(len(base))
+    history = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=steps, desc="splat fit", leave=False)
+    order: list = []
+    n_coarse = int(round(coarse_frac * steps)) if len(levels) > 1 else 0
+    for it in range(steps):
+        if time_budget is not None and time.perf_counter() - t_start > time_budget:
+            break
+        frac = it / max(steps, 1)
+        if pose_opt is not None:
+            decay = 0.1 ** frac
+            pose_opt.param_groups[0]["lr"] = pose_lr[0] * decay
+            pose_opt.param_groups[1]["lr"] = pose_lr[1] * depth_scale * decay
+        if not order:
+            order = torch.randperm(n, generator=gen).tolist()
+        i = order.pop()
+        lv = levels[0] if it < n_coarse else levels[-1]
+        imgs, Ks = data[lv]
+        g = current_gaussians()
+        if pose_opt is not None:
+            xi = torch.cat([rho[i], phi[i]]) * anchor[i]
+            w2c = se3_exp(xi) @ w2c_init[i]
+        else:
+            w2c = w2c_init[i]
+        out = rasterize(*_render_params(g), w2c, Ks[i], lv[0], lv[1], bg, backend=backend)
+        if densify:
+            out.means2d.retain_grad()
+        loss = photometric_loss(out.image, imgs[i], ssim_weight)
+        opt.zero_grad(set_to_none=True)
+        if pose_opt is not None:
+            pose_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if pose_opt is not None:
+            pose_opt.step()
+        p = psnr(out.image.detach(), imgs[i])
+        lval = float(loss.detach())
+        history.append({"step": it, "view": i, "loss": lval, "psnr": p, "res": lv})
+        if bar is not None:
+            bar.set_postfix(loss=f"{lval:.4f}", psnr=f"{p:.2f}")
+            bar.update(1)
+        if densify:
+            with torch.no_grad():
+                vis = out.radii > 0
+                if out.means2d.grad is not None:
+                    # screen-space gradient in units of the working resolution (3DGS's NDC-ish scale)
+                    gnorm = out.means2d.grad.norm(dim=-1) * (0.5 * max(lv))
+                    grad_acc[vis] += gnorm[vis]
+                    grad_cnt[vis] += 1
+                if (it + 1) % densify_every == 0 and 0.1 * steps < it < 0.8 * steps:
+                    base, mult, params, grad_acc, grad_cnt = _densify_prune(
+                        base, mult, params, grad_acc, grad_cnt, densify_grad, extent, gen)
+                    opt = make_opt()
+        if callback is not None:
+            callback(it, history[-1])
+    if bar is not None:
+        bar.close()
+
+    with torch.no_grad():
+        final = current_gaussians().detach()
+        final.conf = None
+        if pose_opt is not None:
+            xi = torch.cat([rho, phi], dim=1) * anchor
+            w2c = se3_exp(xi) @ w2c_init
+        else:
+            w2c = w2c_init
+        c2w = invert_rigid(w2c)
+        c2w[0] = recon.cam2world[0].float()
+    cfg = {"steps": steps, "steps_run": len(history), "max_side": max_side, "levels": levels,
+           "coarse_frac": coarse_frac, "extent": extent, "depth_scale": depth_scale, "backend": backend,
+           "n_gaussians": len(final),
+           "optimize_poses": optimize_poses}
+    return SplatFit(gaussians=final, cam2world=c2w, cam2world_init=recon.cam2world.float().clone(),
+                    K=K_map, size=(w, h), history=history, seconds=time.perf_counter() - t_start, config=cfg)
+
+
+def _densify_prune(base, mult, params, grad_acc, grad_cnt, grad_thresh, extent, gen):
+    """Clone Gaussians with a large mean screen-space gradient, prune nearly transparent ones."""
+    with torch.no_grad():
+        means = base + mult[:, None] * params["offset"]
+        avg = grad_acc / grad_cnt.clamp_min(1)
+        clone = avg > grad_thresh
+        keep = torch.sigmoid(params["opacity"]) > 0.005
+        idx = torch.cat([torch.nonzero(keep).squeeze(1), torch.nonzero(clone & keep).squeeze(1)])
+        new_base = means[idx].clone()
+        n_clone = int((clone & keep).sum())
+        if n_clone:
+            # move the copy by a sample of its own Gaussian, so the pair can separate
+            sc = params["scales"][idx[-n_clone:]].exp()
+            new_base[-n_clone:] += torch.randn(n_clone, 3, generator=gen) * sc
+        out = {k: v.detach()[idx].clone().requires_grad_(True) for k, v in params.items()}
+        out["offset"] = torch.zeros_like(new_base).requires_grad_(True)
+        return new_base, mult[idx].clone(), out, torch.zeros(len(idx)), torch.zeros(len(idx))

@@ -1,0 +1,169 @@
+"""Outputs of a splat fit: PNG renders of training and novel views, an orbit GIF/MP4, and ``run``, the
+whole job (init + fit + files) in one call for the command line."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.geometry.rotations import axis_angle_to_matrix
+from pointmap.reconstruction import Reconstruction
+
+
+def _to_uint8(img: torch.Tensor) -> np.ndarray:
+    return (img.detach().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def save_png(img: torch.Tensor, path) -> Path:
+    from PIL import Image
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(_to_uint8(img)).save(path)
+    return path
+
+
+def _matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
+    cos = ((R[0, 0] + R[1, 1] + R[2, 2] - 1) / 2).clamp(-1, 1)
+    v = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = v.norm() / 2
+    ang = torch.atan2(s, cos)
+    if float(s) < 1e-8:
+        return torch.zeros(3, dtype=R.dtype)
+    return v / (2 * s) * ang
+
+
+def interpolate_pose(c2w_a: torch.Tensor, c2w_b: torch.Tensor, t: float) -> torch.Tensor:
+    """Geodesic interpolation of two cam2world [4, 4] (rotation slerp, centre lerp)."""
+    Ra, Rb = c2w_a[:3, :3].double(), c2w_b[:3, :3].double()
+    aa = _matrix_to_axis_angle(Ra.T @ Rb)
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = Ra @ axis_angle_to_matrix(aa * t)
+    out[:3, 3] = (1 - t) * c2w_a[:3, 3].double() + t * c2w_b[:3, 3].double()
+    return out.to(c2w_a.dtype)
+
+
+def orbit_poses(cam2world: torch.Tensor, center: torch.Tensor, n_frames: int = 36,
+                max_angle_deg: float = 15.0) -> torch.Tensor:
+    """[n_frames, 4, 4]: ``cam2world`` swung left-right around ``center`` about the camera's up axis."""
+    up = -cam2world[:3, 1].double()
+    c2w = cam2world.double()
+    out = []
+    for k in range(n_frames):
+        ang = math.radians(max_angle_deg) * math.sin(2 * math.pi * k / n_frames)
+        R = axis_angle_to_matrix(up * ang)
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3] = R
+        T[:3, 3] = center.double() - R @ center.double()
+        out.append(T @ c2w)
+    return torch.stack(out).to(cam2world.dtype)
+
+
+def save_orbit(frames: list, path, fps: int = 12) -> Path:
+    """Animated GIF (PIL) or MP4 (OpenCV) from [H, W, 3] frames, by the file extension."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrs = [_to_uint8(f) for f in frames]
+    if path.suffix.lower() == ".gif":
+        from PIL import Image
+
+        ims = [Image.fromarray(a) for a in arrs]
+        ims[0].save(path, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+    elif path.suffix.lower() == ".mp4":
+        import cv2
+
+        h, w = arrs[0].shape[:2]
+        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        for a in arrs:
+            vw.write(a[..., ::-1])
+        vw.release()
+    else:
+        raise ShapeError(f"orbit path must end in .gif or .mp4, got {path.name}")
+    return path
+
+
+def scene_center(fit_result, view: int = 0) -> torch.Tensor:
+    """A look-at point: along view ``view``'s optical axis at the median depth of the Gaussians."""
+    c2w = fit_result.cam2world[view]
+    means = fit_result.gaussians.means
+    z = (means - c2w[:3, 3]) @ c2w[:3, 2]
+    d = float(z[z > 0].median()) if bool((z > 0).any()) else 1.0
+    return c2w[:3, 3] + d * c2w[:3, 2]
+
+
+def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, steps: int | None = None,
+        optimize_poses: bool = True, time_budget: float | None = None, orbit: str = "orbit.gif",
+        orbit_frames: int = 36, progress: bool = True, quiet: bool = False, seed: int = 0) -> dict:
+    """Init + fit + outputs. Writes under ``out_dir``:
+
+    - ``splat.ply``: fitted Gaussians (3DGS layout);
+    - ``renders/train_XXX.png`` (render | photo) and ``renders/novel_XXX.png`` (between training views);
+    - ``orbit.gif`` (or .mp4 by ``orbit``'s extension);
+    - ``cameras_refined.json``: refined and initial cam2world per view, K;
+    - ``splat_metrics.json``: per-view training PSNR, Gaussian count, timings;
+    - ``refined/``: the reconstruction with the refined cameras (COLMAP + npz, via ``Reconstruction.save``).
+
+    ``quiet`` silences the progress bar and the summary line.
+
+    Returns a dict with the paths, the ``fit`` result and ``recon_refined`` (a Reconstruction with the
+    refined cameras; save it with ``recon_refined.save(...)`` for a COLMAP export).
+    """
+    from pointmap.splat.fit import auto_budget, fit, psnr
+    from pointmap.splat.init import init_from
+
+    if not isinstance(recon, Reconstruction):
+        raise ShapeError(f"run expects a pointmap Reconstruction, got {type(recon).__name__}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    n, h, w = recon.depth_z.shape
+    budget = auto_budget(n, (w, h))
+    mg = budget["max_gaussians"] if max_gaussians is None else max_gaussians
+    gaussians = init_from(recon, max_gaussians=mg, seed=seed)
+    t_init = time.perf_counter() - t0
+    remaining = None if time_budget is None else max(1.0, time_budget - t_init)
+    progress = progress and not quiet
+    res = fit(recon, gaussians, steps=steps, optimize_poses=optimize_poses, progress=progress,
+              time_budget=remaining, seed=seed)
+    paths = {"ply": res.gaussians.save_ply(out_dir / "splat.ply")}
+    K = res.K
+    train_psnr = []
+    rdir = out_dir / "renders"
+    for i in range(n):
+        img = res.render(res.cam2world[i], K[i], w, h)
+        train_psnr.append(psnr(img, recon.images[i].float()))
+        save_png(torch.cat([img, recon.images[i].float()], dim=1), rdir / f"train_{i:03d}.png")
+    for i in range(n - 1):
+        c2w = interpolate_pose(res.cam2world[i], res.cam2world[i + 1], 0.5)
+        save_png(res.render(c2w, K[i], w, h), rdir / f"novel_{i:03d}.png")
+    paths["renders"] = rdir
+    if orbit and orbit_frames > 0:
+        center = scene_center(res)
+        frames = [res.render(T, K[0], w, h) for T in orbit_poses(res.cam2world[0], center, orbit_frames)]
+        paths["orbit"] = save_orbit(frames, out_dir / orbit)
+    cams = {"names": list(recon.names), "cam2world_refined": res.cam2world.tolist(),
+            "cam2world_init": res.cam2world_init.tolist(), "K": recon.K.float().tolist(),
+            "convention": "OpenCV cam2world; K in original image pixels"}
+    paths["cameras"] = out_dir / "cameras_refined.json"
+    paths["cameras"].write_text(json.dumps(cams, indent=1))
+    metrics = {"train_psnr": train_psnr, "n_gaussians": len(res.gaussians), "init_seconds": t_init,
+               "fit_seconds": res.seconds, "total_seconds": time.perf_counter() - t0,
+               "steps_run": res.config["steps_run"], "working_sizes": res.config["levels"]}
+    paths["metrics"] = out_dir / "splat_metrics.json"
+    paths["metrics"].write_text(json.dumps(metrics, indent=1))
+    refined = res.to_reconstruction(recon)
+    try:
+        paths["refined"] = refined.save(out_dir / "refined", formats=("colmap", "npz"))
+    except ImportError:   # pointmap.io not available: the cameras JSON above still has the poses
+        paths["refined"] = None
+    if not quiet:
+        print(f"splat: {len(res.gaussians)} Gaussians, {res.config['steps_run']} steps, training PSNR "
+              f"{sum(train_psnr) / len(train_psnr):.2f} dB, {metrics['total_seconds']:.0f} s "
+              f"-> {paths['ply']}")
+    return {"paths": paths, "fit": res, "recon_refined": refined, "metrics": metrics}

@@ -1,0 +1,102 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("pyrender")
+
+from pointmap.errors import ShapeError  # noqa: E402
+from pointmap.geometry import relative_rotation_error_deg  # noqa: E402
+from pointmap.splat import Gaussians, fit, init_from, run  # noqa: E402
+from pointmap.splat.fit import psnr  # noqa: E402
+from tests.splat.scene import make_benchmark_scene  # noqa: E402
+
+
+def _pose_err(c2w, gt):
+    rot = relative_rotation_error_deg(c2w[:, :3, :3], gt[:, :3, :3])
+    trans = (c2w[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1)
+    return rot, trans
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    torch.manual_seed(0)
+    d = make_benchmark_scene(width=96, height=72, n_train=3, n_test=1, seed=1)
+    g = init_from(d["recon"], max_gaussians=2500)
+    res = fit(d["recon"], g, steps=80, max_side=96, coarse_frac=0.0, progress=False)
+    return d, g, res
+
+
+def test_tiny_fit_reduces_loss_and_pose_error(tiny):
+    d, g, res = tiny
+    losses = [h["loss"] for h in res.history]
+    assert len(losses) == 80
+    assert np.mean(losses[-10:]) < 0.8 * np.mean(losses[:10])
+    rot0, tr0 = _pose_err(d["recon"].cam2world, d["train_c2w_gt"])
+    rot1, tr1 = _pose_err(res.cam2world, d["train_c2w_gt"])
+    assert float(rot0[0]) == 0.0 and float(rot1[0]) < 1e-4          # view 0 is anchored
+    assert float(rot1[1:].mean()) < 0.7 * float(rot0[1:].mean())
+    assert torch.equal(res.cam2world[0], d["recon"].cam2world[0])
+    assert isinstance(res.gaussians, Gaussians) and len(res.gaussians) == len(g)
+    # render contract
+    img = res.render(res.cam2world[1], d["K"], 96, 72)
+    assert img.shape == (72, 96, 3) and float(img.min()) >= 0 and float(img.max()) <= 1
+    assert psnr(img, d["recon"].images[1]) > 25
+
+
+def test_align_view_improves_held_out_pose(tiny):
+    d, _, res = tiny
+    img, init, gt, K = d["test_images"][0], d["test_c2w_init"][0], d["test_c2w_gt"][0], d["K"]
+    before = psnr(res.render(init, K, 96, 72), img)
+    c2w = res.align_view(img, init, K, steps=40)
+    assert c2w.shape == (4, 4)
+    after = psnr(res.render(c2w, K, 96, 72), img)
+    assert after > before + 2
+    rot_b, _ = _pose_err(init[None], gt[None])
+    rot_a, _ = _pose_err(c2w[None], gt[None])
+    assert float(rot_a) < float(rot_b)
+    with pytest.raises(ShapeError, match="image"):
+        res.align_view(img[..., :2], init, K)
+
+
+def test_refined_reconstruction(tiny):
+    d, _, res = tiny
+    r2 = res.to_reconstruction(d["recon"])
+    assert r2 is not d["recon"] and torch.equal(r2.cam2world, res.cam2world)
+    assert torch.equal(r2.depth_z, d["recon"].depth_z) and r2.info.get("splat_refined_poses")
+    assert not torch.equal(d["recon"].cam2world, res.cam2world)
+
+
+def test_fit_validation(tiny):
+    d, g, _ = tiny
+    with pytest.raises(ShapeError, match="Reconstruction"):
+        fit(None, g)
+    with pytest.raises(ShapeError, match="Gaussians"):
+        fit(d["recon"], "g")
+    with pytest.raises(ShapeError, match="steps"):
+        fit(d["recon"], g, steps=-1)
+
+
+def test_run_writes_outputs(tmp_path, tiny):
+    d, _, _ = tiny
+    out = run(d["recon"], tmp_path, max_gaussians=1500, steps=15, orbit_frames=4, quiet=True)
+    p = out["paths"]
+    g = Gaussians.load_ply(p["ply"])
+    assert len(g) == out["metrics"]["n_gaussians"]
+    from PIL import Image
+
+    im = Image.open(tmp_path / "renders" / "train_000.png")
+    assert im.size == (2 * 96, 72)
+    assert (tmp_path / "renders" / "novel_001.png").exists()
+    gif = Image.open(p["orbit"])
+    assert gif.n_frames == 4
+    cams = json.loads(p["cameras"].read_text())
+    assert np.array(cams["cam2world_refined"]).shape == (3, 4, 4)
+    assert len(out["metrics"]["train_psnr"]) == 3
+    assert out["recon_refined"].cam2world.shape == (3, 4, 4)
+    if p["refined"] is not None:
+        from pointmap.io import load_npz
+
+        back = load_npz(tmp_path / "refined" / "reconstruction.npz")
+        assert torch.allclose(back.cam2world, out["recon_refined"].cam2world)

@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.splat import Gaussians
+
+
+def _g(n=50, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+                     log_scales=torch.randn(n, 3, generator=g) - 3,
+                     opacity_logits=torch.randn(n, generator=g),
+                     sh_dc=torch.randn(n, 3, generator=g))
+
+
+def test_ply_roundtrip_and_3dgs_layout(tmp_path):
+    g = _g()
+    path = g.save_ply(tmp_path / "s.ply")
+    raw = path.read_bytes()
+    header = raw[: raw.index(b"end_header\n")].decode().splitlines()
+    props = [line.split()[-1] for line in header if line.startswith("property")]
+    expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                + [f"f_rest_{i}" for i in range(45)]
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert props == expected
+    assert "format binary_little_endian 1.0" in header and "element vertex 50" in header
+    back = Gaussians.load_ply(path)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc"):
+        assert torch.equal(getattr(back, name), getattr(g, name)), name
+    assert back.sh_rest is None and back.sh_degree == 0
+
+
+def test_ply_sh_rest_channel_major(tmp_path):
+    g = _g(7)
+    g.sh_rest = torch.arange(7 * 3 * 3, dtype=torch.float32).reshape(7, 3, 3) + 1
+    back = Gaussians.load_ply(g.save_ply(tmp_path / "s.ply", sh_degree=None))
+    assert torch.equal(back.sh_rest, g.sh_rest)
+    # f_rest_{c*K + k} is coefficient k of channel c
+    raw = (tmp_path / "s.ply").read_bytes()
+    body = np.frombuffer(raw[raw.index(b"end_header\n") + 11:], dtype="<f4").reshape(7, -1)
+    assert body[0, 9 + 1] == g.sh_rest[0, 1, 0] and body[0, 9 + 3] == g.sh_rest[0, 0, 1]
+
+
+def test_activations_and_validation(tmp_path):
+    g = Gaussians.from_points(torch.zeros(3, 3), torch.tensor([[0.0, 0.5, 1.0]] * 3), 0.05, opacity=0.1)
+    assert torch.allclose(g.colors, torch.tensor([[0.0, 0.5, 1.0]] * 3), atol=1e-6)
+    assert torch.allclose(g.opacities, torch.full((3,), 0.1))
+    assert torch.allclose(g.scales, torch.full((3, 3), 0.05))
+    assert torch.equal(g.quats, torch.tensor([[1.0, 0, 0, 0]] * 3))
+    with pytest.raises(ShapeError, match="quats"):
+        Gaussians(torch.zeros(3, 3), torch.zeros(2, 4), torch.zeros(3, 3), torch.zeros(3), torch.zeros(3, 3))
+    (tmp_path / "bad.ply").write_bytes(b"not a ply")
+    with pytest.raises(ShapeError, match="PLY"):
+        Gaussians.load_ply(tmp_path / "bad.ply")

@@ -1,0 +1,71 @@
+import math
+
+import pytest
+import torch
+
+from pointmap import Reconstruction
+from pointmap.errors import ShapeError
+from pointmap.splat import init_from
+
+
+def _plane_recon(n=2, W=32, H=24, shift=0.2, conf=None):
+    """Views of the plane z = 3 from cameras translated along x (all poses exact)."""
+    f = 30.0
+    K = torch.tensor([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, 0, 3] = torch.arange(n) * shift
+    depth = torch.full((n, H, W), 3.0)
+    img = torch.rand(n, H, W, 3, generator=torch.Generator().manual_seed(0))
+    conf = torch.ones(n, H, W) * 2 if conf is None else conf
+    return Reconstruction(images=img, cam2world=c2w, K=K.expand(n, 3, 3).clone(), depth_z=depth, conf=conf)
+
+
+def test_covisibility_drops_points_explained_by_earlier_views():
+    recon = _plane_recon()
+    g_all = init_from(recon, max_gaussians=None, covisibility=False)
+    g = init_from(recon, max_gaussians=None)
+    assert len(g_all) == 2 * 32 * 24
+    # the second camera is shifted by 0.2 at depth 3 with f=30: 2 pixel columns are new
+    assert 32 * 24 + 2 * 24 <= len(g) <= 32 * 24 + 4 * 24
+    assert torch.allclose(g.means[:, 2], torch.full((len(g),), 3.0), atol=1e-5)
+
+
+def test_confidence_ranking_threshold_budget_and_attributes():
+    conf = torch.ones(2, 24, 32) * 2
+    conf[1] = 5.0                     # view 1 is more confident: it goes first and keeps all pixels
+    conf[0, :, :16] = 0.5             # below the threshold
+    recon = _plane_recon(conf=conf)
+    g = init_from(recon, max_gaussians=None, min_conf=1.0)
+    assert g.info["view_order"] == [1, 0]
+    assert len(g) <= 32 * 24 + 2 * 24
+    g2 = init_from(recon, max_gaussians=300)
+    assert 0 < len(g2) <= 300
+    g3 = init_from(recon, max_gaussians=300, downsample="conf")
+    assert len(g3) == 300
+    assert torch.allclose(g2.opacities, torch.full((len(g2),), 0.1))
+    assert torch.equal(g2.quats[:, 0], torch.ones(len(g2)))
+    s = g2.scales
+    assert bool((s > 0).all()) and torch.allclose(s[:, 0], s[:, 1])
+    # spacing of ~300 points on the visible plane patch (about 3.3 x 2.5 units)
+    assert 0.05 < float(s[:, 0].median()) < 0.5
+    assert g2.conf is not None and len(g2.conf) == len(g2)
+
+
+def test_colour_comes_from_pixels():
+    recon = _plane_recon(n=1)
+    g = init_from(recon, max_gaussians=None)
+    # pixel (u, v) unprojects to x = (u - cx) * 3 / f; recover u, v and compare colours
+    u = torch.round(g.means[:, 0] * 30 / 3 + 15.5).long()
+    v = torch.round(g.means[:, 1] * 30 / 3 + 11.5).long()
+    assert torch.allclose(g.colors, recon.images[0][v, u], atol=1e-5)
+    assert not math.isnan(float(g.sh_dc.sum()))
+
+
+def test_validation():
+    recon = _plane_recon()
+    with pytest.raises(ShapeError, match="Reconstruction"):
+        init_from("not a recon")
+    with pytest.raises(ShapeError, match="min_conf"):
+        init_from(recon, min_conf=100.0)
+    with pytest.raises(ShapeError, match="downsample"):
+        init_from(recon, downsample="grid")
