@@ -225,6 +225,7 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata=meta)
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
