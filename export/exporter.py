@@ -68,15 +68,55 @@ def _rename_dims(ir_model, spec: dict) -> None:
         v.shape = ir.Shape([ir.SymbolicDim(d) if isinstance(d, str) else int(d) for d in dims])
 
 
+def fold_weight_transposes(ir_model) -> int:
+    """Replace ``Transpose(initializer)`` by a transposed initializer.
+
+    The encoder runs twice in the single graph, so each weight has two consumers and the exporter's
+    optimiser leaves ``MatMul(x, Transpose(W))`` in place; onnxruntime would fold it at load time, but
+    int8 quantisation only quantises MatMuls whose weight is an initializer. Returns the number folded."""
+    import numpy as np
+    import onnx_ir as ir
+
+    graph = ir_model.graph
+    folded = 0
+    for node in list(graph):
+        if node.op_type != "Transpose" or node.domain not in ("", "ai.onnx"):
+            continue
+        src = node.inputs[0]
+        if src is None or not src.is_initializer() or src.const_value is None:
+            continue
+        perm = node.attributes.get("perm")
+        arr = src.const_value.numpy()
+        arr = np.ascontiguousarray(np.transpose(arr, perm.as_ints() if perm is not None else None))
+        new = ir.Value(name=f"{src.name}.T", shape=ir.Shape(arr.shape), type=src.type,
+                       const_value=ir.tensor(arr, name=f"{src.name}.T"))
+        graph.register_initializer(new)
+        node.outputs[0].replace_all_uses_with(new)
+        graph.remove(node, safe=True)
+        if not src.uses() and not src.is_graph_output():
+            graph.initializers.pop(src.name)
+        folded += 1
+    return folded
+
+
 def export_graphs(model: PointmapNet, tmp: Path, *, split: bool, opset: int, external: bool,
-                  quiet: bool = True) -> list[dict]:
-    """Export the graph(s) of ``model`` into ``tmp``; returns the specs with measured export seconds."""
-    specs = graph_specs(model, split)
+                  fp16: bool = False, quiet: bool = True) -> list[dict]:
+    """Export the graph(s) of ``model`` into ``tmp``; returns the specs with measured export seconds.
+    fp16: backbone (patch embedding, encoder, decoders) in float16, heads and all inputs/outputs float32."""
+    if fp16:
+        from export.graphs import half_backbone
+
+        model = half_backbone(model)
+    specs = graph_specs(model, split, torch.float16 if fp16 else torch.float32)
     for spec in specs:
         t0 = time.perf_counter()
         chatter = contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext()
+        noisy = logging.getLogger("torch.onnx._internal.exporter._registration")  # "torchvision is not installed"
+        level = noisy.level
         with warnings.catch_warnings(), chatter:
             warnings.simplefilter("ignore")
+            if quiet:
+                noisy.setLevel(logging.ERROR)
             try:
                 prog = torch.onnx.export(
                     spec["wrapper"].eval(), spec["args"], dynamo=True, opset_version=opset,
@@ -86,7 +126,10 @@ def export_graphs(model: PointmapNet, tmp: Path, *, split: bool, opset: int, ext
             except Exception as e:
                 raise CheckpointError(f"ONNX export of the {spec['role']} graph failed: "
                                       f"{type(e).__name__}: {str(e).splitlines()[0][:400]}") from e
+            finally:
+                noisy.setLevel(level)
         _rename_dims(prog.model, spec)
+        fold_weight_transposes(prog.model)
         path = tmp / spec["file"]
         prog.save(str(path), external_data=external)
         spec["export_seconds"] = round(time.perf_counter() - t0, 1)
@@ -128,8 +171,9 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     """Export ``model`` to ``out_dir`` (written atomically) and return the sidecar dict.
 
     split: encoder graph + decoder/heads graph instead of one graph.
-    fp16 / quantize="int8": convert the exported graph(s) (fp16 keeps float32 inputs/outputs; int8 is
-    onnxruntime dynamic quantisation of the MatMul weights). Only one of the two.
+    fp16: encoder and decoders exported in float16, heads and output transforms in float32, inputs and
+    outputs float32. quantize="int8": onnxruntime dynamic quantisation of the MatMul weights of the
+    exported fp32 graph(s). Only one of the two.
     parity: "full" (224x224, 512x384, 384x512 at batch 1 and 3, plus a mixed-orientation pair),
     "standard" (the three resolutions at batch 1, 224x224 at batch 3), "quick" (224x224, batch 1), or
     "none". fp32 exports must pass max|onnx - torch| <= 1e-4 (1 + max|torch|) per output, or
@@ -137,7 +181,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     external_data: None = only when the weights exceed protobuf's 2 GB limit.
     """
     from export.parity import PARITY_CASES, check_parity
-    from export.precision import convert_fp16, quantize_int8
+    from export.precision import quantize_int8
 
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"export needs a PointmapNet (PyTorch) model, got {type(model).__name__}")
@@ -151,6 +195,8 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
         raise ValueError(f"opset expected >= 17 (LayerNormalization), got {opset}")
     model = model.float().eval().cpu()
     out = Path(out_dir)
+    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
+        raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -159,12 +205,11 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     external = bool(external_data) if external_data is not None else nbytes > PROTO_LIMIT
     precision = "fp16" if fp16 else "int8" if quantize else "fp32"
     try:
-        specs = export_graphs(model, tmp, split=split, opset=opset, external=external, quiet=quiet)
-        if precision != "fp32":
+        specs = export_graphs(model, tmp, split=split, opset=opset, external=external, fp16=fp16, quiet=quiet)
+        if quantize:
             for spec in specs:
                 t0 = time.perf_counter()
-                conv = convert_fp16 if fp16 else quantize_int8
-                conv(tmp / spec["file"], external=external)
+                quantize_int8(tmp / spec["file"], external=external)
                 spec["convert_seconds"] = round(time.perf_counter() - t0, 1)
         meta = {
             "format": FORMAT,

@@ -24,43 +24,53 @@ def _outputs(model: PointmapNet, pred) -> tuple:
     return tuple(getattr(pred, n) for n in output_names(model.cfg))
 
 
-class FullGraph(nn.Module):
+class _Graph(nn.Module):
+    """Inputs and outputs float32; the encoder and decoders compute in ``compute_dtype`` (float16 for
+    ``--fp16``: then the model's backbone is half and its heads float, see ``half_backbone``)."""
+
+    def __init__(self, model: PointmapNet, compute_dtype: torch.dtype = torch.float32) -> None:
+        super().__init__()
+        self.model = model
+        self.compute_dtype = compute_dtype
+
+
+class FullGraph(_Graph):
     """Both views encoded separately (so they may differ in size), then decoders + heads."""
 
-    def __init__(self, model: PointmapNet) -> None:
-        super().__init__()
-        self.model = model
-
     def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple:
-        m = self.model
-        return _outputs(m, m.decode_pair(m.encode(img1), m.encode(img2)))
+        m, dt = self.model, self.compute_dtype
+        return _outputs(m, m.decode_pair(m.encode(img1.to(dt)), m.encode(img2.to(dt))))
 
 
-class EncoderGraph(nn.Module):
-    def __init__(self, model: PointmapNet) -> None:
-        super().__init__()
-        self.model = model
-
+class EncoderGraph(_Graph):
     def forward(self, img: torch.Tensor) -> torch.Tensor:
-        enc = self.model.encode(img)
+        enc = self.model.encode(img.to(self.compute_dtype))
         h, w = enc.grid
-        return enc.tokens.reshape(img.shape[0], h, w, self.model.cfg.enc_dim)
+        return enc.tokens.reshape(img.shape[0], h, w, self.model.cfg.enc_dim).float()
 
 
-class DecoderGraph(nn.Module):
-    def __init__(self, model: PointmapNet) -> None:
-        super().__init__()
-        self.model = model
-
+class DecoderGraph(_Graph):
     def forward(self, tokens1: torch.Tensor, tokens2: torch.Tensor) -> tuple:
         encs = []
         for t in (tokens1, tokens2):
             B, h, w, C = t.shape
-            encs.append(Encoded(t.reshape(B, h * w, C), (h, w)))
+            encs.append(Encoded(t.to(self.compute_dtype).reshape(B, h * w, C), (h, w)))
         return _outputs(self.model, self.model.decode_pair(*encs))
 
 
-def graph_specs(model: PointmapNet, split: bool) -> list[dict]:
+def half_backbone(model: PointmapNet) -> PointmapNet:
+    """A copy of ``model`` with the patch embedding, encoder and decoders (and the normalisation
+    buffers) in float16 and both heads in float32. PointmapNet.heads casts the tokens to float32, so
+    the output transforms (exp of depth and confidence, norms) stay float32."""
+    import copy
+
+    half = copy.deepcopy(model).half()
+    half.downstream_head1.float()
+    half.downstream_head2.float()
+    return half.eval()
+
+
+def graph_specs(model: PointmapNet, split: bool, compute_dtype: torch.dtype = torch.float32) -> list[dict]:
     """For each graph to export: file name, wrapper, example inputs, dynamic shapes, and the names of
     every input/output dimension (written into the graph and the sidecar)."""
     cfg = model.cfg
@@ -80,7 +90,7 @@ def graph_specs(model: PointmapNet, split: bool) -> list[dict]:
         pix[n] = ["batch", f"height{v}", f"width{v}", *tail]
     if not split:
         return [dict(
-            file=FULL_GRAPH, role="full", wrapper=FullGraph(model), args=(ex1, ex2),
+            file=FULL_GRAPH, role="full", wrapper=FullGraph(model, compute_dtype), args=(ex1, ex2),
             dynamic_shapes={"img1": {0: B, 2: p * dims["gh1"], 3: p * dims["gw1"]},
                             "img2": {0: B, 2: p * dims["gh2"], 3: p * dims["gw2"]}},
             inputs={"img1": ["batch", 3, "height1", "width1"], "img2": ["batch", 3, "height2", "width2"]},
@@ -89,11 +99,11 @@ def graph_specs(model: PointmapNet, split: bool) -> list[dict]:
     tok1 = torch.rand(2, 5, 7, C)
     tok2 = torch.rand(2, 6, 4, C)
     return [
-        dict(file=ENCODER_GRAPH, role="encoder", wrapper=EncoderGraph(model), args=(ex1,),
+        dict(file=ENCODER_GRAPH, role="encoder", wrapper=EncoderGraph(model, compute_dtype), args=(ex1,),
              dynamic_shapes={"img": {0: B, 2: p * dims["gh"], 3: p * dims["gw"]}},
              inputs={"img": ["batch", 3, "height", "width"]},
              outputs={"tokens": ["batch", "grid_h", "grid_w", C]}),
-        dict(file=DECODER_GRAPH, role="decoder", wrapper=DecoderGraph(model), args=(tok1, tok2),
+        dict(file=DECODER_GRAPH, role="decoder", wrapper=DecoderGraph(model, compute_dtype), args=(tok1, tok2),
              dynamic_shapes={"tokens1": {0: B, 1: dims["gh1"], 2: dims["gw1"]},
                              "tokens2": {0: B, 1: dims["gh2"], 2: dims["gw2"]}},
              inputs={"tokens1": ["batch", "grid_h1", "grid_w1", C], "tokens2": ["batch", "grid_h2", "grid_w2", C]},

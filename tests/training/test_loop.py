@@ -72,7 +72,7 @@ def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     assert losses[-1] < losses[0] - 0.1
 
 

@@ -1,0 +1,110 @@
+"""Median latency per pair: onnxruntime (fp32, int8, optionally fp16) vs PyTorch eager, in the same run.
+
+    python benchmarks/bench_onnx.py --models small,dust3r_224_linear --res 224 --threads 2
+    python benchmarks/bench_onnx.py --quick          # 'small' at 224 only, few repeats
+
+For each model (a shipped model name or preset: random weights when none is shipped; latency does not
+depend on the weights) the script exports the single-graph variants into a temp dir, then times one
+pair (batch 1, both views at the same resolution) for every backend, interleaving the backends in each
+round so machine load affects them alike. Accuracy change of int8/fp16 is measured against fp32 eager
+on random images: max |diff| / (1 + max |ref|) over all outputs, and the median / 99th percentile of the
+relative error of the points. Prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from export import export_model, resolve_model  # noqa: E402
+from export.parity import compare, random_pair  # noqa: E402
+from pointmap.runtime.onnx import load_onnx  # noqa: E402
+
+
+def get_model(name: str):
+    try:
+        return resolve_model(name), "shipped weights"
+    except Exception:  # noqa: BLE001 - no shipped weights: the architecture with random weights
+        return resolve_model(f"preset:{name}"), "random weights"
+
+
+def parse_res(text: str) -> list[tuple[int, int]]:
+    out = []
+    for r in text.split(","):
+        h, _, w = r.partition("x")
+        out.append((int(h), int(w or h)))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", default="small,dust3r_224_linear")
+    ap.add_argument("--res", default="224", help="comma list of H or HxW (e.g. 224,512x384)")
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--threads", default="1,2", help="comma list: intra-op threads for both torch and onnxruntime")
+    ap.add_argument("--variants", default="fp32,int8", help="comma list from fp32,int8,fp16")
+    ap.add_argument("--workdir", default=None, help="where to export (default: a temp dir, removed)")
+    ap.add_argument("--quick", action="store_true", help="'small' at 224, 3 repeats")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.models, args.res, args.repeats = "small", "224", 3
+    variants = args.variants.split(",")
+    tmp = tempfile.TemporaryDirectory() if args.workdir is None else None
+    work = Path(args.workdir or tmp.name)
+    rows = []
+    print(f"torch {torch.__version__}, threads {args.threads}, median of {args.repeats} (after 1 warm-up)", flush=True)
+    for name in args.models.split(","):
+        model, weights = get_model(name)
+        for v in variants:
+            t0 = time.perf_counter()
+            out = work / f"{name}-{v}"
+            if not (out / "pointmap_export.json").exists():
+                export_model(model, out, fp16=v == "fp16", quantize="int8" if v == "int8" else None, parity="none")
+            print(f"  {name}: {v} export ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for threads in [int(t) for t in str(args.threads).split(",")]:
+            torch.set_num_threads(threads)
+            runners = {v: load_onnx(work / f"{name}-{v}", threads=threads) for v in variants}
+            for H, W in parse_res(args.res):
+                img1, img2 = random_pair(H, W, H, W, 1, seed=1)
+                backends = {"eager": model, **runners}
+                times = {k: [] for k in backends}
+                with torch.inference_mode():
+                    ref = model(img1, img2)  # also the warm-up of eager; the runners warm up below
+                    acc = {v: compare(ref, r(img1, img2)) for v, r in runners.items()}
+                    for _ in range(args.repeats):  # interleaved, so load changes hit every backend
+                        for k, f in backends.items():
+                            t0 = time.perf_counter()
+                            f(img1, img2)
+                            times[k].append(time.perf_counter() - t0)
+                med = {k: statistics.median(t) for k, t in times.items()}
+                for k in backends:
+                    a = acc.get(k)
+                    rel = a["outputs"]["pts1_cam1"] if a else None
+                    rows.append([name, weights, f"{H}x{W}", str(threads),
+                                 "pytorch eager" if k == "eager" else f"onnxruntime {k}",
+                                 f"{med[k] * 1000:.0f}", f"{med['eager'] / med[k]:.2f}x",
+                                 "-" if a is None else f"{a['worst_ratio'] * 1e-4:.1e}",
+                                 "-" if a is None else f"{rel['rel_err_median']:.1e} / {rel['rel_err_p99']:.1e}"])
+                print(f"  {name} {H}x{W} {threads} threads: "
+                      + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in med.items()), flush=True)
+            del runners
+    head = ["model", "weights", "input", "threads", "backend", "median ms/pair", "speed-up vs eager",
+            "max err / (1+max|ref|)", "pts rel. err median / p99"]
+    print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+    if tmp is not None:
+        tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

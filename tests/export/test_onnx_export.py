@@ -1,0 +1,194 @@
+"""ONNX export: graph structure, sidecar, parity against PyTorch eager, CLI and atomic writing."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+import pointmap as pm
+from export import PARITY_CASES, check_parity, export_model, resolve_model
+from export.__main__ import main
+from export.exporter import _atomic_publish
+from export.parity import RTOL, compare, random_pair
+from pointmap.errors import CheckpointError
+from pointmap.model import PRESETS
+from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR, OnnxPointmapModel
+
+STD_OPS = {"", "ai.onnx"}
+
+
+def _dims(value_info):
+    return [d.dim_param or d.dim_value for d in value_info.type.tensor_type.shape.dim]
+
+
+def test_full_export_graph_is_plain_onnx_with_dynamic_shapes(full_export):
+    proto = onnx.load(str(full_export / "model.onnx"))
+    onnx.checker.check_model(proto)
+    ops = {(n.domain, n.op_type) for n in proto.graph.node}
+    assert all(domain in STD_OPS for domain, _ in ops), f"custom-domain ops: {ops}"
+    types = {op for _, op in ops}
+    assert {"Cos", "Sin", "Range"} <= types  # RoPE tables built in the graph from the grid size
+    assert not types & {"DFT", "STFT"}  # no complex arithmetic
+    inputs = {i.name: _dims(i) for i in proto.graph.input}
+    outputs = {o.name: _dims(o) for o in proto.graph.output}
+    assert inputs == {"img1": ["batch", 3, "height1", "width1"], "img2": ["batch", 3, "height2", "width2"]}
+    assert list(outputs) == ["pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2"]
+    assert outputs["pts2_cam1"] == ["batch", "height2", "width2", 3]
+    assert outputs["desc1"] == ["batch", "height1", "width1", PRESETS["test"].desc_dim]
+    # int8 quantisation needs the weights of every MatMul as initializers (no Transpose left on them)
+    inits = {i.name for i in proto.graph.initializer}
+    producers = {o: n for n in proto.graph.node for o in n.output}
+    for n in proto.graph.node:
+        if n.op_type == "Transpose":
+            assert n.input[0] not in inits, f"unfolded weight transpose {n.input[0]}"
+    assert sum(n.op_type == "MatMul" and n.input[1] in inits for n in proto.graph.node) > 0
+    assert producers  # sanity
+
+
+def test_sidecar_describes_the_export(full_export):
+    meta = json.loads((full_export / SIDECAR).read_text())
+    assert meta["format"] == FORMAT and meta["split"] is False and meta["precision"] == "fp32"
+    assert pm.ModelConfig.from_dict(meta["architecture"]) == PRESETS["test"]
+    assert meta["preprocessing"]["mean"] == [0.5, 0.5, 0.5] and meta["preprocessing"]["patch_size"] == 16
+    assert meta["graphs"]["full"]["inputs"]["img1"] == ["batch", 3, "height1", "width1"]
+    assert meta["provenance"]["source"] == "preset:test" and "torch" in meta["provenance"]["versions"]
+    assert meta["parity"]["passed"] and meta["parity"]["cases"][0]["worst_ratio"] <= 1
+    # the same description travels inside the graph
+    proto = onnx.load(str(full_export / "model.onnx"), load_external_data=False)
+    embedded = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY])
+    assert embedded["architecture"] == meta["architecture"]
+
+
+def test_split_export_graphs(split_export):
+    enc = onnx.load(str(split_export / "encoder.onnx"), load_external_data=False)
+    dec = onnx.load(str(split_export / "decoder.onnx"), load_external_data=False)
+    C = PRESETS["test"].enc_dim
+    assert {i.name: _dims(i) for i in enc.graph.input} == {"img": ["batch", 3, "height", "width"]}
+    assert {o.name: _dims(o) for o in enc.graph.output} == {"tokens": ["batch", "grid_h", "grid_w", C]}
+    assert [i.name for i in dec.graph.input] == ["tokens1", "tokens2"]
+    assert _dims(dec.graph.input[1]) == ["batch", "grid_h2", "grid_w2", C]
+    assert not (split_export / "model.onnx").exists()
+
+
+@pytest.mark.parametrize("kind", ["full", "split"])
+def test_parity_with_eager_on_all_resolutions_and_batches(kind, full_export, split_export, test_model):
+    """224x224, 512x384, 384x512 at batch 1 and 3, plus a portrait/landscape pair: fp32 tolerance."""
+    runner = pm.load_model(full_export if kind == "full" else split_export)
+    assert isinstance(runner, OnnxPointmapModel) and runner.split == (kind == "split")
+    report = check_parity(test_model, runner, PARITY_CASES["full"])
+    assert len(report["cases"]) == 7
+    for case in report["cases"]:
+        assert case["finite"], case["case"]
+        assert case["worst_ratio"] <= 1, f"{case['case']}: {case['worst_output']} ratio {case['worst_ratio']}"
+        for name, o in case["outputs"].items():
+            assert o["max_abs_diff"] <= o["tol"], (case["case"], name)
+    assert report["passed"]
+
+
+def test_parity_compare_catches_a_difference(test_model):
+    img1, img2 = random_pair(64, 96, 64, 96, 1)
+    with torch.inference_mode():
+        ref = test_model(img1, img2)
+    bad = ref.map(lambda t: t.clone())
+    bad.conf2[0, 3, 4] += 1.0
+    res = compare(ref, bad)
+    assert res["worst_output"] == "conf2" and res["worst_ratio"] > 1
+    assert res["outputs"]["conf2"]["tol"] == pytest.approx(RTOL * (1 + float(ref.conf2.abs().max())))
+    bad.pts1_cam1[0, 0, 0, 0] = float("nan")
+    assert not compare(ref, bad)["finite"]
+
+
+def test_export_rejects_bad_arguments(tmp_path, test_model):
+    with pytest.raises(ValueError, match="fp16 and quantize"):
+        export_model(test_model, tmp_path / "a", fp16=True, quantize="int8")
+    with pytest.raises(ValueError, match="quantize"):
+        export_model(test_model, tmp_path / "a", quantize="int4")
+    with pytest.raises(ValueError, match="opset"):
+        export_model(test_model, tmp_path / "a", opset=13)
+    with pytest.raises(ValueError, match="parity"):
+        export_model(test_model, tmp_path / "a", parity="sometimes")
+    with pytest.raises(CheckpointError, match="PointmapNet"):
+        export_model(torch.nn.Linear(2, 2), tmp_path / "a")
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    with pytest.raises(CheckpointError, match="not a pointmap export"):
+        export_model(test_model, foreign)
+    assert (foreign / "notes.txt").read_text() == "keep me"
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp dir left behind
+
+
+def test_resolve_model(tmp_path):
+    m = resolve_model("preset:test", seed=3)
+    assert m.cfg == PRESETS["test"] and "random" in m.provenance["weights"]
+    m2 = resolve_model("preset:test", seed=3)
+    assert torch.equal(m.patch_embed.proj.weight, m2.patch_embed.proj.weight)
+    with pytest.raises(CheckpointError, match="unknown preset"):
+        resolve_model("preset:nope")
+    with pytest.raises(CheckpointError):
+        resolve_model(str(tmp_path / "missing.pth"))
+
+
+def test_cli_exit_code_2_on_bad_input(tmp_path, capsys):
+    assert main(["--model", "preset:nope", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: unknown preset")
+
+
+def test_atomic_publish_replaces_only_exports(tmp_path):
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / SIDECAR).write_text("{}")
+    (out / "old.onnx").write_text("old")
+    tmp = tmp_path / ".exp.tmp"
+    tmp.mkdir()
+    (tmp / SIDECAR).write_text("{}")
+    (tmp / "model.onnx").write_text("new")
+    _atomic_publish(tmp, out)
+    assert sorted(p.name for p in out.iterdir()) == sorted([SIDECAR, "model.onnx"])
+    assert not tmp.exists() and [p.name for p in tmp_path.iterdir()] == ["exp"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "x").write_text("x")
+    tmp.mkdir()
+    with pytest.raises(CheckpointError):
+        _atomic_publish(tmp, other)
+    assert (other / "x").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["int8", "fp16"])
+def test_reduced_precision_exports_run_and_stay_close(kind, tmp_path, test_model):
+    extra = ["--quantize", "int8"] if kind == "int8" else ["--fp16"]
+    out = tmp_path / kind
+    assert main(["--model", "preset:test", "--out", str(out), "--split", "--parity", "quick", "--quiet", *extra]) == 0
+    meta = json.loads((out / SIDECAR).read_text())
+    assert meta["precision"] == kind and meta["parity"]["passed"] and not meta["parity"]["strict"]
+    ops = {n.op_type for f in ("encoder.onnx", "decoder.onnx") for n in onnx.load(str(out / f)).graph.node}
+    if kind == "int8":
+        assert "MatMulInteger" in ops or "DynamicQuantizeMatMul" in ops
+    else:
+        types = {i.data_type for f in ("encoder.onnx",) for i in onnx.load(str(out / f)).graph.initializer}
+        assert onnx.TensorProto.FLOAT16 in types
+    runner = pm.load_model(out)
+    img1, img2 = random_pair(224, 224, 224, 224, 2)
+    with torch.inference_mode():
+        ref, got = test_model(img1, img2), runner(img1, img2)
+    assert got.pts1_cam1.dtype == torch.float32
+    rel = ((got.pts1_cam1 - ref.pts1_cam1).norm(dim=-1) / ref.pts1_cam1.norm(dim=-1)).median()
+    assert float(rel) < (0.05 if kind == "int8" else 0.01)
+    assert np.isfinite(got.conf2.numpy()).all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["dust3r_512_dpt", "mast3r_512"])
+def test_official_size_exports_pass_parity(preset, tmp_path):
+    """Official DPT and MASt3R architectures (random weights), split graphs, standard parity set."""
+    model = resolve_model(f"preset:{preset}")
+    meta = export_model(model, tmp_path / preset, split=True, parity="standard")
+    assert meta["parity"]["passed"], meta["parity"]
+    assert all(c["worst_ratio"] <= 1 for c in meta["parity"]["cases"])
+    runner = pm.load_model(tmp_path / preset)
+    assert runner.cfg == PRESETS[preset]

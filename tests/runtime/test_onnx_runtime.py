@@ -1,0 +1,123 @@
+"""The onnxruntime runner: PointmapNet's call contract, identical input checks, predict_pairs, load errors."""
+
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.errors import CheckpointError, ShapeError
+from pointmap.model import PRESETS
+from pointmap.model.net import Encoded
+from pointmap.runtime.onnx import OnnxPointmapModel, load_onnx, resolve_providers
+
+
+def _close(a: pm.PairPrediction, b: pm.PairPrediction):
+    for name, r in a.as_dict().items():
+        o = getattr(b, name)
+        assert o is not None and o.shape == r.shape and o.dtype == torch.float32, name
+        assert float((o - r).abs().max()) <= 1e-4 * (1 + float(r.abs().max())), name
+
+
+def test_load_model_dispatches_to_onnx(split_export, full_export):
+    for path in (split_export, split_export / "encoder.onnx", full_export, full_export / "model.onnx"):
+        runner = pm.load_model(path)
+        assert isinstance(runner, OnnxPointmapModel)
+        assert runner.cfg == PRESETS["test"]
+        assert runner.providers[0] == "CPUExecutionProvider"
+    assert pm.load_model(split_export).split and not pm.load_model(full_export).split
+
+
+@pytest.mark.parametrize("kind", ["full", "split"])
+def test_call_matches_eager(kind, full_export, split_export, test_model):
+    runner = load_onnx(full_export if kind == "full" else split_export, threads=1)
+    assert runner.eval() is runner and runner.to("cpu") is runner
+    img1, img2 = torch.rand(2, 3, 64, 96), torch.rand(2, 3, 96, 64)
+    with torch.inference_mode():
+        ref = test_model(img1, img2)
+    got = runner(img1, img2)
+    assert isinstance(got, pm.PairPrediction) and got.has_desc
+    assert got.pts1_cam1.shape == (2, 64, 96, 3) and got.desc2.shape == (2, 96, 64, 8)
+    _close(ref, got)
+    assert float(got.conf1.min()) >= 1
+    # float64 inputs are accepted like float32
+    _close(ref, runner(img1.double(), img2.double()))
+
+
+def test_encode_decode_pair_contract(split_export, test_model):
+    runner = pm.load_model(split_export)
+    img = torch.rand(3, 3, 48, 80)
+    enc = runner.encode(img)
+    ref_enc = test_model.encode(img)
+    assert isinstance(enc, Encoded) and enc.grid == (3, 5) and enc.tokens.shape == ref_enc.tokens.shape
+    assert float((enc.tokens - ref_enc.tokens.detach()).abs().max()) < 1e-4
+    pred = runner.decode_pair(enc[0:2], enc[1:3])
+    with torch.inference_mode():
+        ref = test_model.decode_pair(ref_enc[0:2], ref_enc[1:3])
+    _close(ref, pred)
+    with pytest.raises(ShapeError, match="batch sizes differ"):
+        runner.decode_pair(enc[0:1], enc[0:2])
+    with pytest.raises(ShapeError, match="tokens1"):
+        runner.decode_pair(Encoded(enc.tokens, (5, 3 + 1)), enc)
+
+
+INVALID = [
+    (lambda: torch.rand(3, 64, 64), lambda: torch.rand(1, 3, 64, 64)),           # missing batch dim
+    (lambda: torch.rand(1, 3, 60, 64), lambda: torch.rand(1, 3, 64, 64)),        # not a multiple of 16
+    (lambda: torch.rand(1, 1, 64, 64), lambda: torch.rand(1, 3, 64, 64)),        # one channel
+    (lambda: torch.zeros(1, 3, 64, 64, dtype=torch.uint8), lambda: torch.rand(1, 3, 64, 64)),  # uint8
+    (lambda: torch.rand(1, 3, 64, 64) * 255, lambda: torch.rand(1, 3, 64, 64)),  # [0, 255] range
+    (lambda: torch.rand(1, 3, 64, 64), lambda: torch.full((1, 3, 64, 64), float("nan"))),  # NaN
+    (lambda: torch.rand(2, 3, 64, 64), lambda: torch.rand(1, 3, 64, 64)),        # batch mismatch
+    (lambda: torch.rand(1, 3, 0, 64), lambda: torch.rand(1, 3, 64, 64)),         # empty
+    (lambda: [[0.5]], lambda: torch.rand(1, 3, 64, 64)),                          # not a tensor
+]
+
+
+@pytest.mark.parametrize("make", INVALID)
+def test_input_errors_identical_to_pytorch(make, split_export, test_model):
+    runner = pm.load_model(split_export)
+    a, b = make[0](), make[1]()
+    with pytest.raises(ShapeError) as ours:
+        runner(a, b)
+    with pytest.raises(ShapeError) as theirs:
+        test_model(a, b)
+    assert str(ours.value) == str(theirs.value)
+
+
+@pytest.mark.parametrize("kind", ["full", "split"])
+def test_predict_pairs_runs_unchanged(kind, full_export, split_export, test_model):
+    runner = pm.load_model(full_export if kind == "full" else split_export)
+    imgs = [torch.rand(3, 64, 96) for _ in range(3)] + [torch.rand(3, 96, 64)]
+    pairs = [(0, 1), (1, 2), (2, 3)]
+    got = pm.predict_pairs(runner, imgs, pairs, batch_size=2, quiet=True)
+    ref = pm.predict_pairs(test_model, imgs, pairs, batch_size=2, quiet=True)
+    assert set(got) == set(ref) == {(0, 1), (1, 0), (1, 2), (2, 1), (2, 3), (3, 2)}
+    for k in ref:
+        assert got[k].batch_size == 1
+        _close(ref[k], got[k])
+
+
+def test_load_errors(tmp_path, split_export):
+    with pytest.raises(CheckpointError, match="not found"):
+        load_onnx(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError):
+        load_onnx(tmp_path / "empty")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"\x08\x07garbage that is not a protobuf" * 10)
+    with pytest.raises(CheckpointError):
+        load_onnx(bad)
+    with pytest.raises(CheckpointError, match="not available"):
+        load_onnx(split_export, providers=["CUDAExecutionProvider"] if "CUDAExecutionProvider" not in
+                  __import__("onnxruntime").get_available_providers() else ["NoSuchExecutionProvider"])
+    with pytest.raises(ValueError):
+        load_onnx(split_export, threads=0)
+    with pytest.raises(TypeError):
+        load_onnx(split_export, colour="blue")
+
+
+def test_provider_resolution():
+    assert resolve_providers(None) == ["CPUExecutionProvider"]
+    assert resolve_providers("cpu") == ["CPUExecutionProvider"]
+    assert resolve_providers("auto")[-1] == "CPUExecutionProvider"
+    assert resolve_providers([("CPUExecutionProvider", {"arena_extend_strategy": "kSameAsRequested"})])[0][0] == \
+        "CPUExecutionProvider"
