@@ -20,6 +20,9 @@ def atomic_open(path, mode: str = "wb"):
             yield f
             f.flush()
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes owner-only files; exports are ordinary files
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
