@@ -163,10 +163,21 @@ def drop_empty_edges(stack: EdgeStack) -> EdgeStack:
 
 def check_connected(n_images: int, keys: list) -> None:
     """Raise GraphError naming the components if the (undirected) pair graph is not connected."""
-    from pointmap.pairs import components
+    parent = list(range(n_images))
 
-    groups = sorted(components(n_images, keys), key=lambda g: g[0])
-    if len(groups) > 1:
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for i, j in keys:
+        parent[find(i)] = find(j)
+    comps: dict[int, list] = {}
+    for a in range(n_images):
+        comps.setdefault(find(a), []).append(a)
+    if len(comps) > 1:
+        groups = sorted(comps.values(), key=lambda g: g[0])
         shown = "; ".join(str(g[:10]) + ("..." if len(g) > 10 else "") for g in groups[:5])
         raise GraphError(f"the pair graph is disconnected: {len(groups)} groups of images share no pair "
                          f"({shown}). Add pairs linking them (e.g. graph='complete' or a larger window).")
