@@ -72,9 +72,8 @@ def bench_pairs(presets, sizes, runs, ceiling, official=None):
 
 def official_time(path, name, H, W, runs):
     """Time the official model of the same architecture (random weights) on the same input."""
-    sys.path[:0] = [path, f"{path}/croco"]
-    from dust3r.model import AsymmetricCroCo3DStereo  # noqa: F401  (official code, never committed)
-    from mast3r.model import AsymmetricMASt3R  # noqa: F401
+    sys.path[:0] = [path, f"{path}/dust3r", f"{path}/croco", f"{path}/dust3r/croco"]
+    from dust3r.model import AsymmetricCroCo3DStereo  # (official code, never committed)
 
     head = {"dust3r_224_linear": "linear", "dust3r_512_linear": "linear", "dust3r_512_dpt": "dpt"}.get(name)
     inf = float("inf")
@@ -84,6 +83,8 @@ def official_time(path, name, H, W, runs):
     if head:
         net = AsymmetricCroCo3DStereo(head_type=head, output_mode="pts3d", **kw)
     else:
+        from mast3r.model import AsymmetricMASt3R  # needs an official mast3r checkout as the path
+
         net = AsymmetricMASt3R(head_type="catmlp+dpt", output_mode="pts3d+desc24", two_confs=True,
                                desc_conf_mode=("exp", 0, inf), **kw)
     net.eval()

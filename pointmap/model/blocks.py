@@ -60,8 +60,11 @@ class RopeCache:
         key = (h, w, head_dim, str(device), dtype)
         tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
         if tracing or key not in self._cache:
-            pos = patch_positions(h, w, device=device)
-            tables = rope_tables(pos, head_dim, self.base, dtype)
+            # built outside inference mode: a table first made under torch.inference_mode() must still be
+            # usable by a later training step (inference tensors cannot be saved for backward)
+            with torch.inference_mode(False), torch.no_grad():
+                pos = patch_positions(h, w, device=device)
+                tables = rope_tables(pos, head_dim, self.base, dtype)
             if tracing:
                 return tables
             self._cache[key] = tables

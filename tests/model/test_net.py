@@ -77,3 +77,15 @@ def test_invalid_configs_are_refused_with_the_reason():
         pm.PRESETS["test"].replace(head="mlp")
     with pytest.raises(pm.CheckpointError, match="desc_dim"):
         pm.PRESETS["test"].replace(head="catmlp+dpt", desc_dim=0)
+
+
+def test_a_model_first_run_in_inference_mode_can_then_be_trained():
+    # the RoPE tables of a grid are cached on first use; inference tensors must not leak into training
+    model = PointmapNet(pm.PRESETS["test"])
+    a, b = torch.rand(1, 3, 48, 32), torch.rand(1, 3, 48, 32)
+    with torch.inference_mode():
+        model(a, b)
+    model.train()
+    pred = model(a, b)
+    pred.pts1_cam1.sum().backward()
+    assert model.patch_embed.proj.weight.grad is not None
