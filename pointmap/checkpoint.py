@@ -170,6 +170,28 @@ def load_state_strict(model: PointmapNet, state: dict, *, allow_missing_heads: b
     model.load_state_dict(state, strict=not allow_missing_heads)
 
 
+def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -> list[str]:
+    """Load the encoder and decoders strictly and each head tensor whose name and shape match.
+
+    For fine-tuning into a different head (e.g. a DUSt3R checkpoint into a model with a descriptor head, as
+    MASt3R was trained, or a head resized): every trunk tensor must be present with its shape, else a
+    CheckpointError lists the problems. Returns the head tensors left at their fresh initialisation.
+    """
+    own = model.state_dict()
+    is_head = lambda k: k.startswith("downstream_head")  # noqa: E731
+    missing = [k for k in own if not is_head(k) and k not in state]
+    shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+              for k in own if not is_head(k) and k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or shapes:
+        parts = [f"{len(missing)} missing trunk keys (e.g. {missing[:4]})"] if missing else []
+        if shapes:
+            parts.append(f"{len(shapes)} trunk shape mismatches (e.g. {shapes[:3]})")
+        raise CheckpointError(f"{source}: its encoder/decoder do not match the architecture: " + "; ".join(parts))
+    take = {k: v for k, v in state.items() if k in own and tuple(v.shape) == tuple(own[k].shape)}
+    model.load_state_dict(take, strict=False)
+    return sorted(k for k in own if k not in take)
+
+
 def _torch_load(path: Path):
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):

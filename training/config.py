@@ -15,6 +15,8 @@ class TrainConfig:
     out: str = "runs/train"        # checkpoints, logs
     preset: str = "small"          # model preset (pointmap.model.PRESETS)
     init: str = ""                 # "", a pretraining checkpoint, our .safetensors, or an official .pth
+    init_heads: str = "strict"     # "strict": --init's architecture as is; "fresh": --preset's architecture,
+                                   # trunk from --init, heads from --init where their shapes match
     resume: bool = True            # continue from out/last.pt when it exists
     size: int = 224                # training resolution (long side)
     batch_size: int = 8            # per process
@@ -62,6 +64,10 @@ class TrainConfig:
         cfg = cls(**values)
         if cfg.task not in ("train", "pretrain"):
             p.error(f"--task expected 'train' or 'pretrain', got {cfg.task!r}")
+        if cfg.init_heads not in ("strict", "fresh"):
+            p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
+        if cfg.init_heads == "fresh" and not cfg.init:
+            p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
         if not cfg.data:
             p.error("--data is required (a directory of shards written by python -m data.render)")
         return cfg

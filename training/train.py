@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import load_model, load_state_strict, official_to_ours
+from pointmap.checkpoint import load_model, load_state_strict, load_trunk, official_to_ours
 from pointmap.errors import CheckpointError
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
@@ -19,22 +19,35 @@ from training.loop import fit, load_checkpoint
 from training.losses import matching_loss, regression_loss
 
 
-def build_model(cfg: TrainConfig) -> PointmapNet:
-    """From scratch, from a cross-view-completion checkpoint (encoder + decoder), or from weights."""
-    if not cfg.init:
-        return PointmapNet(PRESETS[cfg.preset])
-    path = Path(cfg.init)
+def _init_state(path: Path):
+    """(state dict under our key names, model config, kind) of any --init source."""
     if path.suffix == ".pt":  # one of our training checkpoints (pretraining or training)
-        ck = load_checkpoint(path)
         from pointmap.model.config import ModelConfig
 
-        model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
-        load_state_strict(model, official_to_ours(ck["model"]), allow_missing_heads=ck.get("kind") == "pretrain",
-                          source=str(path))
-        return model
-    model = load_model(cfg.init)
+        ck = load_checkpoint(path)
+        return official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind")
+    model = load_model(str(path))
     if not isinstance(model, PointmapNet):
-        raise CheckpointError(f"--init {cfg.init} is not a PyTorch model")
+        raise CheckpointError(f"--init {path} is not a PyTorch model")
+    return model.state_dict(), model.cfg, "weights"
+
+
+def build_model(cfg: TrainConfig) -> PointmapNet:
+    """From scratch, from a cross-view-completion checkpoint (encoder + decoder), or from weights.
+
+    ``--init_heads fresh`` builds ``--preset`` and takes only the trunk (and heads whose shapes match) from
+    ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R."""
+    if not cfg.init:
+        return PointmapNet(PRESETS[cfg.preset])
+    state, model_cfg, kind = _init_state(Path(cfg.init))
+    if cfg.init_heads == "fresh":
+        model = PointmapNet(PRESETS[cfg.preset])
+        fresh = load_trunk(model, state, source=cfg.init)
+        print(f"--init {cfg.init}: trunk loaded; {len(fresh)} head tensors start fresh"
+              + (f" (e.g. {fresh[:3]})" if fresh else ""), file=sys.stderr)
+        return model.train()
+    model = PointmapNet(model_cfg)
+    load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     return model.train()
 
 

@@ -104,7 +104,7 @@ PRESETS: dict[str, ModelConfig] = {
                         dpt_last_dim=8, desc_hidden_factor=2.0),
     # a model that trains on two CPU cores in hours (the shipped model)
     "small": ModelConfig(enc_dim=256, enc_depth=6, enc_heads=4, dec_dim=192, dec_depth=4, dec_heads=4,
-                         head="catmlp+linear", desc_dim=8, desc_hidden_factor=1.0),
+                         head="catmlp+linear", desc_dim=16, desc_hidden_factor=0.25),
     # official architectures (weights from naver/dust3r and naver/mast3r load into these)
     "dust3r_224_linear": ModelConfig(**_OFFICIAL, head="linear"),
     "dust3r_512_linear": ModelConfig(**_OFFICIAL, head="linear"),

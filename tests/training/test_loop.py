@@ -90,3 +90,34 @@ def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):
     initial = PointmapNet(PRESETS["test"]).state_dict()
     assert all(torch.equal(w0[k], w1[k]) for k in w0)
     assert any(not torch.equal(w0[k], initial[k]) for k in w0)
+
+
+def test_fresh_heads_init_takes_the_trunk_and_keeps_only_head_tensors_whose_shapes_match(tmp_path, monkeypatch):
+    import dataclasses
+
+    import pointmap as pm
+    from pointmap.errors import CheckpointError
+    from training.train import build_model
+
+    src = PointmapNet(PRESETS["test"])
+    pm.save_model(src, tmp_path / "src.safetensors")
+    monkeypatch.setitem(PRESETS, "test_desc16", dataclasses.replace(PRESETS["test"], desc_dim=16))
+    cfg = TrainConfig(data="x", preset="test_desc16", init=str(tmp_path / "src.safetensors"), init_heads="fresh")
+    model = build_model(cfg)
+    assert model.cfg.desc_dim == 16
+    got, want = model.state_dict(), src.state_dict()
+    trunk = [k for k in want if not k.startswith("downstream_head")]
+    assert trunk and all(torch.equal(got[k], want[k]) for k in trunk)
+    same = [k for k in want if k.startswith("downstream_head") and got[k].shape == want[k].shape]
+    assert same and all(torch.equal(got[k], want[k]) for k in same)
+    assert any(got[k].shape != want[k].shape for k in want if k.startswith("downstream_head"))
+    # strict mode keeps --init's own architecture; a trunk that does not fit is refused with the reason
+    assert build_model(dataclasses.replace(cfg, init_heads="strict")).cfg.desc_dim == 8
+    monkeypatch.setitem(PRESETS, "test_wide", dataclasses.replace(PRESETS["test"], enc_dim=48))
+    with pytest.raises(CheckpointError, match="trunk shape mismatches"):
+        build_model(dataclasses.replace(cfg, preset="test_wide"))
+
+
+def test_fresh_heads_init_without_init_is_refused():
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--init_heads", "fresh"])
