@@ -9,6 +9,13 @@ pair (batch 1, both views at the same resolution) for every backend, interleavin
 round so machine load affects them alike. Accuracy change of int8/fp16 is measured against fp32 eager
 on random images: max |diff| / (1 + max |ref|) over all outputs, and the median / 99th percentile of the
 relative error of the points. Prints a markdown table.
+
+With ``--eval-data DIR`` (held-out pairs rendered by ``python -m data.render``) it also reports what
+reduced precision does to the task: relative pose (RRA/RTA@15 from the model's own pointmaps), depth
+AbsRel and matching precision for eager and every exported variant on the same pairs:
+
+    python benchmarks/bench_onnx.py --models small --variants fp32,int8,fp16 --threads 2 \
+        --eval-data ~/.cache/pointmap/data/eval_s424242 --eval-size 160
 """
 
 from __future__ import annotations
@@ -53,13 +60,16 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="fp32,int8", help="comma list from fp32,int8,fp16")
     ap.add_argument("--workdir", default=None, help="where to export (default: a temp dir, removed)")
     ap.add_argument("--quick", action="store_true", help="'small' at 224, 3 repeats")
+    ap.add_argument("--eval-data", default=None, help="held-out pair shards: add task metrics per variant")
+    ap.add_argument("--eval-size", type=int, default=None, help="eval resolution (default: the model's own)")
+    ap.add_argument("--eval-pairs", type=int, default=10_000, help="at most this many held-out pairs")
     args = ap.parse_args(argv)
     if args.quick:
         args.models, args.res, args.repeats = "small", "224", 3
     variants = args.variants.split(",")
     tmp = tempfile.TemporaryDirectory() if args.workdir is None else None
     work = Path(args.workdir or tmp.name)
-    rows = []
+    rows, eval_rows = [], []
     print(f"torch {torch.__version__}, threads {args.threads}, median of {args.repeats} (after 1 warm-up)", flush=True)
     for name in args.models.split(","):
         model, weights = get_model(name)
@@ -96,14 +106,37 @@ def main(argv=None) -> int:
                 print(f"  {name} {H}x{W} {threads} threads: "
                       + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in med.items()), flush=True)
             del runners
+        if args.eval_data:
+            eval_rows += task_metrics(name, model, {v: load_onnx(work / f"{name}-{v}") for v in variants}, args)
     head = ["model", "weights", "input", "threads", "backend", "median ms/pair", "speed-up vs eager",
             "max err / (1+max|ref|)", "pts rel. err median / p99"]
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in rows:
         print("| " + " | ".join(r) + " |")
+    if eval_rows:
+        head = ["model", "backend", "pairs", "RRA@15 %", "RTA@15 %", "rot err med (deg)", "AbsRel", "match prec"]
+        print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+        for r in eval_rows:
+            print("| " + " | ".join(r) + " |")
     if tmp is not None:
         tmp.cleanup()
     return 0
+
+
+def task_metrics(name, model, runners, args) -> list[list[str]]:
+    """Held-out pose/depth/matching metrics of eager and each ONNX variant on the same pairs."""
+    from data.datasets import PairDataset
+    from training.evaluate import evaluate_pairs
+
+    size = args.eval_size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+    ds = PairDataset(args.eval_data, size=size, augment=False, split="all")
+    rows = []
+    for k, m in {"pytorch eager": model, **{f"onnxruntime {v}": r for v, r in runners.items()}}.items():
+        ev = evaluate_pairs(m, ds, args.eval_pairs)
+        rows.append([name, k, f"{ev['pairs']:.0f}", f"{ev['RRA15']:.1f}", f"{ev['RTA15']:.1f}",
+                     f"{ev['rot_err_med']:.1f}", f"{ev['AbsRel']:.3f}", f"{ev['match_prec']:.3f}"])
+        print(f"  {name} {k}: " + ", ".join(f"{a}={b:.4g}" for a, b in ev.items()), flush=True)
+    return rows
 
 
 if __name__ == "__main__":
