@@ -14,6 +14,7 @@ from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
 from training.loop import fit
 from training.losses import completion_loss
+from training.mix import open_pairs
 from training.train import collate
 
 
@@ -43,14 +44,12 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
 
 
 def main(argv=None) -> int:
-    from data.datasets import PairDataset
-
     cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
     model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
-    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, split="train")
+    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train")
     eval_fn = None
     if cfg.eval_data:
-        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False, split="all")
+        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
         eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
     result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})

@@ -17,6 +17,7 @@ from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
 from training.losses import matching_loss, regression_loss
+from training.mix import open_pairs
 
 
 def _init_state(path: Path):
@@ -77,14 +78,12 @@ def make_step(cfg: TrainConfig):
 
 
 def main(argv=None) -> int:
-    from data.datasets import PairDataset
-
     cfg = TrainConfig.from_args(argv)
     model = build_model(cfg)
-    train_set = PairDataset(cfg.data, size=cfg.size, augment=True, split="train")
+    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train")
     eval_fn = None
     if cfg.eval_data:
-        eval_set = PairDataset(cfg.eval_data, size=cfg.size, augment=False, split="all")
+        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
         eval_fn = lambda m: evaluate_pairs(m, eval_set, cfg.eval_pairs)  # noqa: E731
     result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})

@@ -1,0 +1,48 @@
+"""Several shard roots as one training set: ``--data A,B`` (e.g. the procedural set plus a photo-textured one)."""
+
+from __future__ import annotations
+
+import bisect
+
+from torch.utils.data import Dataset
+
+
+class PairMix(Dataset):
+    """Concatenation of pair datasets that share one aspect-ratio list; items accept ``index`` or
+    ``(index, aspect)`` like ``data.datasets.PairDataset``."""
+
+    def __init__(self, parts: list) -> None:
+        if not parts:
+            raise ValueError("PairMix expected at least one dataset, got none")
+        aspects = [list(getattr(p, "aspects", [None])) for p in parts]
+        if any(a != aspects[0] for a in aspects):
+            raise ValueError(f"PairMix parts must share their aspect ratios, got {aspects}")
+        self.parts = parts
+        self.aspects = aspects[0]
+        self.ends = []
+        n = 0
+        for p in parts:
+            n += len(p)
+            self.ends.append(n)
+
+    def __len__(self) -> int:
+        return self.ends[-1]
+
+    def __getitem__(self, index):
+        idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
+        if not 0 <= idx < len(self):
+            raise IndexError(f"index {idx} out of range for {len(self)} pairs")
+        k = bisect.bisect_right(self.ends, idx)
+        local = idx - (self.ends[k - 1] if k else 0)
+        return self.parts[k][(local, *rest) if rest else local]
+
+
+def open_pairs(spec: str, **kwargs):
+    """``PairDataset`` of one root, or a ``PairMix`` of a comma-separated list of roots."""
+    from data.datasets import PairDataset
+
+    roots = [r for r in spec.split(",") if r]
+    if not roots:
+        raise ValueError(f"--data expected one or more shard directories, got {spec!r}")
+    sets = [PairDataset(r, **kwargs) for r in roots]
+    return sets[0] if len(sets) == 1 else PairMix(sets)
