@@ -1,6 +1,8 @@
 """Two-view relative pose on held-out rendered pairs: the model (from its own pointmaps) against an
 OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Reported overall and by
-category (scene kind, low texture, wide baseline = true rotation > 30 degrees).
+category (scene kind, low texture, wide baseline = true rotation > 30 degrees). A third row, "no rotation",
+is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
+anything about rotation.
 
     python benchmarks/bench_pose.py --data HELDOUT_SHARDS --model small [--pairs 200]
 """
@@ -63,11 +65,12 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="small")
     p.add_argument("--pairs", type=int, default=200)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     model = pm.load_model(a.model)
-    ds = PairDataset(a.data, size=int(getattr(model, "provenance", {}).get("image_size", 224)), augment=False,
-                     split="all")
+    size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+    ds = PairDataset(a.data, size=size, augment=False, split="all")
     res = defaultdict(lambda: defaultdict(list))
     n = min(a.pairs, len(ds))
     for idx in range(n):
@@ -84,8 +87,8 @@ def main(argv=None) -> int:
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
-        for name, est in (("model", ours), ("sift+E (known K)", base)):
-            r, t = errors(est, gt)
+        for name, est in (("model", ours), ("sift+E (known K)", base), ("no rotation", None)):
+            r, t = errors(est, gt) if name != "no rotation" else (errors(np.eye(4), gt)[0], float("nan"))
             for c in cats:
                 res[c][name].append((r, t))
     print(f"{n} held-out pairs from {a.data}; model {a.model!r}\n")
@@ -94,8 +97,10 @@ def main(argv=None) -> int:
     for c in sorted(res, key=lambda c: (c != "all", c)):
         for name, vals in res[c].items():
             v = np.array(vals)
-            print(f"| {c} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {100 * np.mean(v[:, 1] < 15):.0f}% | "
-                  f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+            rta, dir_med = (("-", "-") if np.isnan(v[:, 1]).all()
+                            else (f"{100 * np.mean(v[:, 1] < 15):.0f}%", f"{np.median(v[:, 1]):.1f}"))
+            print(f"| {c} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {rta} | "
+                  f"{np.median(v[:, 0]):.1f} | {dir_med} |")
     return 0
 
 
