@@ -1,3 +1,4 @@
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -23,10 +24,11 @@ def config(out, steps):
                        ckpt_every=1, eval_every=1000, workers=0, quiet=True, n_corr=64)
 
 
-def run(out, steps):
+def run(out, steps, **overrides):
     torch.manual_seed(0)
     model = PointmapNet(PRESETS["test"])
-    fit(config(out, steps), model, PlanePairs(6), collate, make_step(config(out, steps)))
+    cfg = dataclasses.replace(config(out, steps), **overrides)
+    fit(cfg, model, PlanePairs(6), collate, make_step(cfg))
     return model
 
 
@@ -53,7 +55,6 @@ def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_pa
     resumed = run(tmp_path / "b", 4)  # picks up out/last.pt at step 2
     for k, v in straight.state_dict().items():
         assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), k
-    assert (tmp_path / "b" / "train.csv").exists() or True  # log_every=10 > steps: no rows is fine
     ck = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
     assert ck["step"] == 4 and ck["kind"] == "train"
 
@@ -121,3 +122,4 @@ def test_fresh_heads_init_takes_the_trunk_and_keeps_only_head_tensors_whose_shap
 def test_fresh_heads_init_without_init_is_refused():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--init_heads", "fresh"])
+
