@@ -12,11 +12,11 @@ import ast
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import torch
 
+from pointmap.atomic import atomic_path
 from pointmap.errors import CheckpointError
 from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
@@ -178,7 +178,7 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
     CheckpointError lists the problems. Returns the head tensors left at their fresh initialisation.
     """
     own = model.state_dict()
-    is_head = lambda k: k.startswith("downstream_head")  # noqa: E731
+    is_head = lambda k: k.startswith("downstream_head")
     missing = [k for k in own if not is_head(k) and k not in state]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
               for k in own if not is_head(k) and k in state and tuple(state[k].shape) != tuple(own[k].shape)]
@@ -242,16 +242,8 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
                for k, v in model.state_dict().items()}
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
             "provenance": json.dumps(provenance or getattr(model, "provenance", {}) or {})}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        save_file(tensors, tmp, metadata=meta)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata=meta)
     return path
 
 

@@ -2,28 +2,19 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pointmap.atomic import atomic_path
+
 
 def atomic_write(path: Path, write_fn) -> Path:
     """Call ``write_fn(tmp_path)`` then rename onto ``path`` (no half-written files)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix="." + path.name, suffix=path.suffix)
-    os.close(fd)
-    try:
-        write_fn(tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    with atomic_path(path) as tmp:
+        write_fn(str(tmp))
+    return Path(path)
 
 
 def colorize(x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -95,7 +86,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
                   cam2world_2_in_1=cam2world_2.numpy(), focal1=focal1.numpy(), focal2=focal2.numpy(),
                   map_from_original1=np.array(views[0].map_from_original),
                   map_from_original2=np.array(views[1].map_from_original))
-    written = [atomic_write(out / "pair.npz", lambda tmp: np.savez_compressed(open(tmp, "wb"), **arrays))]
+    written = [atomic_write(out / "pair.npz", lambda tmp: np.savez_compressed(tmp, **arrays))]
     conf_all = np.concatenate([arrays["conf1"].ravel(), arrays["conf2"].ravel()])
     thr = np.percentile(conf_all, 30)
     keep1, keep2 = arrays["conf1"] >= thr, arrays["conf2"] >= thr

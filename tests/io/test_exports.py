@@ -170,3 +170,26 @@ def test_quaternion_matches_rotation():
                        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
         assert np.allclose(Rq, R, atol=1e-12) and w >= 0
+
+
+def test_a_path_writer_that_fails_leaves_neither_the_target_nor_a_temp_file(tmp_path):
+    from pointmap.atomic import atomic_path
+
+    target = tmp_path / "model.safetensors"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            assert tmp.suffix == ".safetensors" and tmp.parent == tmp_path
+            tmp.write_bytes(b"half")
+            raise RuntimeError("writer crashed")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(b"whole")
+    assert target.read_bytes() == b"whole" and (target.stat().st_mode & 0o777) == 0o666 & ~_umask()
+
+
+def _umask():
+    import os
+
+    m = os.umask(0)
+    os.umask(m)
+    return m
