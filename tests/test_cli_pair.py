@@ -1,0 +1,31 @@
+"""`pointmap pair` end to end on two images, with a tiny model saved to disk."""
+
+import numpy as np
+import torch
+
+import pointmap as pm
+from pointmap.cli import main
+
+
+def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(tmp_path):
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    import cv2
+
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        cv2.imwrite(str(tmp_path / f"im{k}.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    out = tmp_path / "out"
+    assert main(["pair", str(tmp_path / "im0.png"), str(tmp_path / "im1.png"), "-o", str(out),
+                 "--model", str(weights), "--size", "64"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["conf1.png", "conf2.png", "depth1.png", "depth2.png", "matches.png", "pair.npz", "pair.ply"]
+    z = np.load(out / "pair.npz")
+    assert z["pts1_cam1"].shape[-1] == 3 and z["pts1_cam1"].shape[:2] == z["conf1"].shape
+    assert np.isfinite(z["pts1_cam1"]).all() and z["cam2world_2_in_1"].shape == (4, 4)
+
+
+def test_the_pair_command_refuses_a_missing_image_with_exit_code_2(tmp_path, capsys):
+    assert main(["pair", str(tmp_path / "nope.png"), str(tmp_path / "nope2.png"), "-o", str(tmp_path / "o"),
+                 "--model", "small"]) == 2
+    assert "image not found" in capsys.readouterr().err
