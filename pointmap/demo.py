@@ -39,7 +39,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
     from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
     from pointmap.images import load_images
     from pointmap.inference import predict_pairs
-    from pointmap.io_pair import colorize, draw_matches, write_png
+    from pointmap.io_pair import color_range, colorize, draw_matches, write_png
     from pointmap.matching import match
     from pointmap.pairs import make_pairs
     from pointmap.pose import relative_pose
@@ -72,8 +72,11 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
         rgb_i = (views[i].img.permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         rgb_j = (views[j].img.permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         write_png(out / f"pair{i}{j}_matches", draw_matches(rgb_i, rgb_j, m.xy1.numpy(), m.xy2.numpy()))
+        # prediction scaled to the ground truth by the median ratio, both drawn over the ground truth's range
+        z_aligned = z * scale if np.isfinite(scale) else z
+        rng = color_range((d_gt, d_gt > 0))
         write_png(out / f"pair{i}{j}_depth", np.concatenate(
-            [rgb_i, colorize(z, z > 0), colorize(d_gt, d_gt > 0)], axis=1))
+            [rgb_i, colorize(z_aligned, z > 0, rng), colorize(d_gt, d_gt > 0, rng)], axis=1))
     return {"rows": rows, "views": views, "preds": preds, "gt": gt}
 
 
@@ -103,6 +106,8 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
     for name, a in aligned.items():
         print(f"  {name:<10} rot err {a['rot_deg']:5.1f}°  dir err {a['trans_deg']:5.1f}°  focal err {a['focal_err_pct']:5.1f}%")
     print(f"outputs and previews: {out}/  (recon/points.ply and recon/scene.glb open in any 3D viewer)")
+    print("  SCENE/pairIJ_depth.png: image | predicted depth (scaled to the ground truth by the median ratio) | "
+          "ground-truth depth, both in one colour range (turbo, 2-98 % of the ground truth)")
     return 0
 
 

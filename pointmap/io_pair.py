@@ -17,12 +17,20 @@ def atomic_write(path: Path, write_fn) -> Path:
     return Path(path)
 
 
-def colorize(x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """Float map -> uint8 RGB with a perceptual colour map (robust 2-98% range)."""
+def color_range(*maps_and_masks) -> tuple[float, float]:
+    """One robust (2-98 %) value range over several (map, valid-mask-or-None) pairs, so that maps drawn
+    with it share their colours."""
+    vals = [x[m] if m is not None and m.any() else x[np.isfinite(x)] for x, m in maps_and_masks]
+    v = np.concatenate([a.ravel() for a in vals]) if vals else np.zeros(0)
+    return (float(np.percentile(v, 2)), float(np.percentile(v, 98))) if v.size else (0.0, 1.0)
+
+
+def colorize(x: np.ndarray, valid: np.ndarray | None = None, value_range: tuple | None = None) -> np.ndarray:
+    """Float map -> uint8 RGB with a perceptual colour map over ``value_range`` (default: the map's own robust
+    2-98 % range; pass one ``color_range`` to several maps to make their colours comparable)."""
     import cv2
 
-    v = x[valid] if valid is not None and valid.any() else x[np.isfinite(x)]
-    lo, hi = (np.percentile(v, 2), np.percentile(v, 98)) if v.size else (0.0, 1.0)
+    lo, hi = value_range if value_range is not None else color_range((x, valid))
     norm = np.clip((x - lo) / max(hi - lo, 1e-12), 0, 1)
     img = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
     if valid is not None:
@@ -95,9 +103,12 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     cloud = trimesh.PointCloud(pts, colors=np.concatenate([cols, np.full((len(cols), 1), 255, np.uint8)], 1))
     written.append(atomic_write(out / "pair.ply", lambda tmp: cloud.export(tmp, file_type="ply")))
     depth1, depth2 = arrays["pts1_cam1"][..., 2], arrays["pts2_cam1"][..., 2]
-    written.append(write_png(out / "depth1", colorize(depth1)))
-    written.append(write_png(out / "depth2", colorize(depth2)))
-    written.append(write_png(out / "conf1", colorize(np.log(arrays["conf1"]))))
-    written.append(write_png(out / "conf2", colorize(np.log(arrays["conf2"]))))
+    depth_range = color_range((depth1, None), (depth2, None))  # both in view 1's frame: one scale
+    written.append(write_png(out / "depth1", colorize(depth1, value_range=depth_range)))
+    written.append(write_png(out / "depth2", colorize(depth2, value_range=depth_range)))
+    log_conf1, log_conf2 = np.log(arrays["conf1"]), np.log(arrays["conf2"])
+    conf_range = color_range((log_conf1, None), (log_conf2, None))
+    written.append(write_png(out / "conf1", colorize(log_conf1, value_range=conf_range)))
+    written.append(write_png(out / "conf2", colorize(log_conf2, value_range=conf_range)))
     written.append(write_png(out / "matches", draw_matches(rgb1, rgb2, arrays["matches_xy1"], arrays["matches_xy2"])))
     return written
