@@ -2,10 +2,32 @@ import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from pathlib import Path  # noqa: E402
+
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
 torch.set_num_threads(min(2, torch.get_num_threads()))
+
+# Suites of many small tensor ops run single-threaded: on a shared 2-core machine two torch threads
+# competing with other processes make small ops ~10x slower.
+ONE_THREAD_DIRS = ("align", "io")
+TESTS = Path(__file__).parent
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        rel = Path(str(item.fspath)).resolve().relative_to(TESTS.resolve())
+        if rel.parts and rel.parts[0] in ONE_THREAD_DIRS:
+            item.add_marker(pytest.mark.usefixtures("one_thread"))
+
+
+@pytest.fixture
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture
@@ -14,3 +36,34 @@ def tiny_model():
 
     torch.manual_seed(0)
     return pm.PointmapNet(pm.PRESETS["test"]).eval()
+
+
+@pytest.fixture(scope="session")
+def test_model():
+    import pointmap as pm
+
+    torch.manual_seed(0)
+    return pm.PointmapNet(pm.PRESETS["test"]).eval()
+
+
+def cached_export(factory, name: str, *extra: str):
+    """Export preset:test (seed 0) through the CLI into the session's base temp dir, once per name (each
+    export takes ~1-2 min on 2 cores; tests/export and tests/runtime share them)."""
+    from export.__main__ import main
+    from pointmap.runtime.onnx import SIDECAR
+
+    out = factory.getbasetemp() / "onnx-exports" / name
+    if not (out / SIDECAR).exists():
+        rc = main(["--model", "preset:test", "--seed", "0", "--out", str(out), "--parity", "quick", "--quiet", *extra])
+        assert rc == 0, f"export {name} failed with exit code {rc}"
+    return out
+
+
+@pytest.fixture(scope="session")
+def full_export(tmp_path_factory):
+    return cached_export(tmp_path_factory, "full")
+
+
+@pytest.fixture(scope="session")
+def split_export(tmp_path_factory):
+    return cached_export(tmp_path_factory, "split", "--split")

@@ -193,3 +193,9 @@ def _umask():
     m = os.umask(0)
     os.umask(m)
     return m
+
+
+def test_io_tests_run_single_threaded():
+    import torch
+
+    assert torch.get_num_threads() == 1
