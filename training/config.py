@@ -30,6 +30,7 @@ class TrainConfig:
     metric: bool = False           # metric regression (GT scale for both)
     match_weight: float = 0.075    # weight of the InfoNCE matching loss
     n_corr: int = 1024             # correspondences per pair for the matching loss
+    max_rotation: float = 0.0      # curriculum: train only on pairs whose cameras differ by <= this (deg; 0 = all)
     temperature: float = 0.05
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200

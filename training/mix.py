@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import bisect
+import math
+
+import numpy as np
 
 from torch.utils.data import Dataset
 
@@ -46,3 +49,43 @@ def open_pairs(spec: str, **kwargs):
         raise ValueError(f"--data expected one or more shard directories, got {spec!r}")
     sets = [PairDataset(r, **kwargs) for r in roots]
     return sets[0] if len(sets) == 1 else PairMix(sets)
+
+
+class PairSubset(Dataset):
+    """The pairs ``indices`` of a pair dataset (keeps its aspect ratios and (index, aspect) items)."""
+
+    def __init__(self, dataset, indices) -> None:
+        self.dataset, self.indices = dataset, list(indices)
+        self.aspects = list(getattr(dataset, "aspects", [None]))
+        if not self.indices:
+            raise ValueError("PairSubset expected at least one pair, got none (is the filter too strict?)")
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, index):
+        idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
+        if not 0 <= idx < len(self):
+            raise IndexError(f"index {idx} out of range for {len(self)} pairs")
+        return self.dataset[(self.indices[idx], *rest) if rest else self.indices[idx]]
+
+
+def relative_rotations_deg(dataset) -> np.ndarray:
+    """Ground-truth rotation angle between the two cameras of every pair (from the shard metadata)."""
+    if isinstance(dataset, PairMix):
+        return np.concatenate([relative_rotations_deg(p) for p in dataset.parts])
+    out = np.empty(len(dataset.items))
+    for n, (k, scene, i, j) in enumerate(dataset.items):
+        views = dataset._store.reader(k).meta(scene)["views"]
+        R1, R2 = (np.asarray(views[v]["cam2world"], np.float64)[:3, :3] for v in (i, j))
+        c = (np.trace(R1.T @ R2) - 1) / 2
+        out[n] = math.degrees(math.acos(min(1.0, max(-1.0, c))))
+    return out
+
+
+def limit_rotation(dataset, max_deg: float):
+    """Only the pairs whose cameras differ by at most ``max_deg`` degrees (a curriculum: small baselines
+    first, where cross-view correspondence is easiest to discover)."""
+    if max_deg <= 0:
+        return dataset
+    return PairSubset(dataset, np.flatnonzero(relative_rotations_deg(dataset) <= max_deg).tolist())

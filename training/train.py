@@ -17,7 +17,7 @@ from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
 from training.losses import matching_loss, regression_loss
-from training.mix import open_pairs
+from training.mix import limit_rotation, open_pairs
 
 
 def _init_state(path: Path):
@@ -80,7 +80,7 @@ def make_step(cfg: TrainConfig):
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(argv)
     model = build_model(cfg)
-    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train")
+    train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train"), cfg.max_rotation)
     eval_fn = None
     if cfg.eval_data:
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
