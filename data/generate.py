@@ -14,7 +14,7 @@ import os
 import queue
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,9 @@ class GenConfig:
     overlap_hi: float = 0.95
     version: int = GENERATOR_VERSION
     format: str = FORMAT
+    photo_share: float = 0.0       # share of textures cut from photographs (0: procedural only)
+    photo_dirs: tuple = ()         # where the photographs are (default: data.textures.DEFAULT_PHOTO_DIRS)
+    photo_fingerprint: str = ""    # of the collection used (filled by generate; checked on resume)
 
     def __post_init__(self):
         if self.kind not in ("pairs", "views"):
@@ -58,6 +61,8 @@ class GenConfig:
             raise ValueError(f"seed expected an int in [0, 2**31), got {self.seed!r}")
         if not 0 <= self.low_texture_share <= 1:
             raise ValueError(f"low_texture_share expected in [0, 1], got {self.low_texture_share}")
+        if not 0 <= self.photo_share <= 1:
+            raise ValueError(f"photo_share expected in [0, 1], got {self.photo_share}")
         if not 0 <= self.overlap_lo <= self.overlap_hi <= 1:
             raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap_lo}, {self.overlap_hi}")
 
@@ -67,6 +72,30 @@ class GenConfig:
 
     def camera(self) -> CameraConfig:
         return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi))
+
+    def photos(self):
+        """The PhotoCollection of this run, or None when photos are off."""
+        if self.photo_share <= 0:
+            return None
+        from data.textures import DEFAULT_PHOTO_DIRS, photo_collection
+
+        return photo_collection(self.photo_dirs or DEFAULT_PHOTO_DIRS)
+
+    def to_dict(self) -> dict:
+        """The stored configuration; photo fields only when photos are on (older runs keep resuming)."""
+        d = asdict(self)
+        d["photo_dirs"] = list(d["photo_dirs"])
+        if self.photo_share <= 0:
+            for k in ("photo_share", "photo_dirs", "photo_fingerprint"):
+                d.pop(k)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GenConfig:
+        d = dict(d)
+        if "photo_dirs" in d:
+            d["photo_dirs"] = tuple(d["photo_dirs"])
+        return cls(**d)
 
 
 def scene_rng(seed: int, index: int) -> np.random.Generator:
@@ -78,7 +107,8 @@ def render_scene(index: int, cfg: GenConfig, renderer):
     rng = scene_rng(cfg.seed, index)
     cam = cfg.camera()
     for attempt in range(SCENE_ATTEMPTS):
-        scene = make_scene(rng, low_texture_share=cfg.low_texture_share)
+        scene = make_scene(rng, low_texture_share=cfg.low_texture_share, photos=cfg.photos(),
+                           photo_share=cfg.photo_share)
         try:
             vs = sample_views(rng, scene, renderer, cfg.views, cfg.size, cam)
         except DegenerateScene:
@@ -143,7 +173,7 @@ def shard_is_complete(out: Path, shard: int) -> bool:
 def write_manifest(out: Path, cfg: GenConfig) -> dict:
     """Rebuild ``manifest.json`` from the sidecars present (deterministic content, no timestamps)."""
     entries, problems = completed_shards(out, verify=False, warn=False)
-    manifest = {"format": FORMAT, "config": asdict(cfg), "complete": len(entries) == cfg.n_shards,
+    manifest = {"format": FORMAT, "config": cfg.to_dict(), "complete": len(entries) == cfg.n_shards,
                 "shards": entries, "pairs": sum(e["pairs"] for e in entries),
                 "views": sum(e["views"] for e in entries)}
     write_atomic(out / "manifest.json", json_bytes(manifest))
@@ -154,7 +184,7 @@ def prepare_out(out: Path, cfg: GenConfig) -> None:
     """Create ``out`` with ``config.json``, or check an existing one matches (resume needs the same config)."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "config.json"
-    want = asdict(cfg)
+    want = cfg.to_dict()
     if path.exists():
         have = load_json(path)
         if have != want:
@@ -202,7 +232,7 @@ def _worker_init(q):
 def _worker_shard(args):
     shard, cfg_dict, out = args
     from data.render import get_renderer
-    cfg = GenConfig(**cfg_dict)
+    cfg = GenConfig.from_dict(cfg_dict)
     return render_shard(shard, cfg, Path(out), get_renderer(), progress=lambda n: _Q.put(n))
 
 
@@ -236,7 +266,7 @@ def generate(out, cfg: GenConfig, *, shards: range | None = None, workers: int =
             ctx = mp.get_context("spawn")
             q = ctx.Queue()
             with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(q,)) as pool:
-                results = [pool.apply_async(_worker_shard, ((s, asdict(cfg), str(out)),)) for s in todo]
+                results = [pool.apply_async(_worker_shard, ((s, cfg.to_dict(), str(out)),)) for s in todo]
                 pending = list(results)
                 while pending:
                     try:
@@ -290,6 +320,11 @@ def build_parser():
     p.add_argument("--shards", default=None, help="A:B: render only shards A..B-1 (cluster job arrays)")
     p.add_argument("--low-texture-share", type=float, default=0.15)
     p.add_argument("--overlap", type=float, nargs=2, default=(0.15, 0.95), metavar=("LO", "HI"))
+    p.add_argument("--photo-share", type=float, default=0.0,
+                   help="share of textures cut from photographs (needs a collection, see --photo-dirs)")
+    p.add_argument("--photo-dirs", nargs="+", default=None,
+                   help="directories of photographs (default: /usr/share/backgrounds/mate/nature from the "
+                        "Debian package mate-backgrounds)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -302,7 +337,14 @@ def main(argv=None, *, _allow_reserved: bool = False) -> int:
                              f"({RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}); pick another")
         cfg = GenConfig(kind=args.kind, scenes=args.scenes, views=args.views, size=args.size,
                         shard_size=args.shard_size, seed=args.seed, low_texture_share=args.low_texture_share,
-                        overlap_lo=args.overlap[0], overlap_hi=args.overlap[1])
+                        overlap_lo=args.overlap[0], overlap_hi=args.overlap[1], photo_share=args.photo_share,
+                        photo_dirs=tuple(args.photo_dirs or ()))
+        if cfg.photo_share > 0:
+            try:
+                fingerprint = cfg.photos().fingerprint
+            except FileNotFoundError as e:
+                raise ValueError(str(e)) from None
+            cfg = replace(cfg, photo_dirs=cfg.photo_dirs or cfg.photos().dirs, photo_fingerprint=fingerprint)
         shards = parse_shards(args.shards, cfg.n_shards)
         if args.workers < 1:
             raise ValueError(f"--workers expected >= 1, got {args.workers}")

@@ -16,7 +16,7 @@ import functools
 import numpy as np
 import trimesh
 
-from data.textures import random_color, random_texture
+from data.textures import photo_texture, random_color, random_texture
 
 KINDS = ("room", "cluster", "courtyard")
 DEFAULT_KIND_WEIGHTS = {"room": 0.4, "cluster": 0.35, "courtyard": 0.25}
@@ -116,13 +116,19 @@ class Scene:
 # materials
 
 
-def random_material(rng: np.random.Generator, *, low_texture: bool = False, texture_size: int = 256) -> Material:
-    """One material: textured (most), plain colour (low-texture), glossy or metallic."""
+def random_material(rng: np.random.Generator, *, low_texture: bool = False, texture_size: int = 256,
+                    photos=None, photo_share: float = 0.0) -> Material:
+    """One material: textured (most), plain colour (low-texture), glossy or metallic. With ``photos`` (a
+    data.textures.PhotoCollection) a share ``photo_share`` of the textures are crops of photographs."""
     plain_p = 0.85 if low_texture else 0.15
     tex = None
     if rng.random() >= plain_p:
         kind = "gradient" if (low_texture and rng.random() < 0.5) else None
-        tex = random_texture(rng, texture_size, kind=kind)
+        # no random draw when photos are off: scenes without photos stay byte-identical
+        if photos is not None and photo_share > 0 and kind is None and rng.random() < photo_share:
+            tex = photo_texture(rng, photos, texture_size)
+        else:
+            tex = random_texture(rng, texture_size, kind=kind)
     color = np.ones(4)
     if tex is None:
         color[:3] = random_color(rng, saturation=(0.0, 0.8), value=(0.25, 0.95))
@@ -427,20 +433,22 @@ def _pick(rng, table):
 
 
 class _Builder:
-    def __init__(self, rng, low_texture, texture_size):
+    def __init__(self, rng, low_texture, texture_size, photos=None, photo_share=0.0):
         self.rng = rng
         self.low_texture = low_texture
         self.texture_size = texture_size
+        self.photo_kw = {"photos": photos, "photo_share": photo_share}
         self.surfaces: list[Surface] = []
         self.obstacles: list[np.ndarray] = []
         self.targets: list[np.ndarray] = []
         self.radii: list[float] = []
-        self.pool = [random_material(rng, low_texture=low_texture, texture_size=texture_size)
+        self.pool = [random_material(rng, low_texture=low_texture, texture_size=texture_size, **self.photo_kw)
                      for _ in range(int(rng.integers(4, 9)))]
 
     def material(self):
         if self.rng.random() < 0.15:  # a fresh material now and then keeps scenes from looking uniform
-            return random_material(self.rng, low_texture=self.low_texture, texture_size=self.texture_size)
+            return random_material(self.rng, low_texture=self.low_texture, texture_size=self.texture_size,
+                                   **self.photo_kw)
         return self.pool[int(self.rng.integers(len(self.pool)))]
 
     def add(self, mesh, material, smooth=False, obstacle=True, target=False):
@@ -726,12 +734,18 @@ def _outdoor_lights(rng):
 
 
 def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture_share: float = 0.15,
-               kind_weights: dict | None = None, texture_size: int = 256) -> Scene:
+               kind_weights: dict | None = None, texture_size: int = 256, photos=None,
+               photo_share: float = 0.0) -> Scene:
     """Draw one procedural scene.
 
     kind: "room", "cluster", "courtyard" or None (drawn with ``kind_weights``).
     low_texture_share: probability in [0, 1] that the scene is low-texture (mostly plain colours).
+    photos, photo_share: a data.textures.PhotoCollection and the share of textures cut from its photographs.
     """
+    if not 0.0 <= float(photo_share) <= 1.0:
+        raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
+    if photo_share > 0 and photos is None:
+        raise ValueError("photo_share > 0 needs photos (a data.textures.PhotoCollection)")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng expected a numpy.random.Generator, got {type(rng).__name__}")
     if not 0.0 <= float(low_texture_share) <= 1.0:
@@ -746,7 +760,7 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
     if kind not in KINDS:
         raise ValueError(f"scene kind expected one of {KINDS}, got {kind!r}")
     low = bool(rng.random() < low_texture_share)
-    b = _Builder(rng, low, texture_size)
+    b = _Builder(rng, low, texture_size, photos, photo_share)
     lights, lo, hi, extent = {"room": _room, "cluster": _cluster, "courtyard": _courtyard}[kind](rng, b)
     if not b.targets:
         b.targets.append((lo + hi) / 2)

@@ -259,3 +259,80 @@ def random_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, *, kind: 
     if img.shape != (size, size, 3) or img.dtype != np.uint8:  # pragma: no cover - internal invariant
         raise ShapeError(f"texture {kind} produced {img.shape} {img.dtype}")
     return img
+
+
+# ---------------------------------------------------------------------------------------------------
+# photographs
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
+DEFAULT_PHOTO_DIRS = ("/usr/share/backgrounds/mate/nature",)  # Debian/Ubuntu package mate-backgrounds
+_PHOTO_MAX_SIDE = 1024
+
+
+class PhotoCollection:
+    """Photographs under ``dirs`` (files with PHOTO_SUFFIXES, sorted by path), decoded lazily and kept at
+    most 1024 px on their long side. ``fingerprint`` (sha256 of the sorted names and byte sizes) identifies
+    the collection, so shards rendered from another collection are detectable."""
+
+    def __init__(self, dirs) -> None:
+        import hashlib
+        from pathlib import Path
+
+        self.dirs = tuple(str(d) for d in dirs)
+        files = []
+        for d in self.dirs:
+            root = Path(d)
+            if root.is_dir():
+                files += sorted(p for p in root.rglob("*") if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
+        if not files:
+            raise FileNotFoundError(f"no photographs ({', '.join(PHOTO_SUFFIXES)}) found under {list(self.dirs)}; "
+                                    "install one (e.g. `apt-get install mate-backgrounds`) or pass --photo-dirs")
+        self.files = files
+        h = hashlib.sha256()
+        for p in files:
+            h.update(f"{p.name}:{p.stat().st_size}\n".encode())
+        self.fingerprint = h.hexdigest()[:16]
+        self._cache: dict = {}
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def image(self, k: int) -> np.ndarray:
+        if k not in self._cache:
+            img = cv2.imread(str(self.files[k]), cv2.IMREAD_COLOR)
+            if img is None:
+                raise ValueError(f"cannot decode photograph {self.files[k]}")
+            s = _PHOTO_MAX_SIDE / max(img.shape[:2])
+            if s < 1:
+                img = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+            self._cache[k] = np.ascontiguousarray(img[..., ::-1])
+        return self._cache[k]
+
+
+_COLLECTIONS: dict = {}
+
+
+def photo_collection(dirs) -> PhotoCollection:
+    """One PhotoCollection per set of directories and process (decoded images are reused)."""
+    key = tuple(str(d) for d in dirs)
+    if key not in _COLLECTIONS:
+        _COLLECTIONS[key] = PhotoCollection(key)
+    return _COLLECTIONS[key]
+
+
+def photo_texture(rng: np.random.Generator, photos: PhotoCollection, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """A texture from a random crop of a random photograph (scale 10-60 % of its short side, random quarter
+    turn and flips, mild colour gain), mirrored 2x2 so that it tiles without seams under repeat wrapping."""
+    _check(rng, size)
+    img = photos.image(int(rng.integers(len(photos))))
+    h, w = img.shape[:2]
+    side = max(8, int(min(h, w) * rng.uniform(0.1, 0.6)))
+    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+    crop = np.rot90(img[y0:y0 + side, x0:x0 + side], int(rng.integers(4)))
+    if rng.random() < 0.5:
+        crop = crop[:, ::-1]
+    half = cv2.resize(np.ascontiguousarray(crop), (size // 2, size // 2), interpolation=cv2.INTER_AREA)
+    tile = np.concatenate([np.concatenate([half, half[:, ::-1]], 1),
+                           np.concatenate([half[::-1], half[::-1, ::-1]], 1)], 0)
+    gain = rng.uniform(0.8, 1.2, 3)
+    return np.clip(tile.astype(np.float32) * gain, 0, 255).astype(np.uint8)
