@@ -79,7 +79,11 @@ class GenConfig:
             return None
         from data.textures import DEFAULT_PHOTO_DIRS, photo_collection
 
-        return photo_collection(self.photo_dirs or DEFAULT_PHOTO_DIRS)
+        photos = photo_collection(self.photo_dirs or DEFAULT_PHOTO_DIRS)
+        if self.photo_fingerprint and photos.fingerprint != self.photo_fingerprint:
+            raise ValueError(f"photo collection {list(photos.dirs)} has fingerprint {photos.fingerprint}, but this "
+                             f"run was made with {self.photo_fingerprint}: the photographs differ")
+        return photos
 
     def to_dict(self) -> dict:
         """The stored configuration; photo fields only when photos are on (older runs keep resuming)."""
@@ -323,8 +327,9 @@ def build_parser():
     p.add_argument("--photo-share", type=float, default=0.0,
                    help="share of textures cut from photographs (needs a collection, see --photo-dirs)")
     p.add_argument("--photo-dirs", nargs="+", default=None,
-                   help="directories of photographs (default: /usr/share/backgrounds/mate/nature from the "
-                        "Debian package mate-backgrounds)")
+                   help="directories of photographs (searched recursively) or glob patterns (default: "
+                        "/usr/share/backgrounds/mate/nature '/usr/share/backgrounds/*_by_*.jpg' from the Debian "
+                        "packages mate-backgrounds and lomiri-wallpapers-16.04)")
     p.add_argument("--quiet", action="store_true")
     return p
 

@@ -265,32 +265,55 @@ def random_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE, *, kind: 
 # photographs
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp")
-DEFAULT_PHOTO_DIRS = ("/usr/share/backgrounds/mate/nature",)  # Debian/Ubuntu package mate-backgrounds
+# Debian packages (apt-get install mate-backgrounds lomiri-wallpapers-16.04): 12 nature photographs from
+# MATE and 15 Ubuntu community photographs ("NAME_by_AUTHOR.jpg", installed straight into backgrounds/).
+DEFAULT_PHOTO_DIRS = ("/usr/share/backgrounds/mate/nature", "/usr/share/backgrounds/*_by_*.jpg")
+PHOTO_PACKAGES = ("mate-backgrounds", "lomiri-wallpapers-16.04")
 _PHOTO_MAX_SIDE = 1024
 
 
+def _photo_files(source: str):
+    """(root, files) of one source: a directory (searched recursively) or a glob pattern of files."""
+    from pathlib import Path
+
+    if any(c in source for c in "*?["):
+        import glob
+
+        root = Path(source).parent
+        while any(c in str(root) for c in "*?["):
+            root = root.parent
+        files = [Path(p) for p in glob.glob(source, recursive=True)]
+    else:
+        root = Path(source)
+        files = list(root.rglob("*")) if root.is_dir() else []
+    files = [p for p in files if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file()]
+    return root, sorted(files, key=lambda p: p.relative_to(root).as_posix())
+
+
 class PhotoCollection:
-    """Photographs under ``dirs`` (files with PHOTO_SUFFIXES, sorted by path), decoded lazily and kept at
-    most 1024 px on their long side. ``fingerprint`` (sha256 of the sorted names and byte sizes) identifies
-    the collection, so shards rendered from another collection are detectable."""
+    """Photographs from ``dirs`` (directories searched recursively for PHOTO_SUFFIXES, or glob patterns),
+    in a fixed order, decoded lazily and kept at most 1024 px on their long side. ``fingerprint`` (sha256
+    of each source's sorted relative names and byte sizes) identifies the collection, so data rendered
+    from another collection is detectable."""
 
     def __init__(self, dirs) -> None:
         import hashlib
-        from pathlib import Path
 
         self.dirs = tuple(str(d) for d in dirs)
         files = []
-        for d in self.dirs:
-            root = Path(d)
-            if root.is_dir():
-                files += sorted(p for p in root.rglob("*") if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
-        if not files:
-            raise FileNotFoundError(f"no photographs ({', '.join(PHOTO_SUFFIXES)}) found under {list(self.dirs)}; "
-                                    "install one (e.g. `apt-get install mate-backgrounds`) or pass --photo-dirs")
-        self.files = files
         h = hashlib.sha256()
-        for p in files:
-            h.update(f"{p.name}:{p.stat().st_size}\n".encode())
+        for k, d in enumerate(self.dirs):
+            root, found = _photo_files(d)
+            for p in found:
+                h.update(f"{k}/{p.relative_to(root).as_posix()}:{p.stat().st_size}\n".encode())
+            files += found
+        if not files:
+            raise FileNotFoundError(
+                f"no photographs ({', '.join(PHOTO_SUFFIXES)}) found under {list(self.dirs)}; install the "
+                f"default collection (`apt-get install {' '.join(PHOTO_PACKAGES)}`), or without root "
+                "`apt-get download PKG && dpkg -x PKG_*.deb DIR` and pass --photo-dirs with the photos' "
+                "directories, or pass --photo-dirs with any directory of photographs")
+        self.files = files
         self.fingerprint = h.hexdigest()[:16]
         self._cache: dict = {}
 
@@ -298,6 +321,7 @@ class PhotoCollection:
         return len(self.files)
 
     def image(self, k: int) -> np.ndarray:
+        """Photograph ``k`` as RGB uint8, long side at most 1024 px."""
         if k not in self._cache:
             img = cv2.imread(str(self.files[k]), cv2.IMREAD_COLOR)
             if img is None:
@@ -313,26 +337,63 @@ _COLLECTIONS: dict = {}
 
 
 def photo_collection(dirs) -> PhotoCollection:
-    """One PhotoCollection per set of directories and process (decoded images are reused)."""
-    key = tuple(str(d) for d in dirs)
-    if key not in _COLLECTIONS:
-        _COLLECTIONS[key] = PhotoCollection(key)
-    return _COLLECTIONS[key]
+    """The PhotoCollection of these sources, rescanned on every call (a few stats) but with the decoded
+    images of this process reused while the fingerprint stays the same."""
+    fresh = PhotoCollection(dirs)
+    cached = _COLLECTIONS.get(fresh.dirs)
+    if cached is not None and cached.fingerprint == fresh.fingerprint:
+        return cached
+    _COLLECTIONS[fresh.dirs] = fresh
+    return fresh
+
+
+def _wrap_blend(a: np.ndarray, n: int, axis: int) -> np.ndarray:
+    """Length n + m -> n along ``axis``, periodic: the first m samples cross-fade into the m past the end."""
+    a = np.moveaxis(a, axis, 0)
+    m = a.shape[0] - n
+    out = a[:n].copy()
+    w = ((np.arange(m, dtype=np.float32) + 0.5) / m).reshape((m,) + (1,) * (a.ndim - 1))
+    out[:m] = w * a[:m] + (1 - w) * a[n:n + m]
+    return np.moveaxis(out, 0, axis)
 
 
 def photo_texture(rng: np.random.Generator, photos: PhotoCollection, size: int = TEXTURE_SIZE) -> np.ndarray:
-    """A texture from a random crop of a random photograph (scale 10-60 % of its short side, random quarter
-    turn and flips, mild colour gain), mirrored 2x2 so that it tiles without seams under repeat wrapping."""
+    """A texture ``[size, size, 3]`` uint8 from a random photograph: a square crop (side 15-70 % of the
+    photo's short side) at a random position and rotation (any angle half of the time, else a quarter
+    turn; the rotated square stays inside the photo), maybe mirrored, with colour variation (saturation,
+    per-channel gain, gamma). It tiles without seams under repeat wrapping: the crop reaches a quarter
+    tile further, and that margin is cross-faded into the opposite edge."""
     _check(rng, size)
     img = photos.image(int(rng.integers(len(photos))))
     h, w = img.shape[:2]
-    side = max(8, int(min(h, w) * rng.uniform(0.1, 0.6)))
-    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
-    crop = np.rot90(img[y0:y0 + side, x0:x0 + side], int(rng.integers(4)))
+    n = size + size // 4  # pixels warped per side: the tile plus the cross-fade margin
+    theta = rng.uniform(0, 2 * np.pi) if rng.random() < 0.5 else int(rng.integers(4)) * np.pi / 2
+    c, s = np.cos(theta), np.sin(theta)
+    reach = abs(c) + abs(s)  # a rotated square of side L spans L * reach along x and y
+    side = min(h, w) * rng.uniform(0.15, 0.7) * n / size
+    side = max(8.0, min(side, (min(h, w) - 2) / reach))
+    ext = side * reach / 2
+    cx = rng.uniform(ext, max(w - ext, ext + 1e-6))
+    cy = rng.uniform(ext, max(h - ext, ext + 1e-6))
+    # box-filter the bounding region down to the output scale first (no aliasing), then rotate bilinearly
+    x0, y0 = max(int(np.floor(cx - ext)) - 1, 0), max(int(np.floor(cy - ext)) - 1, 0)
+    x1, y1 = min(int(np.ceil(cx + ext)) + 2, w), min(int(np.ceil(cy + ext)) + 2, h)
+    region = img[y0:y1, x0:x1]
+    if n < side:
+        f = n / side
+        region = cv2.resize(region, (max(1, round((x1 - x0) * f)), max(1, round((y1 - y0) * f))),
+                            interpolation=cv2.INTER_AREA)
+    fx, fy = region.shape[1] / (x1 - x0), region.shape[0] / (y1 - y0)
+    # output pixel (u, v) -> region pixel: centre + R(theta) @ ((u + 0.5) * step - side / 2, ...) (inverse map)
+    step = side / n
+    a = np.array([[c * step * fx, -s * step * fx], [s * step * fy, c * step * fy]])
+    t = np.array([(cx - x0) * fx, (cy - y0) * fy]) - 0.5 + a @ np.full(2, 0.5 - n / 2)
+    crop = cv2.warpAffine(np.ascontiguousarray(region), np.concatenate([a, t[:, None]], 1), (n, n),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
     if rng.random() < 0.5:
         crop = crop[:, ::-1]
-    half = cv2.resize(np.ascontiguousarray(crop), (size // 2, size // 2), interpolation=cv2.INTER_AREA)
-    tile = np.concatenate([np.concatenate([half, half[:, ::-1]], 1),
-                           np.concatenate([half[::-1], half[::-1, ::-1]], 1)], 0)
-    gain = rng.uniform(0.8, 1.2, 3)
-    return np.clip(tile.astype(np.float32) * gain, 0, 255).astype(np.uint8)
+    tile = _wrap_blend(_wrap_blend(crop.astype(np.float32) / 255, size, 1), size, 0)
+    grey = tile.mean(axis=2, keepdims=True)
+    tile = grey + (tile - grey) * rng.uniform(0.6, 1.3)  # saturation
+    tile = np.clip(tile * rng.uniform(0.8, 1.2, 3), 0, 1) ** rng.uniform(0.8, 1.25)  # channel gain, gamma
+    return (tile * 255 + 0.5).astype(np.uint8)

@@ -15,15 +15,12 @@ ONE_THREAD_DIRS = ("align", "io")
 TESTS = Path(__file__).parent
 
 
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        rel = Path(str(item.fspath)).resolve().relative_to(TESTS.resolve())
-        if rel.parts and rel.parts[0] in ONE_THREAD_DIRS:
-            item.add_marker(pytest.mark.usefixtures("one_thread"))
-
-
-@pytest.fixture
-def one_thread():
+@pytest.fixture(autouse=True)
+def _one_thread_for_small_op_suites(request):
+    rel = Path(str(request.node.fspath)).resolve().relative_to(TESTS.resolve())
+    if not (rel.parts and rel.parts[0] in ONE_THREAD_DIRS):
+        yield
+        return
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
