@@ -51,6 +51,9 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
     preds = predict_pairs(model, views, pairs, quiet=quiet)
     rows = []
     out.mkdir(parents=True, exist_ok=True)
+    d_gts = [gt_depth_on_map(gt["depth_z"][k].astype(np.float32), v.map_from_original, v.shape)
+             for k, v in enumerate(views)]
+    depth_range = color_range(*[(d, d > 0) for d in d_gts])  # one colour range for every preview of the scene
     for i, j in pairs:
         pred, rev = preds[(i, j)], preds[(j, i)]
         est = relative_pose(pred, pred_reverse=rev)[0].double()
@@ -58,7 +61,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
         gt_rel = torch.linalg.inv(c2w[i]) @ c2w[j]
         rot = float(relative_rotation_error_deg(est[:3, :3], gt_rel[:3, :3]))
         trans = float(translation_angle_deg(est[:3, 3], gt_rel[:3, 3]))
-        d_gt = gt_depth_on_map(gt["depth_z"][i].astype(np.float32), views[i].map_from_original, views[i].shape)
+        d_gt = d_gts[i]
         z = pred.pts1_cam1[0, ..., 2].float().numpy()
         valid = (d_gt > 0) & (z > 0)
         scale = np.median(d_gt[valid] / z[valid]) if valid.any() else np.nan
@@ -72,12 +75,11 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
         rgb_i = (views[i].img.permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         rgb_j = (views[j].img.permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         write_png(out / f"pair{i}{j}_matches", draw_matches(rgb_i, rgb_j, m.xy1.numpy(), m.xy2.numpy()))
-        # prediction scaled to the ground truth by the median ratio, both drawn over the ground truth's range
+        # prediction scaled to the ground truth by the median ratio, both drawn over the scene's range
         z_aligned = z * scale if np.isfinite(scale) else z
-        rng = color_range((d_gt, d_gt > 0))
         write_png(out / f"pair{i}{j}_depth", np.concatenate(
-            [rgb_i, colorize(z_aligned, z > 0, rng), colorize(d_gt, d_gt > 0, rng)], axis=1))
-    return {"rows": rows, "views": views, "preds": preds, "gt": gt}
+            [rgb_i, colorize(z_aligned, z > 0, depth_range), colorize(d_gt, d_gt > 0, depth_range)], axis=1))
+    return {"rows": rows, "views": views, "preds": preds, "gt": gt, "depth_range": depth_range}
 
 
 def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
@@ -88,10 +90,11 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
         raise PointmapError(f"no demo scenes found in {SCENES_DIR} (render them: python -m data.demo_scenes)")
     model = load_model(model_name)
     size = int(getattr(model, "provenance", {}).get("image_size", 224))
-    all_rows, aligned = [], {}
+    all_rows, aligned, depth_ranges = [], {}, {}
     for scene in scenes:
         res = evaluate_scene(model, scene, out / scene.name, size, quiet)
         all_rows += res["rows"]
+        depth_ranges[scene.name] = res["depth_range"]
         aligned[scene.name] = align_scene(res, out / scene.name, quiet)
     print(f"\npointmap demo: model {model_name!r} at {size}px on {len(scenes)} scenes never seen in training\n")
     print(f"{'scene':<10} {'pair':>4} {'rot err':>8} {'dir err':>8} {'focal err':>9} {'AbsRel':>7} {'matches':>7}")
@@ -107,7 +110,10 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
         print(f"  {name:<10} rot err {a['rot_deg']:5.1f}°  dir err {a['trans_deg']:5.1f}°  focal err {a['focal_err_pct']:5.1f}%")
     print(f"outputs and previews: {out}/  (recon/points.ply and recon/scene.glb open in any 3D viewer)")
     print("  SCENE/pairIJ_depth.png: image | predicted depth (scaled to the ground truth by the median ratio) | "
-          "ground-truth depth, both in one colour range (turbo, 2-98 % of the ground truth)")
+          "ground-truth depth; one colour range (turbo, blue near, red far: 2-98 % of the scene's ground-truth "
+          "depths) for all previews of a scene:")
+    for name, (lo, hi) in depth_ranges.items():
+        print(f"  {name:<10} depth colours {lo:.2f} m (blue) to {hi:.2f} m (red)")
     return 0
 
 

@@ -10,17 +10,10 @@ import torch
 from pointmap.atomic import atomic_path
 
 
-def atomic_write(path: Path, write_fn) -> Path:
-    """Call ``write_fn(tmp_path)`` then rename onto ``path`` (no half-written files)."""
-    with atomic_path(path) as tmp:
-        write_fn(str(tmp))
-    return Path(path)
-
-
 def color_range(*maps_and_masks) -> tuple[float, float]:
     """One robust (2-98 %) value range over several (map, valid-mask-or-None) pairs, so that maps drawn
-    with it share their colours."""
-    vals = [x[m] if m is not None and m.any() else x[np.isfinite(x)] for x, m in maps_and_masks]
+    with it share their colours. Masked-out and non-finite values do not count; (0, 1) if none is left."""
+    vals = [x[np.isfinite(x) if m is None else m & np.isfinite(x)] for x, m in maps_and_masks]
     v = np.concatenate([a.ravel() for a in vals]) if vals else np.zeros(0)
     return (float(np.percentile(v, 2)), float(np.percentile(v, 98))) if v.size else (0.0, 1.0)
 
@@ -61,11 +54,11 @@ def draw_matches(img1: np.ndarray, img2: np.ndarray, xy1: np.ndarray, xy2: np.nd
 def write_png(path: Path, rgb: np.ndarray) -> Path:
     import cv2
 
-    def w(tmp):
-        if not cv2.imwrite(tmp, np.ascontiguousarray(rgb[..., ::-1])):
+    path = Path(path).with_suffix(".png")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
             raise OSError(f"cannot write {path}")
-
-    return atomic_write(Path(path).with_suffix(".png"), w)
+    return path
 
 
 def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet: bool = False) -> list[Path]:
@@ -94,14 +87,18 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
                   cam2world_2_in_1=cam2world_2.numpy(), focal1=focal1.numpy(), focal2=focal2.numpy(),
                   map_from_original1=np.array(views[0].map_from_original),
                   map_from_original2=np.array(views[1].map_from_original))
-    written = [atomic_write(out / "pair.npz", lambda tmp: np.savez_compressed(tmp, **arrays))]
+    with atomic_path(out / "pair.npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+    written = [out / "pair.npz"]
     conf_all = np.concatenate([arrays["conf1"].ravel(), arrays["conf2"].ravel()])
     thr = np.percentile(conf_all, 30)
     keep1, keep2 = arrays["conf1"] >= thr, arrays["conf2"] >= thr
     pts = np.concatenate([arrays["pts1_cam1"][keep1], arrays["pts2_cam1"][keep2]])
     cols = np.concatenate([rgb1[keep1], rgb2[keep2]])
     cloud = trimesh.PointCloud(pts, colors=np.concatenate([cols, np.full((len(cols), 1), 255, np.uint8)], 1))
-    written.append(atomic_write(out / "pair.ply", lambda tmp: cloud.export(tmp, file_type="ply")))
+    with atomic_path(out / "pair.ply") as tmp:
+        cloud.export(str(tmp), file_type="ply")
+    written.append(out / "pair.ply")
     depth1, depth2 = arrays["pts1_cam1"][..., 2], arrays["pts2_cam1"][..., 2]
     depth_range = color_range((depth1, None), (depth2, None))  # both in view 1's frame: one scale
     written.append(write_png(out / "depth1", colorize(depth1, value_range=depth_range)))

@@ -11,7 +11,7 @@ torch.set_num_threads(min(2, torch.get_num_threads()))
 
 # Suites of many small tensor ops run single-threaded: on a shared 2-core machine two torch threads
 # competing with other processes make small ops ~10x slower.
-ONE_THREAD_DIRS = ("align", "io")
+ONE_THREAD_DIRS = ("align", "io", "splat")
 TESTS = Path(__file__).parent
 
 
@@ -27,20 +27,23 @@ def _one_thread_for_small_op_suites(request):
     torch.set_num_threads(before)
 
 
-@pytest.fixture
-def tiny_model():
+def _seeded_test_preset_model():
     import pointmap as pm
 
     torch.manual_seed(0)
     return pm.PointmapNet(pm.PRESETS["test"]).eval()
+
+
+@pytest.fixture
+def tiny_model():
+    """A fresh PRESETS["test"] model (seed 0) per test: tests may change it."""
+    return _seeded_test_preset_model()
 
 
 @pytest.fixture(scope="session")
 def test_model():
-    import pointmap as pm
-
-    torch.manual_seed(0)
-    return pm.PointmapNet(pm.PRESETS["test"]).eval()
+    """The same model shared by the whole session: for tests that only read it."""
+    return _seeded_test_preset_model()
 
 
 def cached_export(factory, name: str, *extra: str):

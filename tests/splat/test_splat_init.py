@@ -69,3 +69,7 @@ def test_validation():
         init_from(recon, min_conf=100.0)
     with pytest.raises(ShapeError, match="downsample"):
         init_from(recon, downsample="grid")
+
+
+def test_splat_tests_run_single_threaded():
+    assert torch.get_num_threads() == 1
