@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import bisect
-import math
 
 import numpy as np
+import torch
 
 from torch.utils.data import Dataset
+
+from pointmap.geometry.rotations import relative_rotation_error_deg
 
 
 class PairMix(Dataset):
@@ -74,13 +76,12 @@ def relative_rotations_deg(dataset) -> np.ndarray:
     """Ground-truth rotation angle between the two cameras of every pair (from the shard metadata)."""
     if isinstance(dataset, PairMix):
         return np.concatenate([relative_rotations_deg(p) for p in dataset.parts])
-    out = np.empty(len(dataset.items))
-    for n, (k, scene, i, j) in enumerate(dataset.items):
+    R1, R2 = [], []
+    for k, scene, i, j in dataset.items:
         views = dataset._store.reader(k).meta(scene)["views"]
-        R1, R2 = (np.asarray(views[v]["cam2world"], np.float64)[:3, :3] for v in (i, j))
-        c = (np.trace(R1.T @ R2) - 1) / 2
-        out[n] = math.degrees(math.acos(min(1.0, max(-1.0, c))))
-    return out
+        R1.append(np.asarray(views[i]["cam2world"], np.float64)[:3, :3])
+        R2.append(np.asarray(views[j]["cam2world"], np.float64)[:3, :3])
+    return relative_rotation_error_deg(torch.from_numpy(np.stack(R1)), torch.from_numpy(np.stack(R2))).numpy()
 
 
 def limit_rotation(dataset, max_deg: float):
