@@ -231,6 +231,16 @@ def _worker_init(q):
     _Q = q
     import cv2
     cv2.setNumThreads(1)
+    # one worker per core: Mesa's llvmpipe rasterises in the worker's own thread rather than in one
+    # thread per core of its own (same pixels; less contention). An explicit LP_NUM_THREADS wins.
+    os.environ.setdefault("LP_NUM_THREADS", "0")
+
+
+def _pool_context():
+    """Workers are forked (they start at once, everything imported) while this process has not touched
+    OpenGL, and spawned otherwise: a forked child must not inherit a live EGL display and context."""
+    gl = "pyrender" in sys.modules or "OpenGL" in sys.modules
+    return mp.get_context("spawn" if gl or "fork" not in mp.get_all_start_methods() else "fork")
 
 
 def _worker_shard(args):
@@ -267,7 +277,7 @@ def generate(out, cfg: GenConfig, *, shards: range | None = None, workers: int =
                 pairs += render_shard(s, cfg, out, r, progress=bar.update)["pairs"]
                 bar.set_postfix(pairs=pairs)
         else:
-            ctx = mp.get_context("spawn")
+            ctx = _pool_context()
             q = ctx.Queue()
             with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(q,)) as pool:
                 results = [pool.apply_async(_worker_shard, ((s, cfg.to_dict(), str(out)),)) for s in todo]

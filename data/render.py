@@ -74,6 +74,7 @@ class Renderer:
     def _ensure(self, width, height):
         if self._r is None:
             self._r = self._pyrender.OffscreenRenderer(width, height)
+            self._r._renderer.__class__ = _lean_renderer_class(self._pyrender)
         if (width, height) != self._size:
             self._r.viewport_width, self._r.viewport_height = width, height
             self._size = (width, height)
@@ -211,6 +212,70 @@ class Renderer:
                 self._plain = None
                 self._size = None
                 self._scene_key = None
+
+
+_LEAN = None
+
+
+def _lean_renderer_class(pr):
+    """pyrender's ``Renderer`` without work whose result we throw away; every pixel stays the same
+    (tests/data/test_render.py compares against pyrender's own path):
+
+    - a colour pass resolves and reads only colour (pyrender also resolves, reads and linearises the
+      multisampled depth, which we never use: exact depth comes from the depth pass);
+    - a depth pass reads the single-sample framebuffer it drew into (``Renderer._depth_pass``) directly,
+      without pyrender's two blits into its main framebuffer;
+    - light uniforms are set once per shader program and frame rather than once per primitive (a
+      program keeps its uniform values, and unless a scene has more lights of a kind than the shader
+      takes, pyrender gives every primitive the same lights), and the texture-unit limit behind the
+      light counts is queried once.
+    """
+    global _LEAN
+    if _LEAN is not None:
+        return _LEAN
+    from OpenGL import GL
+    from pyrender.constants import RenderFlags
+
+    class LeanRenderer(pr.renderer.Renderer):
+        def _forward_pass(self, scene, flags, seg_node_map=None):
+            self._lit = set()
+            return super()._forward_pass(scene, flags, seg_node_map=seg_node_map)
+
+        def _compute_max_n_lights(self, flags):
+            cache = self.__dict__.setdefault("_max_lights", {})
+            if flags not in cache:
+                cache[flags] = tuple(super()._compute_max_n_lights(flags))
+            return list(cache[flags])
+
+        def _bind_lighting(self, scene, program, node, flags):
+            m = self._compute_max_n_lights(flags)
+            if (len(scene.directional_light_nodes) > m[0] or len(scene.spot_light_nodes) > m[1]
+                    or len(scene.point_light_nodes) > m[2]):  # pyrender then picks the lights nearest each node
+                return super()._bind_lighting(scene, program, node, flags)
+            if id(program) not in self._lit:  # otherwise every node gets all lights, the same uniforms
+                self._lit.add(id(program))
+                super()._bind_lighting(scene, program, node, flags)
+
+        def _read_main_framebuffer(self, scene, flags):
+            width, height = self._main_fb_dims
+            if flags & RenderFlags.DEPTH_ONLY:
+                GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+                buf = GL.glReadPixels(0, 0, width, height, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT)
+                z = np.frombuffer(buf, np.float32).reshape(height, width)[::-1]
+                # pyrender's linearisation, term for term (float32 arithmetic, Python-float constants)
+                zn, zf = scene.main_camera_node.camera.znear, scene.main_camera_node.camera.zfar
+                ndc = 2.0 * z - 1.0
+                lin = (2.0 * zn * zf) / (zf + zn - ndc * (zf - zn))
+                return np.where(z == 1.0, np.float32(0.0), lin)
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+            GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
+            GL.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR)
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
+            buf = GL.glReadPixels(0, 0, width, height, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
+            return np.frombuffer(buf, np.uint8).reshape(height, width, 3)[::-1], None
+
+    _LEAN = LeanRenderer
+    return _LEAN
 
 
 def _light_pose(position, direction):

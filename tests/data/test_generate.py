@@ -83,6 +83,25 @@ def test_two_workers_write_the_same_bytes_as_one(tmp_path):
     assert _files(tmp_path / "one") == _files(tmp_path / "two")
 
 
+def test_workers_forked_by_a_process_without_gl_write_the_same_bytes_as_one_worker(tmp_path):
+    generate(tmp_path / "one", GenConfig(kind="pairs", scenes=5, views=2, size=64, shard_size=1, seed=5),
+             workers=1, progress=False, log=None)
+    p = _run(tmp_path / "two", ["--workers", "2"])  # the CLI's process never touches GL: its workers are forked
+    assert p.wait(timeout=300) == 0, p.stderr.read().decode()
+    assert _files(tmp_path / "one") == _files(tmp_path / "two")
+
+
+def test_workers_are_forked_only_while_this_process_has_not_touched_gl(monkeypatch):
+    from data.generate import _pool_context
+
+    for name in ("pyrender", "OpenGL"):
+        monkeypatch.setitem(sys.modules, name, sys.modules.get(name, object()))
+    assert _pool_context().get_start_method() == "spawn"
+    for name in ("pyrender", "OpenGL"):
+        monkeypatch.delitem(sys.modules, name)
+    assert _pool_context().get_start_method() == "fork"
+
+
 def test_cli_rejects_bad_arguments_with_exit_code_2(tmp_path, capsys):
     assert main(["--out", str(tmp_path / "x"), "--scenes", "0"]) == 2
     assert "scenes expected" in capsys.readouterr().err

@@ -69,6 +69,30 @@ def test_renderer_switches_image_sizes_and_stays_exact(renderer):
         assert depth.shape == (h, w) and np.abs(depth - 1.5).max() < 1e-4
 
 
+def test_lean_passes_give_the_same_pixels_and_depth_as_pyrenders_own_renderer(renderer):
+    import pyrender
+
+    from data.cameras import sample_views
+    from data.scene import make_scene
+
+    rng = np.random.default_rng(3)
+    for kind in ("room", "cluster"):  # textured and plain materials, point/spot and directional lights
+        scene = make_scene(rng, kind=kind)
+        vs = sample_views(rng, scene, renderer, 2, 64, color=False)
+        for v in vs.views:
+            lean = renderer.render(scene, v.K, v.cam2world, v.width, v.height)
+            inner = renderer._r._renderer
+            cls = inner.__class__
+            inner.__class__ = pyrender.renderer.Renderer  # pyrender's own passes, read-backs and uniforms
+            try:
+                ref = renderer.render(scene, v.K, v.cam2world, v.width, v.height)
+            finally:
+                inner.__class__ = cls
+            assert cls is not pyrender.renderer.Renderer
+            assert np.array_equal(lean[0], ref[0]) and np.array_equal(lean[1], ref[1])
+            assert np.array_equal(lean[1], v.depth)
+
+
 def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
     with pytest.raises(ShapeError, match="K expected"):
         renderer.render(plane_scene(1.0), np.eye(4), np.eye(4), 32, 32)
