@@ -32,6 +32,8 @@ class TrainConfig:
     n_corr: int = 1024             # correspondences per pair for the matching loss
     max_rotation: float = 0.0      # curriculum: train only on pairs whose cameras differ by <= this (deg; 0 = all)
     temperature: float = 0.05
+    coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
+    coarse_temperature: float = 0.1
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
     eval_every: int = 1000

@@ -11,7 +11,6 @@ import csv
 import math
 import os
 import random
-import tempfile
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import torch
 import torch.distributed as dist
 from tqdm.auto import tqdm
 
+from pointmap.atomic import atomic_path
 from training.config import TrainConfig
 
 
@@ -118,15 +118,8 @@ def save_checkpoint(path: Path, model, optimizer, scheduler, step: int, cfg: Tra
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
              "step": step, "rng": _rng_state(), "train_config": cfg.to_dict(),
              "model_config": _unwrap(model).cfg.to_dict(), "kind": cfg.task, "extra": extra or {}}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def load_checkpoint(path: Path) -> dict:

@@ -111,3 +111,44 @@ def _unique_first(x: torch.Tensor):
     first = torch.full((uniq.numel(),), x.numel(), dtype=torch.long)
     first.scatter_reduce_(0, inv, torch.arange(x.numel()), reduce="amin")
     return x[first], first
+
+
+def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, patch: int = 16,
+                        temperature: float = 0.1):
+    """Coarse (patch-level) InfoNCE: each co-visible patch of view 1 against ALL patches of view 2, and back.
+
+    Descriptors are averaged over each ``patch`` x ``patch`` cell and re-normalised; the positive of a view-1
+    cell is the view-2 cell that holds the correspondence of its centre pixel. Unlike the pixel loss, the
+    classification is over the ~100 cells of the other view (chance is ln N, not ln n_corr), and the pooled
+    descriptor is ONE linear read-out of the decoder token (the mean of the head's per-sub-pixel
+    projections), so a pixel and its match start correlated: this is the signal that teaches the trunk to
+    find the other view's content (LoFTR's coarse level; MASt3R gets it from DUSt3R's pretraining instead).
+
+    desc1 [B, H1, W1, D], desc2 [B, H2, W2, D]; corr [B, H1, W1, 2] (u, v) in view 2, NaN where not
+    co-visible. Returns (loss, top-1 accuracy) over pairs with >= 4 co-visible cells.
+    """
+    B, H1, W1, D = desc1.shape
+    H2, W2 = desc2.shape[1:3]
+    if H1 % patch or W1 % patch or H2 % patch or W2 % patch:
+        raise ValueError(f"descriptor maps {H1}x{W1}, {H2}x{W2} are not multiples of the patch size {patch}")
+    h1, w1, h2, w2 = H1 // patch, W1 // patch, H2 // patch, W2 // patch
+    c1 = F.normalize(F.avg_pool2d(desc1.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
+    c2 = F.normalize(F.avg_pool2d(desc2.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
+    centre = corr[:, patch // 2::patch, patch // 2::patch].reshape(B, h1 * w1, 2)  # corr of each cell's centre
+    losses, accs = [], []
+    for b in range(B):
+        u, v = centre[b, :, 0], centre[b, :, 1]
+        ok = torch.isfinite(u) & torch.isfinite(v) & (u >= 0) & (u < W2) & (v >= 0) & (v < H2)
+        idx1 = ok.nonzero()[:, 0]
+        if idx1.numel() < 4:
+            continue
+        idx2 = ((v[idx1] // patch) * w2 + (u[idx1] // patch)).long()
+        logits = c1[b, idx1] @ c2[b].T / temperature  # [n, h2*w2]
+        fwd = F.cross_entropy(logits, idx2)
+        idx2u, first = _unique_first(idx2)  # backwards: each hit view-2 cell against all view-1 cells
+        back = F.cross_entropy(c2[b, idx2u] @ c1[b].T / temperature, idx1[first])
+        losses.append(0.5 * (fwd + back))
+        accs.append((logits.argmax(1) == idx2).float().mean())
+    if not losses:
+        return desc1.sum() * 0, 0.0
+    return torch.stack(losses).mean(), float(torch.stack(accs).mean())

@@ -16,7 +16,7 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
-from training.losses import matching_loss, regression_loss
+from training.losses import matching_loss, patch_matching_loss, regression_loss
 from training.mix import limit_rotation, open_pairs
 
 
@@ -72,6 +72,11 @@ def make_step(cfg: TrainConfig):
             lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
             loss = loss + cfg.match_weight * lm
             details.update(match_loss=float(lm.detach()), match_acc=acc)
+        if pred.has_desc and cfg.coarse_weight > 0:
+            patch = getattr(model, "module", model).cfg.patch_size
+            lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)
+            loss = loss + cfg.coarse_weight * lc
+            details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
         return loss, details
 
     return step_fn

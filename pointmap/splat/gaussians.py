@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pointmap.atomic import write_bytes
 from pointmap.errors import ShapeError
 
 SH_C0 = 0.28209479177387814
@@ -121,7 +122,6 @@ class Gaussians:
         """Write the 3DGS PLY. ``sh_degree`` pads the f_rest fields to that degree with zeros (3 is what
         most viewers expect); None writes exactly the stored degree."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         g = self.detach().to(torch.float32)
         n = len(g)
         deg = g.sh_degree if sh_degree is None else max(int(sh_degree), g.sh_degree)
@@ -137,9 +137,7 @@ class Gaussians:
                           g.log_scales, g.quats], dim=1).numpy().astype("<f4")
         header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
         header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
-        with open(path, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(np.ascontiguousarray(data).tobytes())
+        write_bytes(path, header.encode("ascii") + np.ascontiguousarray(data).tobytes())
         return path
 
     @classmethod

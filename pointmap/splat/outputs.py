@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pointmap.atomic import atomic_path, write_bytes
 from pointmap.errors import ShapeError
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
@@ -24,8 +25,8 @@ def save_png(img: torch.Tensor, path) -> Path:
     from PIL import Image
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(_to_uint8(img)).save(path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(_to_uint8(img)).save(tmp, format="PNG")
     return path
 
 
@@ -68,23 +69,27 @@ def orbit_poses(cam2world: torch.Tensor, center: torch.Tensor, n_frames: int = 3
 def save_orbit(frames: list, path, fps: int = 12) -> Path:
     """Animated GIF (PIL) or MP4 (OpenCV) from [H, W, 3] frames, by the file extension."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrs = [_to_uint8(f) for f in frames]
-    if path.suffix.lower() == ".gif":
-        from PIL import Image
-
-        ims = [Image.fromarray(a) for a in arrs]
-        ims[0].save(path, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
-    elif path.suffix.lower() == ".mp4":
-        import cv2
-
-        h, w = arrs[0].shape[:2]
-        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        for a in arrs:
-            vw.write(a[..., ::-1])
-        vw.release()
-    else:
+    if path.suffix.lower() not in (".gif", ".mp4"):
         raise ShapeError(f"orbit path must end in .gif or .mp4, got {path.name}")
+    if not frames:
+        raise ShapeError("save_orbit expected at least one frame, got none")
+    arrs = [_to_uint8(f) for f in frames]
+    with atomic_path(path) as tmp:  # tmp keeps the suffix: both writers pick the format from it
+        if path.suffix.lower() == ".gif":
+            from PIL import Image
+
+            ims = [Image.fromarray(a) for a in arrs]
+            ims[0].save(tmp, save_all=True, append_images=ims[1:], duration=int(1000 / fps), loop=0)
+        else:
+            import cv2
+
+            h, w = arrs[0].shape[:2]
+            vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+            if not vw.isOpened():
+                raise OSError(f"OpenCV could not open an mp4 writer for {path}")
+            for a in arrs:
+                vw.write(a[..., ::-1])
+            vw.release()
     return path
 
 
@@ -151,12 +156,12 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
             "cam2world_init": res.cam2world_init.tolist(), "K": recon.K.float().tolist(),
             "convention": "OpenCV cam2world; K in original image pixels"}
     paths["cameras"] = out_dir / "cameras_refined.json"
-    paths["cameras"].write_text(json.dumps(cams, indent=1))
+    write_bytes(paths["cameras"], json.dumps(cams, indent=1).encode())
     metrics = {"train_psnr": train_psnr, "n_gaussians": len(res.gaussians), "init_seconds": t_init,
                "fit_seconds": res.seconds, "total_seconds": time.perf_counter() - t0,
                "steps_run": res.config["steps_run"], "working_sizes": res.config["levels"]}
     paths["metrics"] = out_dir / "splat_metrics.json"
-    paths["metrics"].write_text(json.dumps(metrics, indent=1))
+    write_bytes(paths["metrics"], json.dumps(metrics, indent=1).encode())
     refined = res.to_reconstruction(recon)
     try:
         paths["refined"] = refined.save(out_dir / "refined", formats=("colmap", "npz"))

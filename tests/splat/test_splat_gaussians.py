@@ -53,3 +53,20 @@ def test_activations_and_validation(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"not a ply")
     with pytest.raises(ShapeError, match="PLY"):
         Gaussians.load_ply(tmp_path / "bad.ply")
+
+
+def test_orbit_and_png_writers_leave_only_finished_files(tmp_path):
+
+    from pointmap.splat.outputs import save_orbit, save_png
+
+    frame = torch.rand(8, 10, 3)
+    gif = save_orbit([frame, frame.flip(0)], tmp_path / "o.gif", fps=4)
+    png = save_png(frame, tmp_path / "f.png")
+    with pytest.raises(ShapeError, match="at least one frame"):
+        save_orbit([], tmp_path / "empty.gif")
+    with pytest.raises(ShapeError, match=".gif or .mp4"):
+        save_orbit([frame], tmp_path / "o.avi")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png", "o.gif"]
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == 2 and Image.open(png).size == (10, 8)

@@ -77,6 +77,18 @@ def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
     assert losses[-1] < losses[0] - 0.1
 
 
+def test_the_coarse_matching_loss_is_added_with_its_weight_when_switched_on(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    data = PlanePairs(2)
+    batch = collate([data[0], data[1]])
+    base, d0 = make_step(config(tmp_path, 1))(model, batch, 0)
+    cfg = dataclasses.replace(config(tmp_path, 1), coarse_weight=0.5)
+    both, d1 = make_step(cfg)(model, batch, 0)
+    assert "coarse_loss" not in d0 and d1["coarse_loss"] > 0
+    assert abs(float(both) - float(base) - 0.5 * d1["coarse_loss"]) < 1e-4
+
+
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
 def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):

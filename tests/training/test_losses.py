@@ -2,7 +2,8 @@ import torch
 
 import pointmap as pm
 from pointmap.geometry import depth_to_points_cam
-from training.losses import completion_loss, gt_points_cam1, matching_loss, patchify, regression_loss
+from training.losses import (completion_loss, gt_points_cam1, matching_loss, patch_matching_loss, patchify,
+                             regression_loss)
 
 
 def test_patchify_follows_the_row_major_token_order():
@@ -99,3 +100,49 @@ def test_matching_loss_without_correspondences_is_a_differentiable_zero():
     loss, acc = matching_loss(desc, desc, torch.full((1, 4, 4, 2), float("nan")))
     loss.backward()
     assert float(loss) == 0 and acc == 0.0 and desc.grad is not None
+
+
+def _cells(codes: torch.Tensor, p: int) -> torch.Tensor:
+    """[B, h, w, D] cell codes -> [B, h*p, w*p, D] pixel descriptors: unit noise around each cell's code."""
+    pix = codes.repeat_interleave(p, 1).repeat_interleave(p, 2)
+    return torch.nn.functional.normalize(pix + 0.3 * torch.randn_like(pix), dim=-1)
+
+
+def test_patch_matching_loss_finds_the_cell_holding_each_centres_correspondence_among_all_cells():
+    torch.manual_seed(0)
+    p, h, w, D = 4, 5, 6, 32
+    codes1 = torch.nn.functional.normalize(torch.randn(1, h, w, D), dim=-1)
+    codes2 = torch.nn.functional.normalize(torch.randn(1, h, w, D), dim=-1)
+    codes2[0, 1:5, 0:5] = codes1[0, 0:4, 1:6]  # view-1 cell (r, c) is view-2 cell (r + 1, c - 1)
+    corr = torch.full((1, h * p, w * p, 2), float("nan"))
+    ys, xs = torch.meshgrid(torch.arange(h * p).float(), torch.arange(w * p).float(), indexing="ij")
+    corr[0, ..., 0], corr[0, ..., 1] = xs - p + 0.5, ys + p + 0.5
+    corr[0, 4 * p:] = float("nan")  # the last view-1 row has no partner
+    corr[0, :, :p] = float("nan")   # nor the first column
+    good, acc = patch_matching_loss(_cells(codes1, p), _cells(codes2, p), corr, p, temperature=0.05)
+    bad, acc_bad = patch_matching_loss(_cells(codes1, p), _cells(torch.roll(codes2, 2, dims=2), p), corr, p, 0.05)
+    assert acc == 1.0 and float(good) < 0.1
+    assert float(bad) > 3.0 and acc_bad < 0.2
+
+
+def test_patch_matching_loss_pools_pixels_so_a_cell_matches_whatever_its_sub_pixel_descriptors_differ():
+    torch.manual_seed(1)
+    p, h, w, D = 4, 3, 3, 16
+    codes = torch.nn.functional.normalize(torch.randn(1, h, w, D), dim=-1)
+    d1 = _cells(codes, p)
+    d2 = _cells(codes, p)  # same cells, independent per-pixel noise: pixel descriptors differ, cell means agree
+    ys, xs = torch.meshgrid(torch.arange(h * p).float(), torch.arange(w * p).float(), indexing="ij")
+    corr = torch.stack([xs, ys], -1)[None]
+    _, acc = patch_matching_loss(d1, d2, corr, p, temperature=0.05)
+    assert acc == 1.0
+
+
+def test_patch_matching_loss_without_correspondences_is_a_differentiable_zero_and_checks_the_grid():
+    desc = torch.nn.functional.normalize(torch.randn(1, 8, 8, 8), dim=-1).requires_grad_()
+    loss, acc = patch_matching_loss(desc, desc, torch.full((1, 8, 8, 2), float("nan")), 4)
+    loss.backward()
+    assert float(loss) == 0 and acc == 0.0 and desc.grad is not None
+    import pytest
+
+    with pytest.raises(ValueError, match="multiples of the patch size 16"):
+        patch_matching_loss(desc, desc, torch.zeros(1, 8, 8, 2), 16)
