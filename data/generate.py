@@ -8,7 +8,6 @@ Shard ``k`` holds scenes ``[k * shard_size, (k + 1) * shard_size)``.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import queue
@@ -22,8 +21,21 @@ import numpy as np
 from data.cameras import CameraConfig, DegenerateScene, sample_views
 from data.geom import encode_corr
 from data.scene import make_scene
-from data.shards import (FORMAT, ShardError, completed_shards, json_bytes, load_json, npz_bytes, png_bytes,
-                         sha256_bytes, sha256_file, shard_name, sidecar_name, tar_bytes, write_atomic)
+from data.shards import (
+    FORMAT,
+    ShardError,
+    completed_shards,
+    json_bytes,
+    load_json,
+    npz_bytes,
+    png_bytes,
+    sha256_bytes,
+    sha256_file,
+    shard_name,
+    sidecar_name,
+    tar_bytes,
+    write_atomic,
+)
 
 # Seeds in this range are reserved for held-out evaluation sets (data.heldout); training runs refuse them.
 RESERVED_SEEDS = range(2**31 - 1000, 2**31)

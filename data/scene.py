@@ -9,9 +9,8 @@ on the ground (vertical cylinders around each object) and by stacking only on fl
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import functools
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
@@ -611,7 +610,6 @@ def _room(rng, b: _Builder):
         lo, hi = b.add_object(parts, pose)
         if flat and rng.random() < 0.7:
             top_lo = lo.copy()
-            top_hi = hi.copy()
             shrink = 0.15 * (hi - lo)
             _stack_small_on(rng, b, top_lo + shrink, np.r_[(hi - shrink)[:2], hi[2]], int(rng.integers(1, 4)))
     # wall targets so cameras also look at walls/doors

@@ -10,7 +10,12 @@ from importlib import import_module
 
 from pointmap.checkpoint import load_model, save_model
 from pointmap.errors import (
-    CheckpointError, ConventionError, GraphError, ImageError, PointmapError, ShapeError,
+    CheckpointError,
+    ConventionError,
+    GraphError,
+    ImageError,
+    PointmapError,
+    ShapeError,
 )
 from pointmap.images import View, load_images
 from pointmap.inference import predict_pairs

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from pointmap.geometry.cameras import invert_rigid
@@ -69,7 +71,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                 if cnt:
                     precs.append(p)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
-    rels_t = torch.tensor([r for r in rels if r == r])
+    rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),

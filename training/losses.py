@@ -131,7 +131,7 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     H2, W2 = desc2.shape[1:3]
     if H1 % patch or W1 % patch or H2 % patch or W2 % patch:
         raise ValueError(f"descriptor maps {H1}x{W1}, {H2}x{W2} are not multiples of the patch size {patch}")
-    h1, w1, h2, w2 = H1 // patch, W1 // patch, H2 // patch, W2 // patch
+    h1, w1, w2 = H1 // patch, W1 // patch, W2 // patch
     c1 = F.normalize(F.avg_pool2d(desc1.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
     c2 = F.normalize(F.avg_pool2d(desc2.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
     centre = corr[:, patch // 2::patch, patch // 2::patch].reshape(B, h1 * w1, 2)  # corr of each cell's centre

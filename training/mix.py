@@ -6,7 +6,6 @@ import bisect
 
 import numpy as np
 import torch
-
 from torch.utils.data import Dataset
 
 from pointmap.geometry.rotations import relative_rotation_error_deg

@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import math
 import time
+from typing import TYPE_CHECKING
 
 import torch
 
 from pointmap.align.objective import loss_and_grad
 from pointmap.align.params import AlignParams
+
+if TYPE_CHECKING:
+    from pointmap.align.optimize import AlignConfig
 
 
 def _lr_at(cfg: AlignConfig, it: int) -> float:

@@ -7,7 +7,15 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights, patch_positions, rope_tables
+from pointmap.model.blocks import (
+    Block,
+    DecoderBlock,
+    LayerNorm,
+    RopeCache,
+    init_weights,
+    patch_positions,
+    rope_tables,
+)
 from pointmap.model.config import ModelConfig
 from pointmap.model.net import PatchEmbed
 

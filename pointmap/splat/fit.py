@@ -31,7 +31,6 @@ from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
 from pointmap.splat.rasterize import rasterize
 
-
 # ----------------------------------------------------------------------------------------------------
 # budget
 

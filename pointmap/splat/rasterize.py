@@ -117,7 +117,6 @@ def _radii(cov_abc, opacities, ok):
 def _bin_tiles(means2d, radii, depths, width, height, tile, chunk):
     """Return (gid [nc, C] long, -1 = padding; chunk_tile [nc] long; n_tiles_x, n_tiles_y)."""
     device = means2d.device
-    n = means2d.shape[0]
     ntx = (width + tile - 1) // tile
     nty = (height + tile - 1) // tile
     u, v = means2d[:, 0], means2d[:, 1]
@@ -319,7 +318,6 @@ def _rasterize_torch(means, quats, scales, opacities, colors, world2cam, K, widt
     D = colors.shape[-1]
     dtype = means2d.dtype
     n_tiles = ntx * nty
-    P = tile * tile
     origin = torch.stack([(chunk_tile % ntx) * tile, (chunk_tile // ntx) * tile], dim=-1).to(dtype)
     g6 = torch.cat([means2d, conics, torch.log(opacities.clamp_min(1e-12)).to(dtype)[:, None]], dim=-1)
     vals = torch.cat([colors, depths[:, None].to(colors.dtype)], dim=-1)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import torch
+from align_scene import SCENE_SIZE, chain_pairs, complete_pairs, gt_preds, make_scene, pose_errors, views_of
 
 from pointmap.align import AlignConfig, global_align
-from align_scene import (SCENE_SIZE, chain_pairs, complete_pairs, gt_preds, make_scene, pose_errors, views_of)
 
 QUIET = AlignConfig(quiet=True)
 

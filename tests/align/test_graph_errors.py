@@ -5,11 +5,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from align_scene import complete_pairs, gt_preds, make_scene, views_of
 
 from pointmap.align import AlignConfig, global_align
 from pointmap.errors import GraphError, ShapeError
 from pointmap.prediction import PairPrediction
-from align_scene import complete_pairs, gt_preds, make_scene, views_of
 
 QUIET = AlignConfig(quiet=True, niter=30)
 

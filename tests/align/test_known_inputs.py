@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 import torch
+from align_scene import complete_pairs, gt_preds, make_scene, pose_errors, views_of
 
 from pointmap.align import AlignConfig, global_align
 from pointmap.errors import ConventionError, ShapeError
-from align_scene import complete_pairs, gt_preds, make_scene, pose_errors, views_of
 
 QUIET = AlignConfig(quiet=True)
 

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 import torch
+from align_scene import complete_pairs, gt_preds, make_scene, pose_errors
 
 from pointmap.align.edges import build_stack, check_preds, conf_to_weight
 from pointmap.align.fuse import fuse_depth
 from pointmap.align.init import edge_similarities, init_mst
 from pointmap.align.objective import loss_and_grad, loss_reference
 from pointmap.align.params import AlignParams
-from align_scene import complete_pairs, gt_preds, make_scene, pose_errors
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,10 @@ import types
 
 import numpy as np
 import pytest
-import torch
+from align_scene import gt_preds, make_scene, pose_errors
 
 from pointmap.align import AlignConfig
 from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
-from align_scene import gt_preds, make_scene, pose_errors
 
 
 @pytest.fixture

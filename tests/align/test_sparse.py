@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 import torch
+from align_scene import make_scene, pose_errors, ray_cast
 
 from pointmap.align.sparse import SparseConfig, refine_matches
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
-from align_scene import make_scene, pose_errors, ray_cast
 
 CFG = SparseConfig(quiet=True)
 

@@ -5,8 +5,17 @@ import pytest
 import torch
 
 from pointmap.geometry import (
-    axis_angle_to_matrix, depth_to_points_cam, focal_from_pointmap, invert_rigid, project, random_rotation,
-    rotation_angle, se3_exp, to_matrix, transform_points, weighted_procrustes,
+    axis_angle_to_matrix,
+    depth_to_points_cam,
+    focal_from_pointmap,
+    invert_rigid,
+    project,
+    random_rotation,
+    rotation_angle,
+    se3_exp,
+    to_matrix,
+    transform_points,
+    weighted_procrustes,
 )
 
 

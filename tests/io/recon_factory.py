@@ -1,8 +1,6 @@
 """A hand-made Reconstruction whose maps are a resized + cropped version of larger originals."""
 
-import math
 
-import numpy as np
 import torch
 
 from pointmap.geometry.rotations import axis_angle_to_matrix

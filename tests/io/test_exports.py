@@ -1,6 +1,5 @@
 """Exports read back by independent readers (pycolmap, trimesh) and checked against their sources."""
 
-import shutil
 import sys
 from pathlib import Path
 

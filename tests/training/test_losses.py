@@ -2,8 +2,14 @@ import torch
 
 import pointmap as pm
 from pointmap.geometry import depth_to_points_cam
-from training.losses import (completion_loss, gt_points_cam1, matching_loss, patch_matching_loss, patchify,
-                             regression_loss)
+from training.losses import (
+    completion_loss,
+    gt_points_cam1,
+    matching_loss,
+    patch_matching_loss,
+    patchify,
+    regression_loss,
+)
 
 
 def test_patchify_follows_the_row_major_token_order():
