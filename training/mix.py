@@ -11,6 +11,15 @@ from torch.utils.data import Dataset
 from pointmap.geometry.rotations import relative_rotation_error_deg
 
 
+def _split_index(index, n: int):
+    """``index`` or ``(index, aspect, ...)`` -> (index, a function giving the same form for another index);
+    IndexError when index is outside [0, n)."""
+    idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
+    if not 0 <= idx < n:
+        raise IndexError(f"index {idx} out of range for {n} pairs")
+    return idx, (lambda i: (i, *rest)) if rest else (lambda i: i)
+
+
 class PairMix(Dataset):
     """Concatenation of pair datasets that share one aspect-ratio list; items accept ``index`` or
     ``(index, aspect)`` like ``data.datasets.PairDataset``."""
@@ -33,12 +42,9 @@ class PairMix(Dataset):
         return self.ends[-1]
 
     def __getitem__(self, index):
-        idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
-        if not 0 <= idx < len(self):
-            raise IndexError(f"index {idx} out of range for {len(self)} pairs")
+        idx, readdress = _split_index(index, len(self))
         k = bisect.bisect_right(self.ends, idx)
-        local = idx - (self.ends[k - 1] if k else 0)
-        return self.parts[k][(local, *rest) if rest else local]
+        return self.parts[k][readdress(idx - (self.ends[k - 1] if k else 0))]
 
 
 def open_pairs(spec: str, **kwargs):
@@ -65,10 +71,8 @@ class PairSubset(Dataset):
         return len(self.indices)
 
     def __getitem__(self, index):
-        idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
-        if not 0 <= idx < len(self):
-            raise IndexError(f"index {idx} out of range for {len(self)} pairs")
-        return self.dataset[(self.indices[idx], *rest) if rest else self.indices[idx]]
+        idx, readdress = _split_index(index, len(self))
+        return self.dataset[readdress(self.indices[idx])]
 
 
 def relative_rotations_deg(dataset) -> np.ndarray:
