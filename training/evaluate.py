@@ -10,6 +10,7 @@ from pointmap.geometry.cameras import invert_rigid
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
 from pointmap.matching import match
 from pointmap.pose import relative_pose
+from training.losses import patch_matching_loss
 
 
 def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
@@ -44,8 +45,9 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, 
 
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
-    """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred)."""
-    rot_err, tr_err, rels, precs = [], [], [], []
+    """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred). ``coarse_acc``:
+    top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches."""
+    rot_err, tr_err, rels, precs, coarse = [], [], [], [], []
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -70,9 +72,13 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                 p, cnt = match_precision(pred[b], v1["corr"][b])
                 if cnt:
                     precs.append(p)
+            if pred.has_desc:
+                patch = getattr(model, "module", model).cfg.patch_size
+                coarse.append(patch_matching_loss(pred.desc1, pred.desc2, v1["corr"], patch)[1] * len(its))
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
-            "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"), "pairs": float(len(rot))}
+            "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
+            "coarse_acc": sum(coarse) / len(rot) if coarse else float("nan"), "pairs": float(len(rot))}
