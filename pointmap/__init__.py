@@ -19,7 +19,7 @@ from pointmap.errors import (
 )
 from pointmap.images import View, load_images
 from pointmap.inference import predict_pairs
-from pointmap.matching import Matches, match
+from pointmap.matching import Matches, match, match_coarse
 from pointmap.model import PRESETS, ModelConfig, PointmapNet
 from pointmap.pairs import check_connected, make_pairs
 from pointmap.pose import relative_pose
@@ -42,7 +42,7 @@ def __getattr__(name):
 
 
 __all__ = [
-    "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "ModelConfig", "PRESETS",
+    "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "match_coarse", "ModelConfig", "PRESETS",
     "PairPrediction", "PointmapError", "PointmapNet", "Reconstruction", "ShapeError", "View", "__version__",
     "check_connected", "global_align", "load_images", "load_model", "make_pairs", "match", "predict_pairs",
     "reconstruct", "relative_pose", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",

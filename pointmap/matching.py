@@ -139,3 +139,40 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
               & (xy2[:, 0] >= border) & (xy2[:, 0] < W2 - border) & (xy2[:, 1] >= border) & (xy2[:, 1] < H2 - border))
         xy1, xy2, score = xy1[ok], xy2[ok], score[ok]
     return Matches(xy1, xy2, score)
+
+
+def match_coarse(pred: PairPrediction, patch: int = 16) -> Matches:
+    """Reciprocal matches between patch cells (batch size 1): descriptors averaged over each ``patch`` x
+    ``patch`` cell and re-normalised, mutual nearest neighbours by dot product (all cells, brute force).
+
+    Coordinates are cell centres; score is sqrt of the two cells' mean descriptor confidences. Coarser
+    than ``match`` (one match per cell at most) but robust when pixel descriptors are not yet distinctive:
+    the cell descriptor is what the coarse matching loss (training.losses.patch_matching_loss) trains.
+    """
+    if pred.batch_size != 1:
+        raise ShapeError(f"match_coarse expects a single pair (batch size 1), got batch size {pred.batch_size}")
+    if not pred.has_desc:
+        raise ShapeError("match_coarse needs a model with a descriptor head (MASt3R-style)")
+    d1, d2 = pred.desc1[0].float(), pred.desc2[0].float()
+    (H1, W1), (H2, W2) = d1.shape[:2], d2.shape[:2]
+    if patch < 1 or H1 % patch or W1 % patch or H2 % patch or W2 % patch:
+        raise ShapeError(f"descriptor maps {H1}x{W1} and {H2}x{W2} must be multiples of patch={patch}")
+
+    def cells(d, c):
+        f = torch.nn.functional.avg_pool2d(d.permute(2, 0, 1)[None], patch)[0]
+        conf = torch.nn.functional.avg_pool2d(c.float()[None, None], patch)[0, 0]
+        return torch.nn.functional.normalize(f.flatten(1).T, dim=-1), conf.reshape(-1), f.shape[-1]
+
+    f1, s1, w1 = cells(d1, pred.desc_conf1[0])
+    f2, s2, w2 = cells(d2, pred.desc_conf2[0])
+    ok1, ok2 = torch.isfinite(f1).all(-1).nonzero()[:, 0], torch.isfinite(f2).all(-1).nonzero()[:, 0]
+    if ok1.numel() == 0 or ok2.numel() == 0:
+        empty = torch.zeros(0, 2)
+        return Matches(empty, empty.clone(), torch.zeros(0))
+    a, b = reciprocal_nn_bruteforce(f1[ok1], f2[ok2], "dot")
+    c1, c2 = ok1[a], ok2[b]
+
+    def centre(c, w):
+        return torch.stack([(c % w) * patch, (c // w) * patch], -1).float() + (patch - 1) / 2
+
+    return Matches(centre(c1, w1), centre(c2, w2), (s1[c1] * s2[c2]).clamp_min(0).sqrt())

@@ -36,6 +36,7 @@ def _pnp(pts_cam1: np.ndarray, uv: np.ndarray, K: np.ndarray, iters: int, reproj
 
 
 def _pose_pnp(pts2_cam1, conf2, K2, keep, rng):
+    """PnP of view 2's most confident pixels against their points in view 1's frame (DUSt3R)."""
     H, W = pts2_cam1.shape[:2]
     mask = _conf_mask(conf2, pts2_cam1, keep).numpy()
     v, u = np.nonzero(mask)
@@ -44,7 +45,14 @@ def _pose_pnp(pts2_cam1, conf2, K2, keep, rng):
     if len(pts) > 4000:
         sel = rng.choice(len(pts), 4000, replace=False)
         pts, uv = pts[sel], uv[sel]
-    reproj = max(2.0, 0.01 * max(H, W))
+    return _pnp_any_focal(pts, uv, K2, H, W)
+
+
+def _pnp_any_focal(pts, uv, K2, H, W, reproj_frac: float = 0.01):
+    """cam2world of the camera seeing 3D points ``pts`` (view 1's frame) at pixels ``uv`` of an H x W image:
+    PnP-RANSAC with ``K2``, or, when K2 is None, with the focal that explains the points best. Inlier
+    threshold: ``reproj_frac`` of the long side (at least 2 px)."""
+    reproj = max(2.0, reproj_frac * max(H, W))
     if K2 is not None:
         return _pnp(pts, uv, K2, 1000, reproj)[0]
     # unknown focal: sweep 21 focals (as the official MST init), score each pose by a truncated quadratic
@@ -86,7 +94,7 @@ def _pose_pnp(pts2_cam1, conf2, K2, keep, rng):
 
 
 def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairPrediction | None = None,
-                  keep: float = 0.7, seed: int = 0) -> torch.Tensor:
+                  matches: list | None = None, keep: float = 0.7, seed: int = 0) -> torch.Tensor:
     """View 2's cam2world in view 1's camera frame, [B, 4, 4] (translation in the prediction's units).
 
     - ``pred_reverse`` (the prediction of (view 2, view 1)) given: confidence-weighted Procrustes from
@@ -94,7 +102,11 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
       camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
-    ``keep``: fraction of most confident pixels used. A pose that cannot be found is NaN (never raises
+    - ``matches`` (one ``pointmap.matching.Matches`` per batch item, e.g. from ``match`` or ``match_coarse``)
+      given: PnP-RANSAC of the matched view-2 pixels against view 1's OWN pointmap at the matched view-1
+      pixels (MASt3R-style: needs good matches and view 1's geometry, not the cross-view regression),
+      with ``K2`` or the focal sweep below.
+    ``keep``: fraction of most confident pixels used (dense paths). A pose that cannot be found is NaN (never raises
     for degenerate content; raises ShapeError for wrong inputs).
     """
     B = pred.batch_size
@@ -108,6 +120,9 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             raise ShapeError(f"K2 expected [3, 3] or [{B}, 3, 3], got {list(K2.shape)}")
     if pred_reverse is not None and pred_reverse.batch_size != B:
         raise ShapeError(f"pred_reverse batch size {pred_reverse.batch_size} differs from pred's {B}")
+    if matches is not None and (pred_reverse is not None or len(matches) != B):
+        raise ShapeError(f"matches expected a list of {B} Matches (and no pred_reverse), got "
+                         f"{type(matches).__name__} of {len(matches) if hasattr(matches, '__len__') else '?'}")
     if not 0 < keep <= 1:
         raise ShapeError(f"keep expected in (0, 1], got {keep}")
     out = torch.full((B, 4, 4), float("nan"), dtype=torch.float32)
@@ -115,7 +130,12 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     for b in range(B):
         pts2 = pred.pts2_cam1[b].detach().float().cpu()
         conf2 = pred.conf2[b].detach().float().cpu()
-        if pred_reverse is not None:
+        if matches is not None:
+            pose = _pose_from_matches(pred.pts1_cam1[b].detach().float().cpu(), matches[b], pts2.shape[:2],
+                                      None if K2 is None else K2[b].numpy())
+            if pose is not None:
+                out[b] = torch.from_numpy(pose).float()
+        elif pred_reverse is not None:
             own = pred_reverse.pts1_cam1[b].detach().float().cpu()
             if own.shape != pts2.shape:
                 raise ShapeError(f"pred_reverse.pts1_cam1 {list(own.shape)} must match pred.pts2_cam1 {list(pts2.shape)}")
@@ -131,6 +151,17 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             if pose is not None:
                 out[b] = torch.from_numpy(pose).float()
     return out
+
+
+def _pose_from_matches(pts1_cam1: torch.Tensor, m, hw2, K2):
+    H1, W1 = pts1_cam1.shape[:2]
+    xy1 = m.xy1.round().long().cpu()
+    ok = (xy1[:, 0] >= 0) & (xy1[:, 0] < W1) & (xy1[:, 1] >= 0) & (xy1[:, 1] < H1)
+    xy1, xy2 = xy1[ok], m.xy2.cpu()[ok]
+    pts = pts1_cam1[xy1[:, 1], xy1[:, 0]]
+    fin = torch.isfinite(pts).all(-1) & torch.isfinite(xy2).all(-1)
+    # matches may be quantised to patch cells (match_coarse): a looser inlier threshold than dense PnP
+    return _pnp_any_focal(pts[fin].double().numpy(), xy2[fin].double().numpy(), K2, *hw2, reproj_frac=0.04)
 
 
 def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:

@@ -110,3 +110,57 @@ def test_matching_refuses_batches_and_missing_descriptors():
         pm.match(pred, use="desc")
     with pytest.raises(pm.ShapeError, match="batch size 1"):
         pm.match(pm.PairPrediction.cat([pred, pred]))
+
+
+def true_matches(p1, c2w2, step=4, outliers=0.0, seed=0):
+    """View-1 pixels on a grid and where their 3D points land in view 2 (a share replaced by random pixels)."""
+    v, u = torch.meshgrid(torch.arange(0, H, step), torch.arange(0, W, step), indexing="ij")
+    xy1 = torch.stack([u.reshape(-1), v.reshape(-1)], -1)
+    Xc2 = transform_points(invert_rigid(c2w2), p1[xy1[:, 1], xy1[:, 0]])
+    xy2 = (Xc2[:, :2] / Xc2[:, 2:]) * K[0, 0] + K[:2, 2]
+    g = torch.Generator().manual_seed(seed)
+    bad = torch.rand(len(xy1), generator=g) < outliers
+    xy2[bad] = torch.rand(int(bad.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([W, H])
+    return pm.Matches(xy1.float(), xy2.float(), torch.ones(len(xy1)))
+
+
+def test_pnp_on_matches_uses_view_ones_own_pointmap_and_survives_outliers():
+    p1, _, _, _, gt = two_views(angle_deg=20.0)
+    pred = as_pred(p1, torch.zeros_like(p1))  # a useless cross-view pointmap: the matches path must not need it
+    m = true_matches(p1, gt, outliers=0.3)
+    r, t = pose_errors(pm.relative_pose(pred, K2=K, matches=[m])[0], gt)
+    assert r < 0.5 and t < 2
+    r, t = pose_errors(pm.relative_pose(pred, matches=[m])[0], gt)  # focal unknown: swept
+    assert r < 3 and t < 10
+    assert torch.isnan(pm.relative_pose(pred, K2=K)[0]).all() or pose_errors(pm.relative_pose(pred, K2=K)[0], gt)[0] > 5
+
+
+def test_pose_from_matches_checks_one_matches_per_pair():
+    p1, p2, _, _, gt = two_views()
+    with pytest.raises(pm.ShapeError, match="list of 1 Matches"):
+        pm.relative_pose(as_pred(p1, p2), K2=K, matches=[true_matches(p1, gt)] * 2)
+
+
+def test_coarse_matching_pairs_the_cells_whose_pooled_descriptors_agree():
+    from pointmap.matching import match_coarse
+
+    torch.manual_seed(0)
+    p, h, w, D = 8, H // 8, W // 8, 16
+    codes1 = torch.nn.functional.normalize(torch.randn(h, w, D), dim=-1)
+    codes2 = torch.nn.functional.normalize(torch.randn(h, w, D), dim=-1)
+    codes2[:, 1:] = codes1[:, :-1]  # view-1 cell (r, c) is view-2 cell (r, c + 1)
+
+    def pix(codes):
+        x = codes.repeat_interleave(p, 0).repeat_interleave(p, 1)
+        return torch.nn.functional.normalize(x + 0.5 * torch.randn_like(x), dim=-1)[None]
+
+    p1, p2, *_ = two_views()
+    pred = pm.PairPrediction(p1[None].float(), p2[None].float(), torch.ones(1, H, W), torch.ones(1, H, W),
+                             desc1=pix(codes1), desc2=pix(codes2), desc_conf1=torch.ones(1, H, W),
+                             desc_conf2=torch.ones(1, H, W))
+    m = match_coarse(pred, patch=p)
+    assert len(m) >= h * (w - 1)
+    shifted = (m.xy2 - m.xy1 == torch.tensor([float(p), 0.0])).all(-1)
+    assert shifted.float().mean() > 0.9 and float(m.xy1[0, 0]) % p == (p - 1) / 2
+    with pytest.raises(pm.ShapeError, match="multiples of patch"):
+        match_coarse(pred, patch=7)
