@@ -237,6 +237,10 @@ def _lean_renderer_class(pr):
     from pyrender.constants import RenderFlags
 
     class LeanRenderer(pr.renderer.Renderer):
+        # only the two passes this module renders are lean; any other flags take pyrender's own path
+        def _lean(self, flags):
+            return flags in (RenderFlags.NONE, RenderFlags.DEPTH_ONLY)
+
         def _forward_pass(self, scene, flags, seg_node_map=None):
             self._lit = set()
             return super()._forward_pass(scene, flags, seg_node_map=seg_node_map)
@@ -249,7 +253,7 @@ def _lean_renderer_class(pr):
 
         def _bind_lighting(self, scene, program, node, flags):
             m = self._compute_max_n_lights(flags)
-            if (len(scene.directional_light_nodes) > m[0] or len(scene.spot_light_nodes) > m[1]
+            if not self._lean(flags) or (len(scene.directional_light_nodes) > m[0] or len(scene.spot_light_nodes) > m[1]
                     or len(scene.point_light_nodes) > m[2]):  # pyrender then picks the lights nearest each node
                 return super()._bind_lighting(scene, program, node, flags)
             if id(program) not in self._lit:  # otherwise every node gets all lights, the same uniforms
@@ -257,6 +261,8 @@ def _lean_renderer_class(pr):
                 super()._bind_lighting(scene, program, node, flags)
 
         def _read_main_framebuffer(self, scene, flags):
+            if not self._lean(flags) or scene.main_camera_node.camera.zfar is None:
+                return super()._read_main_framebuffer(scene, flags)
             width, height = self._main_fb_dims
             if flags & RenderFlags.DEPTH_ONLY:
                 GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)

@@ -105,7 +105,7 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     - ``matches`` (one ``pointmap.matching.Matches`` per batch item, e.g. from ``match`` or ``match_coarse``)
       given: PnP-RANSAC of the matched view-2 pixels against view 1's OWN pointmap at the matched view-1
       pixels (MASt3R-style: needs good matches and view 1's geometry, not the cross-view regression),
-      with ``K2`` or the focal sweep below.
+      with ``K2`` or the focal sweep described above.
     ``keep``: fraction of most confident pixels used (dense paths). A pose that cannot be found is NaN (never raises
     for degenerate content; raises ShapeError for wrong inputs).
     """
@@ -120,7 +120,8 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             raise ShapeError(f"K2 expected [3, 3] or [{B}, 3, 3], got {list(K2.shape)}")
     if pred_reverse is not None and pred_reverse.batch_size != B:
         raise ShapeError(f"pred_reverse batch size {pred_reverse.batch_size} differs from pred's {B}")
-    if matches is not None and (pred_reverse is not None or len(matches) != B):
+    if matches is not None and (pred_reverse is not None or not isinstance(matches, (list, tuple))
+                                or len(matches) != B):
         raise ShapeError(f"matches expected a list of {B} Matches (and no pred_reverse), got "
                          f"{type(matches).__name__} of {len(matches) if hasattr(matches, '__len__') else '?'}")
     if not 0 < keep <= 1:

@@ -74,11 +74,14 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     precs.append(p)
             if pred.has_desc:
                 patch = getattr(model, "module", model).cfg.patch_size
-                coarse.append(patch_matching_loss(pred.desc1, pred.desc2, v1["corr"], patch)[1] * len(its))
+                for b in range(len(its)):  # pairs without >= 4 co-visible cells are left out (NaN)
+                    acc = patch_matching_loss(pred.desc1[b:b + 1], pred.desc2[b:b + 1], v1["corr"][b:b + 1], patch)[1]
+                    if not math.isnan(acc):
+                        coarse.append(acc)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
-            "coarse_acc": sum(coarse) / len(rot) if coarse else float("nan"), "pairs": float(len(rot))}
+            "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"), "pairs": float(len(rot))}

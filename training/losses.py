@@ -99,9 +99,8 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
         target = torch.arange(len(idx1), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
         accs.append((logits.argmax(1) == target).float().mean())
-    if not losses:
-        zero = desc1.sum() * 0
-        return zero, 0.0
+    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
+        return (desc1.sum() + desc2.sum()) * 0, 0.0
     return torch.stack(losses).mean(), float(torch.stack(accs).mean())
 
 
@@ -125,7 +124,10 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     find the other view's content (LoFTR's coarse level; MASt3R gets it from DUSt3R's pretraining instead).
 
     desc1 [B, H1, W1, D], desc2 [B, H2, W2, D]; corr [B, H1, W1, 2] (u, v) in view 2, NaN where not
-    co-visible. Returns (loss, top-1 accuracy) over pairs with >= 4 co-visible cells.
+    co-visible (pixel centres at integer coordinates). Several view-1 cells may fall in one view-2 cell (a
+    change of scale): backwards, each hit view-2 cell has all of them as positives (multi-positive InfoNCE).
+    Returns (loss, top-1 accuracy of the forward direction) over pairs with >= 4 co-visible cells; the
+    accuracy is NaN when no pair has them.
     """
     B, H1, W1, D = desc1.shape
     H2, W2 = desc2.shape[1:3]
@@ -138,17 +140,22 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     losses, accs = [], []
     for b in range(B):
         u, v = centre[b, :, 0], centre[b, :, 1]
-        ok = torch.isfinite(u) & torch.isfinite(v) & (u >= 0) & (u < W2) & (v >= 0) & (v < H2)
+        ok = torch.isfinite(u) & torch.isfinite(v) & (u > -0.5) & (u < W2 - 0.5) & (v > -0.5) & (v < H2 - 0.5)
         idx1 = ok.nonzero()[:, 0]
         if idx1.numel() < 4:
             continue
-        idx2 = ((v[idx1] // patch) * w2 + (u[idx1] // patch)).long()
+        col = torch.div(u[idx1] + 0.5, patch, rounding_mode="floor").long()  # the cell of the nearest pixel
+        row = torch.div(v[idx1] + 0.5, patch, rounding_mode="floor").long()
+        idx2 = row * w2 + col
         logits = c1[b, idx1] @ c2[b].T / temperature  # [n, h2*w2]
         fwd = F.cross_entropy(logits, idx2)
-        idx2u, first = _unique_first(idx2)  # backwards: each hit view-2 cell against all view-1 cells
-        back = F.cross_entropy(c2[b, idx2u] @ c1[b].T / temperature, idx1[first])
+        idx2u, inv = torch.unique(idx2, return_inverse=True)  # backwards: each hit view-2 cell vs all view-1 cells
+        back_logits = c2[b, idx2u] @ c1[b].T / temperature  # [U, h1*w1]
+        pos = torch.zeros_like(back_logits, dtype=torch.bool)
+        pos[inv, idx1] = True
+        back = (back_logits.logsumexp(1) - back_logits.masked_fill(~pos, float("-inf")).logsumexp(1)).mean()
         losses.append(0.5 * (fwd + back))
         accs.append((logits.argmax(1) == idx2).float().mean())
-    if not losses:
-        return desc1.sum() * 0, 0.0
+    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
+        return (desc1.sum() + desc2.sum()) * 0, float("nan")
     return torch.stack(losses).mean(), float(torch.stack(accs).mean())

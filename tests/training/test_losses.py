@@ -1,3 +1,5 @@
+import math
+
 import torch
 
 import pointmap as pm
@@ -147,8 +149,34 @@ def test_patch_matching_loss_without_correspondences_is_a_differentiable_zero_an
     desc = torch.nn.functional.normalize(torch.randn(1, 8, 8, 8), dim=-1).requires_grad_()
     loss, acc = patch_matching_loss(desc, desc, torch.full((1, 8, 8, 2), float("nan")), 4)
     loss.backward()
-    assert float(loss) == 0 and acc == 0.0 and desc.grad is not None
+    assert float(loss) == 0 and math.isnan(acc) and desc.grad is not None
     import pytest
 
     with pytest.raises(ValueError, match="multiples of the patch size 16"):
         patch_matching_loss(desc, desc, torch.zeros(1, 8, 8, 2), 16)
+
+
+def test_patch_matching_loss_has_no_floor_when_several_view_one_cells_fall_in_one_view_two_cell():
+    torch.manual_seed(2)
+    p, D = 4, 32
+    codes2 = torch.nn.functional.normalize(torch.randn(1, 2, 2, D), dim=-1)
+    codes1 = codes2.repeat_interleave(2, 1).repeat_interleave(2, 2)  # view 2 zoomed out 2x: 4 cells -> 1
+    ys, xs = torch.meshgrid(torch.arange(4 * p).float(), torch.arange(4 * p).float(), indexing="ij")
+    corr = torch.stack([xs / 2, ys / 2], -1)[None]
+    d1 = torch.nn.functional.normalize(codes1.repeat_interleave(p, 1).repeat_interleave(p, 2), dim=-1)
+    d2 = torch.nn.functional.normalize(codes2.repeat_interleave(p, 1).repeat_interleave(p, 2), dim=-1)
+    loss, acc = patch_matching_loss(d1, d2, corr, p, temperature=0.05)
+    assert acc == 1.0 and float(loss) < 0.05  # one-positive backwards would stay at ln 4 / 2 = 0.69
+
+
+def test_patch_matching_loss_assigns_a_correspondence_to_the_cell_of_its_nearest_pixel():
+    p, D = 4, 8
+    codes = torch.nn.functional.normalize(torch.eye(D)[:4].reshape(1, 2, 2, D), dim=-1)
+    d = codes.repeat_interleave(p, 1).repeat_interleave(p, 2)
+    corr = torch.full((1, 2 * p, 2 * p, 2), float("nan"))
+    centres = [(r * p + p // 2, c * p + p // 2) for r in range(2) for c in range(2)]
+    for r, c in centres:  # every centre maps to itself, except that u = 3.7 lies in pixel 4, the second cell
+        corr[0, r, c] = torch.tensor([float(c), float(r)])
+    corr[0, p // 2, p // 2] = torch.tensor([p - 0.3, p // 2])
+    _, acc = patch_matching_loss(d, d, corr, p, temperature=0.05)
+    assert acc == 0.75  # the moved centre now targets cell 1 while its descriptor is cell 0's
