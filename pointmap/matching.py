@@ -141,13 +141,16 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     return Matches(xy1, xy2, score)
 
 
-def match_coarse(pred: PairPrediction, patch: int = 16) -> Matches:
+def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> Matches:
     """Reciprocal matches between patch cells (batch size 1): descriptors averaged over each ``patch`` x
     ``patch`` cell and re-normalised, mutual nearest neighbours by dot product (all cells, brute force).
 
-    Coordinates are cell centres; score is sqrt of the two cells' mean descriptor confidences. Coarser
-    than ``match`` (one match per cell at most) but robust when pixel descriptors are not yet distinctive:
-    the cell descriptor is what the coarse matching loss (training.losses.patch_matching_loss) trains.
+    Coarse to fine: xy1 is the centre pixel (``patch // 2``) of a view-1 cell; xy2 is the centre of the matched
+    view-2 cell, or with ``refine`` the pixel whose descriptor best matches xy1's within that cell grown by half a
+    cell on each side (cell centres alone cap PnP at a few degrees). Score: sqrt of the two cells' mean
+    descriptor confidences. Coarser than ``match`` (one match per cell at most) but robust when pixel
+    descriptors are not yet distinctive: the cell descriptor is what the coarse matching loss
+    (training.losses.patch_matching_loss) trains.
     """
     if pred.batch_size != 1:
         raise ShapeError(f"match_coarse expects a single pair (batch size 1), got batch size {pred.batch_size}")
@@ -172,7 +175,26 @@ def match_coarse(pred: PairPrediction, patch: int = 16) -> Matches:
     a, b = reciprocal_nn_bruteforce(f1[ok1], f2[ok2], "dot")
     c1, c2 = ok1[a], ok2[b]
 
-    def centre(c, w):
-        return torch.stack([(c % w) * patch, (c // w) * patch], -1).float() + (patch - 1) / 2
+    xy1 = torch.stack([(c1 % w1) * patch, (c1 // w1) * patch], -1) + patch // 2
+    xy2 = torch.stack([(c2 % w2) * patch, (c2 // w2) * patch], -1).float() + (patch - 1) / 2
+    if refine:
+        xy2 = _refine_in_cells(d1[xy1[:, 1], xy1[:, 0]], d2, c2, w2, patch)
+    return Matches(xy1.float(), xy2, (s1[c1] * s2[c2]).clamp_min(0).sqrt())
 
-    return Matches(centre(c1, w1), centre(c2, w2), (s1[c1] * s2[c2]).clamp_min(0).sqrt())
+
+def _refine_in_cells(q: torch.Tensor, d2: torch.Tensor, cells: torch.Tensor, w2: int, patch: int) -> torch.Tensor:
+    """For each query descriptor q[k] [M, D], the pixel (u, v) of d2 [H, W, D] with the highest dot product in
+    view-2 cell ``cells[k]`` grown by patch // 2 on each side (clipped to the image)."""
+    H, W = d2.shape[:2]
+    half = patch // 2
+    off = torch.arange(-half, patch + half)
+    top, left = (cells // w2) * patch, (cells % w2) * patch
+    rows = (top[:, None] + off).clamp(0, H - 1)   # [M, S]
+    cols = (left[:, None] + off).clamp(0, W - 1)  # [M, S]
+    win = d2[rows[:, :, None], cols[:, None, :]]  # [M, S, S, D]
+    sim = (win * q[:, None, None, :]).sum(-1).flatten(1)  # [M, S*S]
+    best = sim.argmax(1)
+    S = off.numel()
+    r, c = best // S, best % S
+    ar = torch.arange(len(cells))
+    return torch.stack([cols[ar, c], rows[ar, r]], -1).float()

@@ -158,9 +158,29 @@ def test_coarse_matching_pairs_the_cells_whose_pooled_descriptors_agree():
     pred = pm.PairPrediction(p1[None].float(), p2[None].float(), torch.ones(1, H, W), torch.ones(1, H, W),
                              desc1=pix(codes1), desc2=pix(codes2), desc_conf1=torch.ones(1, H, W),
                              desc_conf2=torch.ones(1, H, W))
-    m = match_coarse(pred, patch=p)
+    m = match_coarse(pred, patch=p, refine=False)  # xy1: a cell's centre pixel; xy2: the matched cell's centre
     assert len(m) >= h * (w - 1)
-    shifted = (m.xy2 - m.xy1 == torch.tensor([float(p), 0.0])).all(-1)
-    assert shifted.float().mean() > 0.9 and float(m.xy1[0, 0]) % p == (p - 1) / 2
+    shifted = (m.xy2 - m.xy1 == torch.tensor([p - 0.5, -0.5])).all(-1)
+    assert shifted.float().mean() > 0.9 and float(m.xy1[0, 0]) % p == p // 2
     with pytest.raises(pm.ShapeError, match="multiples of patch"):
         match_coarse(pred, patch=7)
+
+
+def test_coarse_matches_refined_inside_the_matched_cell_land_on_the_exact_pixel():
+    from pointmap.matching import match_coarse
+
+    torch.manual_seed(3)
+    p, D, dx, dy = 8, 64, 5, 3  # view 2 is view 1 moved by (5, 3) pixels: most cell matches straddle cells
+    big = torch.nn.functional.normalize(torch.randn(H + dy, W + dx, D), dim=-1)
+    d1, d2 = big[dy:, dx:], big[:H, :W]  # pixel (u, v) of view 1 is pixel (u + 5, v + 3) of view 2
+    p1, p2, *_ = two_views()
+    ones = torch.ones(1, H, W)
+    pred = pm.PairPrediction(p1[None].float(), p2[None].float(), ones, ones, desc1=d1[None], desc2=d2[None],
+                             desc_conf1=ones, desc_conf2=ones)
+    m = match_coarse(pred, patch=p)
+    inside = (m.xy1[:, 0] + dx < W) & (m.xy1[:, 1] + dy < H)
+    exact = (m.xy2 - m.xy1 == torch.tensor([float(dx), float(dy)])).all(-1)
+    coarse = match_coarse(pred, patch=p, refine=False)
+    near = ((coarse.xy2 - m.xy1 - torch.tensor([float(dx), float(dy)])).abs() <= p).all(-1)  # coarse cell right or adjacent
+    assert int(inside.sum()) >= 20 and bool(exact[inside & near].all()) and float(exact[inside].float().mean()) > 0.9
+    assert not bool(((coarse.xy2 - coarse.xy1) == torch.tensor([float(dx), float(dy)])).all(-1).any())
