@@ -8,7 +8,7 @@ import torch
 
 from pointmap.geometry.cameras import invert_rigid
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
-from pointmap.matching import match
+from pointmap.matching import match, match_coarse
 from pointmap.pose import relative_pose
 from training.losses import patch_matching_loss
 
@@ -46,8 +46,11 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, 
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred). ``coarse_acc``:
-    top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches."""
+    top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
+    ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
+    pointmap, PnP with the true K (MASt3R-style; models with descriptors)."""
     rot_err, tr_err, rels, precs, coarse = [], [], [], [], []
+    rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -78,10 +81,18 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     acc = patch_matching_loss(pred.desc1[b:b + 1], pred.desc2[b:b + 1], v1["corr"][b:b + 1], patch)[1]
                     if not math.isnan(acc):
                         coarse.append(acc)
+                    est = relative_pose(pred[b], K2=v2["K"][b].double(), matches=[match_coarse(pred[b], patch)])[0]
+                    good = bool(torch.isfinite(est).all())
+                    gt = cam2world_gt[b]
+                    rot_m.append(float(relative_rotation_error_deg(est[:3, :3].double(), gt[:3, :3])) if good else 180.0)
+                    tr_m.append(float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3])) if good else 180.0)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
-            "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"), "pairs": float(len(rot))}
+            "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
+            **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
+                "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m)} if rot_m else {}),
+            "pairs": float(len(rot))}

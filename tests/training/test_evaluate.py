@@ -21,3 +21,4 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert 0 <= ev["rot_err_med"] <= 180 and 0 <= ev["trans_err_med"] <= 180
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
+    assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100
