@@ -19,7 +19,7 @@ import torch
 import torch.distributed as dist
 from tqdm.auto import tqdm
 
-from pointmap.atomic import atomic_path
+from pointmap.atomic import atomic_open, atomic_path
 from training.config import TrainConfig
 
 
@@ -150,12 +150,25 @@ class Logger:
         if not self.enabled:
             return
         path = self.out / f"{kind}.csv"
+        fields = ["step", "time", *values.keys()]
+        row = {"step": step, "time": round(time.time(), 1), **values}
+        if path.exists():
+            with open(path, newline="") as fh:
+                header = next(csv.reader(fh), [])
+            if header != fields:  # columns changed (e.g. a resumed run with new metrics): one header for all rows
+                with open(path, newline="") as fh:
+                    rows = list(csv.DictReader(fh))
+                fields = header + [f for f in fields if f not in header]
+                with atomic_open(path, "w") as fh:
+                    w = csv.DictWriter(fh, fieldnames=fields)
+                    w.writeheader()
+                    w.writerows(rows)
         new = not path.exists()
         with open(path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=["step", "time", *values.keys()])
+            w = csv.DictWriter(fh, fieldnames=fields)
             if new:
                 w.writeheader()
-            w.writerow({"step": step, "time": round(time.time(), 1), **values})
+            w.writerow(row)
         if self.tb is not None:
             for k, v in values.items():
                 self.tb.add_scalar(f"{kind}/{k}", v, step)

@@ -25,7 +25,7 @@ def last_eval(path: Path) -> dict:
         return {}
     with open(path) as fh:
         rows = list(csv.DictReader(fh))
-    return {k: float(v) for k, v in rows[-1].items()} if rows else {}
+    return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")} if rows else {}
 
 
 def main(argv=None) -> int:

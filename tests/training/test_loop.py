@@ -135,3 +135,17 @@ def test_fresh_heads_init_without_init_is_refused():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--init_heads", "fresh"])
 
+
+
+def test_the_csv_log_keeps_one_header_when_a_resumed_run_adds_columns(tmp_path):
+    import csv
+
+    from training.loop import Logger
+
+    log = Logger(tmp_path, True)
+    log.log("eval", 500, {"RRA15": 10.0, "pairs": 139.0})
+    log.log("eval", 1000, {"RRA15": 12.0, "coarse_acc": 0.1, "pairs": 139.0})
+    with open(tmp_path / "eval.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["pairs"] for r in rows] == ["139.0", "139.0"]
+    assert [r["coarse_acc"] for r in rows] == ["", "0.1"] and None not in rows[1]
