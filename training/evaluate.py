@@ -96,3 +96,44 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
                 "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m)} if rot_m else {}),
             "pairs": float(len(rot))}
+
+
+def main(argv=None) -> int:
+    """``python -m training.evaluate --model M --data HELDOUT [--size S] [--pairs N]``: the held-out metrics of
+    a training checkpoint (``.pt``) or of model weights (a name or a file ``pm.load_model`` takes)."""
+    import argparse
+    import json
+    import sys
+    from pathlib import Path
+
+    import pointmap as pm
+    from training.mix import open_pairs
+
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("--model", required=True)
+    p.add_argument("--data", required=True, help="held-out shards (never trained on)")
+    p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    p.add_argument("--pairs", type=int, default=139)
+    p.add_argument("--threads", type=int, default=0)
+    a = p.parse_args(argv)
+    if a.threads > 0:
+        torch.set_num_threads(a.threads)
+    if a.model.endswith(".pt"):
+        from training.train import _init_state
+
+        state, cfg, _ = _init_state(Path(a.model))
+        model = pm.PointmapNet(cfg)
+        model.load_state_dict(state)
+        size = a.size or 224
+    else:
+        model = pm.load_model(a.model)
+        size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+    ds = open_pairs(a.data, size=size, augment=False, split="all")
+    res = evaluate_pairs(model.eval(), ds, a.pairs)
+    print(json.dumps({"model": a.model, "size": size, **{k: round(v, 4) for k, v in res.items()}}))
+    sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

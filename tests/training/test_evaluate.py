@@ -22,3 +22,19 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100
+
+
+def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path, capsys):
+    import json
+
+    import pointmap as pm
+    from data.generate import GenConfig, generate
+    from training.evaluate import main
+
+    generate(tmp_path / "eval", GenConfig(kind="pairs", scenes=2, views=2, size=64, shard_size=1, seed=5),
+             workers=1, progress=False, log=None)
+    torch.manual_seed(0)
+    weights = pm.save_model(PointmapNet(PRESETS["test"]), tmp_path / "m.safetensors")
+    assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--size", "64", "--pairs", "2"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["size"] == 64 and 1 <= out["pairs"] <= 2 and 0 <= out["RRA15"] <= 100
