@@ -27,12 +27,17 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
 def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path, capsys):
     import json
 
+    import os
+    import subprocess
+
     import pointmap as pm
-    from data.generate import GenConfig, generate
     from training.evaluate import main
 
-    generate(tmp_path / "eval", GenConfig(kind="pairs", scenes=2, views=2, size=64, shard_size=1, seed=5),
-             workers=1, progress=False, log=None)
+    root = Path(__file__).resolve().parents[2]  # rendered in a process of its own: this one may hold a GL context
+    env = dict(os.environ, PYOPENGL_PLATFORM="egl", PYTHONPATH=str(root))
+    subprocess.run([sys.executable, "-m", "data.render", "--out", str(tmp_path / "eval"), "--kind", "pairs",
+                    "--scenes", "2", "--views", "2", "--size", "64", "--shard-size", "1", "--seed", "5", "--quiet"],
+                   cwd=root, env=env, check=True, capture_output=True, timeout=300)
     torch.manual_seed(0)
     weights = pm.save_model(PointmapNet(PRESETS["test"]), tmp_path / "m.safetensors")
     assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--size", "64", "--pairs", "2"]) == 0
