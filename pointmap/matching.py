@@ -141,6 +141,13 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     return Matches(xy1, xy2, score)
 
 
+def cell_descriptors(desc: torch.Tensor, patch: int) -> torch.Tensor:
+    """[B, H, W, D] pixel descriptors -> [B, H/patch * W/patch, D] unit cell descriptors (row-major cells):
+    the mean over each ``patch`` x ``patch`` cell, re-normalised. H and W must be multiples of ``patch``."""
+    f = torch.nn.functional.avg_pool2d(desc.float().permute(0, 3, 1, 2), patch)
+    return torch.nn.functional.normalize(f.flatten(2).transpose(1, 2), dim=-1)
+
+
 def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> Matches:
     """Reciprocal matches between patch cells (batch size 1): descriptors averaged over each ``patch`` x
     ``patch`` cell and re-normalised, mutual nearest neighbours by dot product (all cells, brute force).
@@ -161,13 +168,10 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
     if patch < 1 or H1 % patch or W1 % patch or H2 % patch or W2 % patch:
         raise ShapeError(f"descriptor maps {H1}x{W1} and {H2}x{W2} must be multiples of patch={patch}")
 
-    def cells(d, c):
-        f = torch.nn.functional.avg_pool2d(d.permute(2, 0, 1)[None], patch)[0]
-        conf = torch.nn.functional.avg_pool2d(c.float()[None, None], patch)[0, 0]
-        return torch.nn.functional.normalize(f.flatten(1).T, dim=-1), conf.reshape(-1), f.shape[-1]
-
-    f1, s1, w1 = cells(d1, pred.desc_conf1[0])
-    f2, s2, w2 = cells(d2, pred.desc_conf2[0])
+    w1, w2 = W1 // patch, W2 // patch
+    f1, f2 = cell_descriptors(d1[None], patch)[0], cell_descriptors(d2[None], patch)[0]
+    s1 = torch.nn.functional.avg_pool2d(pred.desc_conf1.float()[:, None], patch).reshape(-1)  # mean confidences
+    s2 = torch.nn.functional.avg_pool2d(pred.desc_conf2.float()[:, None], patch).reshape(-1)
     ok1, ok2 = torch.isfinite(f1).all(-1).nonzero()[:, 0], torch.isfinite(f2).all(-1).nonzero()[:, 0]
     if ok1.numel() == 0 or ok2.numel() == 0:
         empty = torch.zeros(0, 2)

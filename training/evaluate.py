@@ -112,23 +112,33 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("--model", required=True)
     p.add_argument("--data", required=True, help="held-out shards (never trained on)")
-    p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
-    p.add_argument("--pairs", type=int, default=139)
+    p.add_argument("--size", type=int, default=None,
+                   help="input size, a multiple of 16 (default: the size the model was trained at)")
+    p.add_argument("--pairs", type=int, default=139, help="the first N held-out pairs")
     p.add_argument("--threads", type=int, default=0)
     a = p.parse_args(argv)
     if a.threads > 0:
         torch.set_num_threads(a.threads)
-    if a.model.endswith(".pt"):
-        from training.train import _init_state
+    if a.pairs < 1:
+        p.error(f"--pairs expected >= 1, got {a.pairs}")
+    try:
+        if a.model.endswith(".pt"):  # a training checkpoint: architecture, weights and training size inside
+            from pointmap.checkpoint import load_state_strict, official_to_ours
+            from training.loop import load_checkpoint
 
-        state, cfg, _ = _init_state(Path(a.model))
-        model = pm.PointmapNet(cfg)
-        model.load_state_dict(state)
-        size = a.size or 224
-    else:
-        model = pm.load_model(a.model)
-        size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
-    ds = open_pairs(a.data, size=size, augment=False, split="all")
+            ck = load_checkpoint(Path(a.model))
+            if ck.get("kind") != "train":
+                raise pm.CheckpointError(f"{a.model} is a {ck.get('kind')!r} checkpoint; evaluate a 'train' one")
+            model = pm.PointmapNet(pm.ModelConfig.from_dict(ck["model_config"]))
+            load_state_strict(model, official_to_ours(ck["model"]), source=a.model)
+            size = a.size or int(ck["train_config"]["size"])
+        else:
+            model = pm.load_model(a.model)
+            size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+        ds = open_pairs(a.data, size=size, augment=False, split="all")
+    except (pm.PointmapError, OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     res = evaluate_pairs(model.eval(), ds, a.pairs)
     print(json.dumps({"model": a.model, "size": size, **{k: round(v, 4) for k, v in res.items()}}))
     sys.stdout.flush()

@@ -20,6 +20,7 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from pointmap.atomic import atomic_open, atomic_path
+from pointmap.errors import CheckpointError
 from training.config import TrainConfig
 
 
@@ -123,7 +124,19 @@ def save_checkpoint(path: Path, model, optimizer, scheduler, step: int, cfg: Tra
 
 
 def load_checkpoint(path: Path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=True)
+    """A training checkpoint (``save_checkpoint``), loaded with ``weights_only=True``; CheckpointError (one line)
+    when the file is not one."""
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # noqa: BLE001 - torch reports corrupt or foreign files through many types
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path} is not a readable training checkpoint: {first}") from e
+    if not isinstance(ck, dict) or not {"model", "model_config", "step"} <= set(ck):
+        raise CheckpointError(f"{path} is not a pointmap training checkpoint (expected keys model, model_config, "
+                              f"step; got {sorted(ck) if isinstance(ck, dict) else type(ck).__name__})")
+    return ck
 
 
 def _unwrap(model):
@@ -137,6 +150,7 @@ class Logger:
     def __init__(self, out: Path, enabled: bool) -> None:
         self.enabled, self.out = enabled, out
         self.tb = None
+        self._fields: dict[str, list] = {}  # the header each CSV has on disk, once known
         if enabled:
             out.mkdir(parents=True, exist_ok=True)
             try:
@@ -152,17 +166,20 @@ class Logger:
         path = self.out / f"{kind}.csv"
         fields = ["step", "time", *values.keys()]
         row = {"step": step, "time": round(time.time(), 1), **values}
-        if path.exists():
+        known = self._fields.get(kind)
+        if known is not None and set(fields) <= set(known):
+            fields = known
+        elif path.exists():
             with open(path, newline="") as fh:
-                header = next(csv.reader(fh), [])
+                reader = csv.DictReader(fh)
+                header, rows = list(reader.fieldnames or []), list(reader)
             if header != fields:  # columns changed (e.g. a resumed run with new metrics): one header for all rows
-                with open(path, newline="") as fh:
-                    rows = list(csv.DictReader(fh))
                 fields = header + [f for f in fields if f not in header]
                 with atomic_open(path, "w") as fh:
                     w = csv.DictWriter(fh, fieldnames=fields)
                     w.writeheader()
                     w.writerows(rows)
+        self._fields[kind] = fields
         new = not path.exists()
         with open(path, "a", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=fields)

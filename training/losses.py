@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from pointmap.geometry.cameras import depth_to_points_cam, invert_rigid, transform_points
+from pointmap.matching import cell_descriptors
 
 
 def patchify(img: torch.Tensor, patch: int) -> torch.Tensor:
@@ -134,8 +135,7 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     if H1 % patch or W1 % patch or H2 % patch or W2 % patch:
         raise ValueError(f"descriptor maps {H1}x{W1}, {H2}x{W2} are not multiples of the patch size {patch}")
     h1, w1, w2 = H1 // patch, W1 // patch, W2 // patch
-    c1 = F.normalize(F.avg_pool2d(desc1.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
-    c2 = F.normalize(F.avg_pool2d(desc2.float().permute(0, 3, 1, 2), patch).flatten(2).transpose(1, 2), dim=-1)
+    c1, c2 = cell_descriptors(desc1, patch), cell_descriptors(desc2, patch)
     centre = corr[:, patch // 2::patch, patch // 2::patch].reshape(B, h1 * w1, 2)  # corr of each cell's centre
     losses, accs = [], []
     for b in range(B):

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pointmap.atomic import write_bytes
+from pointmap.atomic import atomic_open
 from pointmap.errors import ShapeError
 
 SH_C0 = 0.28209479177387814
@@ -137,7 +137,9 @@ class Gaussians:
                           g.log_scales, g.quats], dim=1).numpy().astype("<f4")
         header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
         header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
-        write_bytes(path, header.encode("ascii") + np.ascontiguousarray(data).tobytes())
+        with atomic_open(path, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(np.ascontiguousarray(data).tobytes())
         return path
 
     @classmethod

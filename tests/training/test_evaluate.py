@@ -26,7 +26,6 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
 
 def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path, capsys):
     import json
-
     import os
     import subprocess
 
@@ -43,3 +42,16 @@ def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path
     assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--size", "64", "--pairs", "2"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["size"] == 64 and 1 <= out["pairs"] <= 2 and 0 <= out["RRA15"] <= 100
+
+
+def test_the_evaluate_command_refuses_missing_data_and_foreign_checkpoints_in_one_line(tmp_path, capsys):
+    import pointmap as pm
+    from training.evaluate import main
+
+    weights = pm.save_model(PointmapNet(PRESETS["test"]), tmp_path / "m.safetensors")
+    assert main(["--model", str(weights), "--data", str(tmp_path / "nowhere")]) == 2
+    assert "error:" in capsys.readouterr().err
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    assert main(["--model", str(tmp_path / "junk.pt"), "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and len(err.strip().splitlines()) == 1
