@@ -34,6 +34,8 @@ class TrainConfig:
     temperature: float = 0.05
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
     coarse_temperature: float = 0.1
+    attn_weight: float = 0.0       # weight of the cross-attention supervision (losses.cross_attention_loss; 0 = off)
+    attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
     eval_every: int = 1000
@@ -71,6 +73,8 @@ class TrainConfig:
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:
             p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
+        if cfg.attn_heads < 1:
+            p.error(f"--attn_heads expected >= 1 (supervised heads per decoder layer), got {cfg.attn_heads}")
         if not cfg.data:
             p.error("--data is required (a directory of shards written by python -m data.render)")
         return cfg

@@ -159,3 +159,68 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
         return (desc1.sum() + desc2.sum()) * 0, float("nan")
     return torch.stack(losses).mean(), float(torch.stack(accs).mean())
+
+
+def cell_correspondence_counts(corr: torch.Tensor, patch: int, hw2: tuple) -> torch.Tensor:
+    """How many pixels of each view-1 patch cell land in each view-2 patch cell: [B, N1, N2] float.
+
+    corr [B, H1, W1, 2] (u, v) in an H2 x W2 view 2, NaN where not co-visible; cells are row-major
+    ``patch`` x ``patch`` blocks (the token order). Row i normalised is where view-1 token i's content lies
+    among view 2's tokens; column j normalised, where view-2 token j's content lies among view 1's."""
+    B, H1, W1, _ = corr.shape
+    H2, W2 = hw2
+    if H1 % patch or W1 % patch or H2 % patch or W2 % patch:
+        raise ValueError(f"images {H1}x{W1}, {H2}x{W2} are not multiples of the patch size {patch}")
+    n1, n2 = (H1 // patch) * (W1 // patch), (H2 // patch) * (W2 // patch)
+    u, v = corr[..., 0], corr[..., 1]
+    ok = torch.isfinite(u) & torch.isfinite(v) & (u > -0.5) & (u < W2 - 0.5) & (v > -0.5) & (v < H2 - 0.5)
+    ys, xs = torch.meshgrid(torch.arange(H1), torch.arange(W1), indexing="ij")
+    cell1 = ((ys // patch) * (W1 // patch) + xs // patch).expand(B, H1, W1)
+    ui = torch.nan_to_num(u + 0.5).floor().long().clamp(0, W2 - 1)  # the nearest pixel, then its cell
+    vi = torch.nan_to_num(v + 0.5).floor().long().clamp(0, H2 - 1)
+    cell2 = (vi // patch) * (W2 // patch) + ui // patch
+    b = torch.arange(B).view(B, 1, 1).expand(B, H1, W1)
+    flat = (b * n1 + cell1) * n2 + cell2
+    counts = torch.bincount(flat[ok], minlength=B * n1 * n2)
+    return counts.view(B, n1, n2).float()
+
+
+def _soft_ce(scores: torch.Tensor, target: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """KL(target || softmax(scores)) averaged over heads and the selected rows; scores [B, h, N, M],
+    target [B, N, M] (rows sum to 1 where selected), rows [B, N] bool."""
+    logp = torch.log_softmax(scores.float(), dim=-1)
+    t = target[:, None]
+    kl = (t * (torch.log(t.clamp_min(1e-12)) - logp)).sum(-1)  # [B, h, N]
+    w = rows[:, None].float().expand_as(kl)
+    return (kl * w).sum() / w.sum().clamp_min(1)
+
+
+def cross_attention_loss(scores12: list, scores21: list, counts: torch.Tensor, min_pixels: int = 32):
+    """Supervise where the decoders' cross-attention looks: the attention of each view-1 token over view 2's
+    tokens should follow where that token's pixels land in view 2 (and back), as the ground truth says.
+
+    scores12: per supervised layer, [B, h, N1, N2] pre-softmax logits of view-1 queries over view-2 keys
+    (``CrossAttention.scores``); scores21 likewise [B, h, N2, N1]; counts [B, N1, N2] from
+    ``cell_correspondence_counts``. Only tokens with >= ``min_pixels`` co-visible pixels take part. The loss is
+    the KL divergence from the correspondence distribution (0 when attention matches it). Returns (loss,
+    top-1 accuracy of the last supervised view-1 layer, averaged over its heads; NaN when no token takes part).
+
+    Why: DUSt3R's second head must express view 2's points in view 1's frame, which the network learns by
+    attending to the corresponding view-1 tokens; with millions of pairs that emerges from the regression
+    loss alone, with the few thousand a CPU affords it does not (the decoders ignored the other view). This
+    gives the attention its answer directly, the way LoFTR-style matchers supervise their coarse level.
+    """
+    if not scores12 and not scores21:
+        raise ValueError("cross_attention_loss expected at least one layer of scores, got none")
+    rows1 = counts.sum(2) >= min_pixels
+    rows2 = counts.sum(1) >= min_pixels
+    t12 = counts / counts.sum(2, keepdim=True).clamp_min(1)
+    ct = counts.transpose(1, 2)
+    t21 = ct / ct.sum(2, keepdim=True).clamp_min(1)
+    terms = [_soft_ce(s, t12, rows1) for s in scores12] + [_soft_ce(s, t21, rows2) for s in scores21]
+    loss = torch.stack(terms).mean()
+    acc = float("nan")
+    if scores12 and rows1.any():
+        hit = scores12[-1].argmax(-1) == t12.argmax(-1)[:, None]  # [B, h, N1]
+        acc = float(hit.float().mean(1)[rows1].mean())
+    return loss, acc

@@ -16,7 +16,8 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
-from training.losses import matching_loss, patch_matching_loss, regression_loss
+from training.losses import (cell_correspondence_counts, cross_attention_loss, matching_loss, patch_matching_loss,
+                             regression_loss)
 from training.mix import limit_rotation, open_pairs
 
 
@@ -62,10 +63,45 @@ def collate(items):
     return one(0), one(1)
 
 
+class CrossAttentionTap:
+    """Records the inputs of every decoder cross-attention in a forward pass that builds a graph (forward
+    hooks; inference and evaluation record nothing), so a loss can ask where each layer's heads looked."""
+
+    def __init__(self, model) -> None:
+        net = getattr(model, "module", model)
+        self.modules = {1: [b.cross_attn for b in net.dec_blocks], 2: [b.cross_attn for b in net.dec_blocks2]}
+        self.inputs: dict = {1: [], 2: []}
+        for view, mods in self.modules.items():
+            for m in mods:
+                m.register_forward_hook(self._hook(view, m))
+
+    def _hook(self, view, module):
+        def hook(mod, args, out):
+            if torch.is_grad_enabled():
+                self.inputs[view].append((module, args))
+        return hook
+
+    def clear(self) -> None:
+        self.inputs = {1: [], 2: []}
+
+    def scores(self, heads: int) -> tuple[list, list]:
+        """Logits [B, heads, Nq, Nk] per decoder layer: (view-1 queries over view 2, view-2 queries over view 1)."""
+        return tuple([m.scores(*args, heads=heads) for m, args in self.inputs[v]] for v in (1, 2))
+
+
 def make_step(cfg: TrainConfig):
+    tap = {}
+
     def step_fn(model, batch, step):
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # a function of the step: resumable
         view1, view2 = batch
+        if cfg.attn_weight > 0 and "tap" not in tap:
+            heads = getattr(model, "module", model).cfg.dec_heads
+            if cfg.attn_heads > heads:
+                raise ValueError(f"--attn_heads {cfg.attn_heads} exceeds the decoder's {heads} heads")
+            tap["tap"] = CrossAttentionTap(model)
+        if "tap" in tap:
+            tap["tap"].clear()
         pred = model(view1["img"], view2["img"])
         loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
         if pred.has_desc and cfg.match_weight > 0:
@@ -77,6 +113,14 @@ def make_step(cfg: TrainConfig):
             lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)
             loss = loss + cfg.coarse_weight * lc
             details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
+        if cfg.attn_weight > 0:
+            net = getattr(model, "module", model)
+            counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
+            s12, s21 = tap["tap"].scores(cfg.attn_heads)
+            tap["tap"].clear()
+            la, acc = cross_attention_loss(s12, s21, counts, min_pixels=net.cfg.patch_size ** 2 // 8)
+            loss = loss + cfg.attn_weight * la
+            details.update(attn_loss=float(la.detach()), attn_acc=acc)
         return loss, details
 
     return step_fn

@@ -112,17 +112,29 @@ class CrossAttention(nn.Module):
         self.projv = nn.Linear(dim, dim)
         self.proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, rope_x: tuple, rope_y: tuple) -> torch.Tensor:
+    def _qk(self, x: torch.Tensor, y: torch.Tensor, rope_x: tuple, rope_y: tuple):
         B, Nq, C = x.shape
-        Nk = y.shape[1]
         h = self.heads
         q = self.projq(x).reshape(B, Nq, h, C // h).transpose(1, 2)
-        k = self.projk(y).reshape(B, Nk, h, C // h).transpose(1, 2)
-        v = self.projv(y).reshape(B, Nk, h, C // h).transpose(1, 2)
-        q = apply_rope(q, *rope_x)
-        k = apply_rope(k, *rope_y)
+        k = self.projk(y).reshape(B, y.shape[1], h, C // h).transpose(1, 2)
+        return apply_rope(q, *rope_x), apply_rope(k, *rope_y)
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor, rope_x: tuple, rope_y: tuple) -> torch.Tensor:
+        B, Nq, C = x.shape
+        q, k = self._qk(x, y, rope_x, rope_y)
+        v = self.projv(y).reshape(B, y.shape[1], self.heads, C // self.heads).transpose(1, 2)
         x = F.scaled_dot_product_attention(q, k, v)
         return self.proj(x.transpose(1, 2).reshape(B, Nq, C))
+
+    def scores(self, x: torch.Tensor, y: torch.Tensor, rope_x: tuple, rope_y: tuple,
+               heads: int | None = None) -> torch.Tensor:
+        """Pre-softmax attention logits [B, heads, Nq, Nk] of the first ``heads`` heads (all by default), the
+        ones ``forward`` softmaxes: where each query token of one view looks in the other view (training
+        supervises them with ground-truth correspondences, training.losses.cross_attention_loss)."""
+        q, k = self._qk(x, y, rope_x, rope_y)
+        if heads is not None:
+            q, k = q[:, :heads], k[:, :heads]
+        return (q @ k.transpose(-2, -1)) * q.shape[-1] ** -0.5
 
 
 class Block(nn.Module):

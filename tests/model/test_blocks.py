@@ -72,3 +72,19 @@ def test_confidence_is_one_plus_exp_and_descriptor_confidence_is_exp():
 def test_dpt_hooks_are_encoder_output_and_decoder_layers_at_half_three_quarters_and_end():
     assert PRESETS["dust3r_512_dpt"].dpt_hooks == (0, 6, 9, 12)
     assert PRESETS["mast3r_512"].dpt_hooks == (0, 6, 9, 12)
+
+
+def test_cross_attention_scores_are_the_logits_forward_softmaxes():
+    from pointmap.model.blocks import CrossAttention, RopeCache
+
+    torch.manual_seed(0)
+    att = CrossAttention(32, 4)
+    x, y = torch.randn(2, 6, 32), torch.randn(2, 12, 32)
+    rope = RopeCache(100.0)
+    rx, ry = rope(2, 3, 8, "cpu", torch.float32), rope(3, 4, 8, "cpu", torch.float32)
+    s = att.scores(x, y, rx, ry)  # [2, 4, 6, 12]
+    v = att.projv(y).reshape(2, 12, 4, 8).transpose(1, 2)
+    by_hand = att.proj((s.softmax(-1) @ v).transpose(1, 2).reshape(2, 6, 32))
+    assert s.shape == (2, 4, 6, 12)
+    assert torch.allclose(att(x, y, rx, ry), by_hand, atol=1e-5)
+    assert torch.equal(att.scores(x, y, rx, ry, heads=2), s[:, :2])

@@ -89,6 +89,25 @@ def test_the_coarse_matching_loss_is_added_with_its_weight_when_switched_on(tmp_
     assert abs(float(both) - float(base) - 0.5 * d1["coarse_loss"]) < 1e-4
 
 
+def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_query_projections(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    data = PlanePairs(2)
+    batch = collate([data[0], data[1]])
+    base, _ = make_step(config(tmp_path, 1))(model, batch, 0)
+    cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1)
+    step = make_step(cfg)
+    both, d = step(model, batch, 0)
+    assert d["attn_loss"] > 0 and abs(float(both) - float(base) - 0.5 * d["attn_loss"]) < 1e-4
+    both.backward()
+    assert model.dec_blocks[0].cross_attn.projq.weight.grad.abs().sum() > 0
+    assert model.dec_blocks2[-1].cross_attn.projk.weight.grad.abs().sum() > 0
+    with torch.no_grad():  # evaluation passes record nothing for the next step to pick up
+        model(batch[0]["img"], batch[1]["img"])
+    again, d2 = step(model, batch, 0)
+    assert abs(d2["attn_loss"] - d["attn_loss"]) < 1e-5
+
+
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
 def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):

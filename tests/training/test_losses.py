@@ -5,7 +5,9 @@ import torch
 import pointmap as pm
 from pointmap.geometry import depth_to_points_cam
 from training.losses import (
+    cell_correspondence_counts,
     completion_loss,
+    cross_attention_loss,
     gt_points_cam1,
     matching_loss,
     patch_matching_loss,
@@ -180,3 +182,55 @@ def test_patch_matching_loss_assigns_a_correspondence_to_the_cell_of_its_nearest
     corr[0, p // 2, p // 2] = torch.tensor([p - 0.3, p // 2])
     _, acc = patch_matching_loss(d, d, corr, p, temperature=0.05)
     assert acc == 0.75  # the moved centre now targets cell 1 while its descriptor is cell 0's
+
+
+def _shift_corr(h, w, p, dr, dc):
+    """corr of an h*p x w*p view 1 whose content sits dr cell rows lower, dc cell columns right in view 2."""
+    ys, xs = torch.meshgrid(torch.arange(h * p).float(), torch.arange(w * p).float(), indexing="ij")
+    return torch.stack([xs + dc * p, ys + dr * p], -1)[None]
+
+
+def test_cell_correspondence_counts_say_which_view_two_cell_each_view_one_cells_pixels_land_in():
+    p, h, w = 4, 3, 4
+    corr = _shift_corr(h, w, p, 1, -1)  # cell (r, c) -> (r + 1, c - 1); falls out of view 2 at the edges
+    counts = cell_correspondence_counts(corr, p, (h * p, w * p))
+    assert counts.shape == (1, h * w, h * w)
+    for r in range(h):
+        for c in range(w):
+            row = counts[0, r * w + c]
+            if r + 1 < h and c - 1 >= 0:
+                assert row[(r + 1) * w + c - 1] == p * p and row.sum() == p * p
+            else:
+                assert row.sum() == 0
+    half = cell_correspondence_counts(corr + torch.tensor([p / 2, 0.0]), p, (h * p, w * p))  # straddles two cells
+    assert half[0, 1 * w + 1, 2 * w + 0] == p * p / 2 and half[0, 1 * w + 1, 2 * w + 1] == p * p / 2
+
+
+def test_cross_attention_loss_vanishes_when_attention_follows_correspondences_and_not_otherwise():
+    p, h, w = 4, 3, 4
+    n = h * w
+    counts = cell_correspondence_counts(_shift_corr(h, w, p, 1, -1), p, (h * p, w * p))
+    sharp = torch.where(counts > 0, 30.0, -30.0)[:, None]  # [1, 1, n, n] logits peaked on the true cell
+    loss, acc = cross_attention_loss([sharp], [sharp.transpose(-1, -2)], counts, min_pixels=8)
+    assert float(loss) < 1e-6 and acc == 1.0
+    wrong = torch.roll(sharp, 1, dims=-1)
+    bad, acc_bad = cross_attention_loss([wrong], [wrong.transpose(-1, -2)], counts, min_pixels=8)
+    assert float(bad) > 10 and acc_bad == 0.0
+    flat = torch.zeros(1, 2, n, n, requires_grad=True)  # uniform attention: KL = log n for every supervised token
+    uni, _ = cross_attention_loss([flat], [flat.transpose(-1, -2)], counts, min_pixels=8)
+    assert abs(float(uni) - math.log(n)) < 1e-5
+    uni.backward()
+    assert flat.grad.abs().sum() > 0
+
+
+def test_cross_attention_loss_ignores_tokens_without_enough_covisible_pixels():
+    p, h, w = 4, 2, 2
+    corr = _shift_corr(h, w, p, 0, 0)
+    corr[0, :p, :p] = float("nan")       # cell 0: no partner
+    corr[0, :p, p:p + 2] = float("nan")  # cell 1: only half of its pixels are co-visible
+    counts = cell_correspondence_counts(corr, p, (h * p, w * p))
+    logits = torch.where(torch.eye(4, dtype=torch.bool), 30.0, -30.0)[None, None]
+    logits[0, 0, 1] = torch.tensor([30.0, -30.0, -30.0, -30.0])  # cell 1 looks at the wrong cell
+    strict, _ = cross_attention_loss([logits], [], counts, min_pixels=12)
+    loose, _ = cross_attention_loss([logits], [], counts, min_pixels=8)
+    assert float(strict) < 1e-6 and float(loose) > 10
