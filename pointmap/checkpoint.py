@@ -23,6 +23,7 @@ from pointmap.model.net import PointmapNet
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 FORMAT = "pointmap/1"
+HEAD_PREFIXES = ("downstream_head", "pose_head")  # everything else is the trunk (encoder, decoders)
 
 # --------------------------------------------------------------------------------------------------
 # constructor strings: AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), ...)
@@ -154,7 +155,7 @@ def load_state_strict(model: PointmapNet, state: dict, *, allow_missing_heads: b
     own = model.state_dict()
     missing = [k for k in own if k not in state]
     if allow_missing_heads:
-        missing = [k for k in missing if not k.startswith("downstream_head")]
+        missing = [k for k in missing if not k.startswith(HEAD_PREFIXES)]
     unexpected = [k for k in state if k not in own]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
               for k in state if k in own and tuple(state[k].shape) != tuple(own[k].shape)]
@@ -178,7 +179,7 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
     CheckpointError lists the problems. Returns the head tensors left at their fresh initialisation.
     """
     own = model.state_dict()
-    is_head = lambda k: k.startswith("downstream_head")
+    is_head = lambda k: k.startswith(HEAD_PREFIXES)
     missing = [k for k in own if not is_head(k) and k not in state]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
               for k in own if not is_head(k) and k in state and tuple(state[k].shape) != tuple(own[k].shape)]

@@ -35,6 +35,8 @@ class TrainConfig:
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
     coarse_temperature: float = 0.1
     attn_weight: float = 0.0       # weight of the cross-attention supervision (losses.cross_attention_loss; 0 = off)
+    pose_head: bool = False        # build --preset with a pose head (model.heads.PoseHead): rigid view-2 points
+    pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200

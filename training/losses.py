@@ -69,6 +69,24 @@ def regression_loss(pred, view1: dict, view2: dict, alpha: float = 0.2, metric: 
     return total, details
 
 
+def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = False):
+    """Direct loss on a predicted cam2 -> cam1 transform T [B, 4, 4] (``model.heads.PoseHead``): Frobenius
+    distance of the rotations (2 sqrt(2) sin(angle / 2) for an error of ``angle``) plus the distance of the
+    translations, each divided by the mean distance of its own pointmaps as in ``regression_loss`` (the GT
+    scale for both in metric mode). Returns (loss, details with the mean rotation error in degrees)."""
+    gt1, gt2 = gt_points_cam1(view1, view2)
+    v1, v2 = view1["valid"].float(), view2["valid"].float()
+    s_gt = _mean_dist(gt1, gt2, v1, v2).clamp_min(1e-8)
+    s_pr = s_gt if metric else _mean_dist(pred.pts1_cam1.float(), pred.pts2_cam1.float(), v1, v2).clamp_min(1e-8)
+    gt = invert_rigid(view1["cam2world"].float()) @ view2["cam2world"].float()
+    T = T.float()
+    rot = (T[:, :3, :3] - gt[:, :3, :3]).flatten(1).norm(dim=1)
+    tr = (T[:, :3, 3] / s_pr[:, None] - gt[:, :3, 3] / s_gt[:, None]).norm(dim=1)
+    with torch.no_grad():
+        deg = torch.rad2deg(2 * torch.asin((rot / (2 * 2 ** 0.5)).clamp(max=1)))
+    return (rot + tr).mean(), {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
+
+
 def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, n_corr: int = 2048,
                   temperature: float = 0.05, generator: torch.Generator | None = None):
     """InfoNCE in both directions on descriptors of corresponding pixels (MASt3R).

@@ -17,7 +17,7 @@ from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
 from training.losses import (cell_correspondence_counts, cross_attention_loss, matching_loss, patch_matching_loss,
-                             regression_loss)
+                             pose_loss, regression_loss)
 from training.mix import limit_rotation, open_pairs
 
 
@@ -39,15 +39,18 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
 
     ``--init_heads fresh`` builds ``--preset`` and takes only the trunk (and heads whose shapes match) from
     ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R."""
+    preset = PRESETS[cfg.preset].replace(pose_head=True) if cfg.pose_head else PRESETS[cfg.preset]
     if not cfg.init:
-        return PointmapNet(PRESETS[cfg.preset])
+        return PointmapNet(preset)
     state, model_cfg, kind = _init_state(Path(cfg.init))
     if cfg.init_heads == "fresh":
-        model = PointmapNet(PRESETS[cfg.preset])
+        model = PointmapNet(preset)
         fresh = load_trunk(model, state, source=cfg.init)
         print(f"--init {cfg.init}: trunk loaded; {len(fresh)} head tensors start fresh"
               + (f" (e.g. {fresh[:3]})" if fresh else ""), file=sys.stderr)
         return model.train()
+    if cfg.pose_head and not model_cfg.pose_head:
+        raise CheckpointError(f"--init {cfg.init} has no pose head: add --init_heads fresh to start one")
     model = PointmapNet(model_cfg)
     load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     return model.train()
@@ -61,6 +64,21 @@ def collate(items):
                 else [it[v][k] for it in items] for k in items[0][v]}
 
     return one(0), one(1)
+
+
+class PoseTap:
+    """Keeps the output of the model's pose head from the last forward pass that builds a graph."""
+
+    def __init__(self, model) -> None:
+        self.T = None
+        head = getattr(getattr(model, "module", model), "pose_head", None)
+        if head is None:
+            raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
+        head.register_forward_hook(self._hook)
+
+    def _hook(self, mod, args, out):
+        if torch.is_grad_enabled():
+            self.T = out
 
 
 class CrossAttentionTap:
@@ -102,6 +120,8 @@ def make_step(cfg: TrainConfig):
             tap["tap"] = CrossAttentionTap(model)
         if "tap" in tap:
             tap["tap"].clear()
+        if cfg.pose_weight > 0 and "pose" not in tap:
+            tap["pose"] = PoseTap(model)
         pred = model(view1["img"], view2["img"])
         loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
         if pred.has_desc and cfg.match_weight > 0:
@@ -113,6 +133,11 @@ def make_step(cfg: TrainConfig):
             lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)
             loss = loss + cfg.coarse_weight * lc
             details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
+        if cfg.pose_weight > 0:
+            lp, d = pose_loss(tap["pose"].T, pred, view1, view2, metric=cfg.metric)
+            tap["pose"].T = None
+            loss = loss + cfg.pose_weight * lp
+            details.update(pose_loss=float(lp.detach()), **d)
         if cfg.attn_weight > 0:
             net = getattr(model, "module", model)
             counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])

@@ -39,6 +39,8 @@ class ModelConfig:
     img_mean: tuple = (0.5, 0.5, 0.5)
     img_std: tuple = (0.5, 0.5, 0.5)
     metric: bool = False          # outputs in metres (MASt3R metric) rather than normalised units
+    pose_head: bool = False       # view 2's head predicts its points in its OWN frame and a pose head the
+                                  # cam2 -> cam1 transform; pts2_cam1 is their composition (rigid by construction)
 
     def __post_init__(self) -> None:
         errors = []

@@ -163,3 +163,91 @@ def postprocess(raw: torch.Tensor, cfg: ModelConfig) -> dict:
         else:
             out["desc_conf"] = out["conf"].clone()
     return out
+
+
+def rotation_from_6d(x: torch.Tensor) -> torch.Tensor:
+    """[..., 6] -> [..., 3, 3] rotation: Gram-Schmidt on the two 3-vectors (Zhou et al. 2019); its columns are
+    the orthonormalised first vector, the orthonormalised second, and their cross product."""
+    a = F.normalize(x[..., 0:3], dim=-1)
+    b = F.normalize(x[..., 3:6] - (a * x[..., 3:6]).sum(-1, keepdim=True) * a, dim=-1)
+    return torch.stack([a, b, torch.cross(a, b, dim=-1)], dim=-1)
+
+
+def fourier_positions(h: int, w: int, n_freq: int, device=None, dtype=None) -> torch.Tensor:
+    """[h*w, 4 * n_freq] sin/cos features of each patch centre's (x, y), normalised by the long side to
+    [-1, 1] along it (the same scale on both axes, so the aspect ratio shows), row-major."""
+    s = max(h, w)
+    ys = (torch.arange(h, device=device, dtype=dtype) + 0.5 - h / 2) / (s / 2)
+    xs = (torch.arange(w, device=device, dtype=dtype) + 0.5 - w / 2) / (s / 2)
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    freqs = torch.pi * 2.0 ** torch.arange(n_freq, device=device, dtype=dtype) / 2
+    ang = torch.cat([xx.reshape(-1, 1) * freqs, yy.reshape(-1, 1) * freqs], dim=-1)
+    return torch.cat([ang.sin(), ang.cos()], dim=-1)
+
+
+class PoolBlock(nn.Module):
+    """A query token attends to a set of tokens (pre-norm), then an MLP."""
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.norm_q, self.norm_kv, self.norm2 = nn.LayerNorm(dim, eps=1e-6), nn.LayerNorm(dim, eps=1e-6), \
+            nn.LayerNorm(dim, eps=1e-6)
+        self.q, self.kv, self.proj = nn.Linear(dim, dim), nn.Linear(dim, 2 * dim), nn.Linear(dim, dim)
+        self.mlp = Mlp(dim, 2 * dim)
+
+    def forward(self, q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        B, N, C = x.shape
+        h = self.heads
+        qh = self.q(self.norm_q(q)).reshape(B, -1, h, C // h).transpose(1, 2)
+        k, v = self.kv(self.norm_kv(x)).reshape(B, N, 2, h, C // h).permute(2, 0, 3, 1, 4)
+        a = F.scaled_dot_product_attention(qh, k, v).transpose(1, 2).reshape(B, -1, C)
+        q = q + self.proj(a)
+        return q + self.mlp(self.norm2(q))
+
+
+class PoseHead(nn.Module):
+    """cam2 -> cam1 rigid transform [B, 4, 4] from both views' last decoder tokens.
+
+    Tokens carry no absolute position (RoPE only acts inside attention), so each gets a view embedding and
+    Fourier features of its patch centre; a learned query attends to all tokens of both views twice and an
+    linear read-out gives a 6-D rotation and a translation (in the units of the predicted points).
+    The read-out starts at zero weights and the identity bias: a fresh head predicts the identity pose, so a
+    trunk whose view-2 head was trained to give cam1 points starts where it was.
+    """
+
+    n_freq = 8
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        d = cfg.dec_dim
+        self.query = nn.Parameter(torch.zeros(1, 1, d))
+        self.view_embed = nn.Parameter(torch.zeros(2, d))
+        self.pos_embed = nn.Linear(4 * self.n_freq, d)
+        self.blocks = nn.ModuleList([PoolBlock(d, cfg.dec_heads) for _ in range(2)])
+        self.norm = nn.LayerNorm(d, eps=1e-6)
+        self.out = nn.Linear(d, 9)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        nn.init.normal_(self.query, std=0.02)
+        nn.init.normal_(self.view_embed, std=0.02)
+        nn.init.zeros_(self.out.weight)
+        with torch.no_grad():
+            self.out.bias.copy_(torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0, 0]))
+
+    def forward(self, tok1: torch.Tensor, tok2: torch.Tensor, grid1: tuple, grid2: tuple) -> torch.Tensor:
+        x = []
+        for view, (tok, (h, w)) in enumerate(((tok1, grid1), (tok2, grid2))):
+            pos = fourier_positions(h, w, self.n_freq, tok.device, tok.dtype)
+            x.append(tok + self.view_embed[view] + self.pos_embed(pos))
+        x = torch.cat(x, dim=1)
+        q = self.query.expand(x.shape[0], -1, -1)
+        for blk in self.blocks:
+            q = blk(q, x)
+        o = self.out(self.norm(q[:, 0]))
+        T = torch.zeros(o.shape[0], 4, 4, dtype=o.dtype, device=o.device)
+        T[:, :3, :3] = rotation_from_6d(o[:, :6])
+        T[:, :3, 3] = o[:, 6:9]
+        T[:, 3, 3] = 1
+        return T

@@ -12,7 +12,7 @@ import torch.nn as nn
 from pointmap.errors import ShapeError
 from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
 from pointmap.model.config import ModelConfig
-from pointmap.model.heads import DownstreamHead, postprocess
+from pointmap.model.heads import DownstreamHead, PoseHead, postprocess
 from pointmap.prediction import PairPrediction
 
 
@@ -61,12 +61,15 @@ class PointmapNet(nn.Module):
         self.dec_norm = LayerNorm(cfg.dec_dim)
         self.downstream_head1 = DownstreamHead(cfg)
         self.downstream_head2 = DownstreamHead(cfg)
+        self.pose_head = PoseHead(cfg) if cfg.pose_head else None
         self.register_buffer("img_mean", torch.tensor(cfg.img_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("img_std", torch.tensor(cfg.img_std).view(1, 3, 1, 1), persistent=False)
         self.rope = RopeCache(cfg.rope_base)
         self.apply(init_weights)
         w = self.patch_embed.proj.weight.data
         nn.init.xavier_uniform_(w.view(w.shape[0], -1))
+        if self.pose_head is not None:
+            self.pose_head.reset_parameters()
 
     # -- checks ------------------------------------------------------------------------------------
     def check_images(self, name: str, img: torch.Tensor) -> None:
@@ -113,6 +116,9 @@ class PointmapNet(nn.Module):
         tok2 = [t.float() for t in tok2]
         o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p), self.cfg)
         o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p), self.cfg)
+        if self.pose_head is not None:  # o2["pts"] is in view 2's own frame: move it into view 1's
+            T = self.pose_head(tok1[-1], tok2[-1], grid1, grid2)
+            o2["pts"] = torch.einsum("bij,bhwj->bhwi", T[:, :3, :3], o2["pts"]) + T[:, None, None, :3, 3]
         return PairPrediction(pts1_cam1=o1["pts"], pts2_cam1=o2["pts"], conf1=o1["conf"], conf2=o2["conf"],
                               desc1=o1.get("desc"), desc2=o2.get("desc"),
                               desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"))

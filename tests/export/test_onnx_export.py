@@ -192,3 +192,13 @@ def test_official_size_exports_pass_parity(preset, tmp_path):
     assert all(c["worst_ratio"] <= 1 for c in meta["parity"]["cases"])
     runner = pm.load_model(tmp_path / preset)
     assert runner.cfg == PRESETS[preset]
+
+
+def test_a_pose_head_model_exports_with_parity(tmp_path):
+    torch.manual_seed(0)
+    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True)).eval()
+    with torch.no_grad():
+        model.pose_head.out.weight.normal_(0, 0.3)  # far from the identity it starts at
+    export_model(model, tmp_path / "pose", parity="quick", quiet=True)
+    report = check_parity(model, pm.load_model(tmp_path / "pose"), [(64, 96, 96, 64, 2)])
+    assert report["passed"], report["cases"]

@@ -89,3 +89,59 @@ def test_a_model_first_run_in_inference_mode_can_then_be_trained():
     pred = model(a, b)
     pred.pts1_cam1.sum().backward()
     assert model.patch_embed.proj.weight.grad is not None
+
+
+def _pose_pair(seed=0):
+    """A pose-head model and the same weights without the pose head (view 2's points in its own frame)."""
+    torch.manual_seed(seed)
+    with_pose = PointmapNet(pm.PRESETS["test"].replace(pose_head=True)).eval()
+    local = PointmapNet(pm.PRESETS["test"]).eval()
+    local.load_state_dict({k: v for k, v in with_pose.state_dict().items() if not k.startswith("pose_head")})
+    return with_pose, local
+
+
+def test_a_fresh_pose_head_predicts_the_identity_so_the_trunk_starts_where_it_was():
+    with_pose, local = _pose_pair()
+    img1, img2 = torch.rand(2, 3, 32, 48), torch.rand(2, 3, 32, 48)
+    with torch.no_grad():
+        a, b = with_pose(img1, img2), local(img1, img2)
+    assert torch.equal(a.pts1_cam1, b.pts1_cam1) and torch.allclose(a.pts2_cam1, b.pts2_cam1, atol=1e-6)
+
+
+def test_the_pose_head_moves_view_twos_own_points_rigidly_into_view_one():
+    with_pose, local = _pose_pair(1)
+    with torch.no_grad():
+        with_pose.pose_head.out.weight.normal_(0, 0.5)  # a trained-looking head: a far-from-identity pose
+    img1, img2 = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        moved, own = with_pose(img1, img2).pts2_cam1[0].reshape(-1, 3), local(img1, img2).pts2_cam1[0].reshape(-1, 3)
+    assert not torch.allclose(moved, own, atol=1e-3)
+    dist = lambda p: (p.double()[:, None] - p.double()[None]).norm(dim=-1)  # noqa: E731
+    assert torch.allclose(dist(moved), dist(own), atol=1e-5)  # all distances kept: a rigid motion
+
+
+def test_rotation_from_6d_returns_the_rotation_its_first_two_columns_came_from():
+    from pointmap.model.heads import rotation_from_6d
+
+    torch.manual_seed(0)
+    q = torch.nn.functional.normalize(torch.randn(5, 4), dim=-1)
+    w, x, y, z = q.unbind(-1)
+    R = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                     2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                     2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1).reshape(5, 3, 3)
+    six = torch.cat([R[..., 0], R[..., 1]], -1)
+    assert torch.allclose(rotation_from_6d(six), R, atol=1e-5)
+    any_r = rotation_from_6d(torch.randn(100, 6))
+    assert torch.allclose(any_r @ any_r.transpose(1, 2), torch.eye(3).expand(100, 3, 3), atol=1e-5)
+    assert torch.allclose(torch.linalg.det(any_r), torch.ones(100), atol=1e-5)
+
+
+def test_a_pose_head_model_saves_and_loads_and_its_pose_head_is_a_head_for_fine_tuning(tmp_path):
+    from pointmap.checkpoint import load_trunk, save_model
+
+    with_pose, local = _pose_pair(2)
+    path = save_model(with_pose, tmp_path / "m.safetensors")
+    back = pm.load_model(str(path))
+    assert back.cfg.pose_head and torch.equal(back.pose_head.out.weight, with_pose.pose_head.out.weight)
+    fresh = load_trunk(PointmapNet(pm.PRESETS["test"].replace(pose_head=True)), local.state_dict())
+    assert fresh and all(k.startswith("pose_head.") for k in fresh)

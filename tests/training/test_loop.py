@@ -108,6 +108,20 @@ def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_qu
     assert abs(d2["attn_loss"] - d["attn_loss"]) < 1e-5
 
 
+def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
+    data = PlanePairs(2)
+    batch = collate([data[0], data[1]])
+    base, _ = make_step(config(tmp_path, 1))(model, batch, 0)
+    both, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=2.0))(model, batch, 0)
+    assert d["pose_loss"] > 0 and abs(float(both) - float(base) - 2.0 * d["pose_loss"]) < 1e-4
+    both.backward()
+    assert model.pose_head.out.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="pose head"):
+        make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0))(PointmapNet(PRESETS["test"]), batch, 0)
+
+
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
 def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):

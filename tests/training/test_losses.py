@@ -12,6 +12,7 @@ from training.losses import (
     matching_loss,
     patch_matching_loss,
     patchify,
+    pose_loss,
     regression_loss,
 )
 
@@ -234,3 +235,21 @@ def test_cross_attention_loss_ignores_tokens_without_enough_covisible_pixels():
     strict, _ = cross_attention_loss([logits], [], counts, min_pixels=12)
     loose, _ = cross_attention_loss([logits], [], counts, min_pixels=8)
     assert float(strict) < 1e-6 and float(loose) > 10
+
+
+def test_pose_loss_is_zero_for_the_true_transform_at_the_predictions_scale_and_measures_rotation_errors():
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    pred = pred_from(3 * g1, 3 * g2)  # the prediction's units are 3x the ground truth's
+    T = torch.eye(4).expand(2, 4, 4).clone()
+    T[:, 0, 3] = 0.5 * 3  # camera 2 sits 0.5 (GT units) to the right of camera 1
+    loss, d = pose_loss(T, pred, v1, v2)
+    assert float(loss) < 1e-5 and d["pose_rot_deg"] < 0.1
+    a = math.radians(20)
+    Rz = torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]])
+    T_bad = T.clone()
+    T_bad[:, :3, :3] = Rz
+    bad, d_bad = pose_loss(T_bad, pred, v1, v2)
+    assert abs(d_bad["pose_rot_deg"] - 20) < 0.05 and float(bad) > 0.3
+    unscaled, _ = pose_loss(T, pred, v1, v2, metric=True)  # metric: the prediction's 3x is an error
+    assert float(unscaled) > 0.1
