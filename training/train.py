@@ -16,8 +16,14 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.evaluate import evaluate_pairs
 from training.loop import fit, load_checkpoint
-from training.losses import (cell_correspondence_counts, cross_attention_loss, matching_loss, patch_matching_loss,
-                             pose_loss, regression_loss)
+from training.losses import (
+    cell_correspondence_counts,
+    cross_attention_loss,
+    matching_loss,
+    patch_matching_loss,
+    pose_loss,
+    regression_loss,
+)
 from training.mix import limit_rotation, open_pairs
 
 
