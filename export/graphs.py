@@ -60,13 +60,15 @@ class DecoderGraph(_Graph):
 
 def half_backbone(model: PointmapNet) -> PointmapNet:
     """A copy of ``model`` with the patch embedding, encoder and decoders (and the normalisation
-    buffers) in float16 and both heads in float32. PointmapNet.heads casts the tokens to float32, so
+    buffers) in float16 and the heads (and pose head) in float32. PointmapNet.heads casts the tokens to float32, so
     the output transforms (exp of depth and confidence, norms) stay float32."""
     import copy
 
     half = copy.deepcopy(model).half()
     half.downstream_head1.float()
     half.downstream_head2.float()
+    if half.pose_head is not None:  # it reads the float32 tokens PointmapNet.heads hands the heads
+        half.pose_head.float()
     return half.eval()
 
 

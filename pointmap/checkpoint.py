@@ -179,6 +179,10 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
     CheckpointError lists the problems. Returns the head tensors left at their fresh initialisation.
     """
     own = model.state_dict()
+    had_pose = any(k.startswith("pose_head.") for k in state)
+    if had_pose and model.pose_head is None:
+        raise CheckpointError(f"{source} has a pose head (its view-2 head predicts in view 2's own frame); the model "
+                              "has none and would read that head's output as view-1 points: build it with a pose head")
     is_head = lambda k: k.startswith(HEAD_PREFIXES)
     missing = [k for k in own if not is_head(k) and k not in state]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"

@@ -75,6 +75,9 @@ class TrainConfig:
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:
             p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
+        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight"):
+            if getattr(cfg, name) < 0:
+                p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.attn_heads < 1:
             p.error(f"--attn_heads expected >= 1 (supervised heads per decoder layer), got {cfg.attn_heads}")
         if not cfg.data:

@@ -80,13 +80,16 @@ class StepBatches(torch.utils.data.Sampler):
 
 
 # -- optimisation ---------------------------------------------------------------------------------
+NO_DECAY_SUFFIXES = ("pose_head.query", "pose_head.view_embed")  # learned embeddings, like tokens
+
+
 def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
-    """AdamW (0.9, 0.95); no weight decay on biases, norms, tokens."""
+    """AdamW (0.9, 0.95); no weight decay on biases, norms, tokens and learned embeddings."""
     decay, no_decay = [], []
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
-        (no_decay if p.ndim < 2 or "token" in name else decay).append(p)
+        (no_decay if p.ndim < 2 or "token" in name or name.endswith(NO_DECAY_SUFFIXES) else decay).append(p)
     groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 

@@ -192,12 +192,13 @@ def cell_correspondence_counts(corr: torch.Tensor, patch: int, hw2: tuple) -> to
     n1, n2 = (H1 // patch) * (W1 // patch), (H2 // patch) * (W2 // patch)
     u, v = corr[..., 0], corr[..., 1]
     ok = torch.isfinite(u) & torch.isfinite(v) & (u > -0.5) & (u < W2 - 0.5) & (v > -0.5) & (v < H2 - 0.5)
-    ys, xs = torch.meshgrid(torch.arange(H1), torch.arange(W1), indexing="ij")
+    dev = corr.device
+    ys, xs = torch.meshgrid(torch.arange(H1, device=dev), torch.arange(W1, device=dev), indexing="ij")
     cell1 = ((ys // patch) * (W1 // patch) + xs // patch).expand(B, H1, W1)
     ui = torch.nan_to_num(u + 0.5).floor().long().clamp(0, W2 - 1)  # the nearest pixel, then its cell
     vi = torch.nan_to_num(v + 0.5).floor().long().clamp(0, H2 - 1)
     cell2 = (vi // patch) * (W2 // patch) + ui // patch
-    b = torch.arange(B).view(B, 1, 1).expand(B, H1, W1)
+    b = torch.arange(B, device=dev).view(B, 1, 1).expand(B, H1, W1)
     flat = (b * n1 + cell1) * n2 + cell2
     counts = torch.bincount(flat[ok], minlength=B * n1 * n2)
     return counts.view(B, n1, n2).float()

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -72,63 +73,61 @@ def collate(items):
     return one(0), one(1)
 
 
-class PoseTap:
-    """Keeps the output of the model's pose head from the last forward pass that builds a graph."""
+class ForwardTaps:
+    """Forward hooks that record, only while armed (inside ``recording()``, around a training step's own
+    forward pass), the inputs of every decoder cross-attention (for ``cross_attention_loss``) and the output of
+    the pose head (for ``pose_loss``). Evaluation, inference and any other forward pass record nothing."""
 
-    def __init__(self, model) -> None:
-        self.T = None
-        head = getattr(getattr(model, "module", model), "pose_head", None)
-        if head is None:
-            raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
-        head.register_forward_hook(self._hook)
-
-    def _hook(self, mod, args, out):
-        if torch.is_grad_enabled():
-            self.T = out
-
-
-class CrossAttentionTap:
-    """Records the inputs of every decoder cross-attention in a forward pass that builds a graph (forward
-    hooks; inference and evaluation record nothing), so a loss can ask where each layer's heads looked."""
-
-    def __init__(self, model) -> None:
+    def __init__(self, model, *, attention: bool, pose: bool) -> None:
         net = getattr(model, "module", model)
-        self.modules = {1: [b.cross_attn for b in net.dec_blocks], 2: [b.cross_attn for b in net.dec_blocks2]}
-        self.inputs: dict = {1: [], 2: []}
-        for view, mods in self.modules.items():
-            for m in mods:
-                m.register_forward_hook(self._hook(view, m))
+        self.armed = False
+        self.cross: dict = {1: [], 2: []}
+        self.pose = None
+        if pose:
+            if getattr(net, "pose_head", None) is None:
+                raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
+            net.pose_head.register_forward_hook(self._pose_hook)
+        if attention:
+            for view, blocks in ((1, net.dec_blocks), (2, net.dec_blocks2)):
+                for b in blocks:
+                    b.cross_attn.register_forward_hook(self._cross_hook(view))
 
-    def _hook(self, view, module):
+    def _pose_hook(self, mod, args, out):
+        if self.armed:
+            self.pose = out
+
+    def _cross_hook(self, view):
         def hook(mod, args, out):
-            if torch.is_grad_enabled():
-                self.inputs[view].append((module, args))
+            if self.armed:
+                self.cross[view].append((mod, args))
         return hook
 
+    @contextlib.contextmanager
+    def recording(self):
+        self.clear()
+        self.armed = True
+        try:
+            yield self
+        finally:
+            self.armed = False
+
     def clear(self) -> None:
-        self.inputs = {1: [], 2: []}
+        self.cross, self.pose = {1: [], 2: []}, None
 
     def scores(self, heads: int) -> tuple[list, list]:
         """Logits [B, heads, Nq, Nk] per decoder layer: (view-1 queries over view 2, view-2 queries over view 1)."""
-        return tuple([m.scores(*args, heads=heads) for m, args in self.inputs[v]] for v in (1, 2))
+        return tuple([m.scores(*args, heads=heads) for m, args in self.cross[v]] for v in (1, 2))
 
 
 def make_step(cfg: TrainConfig):
-    tap = {}
-
     def step_fn(model, batch, step):
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # a function of the step: resumable
         view1, view2 = batch
-        if cfg.attn_weight > 0 and "tap" not in tap:
-            heads = getattr(model, "module", model).cfg.dec_heads
-            if cfg.attn_heads > heads:
-                raise ValueError(f"--attn_heads {cfg.attn_heads} exceeds the decoder's {heads} heads")
-            tap["tap"] = CrossAttentionTap(model)
-        if "tap" in tap:
-            tap["tap"].clear()
-        if cfg.pose_weight > 0 and "pose" not in tap:
-            tap["pose"] = PoseTap(model)
-        pred = model(view1["img"], view2["img"])
+        if step_fn.taps is None:
+            step_fn.taps = ForwardTaps(model, attention=cfg.attn_weight > 0, pose=cfg.pose_weight > 0)
+        taps = step_fn.taps
+        with taps.recording():
+            pred = model(view1["img"], view2["img"])
         loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
         if pred.has_desc and cfg.match_weight > 0:
             lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
@@ -140,26 +139,44 @@ def make_step(cfg: TrainConfig):
             loss = loss + cfg.coarse_weight * lc
             details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
         if cfg.pose_weight > 0:
-            lp, d = pose_loss(tap["pose"].T, pred, view1, view2, metric=cfg.metric)
-            tap["pose"].T = None
+            lp, d = pose_loss(taps.pose, pred, view1, view2, metric=cfg.metric)
             loss = loss + cfg.pose_weight * lp
             details.update(pose_loss=float(lp.detach()), **d)
         if cfg.attn_weight > 0:
             net = getattr(model, "module", model)
             counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
-            s12, s21 = tap["tap"].scores(cfg.attn_heads)
-            tap["tap"].clear()
+            s12, s21 = taps.scores(cfg.attn_heads)
             la, acc = cross_attention_loss(s12, s21, counts, min_pixels=net.cfg.patch_size ** 2 // 8)
             loss = loss + cfg.attn_weight * la
             details.update(attn_loss=float(la.detach()), attn_acc=acc)
+        taps.clear()
         return loss, details
 
+    step_fn.taps = None  # ForwardTaps, made at the first step (it needs the model)
     return step_fn
+
+
+def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
+    """Options that depend on the architecture, checked before any data is opened."""
+    if cfg.attn_weight > 0 and cfg.attn_heads > model.cfg.dec_heads:
+        raise ValueError(f"--attn_heads {cfg.attn_heads} exceeds the decoder's {model.cfg.dec_heads} heads")
+    if cfg.pose_weight > 0 and not model.cfg.pose_head:
+        raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
+    if model.cfg.pose_head and cfg.pose_weight <= 0 and cfg.task == "train":
+        # pts2_cam1 = T * head2: any rigid motion can move between the two without changing the regression loss,
+        # so only a loss on T pins head 2 to view 2's own frame
+        raise ValueError("a model with a pose head needs --pose_weight > 0 (the pointmap loss alone does not fix "
+                         "which frame view 2's head predicts in)")
 
 
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(argv)
     model = build_model(cfg)
+    try:
+        check_model_options(cfg, model)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train"), cfg.max_rotation)
     eval_fn = None
     if cfg.eval_data:

@@ -202,3 +202,15 @@ def test_a_pose_head_model_exports_with_parity(tmp_path):
     export_model(model, tmp_path / "pose", parity="quick", quiet=True)
     report = check_parity(model, pm.load_model(tmp_path / "pose"), [(64, 96, 96, 64, 2)])
     assert report["passed"], report["cases"]
+
+
+def test_the_half_precision_graph_of_a_pose_head_model_keeps_the_pose_head_in_float32():
+    from export.graphs import FullGraph, half_backbone
+
+    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True)).eval()
+    half = half_backbone(model)
+    assert half.pose_head.out.weight.dtype == torch.float32
+    img = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        out = FullGraph(half, torch.float16)(img, img)
+    assert all(torch.isfinite(o).all() for o in out)

@@ -145,3 +145,12 @@ def test_a_pose_head_model_saves_and_loads_and_its_pose_head_is_a_head_for_fine_
     assert back.cfg.pose_head and torch.equal(back.pose_head.out.weight, with_pose.pose_head.out.weight)
     fresh = load_trunk(PointmapNet(pm.PRESETS["test"].replace(pose_head=True)), local.state_dict())
     assert fresh and all(k.startswith("pose_head.") for k in fresh)
+
+
+def test_a_pose_head_checkpoint_is_refused_as_the_trunk_of_a_model_without_one():
+    from pointmap.checkpoint import load_trunk
+    from pointmap.errors import CheckpointError
+
+    with_pose, _ = _pose_pair(3)
+    with pytest.raises(CheckpointError, match="has a pose head"):
+        load_trunk(PointmapNet(pm.PRESETS["test"]), with_pose.state_dict())

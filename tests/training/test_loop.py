@@ -102,10 +102,30 @@ def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_qu
     both.backward()
     assert model.dec_blocks[0].cross_attn.projq.weight.grad.abs().sum() > 0
     assert model.dec_blocks2[-1].cross_attn.projk.weight.grad.abs().sum() > 0
-    with torch.no_grad():  # evaluation passes record nothing for the next step to pick up
-        model(batch[0]["img"], batch[1]["img"])
+    assert step.taps.cross == {1: [], 2: []}  # released after the step
+    model(batch[0]["img"], batch[1]["img"])  # any forward pass outside a step (evaluation, a notebook) ...
+    assert step.taps.cross == {1: [], 2: []}  # ... records nothing
     again, d2 = step(model, batch, 0)
     assert abs(d2["attn_loss"] - d["attn_loss"]) < 1e-5
+
+
+def test_architecture_dependent_options_are_refused_before_training_starts(tmp_path):
+    from training.train import check_model_options
+
+    plain, posed = PointmapNet(PRESETS["test"]), PointmapNet(PRESETS["test"].replace(pose_head=True))
+    with pytest.raises(ValueError, match="attn_heads 3 exceeds the decoder's 2 heads"):
+        check_model_options(dataclasses.replace(config(tmp_path, 1), attn_weight=1.0, attn_heads=3), plain)
+    with pytest.raises(ValueError, match="needs a model with a pose head"):
+        check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0), plain)
+    with pytest.raises(ValueError, match="pose_weight > 0"):  # the frame of view 2's head would be free
+        check_model_options(config(tmp_path, 1), posed)
+    check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0), posed)
+
+
+def test_negative_loss_weights_are_refused_on_the_command_line(capsys):
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--pose_weight", "-1"])
+    assert "--pose_weight expected >= 0" in capsys.readouterr().err
 
 
 def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
