@@ -39,6 +39,8 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--data", default=None, help="shard root: also time data loading")
+    p.add_argument("--compile", action="store_true",
+                   help="also time the step with torch.compile (as training --compile true), in the same run")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     ceiling = matmul_ceiling()
@@ -48,28 +50,40 @@ def main(argv=None) -> int:
     opt = torch.optim.AdamW(model.parameters(), 1e-4)
     batch = synthetic_batch(a.batch, a.size, a.size)
 
-    def one():
-        loss, _ = step(model, batch, 0)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-
     with FlopCounterMode(display=False) as fc:
         loss, _ = step(model, batch, 0)
         loss.backward()
     flops = fc.get_total_flops()
-    one()
-    times = []
-    for _ in range(a.steps):
-        t = time.perf_counter()
-        one()
-        times.append(time.perf_counter() - t)
-    t = statistics.median(times)
+
+    def timed(net):
+        def one():
+            loss, _ = step(net, batch, 0)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+
+        t0 = time.perf_counter()
+        one()  # warm-up (compilation, for a compiled model)
+        first = time.perf_counter() - t0
+        times = []
+        for _ in range(a.steps):
+            t = time.perf_counter()
+            one()
+            times.append(time.perf_counter() - t)
+        return statistics.median(times), first
+
+    rows = [("eager", *timed(model))]
+    if a.compile:
+        rows.append(("torch.compile", *timed(torch.compile(model))))
     print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s\n")
-    print("| preset | input | batch | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling |")
-    print("|---|---|---|---|---|---|---|---|")
-    print(f"| {a.preset} | {a.size}x{a.size} | {a.batch} | {t:.2f} | {a.batch / t:.2f} | {flops / 1e9:.1f} | "
-          f"{flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% |")
+    print("| preset | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for mode, t, first in rows:
+        print(f"| {a.preset} | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | {a.batch / t:.2f} | "
+              f"{flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% |")
+    if a.compile:
+        print(f"\ncompiled / eager speed: {rows[0][1] / rows[1][1]:.2f}x")
+    t = rows[0][1]
     if a.data:
         from data.datasets import PairDataset
 

@@ -228,6 +228,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         ddp_model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None,
             find_unused_parameters=any("dpt" in n for n, _ in model.named_parameters()))
+    step_model = torch.compile(ddp_model) if cfg.compile else ddp_model
     logger = Logger(out, rank == 0)
     n_aspects = len(getattr(dataset, "aspects", [None]))
     sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects)
@@ -242,7 +243,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     for batch in loader:
         batch = _to(batch, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-            loss, metrics = step_fn(ddp_model, batch, step)
+            loss, metrics = step_fn(step_model, batch, step)
         loss_value = float(loss.detach())
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")

@@ -142,6 +142,19 @@ def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
         make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0))(PointmapNet(PRESETS["test"]), batch, 0)
 
 
+@pytest.mark.slow  # ~2 min of compilation
+def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss_on(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
+    data = PlanePairs(2)
+    batch = collate([data[0], data[1]])
+    cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1, pose_weight=1.0, coarse_weight=0.5)
+    eager, d0 = make_step(cfg)(model, batch, 0)
+    compiled, d1 = make_step(cfg)(torch.compile(model), batch, 0)
+    assert abs(float(eager) - float(compiled)) < 1e-4 * max(1.0, abs(float(eager)))
+    assert d0.keys() == d1.keys() and d1["attn_loss"] > 0 and d1["pose_loss"] > 0
+
+
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
 def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):
