@@ -80,7 +80,7 @@ class StepBatches(torch.utils.data.Sampler):
 
 
 # -- optimisation ---------------------------------------------------------------------------------
-NO_DECAY_SUFFIXES = ("pose_head.query", "pose_head.view_embed")  # learned embeddings, like tokens
+NO_DECAY_SUFFIXES = ("pose_head.query",)  # learned embeddings, like tokens
 
 
 def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:

@@ -75,14 +75,14 @@ def collate(items):
 
 class ForwardTaps:
     """Forward hooks that record, only while armed (inside ``recording()``, around a training step's own
-    forward pass), the inputs of every decoder cross-attention (for ``cross_attention_loss``) and the output of
-    the pose head (for ``pose_loss``). Evaluation, inference and any other forward pass record nothing."""
+    forward pass): the inputs of every decoder cross-attention and the pose head's match scores (for
+    ``cross_attention_loss``), and the pose head's transform (for ``pose_loss``). Evaluation, inference and any
+    other forward pass record nothing."""
 
     def __init__(self, model, *, attention: bool, pose: bool) -> None:
         net = getattr(model, "module", model)
         self.armed = False
-        self.cross: dict = {1: [], 2: []}
-        self.pose = None
+        self.clear()
         if pose:
             if getattr(net, "pose_head", None) is None:
                 raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
@@ -91,6 +91,12 @@ class ForwardTaps:
             for view, blocks in ((1, net.dec_blocks), (2, net.dec_blocks2)):
                 for b in blocks:
                     b.cross_attn.register_forward_hook(self._cross_hook(view))
+            if getattr(net, "pose_head", None) is not None:
+                net.pose_head.match.register_forward_hook(self._match_hook)
+
+    def _match_hook(self, mod, args, out):
+        if self.armed:
+            self.match = out
 
     def _pose_hook(self, mod, args, out):
         if self.armed:
@@ -112,7 +118,7 @@ class ForwardTaps:
             self.armed = False
 
     def clear(self) -> None:
-        self.cross, self.pose = {1: [], 2: []}, None
+        self.cross, self.pose, self.match = {1: [], 2: []}, None, None
 
     def scores(self, heads: int) -> tuple[list, list]:
         """Logits [B, heads, Nq, Nk] per decoder layer: (view-1 queries over view 2, view-2 queries over view 1)."""
@@ -149,6 +155,10 @@ def make_step(cfg: TrainConfig):
             la, acc = cross_attention_loss(s12, s21, counts, min_pixels=net.cfg.patch_size ** 2 // 8)
             loss = loss + cfg.attn_weight * la
             details.update(attn_loss=float(la.detach()), attn_acc=acc)
+            if taps.match is not None:  # the pose head's own correspondence field, supervised the same way
+                lm2, acc2 = cross_attention_loss([taps.match[:, None]], [], counts, min_pixels=net.cfg.patch_size ** 2 // 8)
+                loss = loss + cfg.attn_weight * lm2
+                details.update(pose_match_loss=float(lm2.detach()), pose_match_acc=acc2)
         taps.clear()
         return loss, details
 

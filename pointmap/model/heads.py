@@ -173,15 +173,20 @@ def rotation_from_6d(x: torch.Tensor) -> torch.Tensor:
     return torch.stack([a, b, torch.cross(a, b, dim=-1)], dim=-1)
 
 
-def fourier_positions(h: int, w: int, n_freq: int, device=None, dtype=None) -> torch.Tensor:
-    """[h*w, 4 * n_freq] sin/cos features of each patch centre's (x, y), normalised by the long side to
-    [-1, 1] along it (the same scale on both axes, so the aspect ratio shows), row-major."""
+def patch_centres(h: int, w: int, device=None, dtype=None) -> torch.Tensor:
+    """[h*w, 2] (x, y) of each patch centre, row-major, divided by half the long side: the long side spans
+    [-1, 1] and the short side the same scale (so the aspect ratio shows)."""
     s = max(h, w)
     ys = (torch.arange(h, device=device, dtype=dtype) + 0.5 - h / 2) / (s / 2)
     xs = (torch.arange(w, device=device, dtype=dtype) + 0.5 - w / 2) / (s / 2)
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
-    freqs = torch.pi * 2.0 ** torch.arange(n_freq, device=device, dtype=dtype) / 2
-    ang = torch.cat([xx.reshape(-1, 1) * freqs, yy.reshape(-1, 1) * freqs], dim=-1)
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
+
+
+def fourier(xy: torch.Tensor, n_freq: int) -> torch.Tensor:
+    """[..., 2] coordinates -> [..., 4 * n_freq] sin/cos features at frequencies pi * 2^k / 2, k < n_freq."""
+    freqs = torch.pi * 2.0 ** torch.arange(n_freq, device=xy.device, dtype=xy.dtype) / 2
+    ang = torch.cat([xy[..., 0:1] * freqs, xy[..., 1:2] * freqs], dim=-1)
     return torch.cat([ang.sin(), ang.cos()], dim=-1)
 
 
@@ -206,24 +211,43 @@ class PoolBlock(nn.Module):
         return q + self.mlp(self.norm2(q))
 
 
-class PoseHead(nn.Module):
-    """cam2 -> cam1 rigid transform [B, 4, 4] from both views' last decoder tokens.
+class MatchScores(nn.Module):
+    """Logits [B, N1, N2] of where each view-1 token's content lies among view 2's tokens (training supervises
+    them with the ground-truth correspondences, ``training.losses.cross_attention_loss``)."""
 
-    Tokens carry no absolute position (RoPE only acts inside attention), so each gets a view embedding and
-    Fourier features of its patch centre; a learned query attends to all tokens of both views twice and an
-    linear read-out gives a 6-D rotation and a translation (in the units of the predicted points).
+    def __init__(self, dim: int, inner: int = 64) -> None:
+        super().__init__()
+        self.inner = inner
+        self.q, self.k = nn.Linear(dim, inner), nn.Linear(dim, inner)
+
+    def forward(self, tok1: torch.Tensor, tok2: torch.Tensor) -> torch.Tensor:
+        return self.q(tok1) @ self.k(tok2).transpose(1, 2) * self.inner ** -0.5
+
+
+class PoseHead(nn.Module):
+    """cam2 -> cam1 rigid transform [B, 4, 4] from a correspondence field and view 1's geometry.
+
+    For every view-1 token: where its content lies in view 2 (the expectation of patch centres under a softmax
+    over ``MatchScores``, with the spread and the peak of that softmax as its certainty), its own patch centre,
+    and its 3D point (view 1's predicted points averaged over the patch, divided by their mean distance) -- the
+    inputs of a PnP, as features -- plus its token. A learned query attends to these twice and a linear
+    read-out gives a 6-D rotation and a translation in units of that mean distance (so the transform follows
+    the scale of the predicted points). Pooling tokens alone did not learn: the tokens say what a patch
+    matched, not where (cross-attention values carry no position), so the head is given the where.
     The read-out starts at zero weights and the identity bias: a fresh head predicts the identity pose, so a
     trunk whose view-2 head was trained to give cam1 points starts where it was.
     """
 
-    n_freq = 8
+    n_freq = 6
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         d = cfg.dec_dim
+        self.patch = cfg.patch_size
+        self.match = MatchScores(d)
+        self.embed = Mlp(8 * self.n_freq + 5, d, d)
+        self.tok_proj = nn.Linear(d, d)
         self.query = nn.Parameter(torch.zeros(1, 1, d))
-        self.view_embed = nn.Parameter(torch.zeros(2, d))
-        self.pos_embed = nn.Linear(4 * self.n_freq, d)
         self.blocks = nn.ModuleList([PoolBlock(d, cfg.dec_heads) for _ in range(2)])
         self.norm = nn.LayerNorm(d, eps=1e-6)
         self.out = nn.Linear(d, 9)
@@ -231,23 +255,31 @@ class PoseHead(nn.Module):
 
     def reset_parameters(self) -> None:
         nn.init.normal_(self.query, std=0.02)
-        nn.init.normal_(self.view_embed, std=0.02)
         nn.init.zeros_(self.out.weight)
         with torch.no_grad():
             self.out.bias.copy_(torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0, 0]))
 
-    def forward(self, tok1: torch.Tensor, tok2: torch.Tensor, grid1: tuple, grid2: tuple) -> torch.Tensor:
-        x = []
-        for view, (tok, (h, w)) in enumerate(((tok1, grid1), (tok2, grid2))):
-            pos = fourier_positions(h, w, self.n_freq, tok.device, tok.dtype)
-            x.append(tok + self.view_embed[view] + self.pos_embed(pos))
-        x = torch.cat(x, dim=1)
-        q = self.query.expand(x.shape[0], -1, -1)
+    def forward(self, tok1: torch.Tensor, tok2: torch.Tensor, grid1: tuple, grid2: tuple,
+                pts1: torch.Tensor) -> torch.Tensor:
+        """tok1 [B, N1, C], tok2 [B, N2, C] last decoder tokens; pts1 [B, H1, W1, 3] view 1's points."""
+        B = tok1.shape[0]
+        c1 = patch_centres(*grid1, device=tok1.device, dtype=tok1.dtype)
+        c2 = patch_centres(*grid2, device=tok1.device, dtype=tok1.dtype)
+        P = self.match(tok1, tok2).softmax(-1)  # [B, N1, N2]
+        E = P @ c2  # expected position of each view-1 token's content in view 2
+        spread = ((P @ (c2 * c2).sum(-1, keepdim=True)) - (E * E).sum(-1, keepdim=True)).clamp_min(0).add(1e-6).sqrt()
+        peak = P.amax(-1, keepdim=True)
+        X1 = F.avg_pool2d(pts1.permute(0, 3, 1, 2), self.patch).flatten(2).transpose(1, 2)  # [B, N1, 3]
+        scale = X1.norm(dim=-1).mean(1).clamp_min(1e-6)  # [B]
+        feat = torch.cat([fourier(c1, self.n_freq).expand(B, -1, -1), fourier(E, self.n_freq),
+                          X1 / scale[:, None, None], spread, peak], dim=-1)
+        x = self.embed(feat) + self.tok_proj(tok1)
+        q = self.query.expand(B, -1, -1)
         for blk in self.blocks:
             q = blk(q, x)
         o = self.out(self.norm(q[:, 0]))
-        T = torch.zeros(o.shape[0], 4, 4, dtype=o.dtype, device=o.device)
+        T = torch.zeros(B, 4, 4, dtype=o.dtype, device=o.device)
         T[:, :3, :3] = rotation_from_6d(o[:, :6])
-        T[:, :3, 3] = o[:, 6:9]
+        T[:, :3, 3] = o[:, 6:9] * scale[:, None]
         T[:, 3, 3] = 1
         return T

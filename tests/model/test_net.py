@@ -154,3 +154,17 @@ def test_a_pose_head_checkpoint_is_refused_as_the_trunk_of_a_model_without_one()
     with_pose, _ = _pose_pair(3)
     with pytest.raises(CheckpointError, match="has a pose head"):
         load_trunk(PointmapNet(pm.PRESETS["test"]), with_pose.state_dict())
+
+
+def test_the_pose_heads_translation_follows_the_scale_of_the_predicted_points():
+    from pointmap.model.heads import PoseHead
+
+    torch.manual_seed(4)
+    head = PoseHead(pm.PRESETS["test"]).eval()
+    with torch.no_grad():
+        head.out.weight.normal_(0, 0.5)
+    tok1, tok2, pts1 = torch.randn(1, 4, 32), torch.randn(1, 4, 32), torch.rand(1, 32, 32, 3) + 1
+    with torch.no_grad():
+        T, T3 = head(tok1, tok2, (2, 2), (2, 2), pts1), head(tok1, tok2, (2, 2), (2, 2), 3 * pts1)
+    assert torch.allclose(T[:, :3, :3], T3[:, :3, :3], atol=1e-5)  # the rotation ignores the scale
+    assert torch.allclose(3 * T[:, :3, 3], T3[:, :3, 3], atol=1e-5) and T[:, :3, 3].abs().max() > 1e-3

@@ -142,6 +142,17 @@ def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
         make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0))(PointmapNet(PRESETS["test"]), batch, 0)
 
 
+def test_with_attention_supervision_the_pose_heads_correspondence_field_is_supervised_too(tmp_path):
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
+    data = PlanePairs(2)
+    batch = collate([data[0], data[1]])
+    loss, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, attn_weight=0.5))(model, batch, 0)
+    assert d["pose_match_loss"] > 0 and 0 <= d["pose_match_acc"] <= 1
+    loss.backward()
+    assert model.pose_head.match.q.weight.grad.abs().sum() > 0
+
+
 @pytest.mark.slow  # ~2 min of compilation
 def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss_on(tmp_path):
     torch.manual_seed(0)
