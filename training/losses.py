@@ -32,12 +32,16 @@ def completion_loss(pred_patches: torch.Tensor, img: torch.Tensor, mask: torch.T
     return (per_patch * m).sum() / m.sum().clamp_min(1)
 
 
+def gt_cam2_to_cam1(view1: dict, view2: dict) -> torch.Tensor:
+    """Ground-truth transform [B, 4, 4] from view 2's camera frame to view 1's."""
+    return invert_rigid(view1["cam2world"]) @ view2["cam2world"]
+
+
 def gt_points_cam1(view1: dict, view2: dict):
     """Ground-truth pointmaps of both views in view 1's camera frame: ([B,H1,W1,3], [B,H2,W2,3])."""
     p1 = depth_to_points_cam(view1["depth_z"], view1["K"])
     p2_cam2 = depth_to_points_cam(view2["depth_z"], view2["K"])
-    cam2_to_cam1 = invert_rigid(view1["cam2world"]) @ view2["cam2world"]
-    return p1, transform_points(cam2_to_cam1, p2_cam2)
+    return p1, transform_points(gt_cam2_to_cam1(view1, view2), p2_cam2)
 
 
 def _mean_dist(p1, p2, v1, v2):
@@ -47,17 +51,25 @@ def _mean_dist(p1, p2, v1, v2):
     return d / n.clamp_min(1)
 
 
+def _scales(pred, view1: dict, view2: dict, metric: bool):
+    """(GT points of both views in view 1's frame, valid masks, GT scale [B], prediction scale [B]): each scale
+    the mean distance of its own pointmaps over both views' valid pixels; metric mode uses the GT's for both."""
+    gt1, gt2 = gt_points_cam1(view1, view2)
+    v1, v2 = view1["valid"].float(), view2["valid"].float()
+    s_gt = _mean_dist(gt1, gt2, v1, v2).clamp_min(1e-8)
+    s_pr = s_gt if metric else _mean_dist(pred.pts1_cam1.float(), pred.pts2_cam1.float(), v1, v2).clamp_min(1e-8)
+    return (gt1, gt2), (v1, v2), s_gt, s_pr
+
+
 def regression_loss(pred, view1: dict, view2: dict, alpha: float = 0.2, metric: bool = False):
     """DUSt3R confidence-aware regression: per view, mean over valid pixels of conf*||P - X|| - alpha*log conf.
 
     P and X are the predicted and GT pointmaps in view 1's frame, each divided by its own mean distance over
     both views' valid pixels (metric mode: the GT scale is used for both). Returns (loss, details dict).
     """
-    gt1, gt2 = gt_points_cam1(view1, view2)
-    v1, v2 = view1["valid"].float(), view2["valid"].float()
+    (gt1, gt2), (v1, v2), s_gt, s_pr = _scales(pred, view1, view2, metric)
     pr1, pr2 = pred.pts1_cam1.float(), pred.pts2_cam1.float()
-    s_gt = _mean_dist(gt1, gt2, v1, v2).clamp_min(1e-8)[:, None, None, None]
-    s_pr = s_gt if metric else _mean_dist(pr1, pr2, v1, v2).clamp_min(1e-8)[:, None, None, None]
+    s_gt, s_pr = s_gt[:, None, None, None], s_pr[:, None, None, None]
     total, details = 0.0, {}
     for name, pr, gt, v, conf in (("1", pr1, gt1, v1, pred.conf1), ("2", pr2, gt2, v2, pred.conf2)):
         err = (pr / s_pr - gt / s_gt).norm(dim=-1)
@@ -74,11 +86,8 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     distance of the rotations (2 sqrt(2) sin(angle / 2) for an error of ``angle``) plus the distance of the
     translations, each divided by the mean distance of its own pointmaps as in ``regression_loss`` (the GT
     scale for both in metric mode). Returns (loss, details with the mean rotation error in degrees)."""
-    gt1, gt2 = gt_points_cam1(view1, view2)
-    v1, v2 = view1["valid"].float(), view2["valid"].float()
-    s_gt = _mean_dist(gt1, gt2, v1, v2).clamp_min(1e-8)
-    s_pr = s_gt if metric else _mean_dist(pred.pts1_cam1.float(), pred.pts2_cam1.float(), v1, v2).clamp_min(1e-8)
-    gt = invert_rigid(view1["cam2world"].float()) @ view2["cam2world"].float()
+    _, _, s_gt, s_pr = _scales(pred, view1, view2, metric)
+    gt = gt_cam2_to_cam1(view1, view2).float()
     T = T.float()
     rot = (T[:, :3, :3] - gt[:, :3, :3]).flatten(1).norm(dim=1)
     tr = (T[:, :3, 3] / s_pr[:, None] - gt[:, :3, 3] / s_gt[:, None]).norm(dim=1)

@@ -151,12 +151,13 @@ def make_step(cfg: TrainConfig):
         if cfg.attn_weight > 0:
             net = getattr(model, "module", model)
             counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
+            min_px = net.cfg.patch_size ** 2 // 8  # a token takes part when >= 1/8 of its pixels are co-visible
             s12, s21 = taps.scores(cfg.attn_heads)
-            la, acc = cross_attention_loss(s12, s21, counts, min_pixels=net.cfg.patch_size ** 2 // 8)
+            la, acc = cross_attention_loss(s12, s21, counts, min_pixels=min_px)
             loss = loss + cfg.attn_weight * la
             details.update(attn_loss=float(la.detach()), attn_acc=acc)
             if taps.match is not None:  # the pose head's own correspondence field, supervised the same way
-                lm2, acc2 = cross_attention_loss([taps.match[:, None]], [], counts, min_pixels=net.cfg.patch_size ** 2 // 8)
+                lm2, acc2 = cross_attention_loss([taps.match[:, None]], [], counts, min_pixels=min_px)
                 loss = loss + cfg.attn_weight * lm2
                 details.update(pose_match_loss=float(lm2.detach()), pose_match_acc=acc2)
         taps.clear()

@@ -11,7 +11,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pointmap.model.blocks import Mlp
+from pointmap.model.blocks import LayerNorm, Mlp
 from pointmap.model.config import ModelConfig
 
 
@@ -196,8 +196,7 @@ class PoolBlock(nn.Module):
     def __init__(self, dim: int, heads: int) -> None:
         super().__init__()
         self.heads = heads
-        self.norm_q, self.norm_kv, self.norm2 = nn.LayerNorm(dim, eps=1e-6), nn.LayerNorm(dim, eps=1e-6), \
-            nn.LayerNorm(dim, eps=1e-6)
+        self.norm_q, self.norm_kv, self.norm2 = LayerNorm(dim), LayerNorm(dim), LayerNorm(dim)
         self.q, self.kv, self.proj = nn.Linear(dim, dim), nn.Linear(dim, 2 * dim), nn.Linear(dim, dim)
         self.mlp = Mlp(dim, 2 * dim)
 
@@ -249,7 +248,7 @@ class PoseHead(nn.Module):
         self.tok_proj = nn.Linear(d, d)
         self.query = nn.Parameter(torch.zeros(1, 1, d))
         self.blocks = nn.ModuleList([PoolBlock(d, cfg.dec_heads) for _ in range(2)])
-        self.norm = nn.LayerNorm(d, eps=1e-6)
+        self.norm = LayerNorm(d)
         self.out = nn.Linear(d, 9)
         self.reset_parameters()
 

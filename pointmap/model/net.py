@@ -10,6 +10,7 @@ import torch
 import torch.nn as nn
 
 from pointmap.errors import ShapeError
+from pointmap.geometry.cameras import transform_points
 from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
 from pointmap.model.config import ModelConfig
 from pointmap.model.heads import DownstreamHead, PoseHead, postprocess
@@ -118,7 +119,7 @@ class PointmapNet(nn.Module):
         o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p), self.cfg)
         if self.pose_head is not None:  # o2["pts"] is in view 2's own frame: move it into view 1's
             T = self.pose_head(tok1[-1], tok2[-1], grid1, grid2, o1["pts"])
-            o2["pts"] = torch.einsum("bij,bhwj->bhwi", T[:, :3, :3], o2["pts"]) + T[:, None, None, :3, 3]
+            o2["pts"] = transform_points(T, o2["pts"])
         return PairPrediction(pts1_cam1=o1["pts"], pts2_cam1=o2["pts"], conf1=o1["conf"], conf2=o2["conf"],
                               desc1=o1.get("desc"), desc2=o2.get("desc"),
                               desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"))

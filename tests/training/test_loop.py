@@ -32,6 +32,14 @@ def run(out, steps, **overrides):
     return model
 
 
+def seeded_model_and_batch(model_cfg=PRESETS["test"]):
+    """A seed-0 model of ``model_cfg`` and a batch of the two synthetic plane pairs."""
+    torch.manual_seed(0)
+    model = PointmapNet(model_cfg)
+    data = PlanePairs(2)
+    return model, collate([data[0], data[1]])
+
+
 def test_the_fast_batch_sampler_follows_the_reference_data_order():
     fast = list(StepBatches(n=7, batch=3, steps=6, start_step=2, rank=1, world=2, seed=5))
     ref = [batch_indices(s, 1, 2, 3, 7, 5) for s in range(2, 6)]
@@ -60,11 +68,8 @@ def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_pa
 
 
 def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"])
-    data = PlanePairs(2)
+    model, batch = seeded_model_and_batch()
     cfg = config(tmp_path, 1)
-    batch = collate([data[0], data[1]])
     step = make_step(cfg)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     losses = []
@@ -78,10 +83,7 @@ def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
 
 
 def test_the_coarse_matching_loss_is_added_with_its_weight_when_switched_on(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"])
-    data = PlanePairs(2)
-    batch = collate([data[0], data[1]])
+    model, batch = seeded_model_and_batch()
     base, d0 = make_step(config(tmp_path, 1))(model, batch, 0)
     cfg = dataclasses.replace(config(tmp_path, 1), coarse_weight=0.5)
     both, d1 = make_step(cfg)(model, batch, 0)
@@ -90,10 +92,7 @@ def test_the_coarse_matching_loss_is_added_with_its_weight_when_switched_on(tmp_
 
 
 def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_query_projections(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"])
-    data = PlanePairs(2)
-    batch = collate([data[0], data[1]])
+    model, batch = seeded_model_and_batch()
     base, _ = make_step(config(tmp_path, 1))(model, batch, 0)
     cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1)
     step = make_step(cfg)
@@ -129,10 +128,7 @@ def test_negative_loss_weights_are_refused_on_the_command_line(capsys):
 
 
 def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
-    data = PlanePairs(2)
-    batch = collate([data[0], data[1]])
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     base, _ = make_step(config(tmp_path, 1))(model, batch, 0)
     both, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=2.0))(model, batch, 0)
     assert d["pose_loss"] > 0 and abs(float(both) - float(base) - 2.0 * d["pose_loss"]) < 1e-4
@@ -143,10 +139,7 @@ def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
 
 
 def test_with_attention_supervision_the_pose_heads_correspondence_field_is_supervised_too(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
-    data = PlanePairs(2)
-    batch = collate([data[0], data[1]])
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     loss, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, attn_weight=0.5))(model, batch, 0)
     assert d["pose_match_loss"] > 0 and 0 <= d["pose_match_acc"] <= 1
     loss.backward()
@@ -155,10 +148,7 @@ def test_with_attention_supervision_the_pose_heads_correspondence_field_is_super
 
 @pytest.mark.slow  # ~2 min of compilation
 def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss_on(tmp_path):
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"].replace(pose_head=True))
-    data = PlanePairs(2)
-    batch = collate([data[0], data[1]])
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1, pose_weight=1.0, coarse_weight=0.5)
     eager, d0 = make_step(cfg)(model, batch, 0)
     compiled, d1 = make_step(cfg)(torch.compile(model), batch, 0)
