@@ -24,6 +24,9 @@ class TrainConfig:
     lr: float = 2e-4
     min_lr: float = 1e-6
     warmup: int = 500
+    schedule: str = "cosine"       # after warmup: "cosine" to min_lr at --steps, or "wsd" (warmup-stable-decay):
+                                   # constant lr, then the last --decay_steps fall to min_lr (1 - sqrt shape)
+    decay_steps: int = 0           # wsd: length of the final decay (its first step also saves out/stable_<step>.pt)
     weight_decay: float = 0.05
     clip: float = 1.0
     alpha: float = 0.2             # confidence regulariser of the regression loss
@@ -73,6 +76,11 @@ class TrainConfig:
         cfg = cls(**values)
         if cfg.task not in ("train", "pretrain"):
             p.error(f"--task expected 'train' or 'pretrain', got {cfg.task!r}")
+        if cfg.schedule not in ("cosine", "wsd"):
+            p.error(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
+        if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
+            p.error(f"--schedule wsd needs 0 < --decay_steps <= --steps - --warmup "
+                    f"({cfg.steps} - {cfg.warmup}), got {cfg.decay_steps}")
         if cfg.init_heads not in ("strict", "fresh"):
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:

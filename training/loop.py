@@ -95,11 +95,22 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
 
 
 def lr_factor(step: int, cfg: TrainConfig) -> float:
-    """Linear warmup then cosine decay to min_lr (as a factor of lr)."""
+    """The learning rate at ``step`` as a factor of ``cfg.lr``: linear warmup, then either cosine decay to
+    min_lr at ``cfg.steps``, or (``schedule="wsd"``) constant until the last ``decay_steps`` steps, which fall to
+    min_lr as 1 - sqrt(t) (Hägele et al. 2024, "Scaling laws and compute-optimal training beyond fixed training
+    durations"). The schedule is a function of the step and the current config only, so a resumed run may
+    change it (e.g. lengthen ``--steps`` of a wsd run resumed from its stable checkpoint)."""
     if step < cfg.warmup:
         return (step + 1) / cfg.warmup
+    floor = cfg.min_lr / cfg.lr
+    if cfg.schedule == "wsd":
+        start = cfg.steps - cfg.decay_steps
+        if step < start:
+            return 1.0
+        t = min((step - start) / max(cfg.decay_steps, 1), 1.0)
+        return floor + (1.0 - floor) * (1.0 - math.sqrt(t))
     t = min((step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1), 1.0)
-    return (cfg.min_lr + (cfg.lr - cfg.min_lr) * 0.5 * (1 + math.cos(math.pi * t))) / cfg.lr
+    return floor + (1.0 - floor) * 0.5 * (1 + math.cos(math.pi * t))
 
 
 # -- checkpoints ----------------------------------------------------------------------------------
@@ -220,6 +231,11 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         optimizer.load_state_dict(ck["optimizer"])
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
+        # the schedule is the current config's (lr, shape, length), not the one the checkpoint was written with
+        scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
+        for group in optimizer.param_groups:
+            group["lr"] = cfg.lr * lr_factor(start, cfg)
+        scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
         if world == 1:
             _set_rng_state(ck["rng"])
     ddp_model = model
@@ -262,6 +278,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if step % cfg.log_every == 0:
             logger.log("train", step, metrics)
         stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
+        if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
+            # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
+            save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg)
         if rank == 0 and (step % cfg.ckpt_every == 0 or step == cfg.steps or stop):
             save_checkpoint(last, model, optimizer, scheduler, step, cfg)
         if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):

@@ -57,6 +57,46 @@ def test_learning_rate_warms_up_then_decays_to_the_minimum():
     assert abs(lr_factor(110, cfg) * cfg.lr - 1e-5) < 1e-12
 
 
+def test_the_wsd_schedule_holds_the_rate_then_falls_to_the_minimum_as_one_minus_sqrt():
+    cfg = TrainConfig(data="x", lr=1e-3, min_lr=1e-5, warmup=10, steps=110, schedule="wsd", decay_steps=40)
+    assert abs(lr_factor(9, cfg) - 1.0) < 1e-12
+    assert all(lr_factor(s, cfg) == 1.0 for s in range(10, 71))  # stable until steps - decay_steps
+    floor = cfg.min_lr / cfg.lr
+    assert abs(lr_factor(80, cfg) - (floor + (1 - floor) * (1 - 0.5))) < 1e-12  # t = 1/4: 1 - sqrt(t) = 1/2
+    assert abs(lr_factor(110, cfg) * cfg.lr - 1e-5) < 1e-12 and lr_factor(200, cfg) == lr_factor(110, cfg)
+    factors = [lr_factor(s, cfg) for s in range(70, 111)]
+    assert all(a > b for a, b in zip(factors, factors[1:]))
+
+
+def test_schedule_options_are_checked_on_the_command_line(capsys):
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--schedule", "step"])
+    assert "--schedule expected 'cosine' or 'wsd'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--schedule", "wsd", "--steps", "100", "--warmup", "10"])
+    assert "0 < --decay_steps <= --steps - --warmup (100 - 10), got 0" in capsys.readouterr().err
+    cfg = TrainConfig.from_args(["--data", "x", "--schedule", "wsd", "--steps", "100", "--decay_steps", "20",
+                                 "--warmup", "10"])
+    assert cfg.schedule == "wsd" and cfg.decay_steps == 20
+
+
+def test_a_wsd_run_saves_its_stable_checkpoint_and_a_longer_run_resumes_from_it_at_full_rate(tmp_path):
+    import csv
+
+    run(tmp_path / "short", 6, schedule="wsd", decay_steps=2, log_every=1)
+    stable = tmp_path / "short" / "stable_4.pt"
+    assert sorted(p.name for p in (tmp_path / "short").glob("stable_*.pt")) == ["stable_4.pt"]
+    assert torch.load(stable, weights_only=True)["step"] == 4
+    (tmp_path / "long").mkdir()
+    shutil.copy(stable, tmp_path / "long" / "last.pt")
+    run(tmp_path / "long", 10, schedule="wsd", decay_steps=2, log_every=1, lr=2e-4)  # a new lr is honoured too
+    with open(tmp_path / "long" / "train.csv", newline="") as fh:
+        lrs = {int(r["step"]): float(r["lr"]) for r in csv.DictReader(fh)}
+    assert min(lrs) == 5 and max(lrs) == 10
+    assert all(abs(lrs[s] - 2e-4) < 1e-12 for s in (5, 6, 7))  # lr after step s-1: stable through step 8
+    assert lrs[9] < 2e-4 and abs(lrs[10] - TrainConfig.min_lr) < 1e-12
+
+
 def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_path):
     straight = run(tmp_path / "a", 4)
     run(tmp_path / "b", 2)
