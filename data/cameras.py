@@ -6,7 +6,15 @@ further view is derived from a random earlier one ("reference") by one of four m
 - ``small``:  translation of 2-25 % of the viewing distance, look-at jitter;
 - ``medium``: orbit of 8-30 degrees about a surface point seen by the reference;
 - ``wide``:   orbit of 30-90 degrees about that point (wide baselines around objects);
-- ``zoom``:   move 25-60 % closer to / further from the point, small rotation.
+- ``zoom``:   move 25-60 % closer to / further from the point, small rotation;
+- ``slide``:  the reference's orientation turned by at most 3 degrees, the camera moved 5-40 % of the viewing
+  distance sideways (plus a little up/down and forward/back): a stereo rig, a dolly, a walking camera;
+- ``pan``:    the camera turned in place by 8-35 degrees (yaw about the vertical, a little pitch), moved by at
+  most 4 % of the viewing distance: a handheld panorama.
+
+The first four aim every new view at a point the reference sees, which ties the translation to the rotation;
+``slide`` and ``pan`` break that tie (real photographs often have one without the other). Their default weight is
+0, so a run without ``--moves`` draws the same views as before they existed.
 
 Every candidate is rendered depth-only first and rejected when degenerate: camera inside an
 obstacle box or outside the scene's camera region, geometry closer than ``min_depth`` on more than 1 %
@@ -24,7 +32,7 @@ import numpy as np
 from data.geom import correspondences, intrinsics_from_fov, look_at, overlap
 from pointmap.errors import ShapeError
 
-MOVES = ("small", "medium", "wide", "zoom")
+MOVES = ("small", "medium", "wide", "zoom", "slide", "pan")
 OVERLAP_STRIDE = 2   # overlaps are estimated on every 2nd row and column (4x faster, ~1% accurate)
 
 
@@ -38,7 +46,7 @@ class CameraConfig:
     orientation_weights: tuple = (0.4, 0.35, 0.25)   # square, landscape, portrait
     short_side_ratios: tuple = (0.75, 5 / 7)          # short/long for non-square images
     overlap: tuple = (0.15, 0.95)
-    move_weights: tuple = (0.3, 0.25, 0.3, 0.15)       # small, medium, wide, zoom
+    move_weights: tuple = (0.3, 0.25, 0.3, 0.15, 0.0, 0.0)  # small, medium, wide, zoom, slide, pan
     wide_deg: tuple = (30.0, 90.0)
     min_valid: float = 0.4
     min_depth: float = 0.08
@@ -159,8 +167,36 @@ def _focus_point(rng, ref: View):
     return ref.cam2world[:3, :3] @ p_cam + ref.cam2world[:3, 3], d
 
 
+def _axis_angle(axis, angle: float) -> np.ndarray:
+    """Rotation matrix of ``angle`` radians about ``axis`` (Rodrigues)."""
+    k = _unit(np.asarray(axis, np.float64))
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
+def _posed(R: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, eye
+    return T
+
+
 def _related_pose(rng, scene, ref: View, move: str, cfg):
     eye0 = ref.cam2world[:3, 3]
+    R0 = ref.cam2world[:3, :3]
+    if move == "slide":
+        d = float(np.median(ref.depth[ref.depth > 0]))
+        side = rng.uniform(0.05, 0.4) * rng.choice([-1, 1])
+        offset = np.array([side, rng.normal(0, 0.05), rng.uniform(-0.15, 0.15)]) * d  # camera axes
+        R = R0 @ _axis_angle(rng.normal(size=3), np.radians(rng.uniform(0, 3)))
+        eye = eye0 + R0 @ offset
+        return eye, _posed(R, eye)
+    if move == "pan":
+        d = float(np.median(ref.depth[ref.depth > 0]))
+        yaw = np.radians(rng.uniform(8, 35)) * rng.choice([-1, 1])
+        pitch = np.radians(rng.uniform(-8, 8))
+        R = _axis_angle([0, 0, 1], yaw) @ R0 @ _axis_angle([1, 0, 0], pitch)  # world vertical, then camera x
+        eye = eye0 + _unit(rng.normal(size=3)) * d * rng.uniform(0, 0.04)
+        return eye, _posed(R, eye)
     P, d = _focus_point(rng, ref)
     jitter = rng.normal(0, 0.04, 3) * d
     if move == "small":

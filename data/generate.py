@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.cameras import CameraConfig, DegenerateScene, sample_views
+from data.cameras import MOVES, CameraConfig, DegenerateScene, sample_views
 from data.geom import encode_corr
 from data.scene import make_scene
 from data.shards import (
@@ -59,6 +59,7 @@ class GenConfig:
     photo_share: float = 0.0       # share of textures cut from photographs (0: procedural only)
     photo_dirs: tuple = ()         # where the photographs are (default: data.textures.DEFAULT_PHOTO_DIRS)
     photo_fingerprint: str = ""    # of the collection used (filled by generate; checked on resume)
+    moves: tuple = ()              # camera move weights in data.cameras.MOVES order; () = CameraConfig's default
 
     def __post_init__(self):
         if self.kind not in ("pairs", "views"):
@@ -75,6 +76,8 @@ class GenConfig:
             raise ValueError(f"low_texture_share expected in [0, 1], got {self.low_texture_share}")
         if not 0 <= self.photo_share <= 1:
             raise ValueError(f"photo_share expected in [0, 1], got {self.photo_share}")
+        if self.moves:
+            CameraConfig(move_weights=tuple(self.moves))  # raises ValueError for a wrong count or weights
         if not 0 <= self.overlap_lo <= self.overlap_hi <= 1:
             raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap_lo}, {self.overlap_hi}")
 
@@ -83,6 +86,8 @@ class GenConfig:
         return (self.scenes + self.shard_size - 1) // self.shard_size
 
     def camera(self) -> CameraConfig:
+        if self.moves:
+            return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi), move_weights=tuple(self.moves))
         return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi))
 
     def photos(self):
@@ -104,6 +109,10 @@ class GenConfig:
         if self.photo_share <= 0:
             for k in ("photo_share", "photo_dirs", "photo_fingerprint"):
                 d.pop(k)
+        if self.moves:
+            d["moves"] = list(self.moves)
+        else:
+            d.pop("moves")
         return d
 
     @classmethod
@@ -111,6 +120,8 @@ class GenConfig:
         d = dict(d)
         if "photo_dirs" in d:
             d["photo_dirs"] = tuple(d["photo_dirs"])
+        if "moves" in d:
+            d["moves"] = tuple(d["moves"])
         return cls(**d)
 
 
@@ -352,8 +363,29 @@ def build_parser():
                    help="directories of photographs (searched recursively) or glob patterns (default: "
                         "/usr/share/backgrounds/mate/nature '/usr/share/backgrounds/*_by_*.jpg' from the Debian "
                         "packages mate-backgrounds and lomiri-wallpapers-16.04)")
+    p.add_argument("--moves", default=None,
+                   help="camera move weights, e.g. small=0.15,medium=0.15,wide=0.1,zoom=0.1,slide=0.35,pan=0.15 "
+                        "(moves not named get 0; default small=0.3,medium=0.25,wide=0.3,zoom=0.15; data/cameras.py)")
     p.add_argument("--quiet", action="store_true")
     return p
+
+
+def parse_moves(text: str | None) -> tuple:
+    """``name=weight,...`` -> weights in MOVES order; () for None (the default weights)."""
+    if text is None:
+        return ()
+    weights = dict.fromkeys(MOVES, 0.0)
+    for part in text.split(","):
+        name, eq, value = part.partition("=")
+        if name.strip() not in weights or not eq:
+            raise ValueError(f"--moves expected name=weight pairs with names from {MOVES}, got {part!r}")
+        try:
+            weights[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--moves weight of {name.strip()!r} expected a number, got {value!r}") from None
+    if min(weights.values()) < 0 or sum(weights.values()) <= 0:
+        raise ValueError(f"--moves expected non-negative weights, not all 0, got {text!r}")
+    return tuple(weights[m] for m in MOVES)
 
 
 def main(argv=None, *, _allow_reserved: bool = False) -> int:
@@ -365,7 +397,7 @@ def main(argv=None, *, _allow_reserved: bool = False) -> int:
         cfg = GenConfig(kind=args.kind, scenes=args.scenes, views=args.views, size=args.size,
                         shard_size=args.shard_size, seed=args.seed, low_texture_share=args.low_texture_share,
                         overlap_lo=args.overlap[0], overlap_hi=args.overlap[1], photo_share=args.photo_share,
-                        photo_dirs=tuple(args.photo_dirs or ()))
+                        photo_dirs=tuple(args.photo_dirs or ()), moves=parse_moves(args.moves))
         if cfg.photo_share > 0:
             try:
                 fingerprint = cfg.photos().fingerprint
