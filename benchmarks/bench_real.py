@@ -1,0 +1,196 @@
+"""Real photographs with ground truth: the model on camera images it was never trained on, against OpenCV.
+
+The photographs are OpenCV's sample data, shipped by Debian's ``opencv-doc`` package (no other download):
+
+    apt-get download opencv-doc && dpkg-deb -x opencv-doc_*.deb /tmp/opencv-doc
+    python benchmarks/bench_real.py --data /tmp/opencv-doc/usr/share/doc/opencv-doc/examples/data --model small
+
+Two sets:
+- **stereo rig** (``left01..14.jpg`` / ``right01..14.jpg``, 640x480 grey, 13 pairs): a two-camera rig photographing
+  a chessboard in an office. Ground truth comes from OpenCV's own calibration of these images
+  (``findChessboardCorners`` -> ``calibrateCamera`` per camera -> ``stereoCalibrate``); the images are undistorted
+  with it, so a pinhole K holds. Every pair has the same relative pose (small rotation, sideways baseline).
+- **aloe** (``aloeL.jpg`` / ``aloeR.jpg`` / ``aloeGT.png``, Middlebury 2006, 1282x1110): a rectified pair (rotation
+  = identity, view 2 displaced along +x) with a ground-truth disparity map. Its focal length and the disparity
+  offset of the crop are not shipped, so depth is scored in disparity space: the prediction's inverse depth is
+  fitted to the true disparity by least squares (scale and shift: what Z = f B / (d + d_offset) leaves unknown),
+  and the residual is reported against a constant (the trivial prior) and OpenCV's semi-global block matching
+  (StereoSGBM) on the same network-size images.
+
+Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the model's coarse matches +
+PnP with the true K, SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
+(``pointmap.pose.focal_from_prediction``, no intrinsics given) is compared with the calibrated one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pointmap as pm  # noqa: E402
+from pointmap.pose import focal_from_prediction  # noqa: E402
+from benchmarks.bench_pose import errors, sift_pose  # noqa: E402
+
+BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
+RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
+
+
+def _read(path: Path, flags=cv2.IMREAD_COLOR) -> np.ndarray:
+    im = cv2.imread(str(path), flags)
+    if im is None:
+        raise SystemExit(f"bench_real: cannot read {path} (expected OpenCV's sample data: see this script's header)")
+    return im
+
+
+def calibrate_rig(data: Path):
+    """Calibrate the two cameras and the rig from the chessboard pairs.
+
+    Returns (pairs of grey images, K1, D1, K2, D2, cam2world of the right camera in the left frame, rms)."""
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-6)
+    board = np.zeros((BOARD[0] * BOARD[1], 3), np.float32)
+    board[:, :2] = np.mgrid[0:BOARD[0], 0:BOARD[1]].T.reshape(-1, 2)
+    pairs, obj, c1, c2 = [], [], [], []
+    for i in RIG_IDS:
+        ims = [_read(data / f"{side}{i:02d}.jpg", cv2.IMREAD_GRAYSCALE) for side in ("left", "right")]
+        found = [cv2.findChessboardCorners(im, BOARD) for im in ims]
+        pairs.append(ims)
+        if not all(ok for ok, _ in found):
+            continue
+        corners = [cv2.cornerSubPix(im, c, (11, 11), (-1, -1), crit) for im, (_, c) in zip(ims, found)]
+        obj.append(board)
+        c1.append(corners[0])
+        c2.append(corners[1])
+    if len(obj) < 5:
+        raise SystemExit(f"bench_real: the chessboard was found in only {len(obj)} rig pairs (expected >= 5)")
+    size = pairs[0][0].shape[::-1]
+    _, K1, D1, _, _ = cv2.calibrateCamera(obj, c1, size, None, None)
+    _, K2, D2, _, _ = cv2.calibrateCamera(obj, c2, size, None, None)
+    rms, K1, D1, K2, D2, R, T, _, _ = cv2.stereoCalibrate(obj, c1, c2, K1, D1, K2, D2, size,
+                                                          flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    world2right = np.eye(4)
+    world2right[:3, :3], world2right[:3, 3] = R, T[:, 0]
+    return pairs, K1, D1, K2, D2, np.linalg.inv(world2right), float(rms), len(obj)
+
+
+def _k_on_map(K: np.ndarray, view) -> np.ndarray:
+    """Intrinsics in the network input's pixels (View.map_from_original: u_map = (u + 0.5) sx - 0.5 - left)."""
+    sx, sy, left, top = view.map_from_original
+    return np.array([[K[0, 0] * sx, 0, (K[0, 2] + 0.5) * sx - 0.5 - left],
+                     [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5 - top], [0, 0, 1.0]])
+
+
+def _resample(full: np.ndarray, view, shape) -> np.ndarray:
+    """Nearest sample of a full-resolution map at the network input's pixel centres."""
+    sx, sy, left, top = view.map_from_original
+    h, w = shape
+    u = ((np.arange(w) + 0.5 + left) / sx - 0.5).astype(np.float32)
+    v = ((np.arange(h) + 0.5 + top) / sy - 0.5).astype(np.float32)
+    mu, mv = np.meshgrid(u, v)
+    return cv2.remap(full, mu, mv, cv2.INTER_NEAREST)
+
+
+def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int, K1=None, K2=None):
+    """[(method, (rot err, dir err))] for one pair of RGB uint8 images; the methods that need intrinsics run
+    only when the true (original-pixel) K1, K2 are given. Also returns the model's relative focal error (or
+    NaN) and (view 1, view 2, prediction)."""
+    v1, v2 = pm.load_images([im1, im2], size=size)
+    with torch.inference_mode():
+        pred = model(v1.img[None], v2.img[None])
+        rev = model(v2.img[None], v1.img[None])
+    rows = [("model (own pointmaps, no K)", errors(pm.relative_pose(pred, pred_reverse=rev)[0].numpy(), gt))]
+    focal_err = float("nan")
+    if K1 is not None:
+        k1, k2 = _k_on_map(K1, v1), _k_on_map(K2, v2)
+        if pred.has_desc:
+            m = pm.match_coarse(pred, model.cfg.patch_size)
+            rows.append(("model matches+PnP (known K)",
+                         errors(pm.relative_pose(pred, K2=torch.from_numpy(k2), matches=[m])[0].numpy(), gt)))
+        to_u8 = lambda v: (v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
+        rows.append(("SIFT+E (known K)", errors(sift_pose(to_u8(v1), to_u8(v2), k1, k2), gt)))
+        focal_err = abs(float(focal_from_prediction(pred)[0]) - k1[0, 0]) / k1[0, 0]
+    rows.append(("no rotation", (errors(np.eye(4), gt)[0], float("nan"))))
+    return rows, focal_err, (v1, v2, pred)
+
+
+def disparity_fit(pred_inv_depth: np.ndarray, gt: np.ndarray, valid: np.ndarray):
+    """Least-squares scale + shift of a prediction (any map affine in disparity) to the true disparity on
+    ``valid``: (mean abs residual in GT pixels, Pearson r). A constant prediction gives the prior's error."""
+    x, y = pred_inv_depth[valid].astype(np.float64), gt[valid].astype(np.float64)
+    A = np.stack([x, np.ones_like(x)], 1)
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    r = float(np.corrcoef(x, y)[0, 1]) if x.std() > 0 else 0.0
+    return float(np.abs(A @ coef - y).mean()), r
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", required=True, type=Path, help="OpenCV's samples/data (opencv-doc: examples/data)")
+    p.add_argument("--model", default="small")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    model = pm.load_model(a.model)
+    size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+
+    pairs, K1, D1, K2, D2, gt, rms, n_cal = calibrate_rig(a.data)
+    res, focal_err = {}, []
+    for left, right in pairs:
+        im1 = cv2.cvtColor(cv2.undistort(left, K1, D1), cv2.COLOR_GRAY2RGB)
+        im2 = cv2.cvtColor(cv2.undistort(right, K2, D2), cv2.COLOR_GRAY2RGB)
+        rows, ferr, _ = pose_rows(model, im1, im2, gt, size, K1, K2)
+        focal_err.append(ferr)
+        for name, e in rows:
+            res.setdefault(("stereo rig", name), []).append(e)
+
+    rgb = [cv2.cvtColor(_read(a.data / f"aloe{s}.jpg"), cv2.COLOR_BGR2RGB) for s in ("L", "R")]
+    disp = _read(a.data / "aloeGT.png", cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    gt_rect = np.eye(4)
+    gt_rect[0, 3] = 1.0  # rectified: same orientation, view 2 along +x (its focal is not shipped: no K rows)
+    rows, _, (v1, v2, pred) = pose_rows(model, rgb[0], rgb[1], gt_rect, size)
+    for name, e in rows:
+        res.setdefault(("aloe (rectified)", name), []).append(e)
+
+    shape = tuple(pred.pts1_cam1.shape[1:3])
+    gt_disp = _resample(disp, v1, shape)
+    z = pred.pts1_cam1[0, ..., 2].float().numpy()
+    valid = (gt_disp > 0) & (z > 0)
+    to_grey = lambda v: cv2.cvtColor((v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8),  # noqa: E731
+                                     cv2.COLOR_RGB2GRAY)
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=5, P1=8 * 25, P2=32 * 25,
+                                 uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
+    d_sgbm = sgbm.compute(to_grey(v1), to_grey(v2)).astype(np.float32) / 16.0
+    ok_sgbm = valid & (d_sgbm > 0)
+    depth_rows = [("model (1 / depth of view 1)", *disparity_fit(1.0 / np.where(z > 0, z, 1.0), gt_disp, valid),
+                   valid.mean()),
+                  ("constant (prior)", *disparity_fit(np.zeros_like(z), gt_disp, valid), valid.mean()),
+                  ("StereoSGBM (rectified pair, same size)", *disparity_fit(d_sgbm, gt_disp, ok_sgbm), ok_sgbm.mean())]
+
+    print(f"model {a.model!r} at {size} px; rig calibrated on {n_cal} of {len(pairs)} pairs, stereo RMS {rms:.3f} px; "
+          f"true rig rotation {errors(np.eye(4), gt)[0]:.1f} deg\n")
+    print("| set | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for (s, name), vals in res.items():
+        v = np.array(vals)
+        rta, dmed = (("-", "-") if np.isnan(v[:, 1]).all()
+                     else (f"{100 * np.mean(v[:, 1] < 15):.0f}%", f"{np.median(v[:, 1]):.1f}"))
+        print(f"| {s} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {rta} | {np.median(v[:, 0]):.1f} | "
+              f"{dmed} |")
+    print(f"\nstereo rig, model focal (no K given) vs calibrated: median relative error {np.median(focal_err):.1%}")
+    print("\naloe depth, in disparity space after a least-squares scale + shift (GT disparity in full-size pixels):\n")
+    print("| method | mean abs residual (px) | Pearson r | pixels scored |")
+    print("|---|---|---|---|")
+    for name, err, r, cover in depth_rows:
+        print(f"| {name} | {err:.1f} | {r:.2f} | {cover:.0%} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
