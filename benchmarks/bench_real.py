@@ -35,8 +35,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pointmap as pm  # noqa: E402
-from pointmap.pose import focal_from_prediction  # noqa: E402
 from benchmarks.bench_pose import errors, sift_pose  # noqa: E402
+from pointmap.pose import focal_from_prediction  # noqa: E402
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]

@@ -40,6 +40,7 @@ class TrainConfig:
     attn_weight: float = 0.0       # weight of the cross-attention supervision (losses.cross_attention_loss; 0 = off)
     pose_head: bool = False        # build --preset with a pose head (model.heads.PoseHead): rigid view-2 points
     pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
+    pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
@@ -85,7 +86,7 @@ class TrainConfig:
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:
             p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
-        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight"):
+        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.attn_heads < 1:

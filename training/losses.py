@@ -81,19 +81,37 @@ def regression_loss(pred, view1: dict, view2: dict, alpha: float = 0.2, metric: 
     return total, details
 
 
-def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = False):
+MIN_BASELINE = 0.01  # translations shorter than this (in mean point distances) have no direction to learn
+
+
+def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = False, dir_weight: float = 0.0):
     """Direct loss on a predicted cam2 -> cam1 transform T [B, 4, 4] (``model.heads.PoseHead``): Frobenius
     distance of the rotations (2 sqrt(2) sin(angle / 2) for an error of ``angle``) plus the distance of the
     translations, each divided by the mean distance of its own pointmaps as in ``regression_loss`` (the GT
-    scale for both in metric mode). Returns (loss, details with the mean rotation error in degrees)."""
+    scale for both in metric mode).
+
+    ``dir_weight`` > 0 adds the chord distance of the translation directions (2 sin(angle / 2), like the
+    rotation term) over pairs whose true baseline is at least ``MIN_BASELINE``: the distance of the
+    translations is small for short baselines whatever their direction, this term is not. Returns (loss,
+    details with the mean rotation error in degrees and, with ``dir_weight``, the mean direction error)."""
     _, _, s_gt, s_pr = _scales(pred, view1, view2, metric)
     gt = gt_cam2_to_cam1(view1, view2).float()
     T = T.float()
     rot = (T[:, :3, :3] - gt[:, :3, :3]).flatten(1).norm(dim=1)
-    tr = (T[:, :3, 3] / s_pr[:, None] - gt[:, :3, 3] / s_gt[:, None]).norm(dim=1)
+    t_pr, t_gt = T[:, :3, 3] / s_pr[:, None], gt[:, :3, 3] / s_gt[:, None]
+    tr = (t_pr - t_gt).norm(dim=1)
+    loss = (rot + tr).mean()
     with torch.no_grad():
         deg = torch.rad2deg(2 * torch.asin((rot / (2 * 2 ** 0.5)).clamp(max=1)))
-    return (rot + tr).mean(), {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
+    details = {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
+    if dir_weight > 0:
+        ok = t_gt.norm(dim=1) >= MIN_BASELINE
+        chord = (F.normalize(t_pr, dim=1, eps=1e-8) - F.normalize(t_gt, dim=1, eps=1e-8)).norm(dim=1)
+        if bool(ok.any()):
+            loss = loss + dir_weight * chord[ok].sum() / T.shape[0]
+            angle = torch.rad2deg(2 * torch.asin((chord[ok].detach() / 2).clamp(max=1)))
+            details["pose_dir_deg"] = float(angle.mean())
+    return loss, details
 
 
 def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, n_corr: int = 2048,

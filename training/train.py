@@ -145,7 +145,7 @@ def make_step(cfg: TrainConfig):
             loss = loss + cfg.coarse_weight * lc
             details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
         if cfg.pose_weight > 0:
-            lp, d = pose_loss(taps.pose, pred, view1, view2, metric=cfg.metric)
+            lp, d = pose_loss(taps.pose, pred, view1, view2, metric=cfg.metric, dir_weight=cfg.pose_dir_weight)
             loss = loss + cfg.pose_weight * lp
             details.update(pose_loss=float(lp.detach()), **d)
         if cfg.attn_weight > 0:
@@ -173,6 +173,8 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
         raise ValueError(f"--attn_heads {cfg.attn_heads} exceeds the decoder's {model.cfg.dec_heads} heads")
     if cfg.pose_weight > 0 and not model.cfg.pose_head:
         raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
+    if cfg.pose_dir_weight > 0 and cfg.pose_weight <= 0:
+        raise ValueError("--pose_dir_weight weighs a term of the pose loss: it needs --pose_weight > 0")
     if model.cfg.pose_head and cfg.pose_weight <= 0 and cfg.task == "train":
         # pts2_cam1 = T * head2: any rigid motion can move between the two without changing the regression loss,
         # so only a loss on T pins head 2 to view 2's own frame

@@ -158,7 +158,10 @@ def test_architecture_dependent_options_are_refused_before_training_starts(tmp_p
         check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0), plain)
     with pytest.raises(ValueError, match="pose_weight > 0"):  # the frame of view 2's head would be free
         check_model_options(config(tmp_path, 1), posed)
+    with pytest.raises(ValueError, match="--pose_dir_weight weighs a term of the pose loss"):
+        check_model_options(dataclasses.replace(config(tmp_path, 1), pose_dir_weight=1.0), posed)
     check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0), posed)
+    check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, pose_dir_weight=0.5), posed)
 
 
 def test_negative_loss_weights_are_refused_on_the_command_line(capsys):
@@ -171,11 +174,21 @@ def test_the_pose_loss_is_added_with_its_weight_and_needs_a_pose_head(tmp_path):
     model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     base, _ = make_step(config(tmp_path, 1))(model, batch, 0)
     both, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=2.0))(model, batch, 0)
-    assert d["pose_loss"] > 0 and abs(float(both) - float(base) - 2.0 * d["pose_loss"]) < 1e-4
+    assert d["pose_loss"] > 0 and abs(float(both.detach()) - float(base.detach()) - 2.0 * d["pose_loss"]) < 1e-4
     both.backward()
     assert model.pose_head.out.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="pose head"):
         make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0))(PointmapNet(PRESETS["test"]), batch, 0)
+
+
+def test_the_direction_term_reaches_the_loss_through_the_pose_weight(tmp_path):
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
+    cfg = dataclasses.replace(config(tmp_path, 1), pose_weight=2.0)
+    base, d0 = make_step(cfg)(model, batch, 0)
+    both, d = make_step(dataclasses.replace(cfg, pose_dir_weight=0.5))(model, batch, 0)
+    assert "pose_dir_deg" not in d0 and d["pose_dir_deg"] > 0
+    assert abs((float(both.detach()) - float(base.detach())) / 2.0 - (d["pose_loss"] - d0["pose_loss"])) < 1e-5
+    assert d["pose_loss"] > d0["pose_loss"]
 
 
 def test_with_attention_supervision_the_pose_heads_correspondence_field_is_supervised_too(tmp_path):

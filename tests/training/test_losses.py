@@ -253,3 +253,28 @@ def test_pose_loss_is_zero_for_the_true_transform_at_the_predictions_scale_and_m
     assert abs(d_bad["pose_rot_deg"] - 20) < 0.05 and float(bad) > 0.3
     unscaled, _ = pose_loss(T, pred, v1, v2, metric=True)  # metric: the prediction's 3x is an error
     assert float(unscaled) > 0.1
+
+
+def test_the_direction_term_of_the_pose_loss_measures_the_translation_angle_and_skips_tiny_baselines():
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    pred = pred_from(3 * g1, 3 * g2)
+    T = torch.eye(4).expand(2, 4, 4).clone()
+    T[:, 0, 3] = 0.5 * 3  # the true transform
+    base, _ = pose_loss(T, pred, v1, v2)
+    same, d = pose_loss(T, pred, v1, v2, dir_weight=2.0)
+    assert abs(float(same) - float(base)) < 1e-6 and d["pose_dir_deg"] < 0.1
+    turned = T.clone()
+    turned[:, :3, 3] = torch.tensor([0.0, 0.0, 1.5])  # same length, 90 degrees off
+    plain, _ = pose_loss(turned, pred, v1, v2)
+    with_dir, d = pose_loss(turned, pred, v1, v2, dir_weight=2.0)
+    assert abs(d["pose_dir_deg"] - 90) < 0.05
+    assert abs(float(with_dir) - float(plain) - 2.0 * 2 ** 0.5) < 1e-4  # chord of 90 degrees = sqrt(2)
+    # a camera that did not move has no direction: the term is left out
+    still = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in v2.items()}
+    still["cam2world"] = v1["cam2world"].clone()
+    T0 = torch.eye(4).expand(2, 4, 4).clone()
+    T0[:, 0, 3] = 0.7
+    a, _ = pose_loss(T0, pred, v1, still)
+    b, d = pose_loss(T0, pred, v1, still, dir_weight=2.0)
+    assert float(a) == float(b) and "pose_dir_deg" not in d
