@@ -1,6 +1,7 @@
 """Two-view relative pose on held-out rendered pairs: the model (from its own pointmaps) against an
 OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Reported overall and by
-category (scene kind, low texture, wide baseline = true rotation > 30 degrees). For models with descriptors,
+category (scene kind, low texture, wide baseline = true rotation > 30 degrees, translation only = true rotation
+< 5 degrees, as in a stereo rig). For models with descriptors,
 "model matches+PnP (known K)" is MASt3R-style: the model's patch-level matches (pm.match_coarse) lifted by
 view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets). A last row, "no rotation",
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
@@ -81,8 +82,11 @@ def main(argv=None) -> int:
         meta = ds._store.reader(k).meta(scene)
         gt = (torch.linalg.inv(v1["cam2world"].double()) @ v2["cam2world"].double()).numpy()
         cats = ["all", meta["kind"], "low-texture" if meta["low_texture"] else "textured"]
-        if errors(np.eye(4), gt)[0] > 30:
+        true_rot = errors(np.eye(4), gt)[0]
+        if true_rot > 30:
             cats.append("wide (>30 deg)")
+        if true_rot < 5:
+            cats.append("translation only (<5 deg)")
         with torch.inference_mode():
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
