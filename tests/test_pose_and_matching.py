@@ -67,6 +67,23 @@ def test_procrustes_on_the_reverse_prediction_recovers_the_pose_without_intrinsi
     est = pm.relative_pose(as_pred(p1, p2), pred_reverse=rev)[0]
     r, t = pose_errors(est, gt)
     assert r < 1e-3 and t < 1e-2
+    assert torch.allclose(est[:3, 3].double(), gt[:3, 3], atol=1e-3)  # in the forward pass's (here metric) units
+
+
+def test_the_two_pass_pose_averages_both_directions_and_its_rotation_inverts_the_swapped_calls():
+    p1, p2, _, d2, gt = two_views()
+    own2 = depth_to_points_cam(d2, K)
+    err = torch.eye(4, dtype=torch.float64)  # the reverse pass sees view 1 turned 10 degrees too far
+    err[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(10)], dtype=torch.float64))
+    rev = as_pred(own2 * 0.5, transform_points(err @ invert_rigid(gt), p1) * 0.5)
+    fwd = as_pred(p1, p2)
+    est = pm.relative_pose(fwd, pred_reverse=rev)[0]
+    assert abs(pose_errors(est, gt)[0] - 5.0) < 0.05  # exact one way, 10 degrees off the other: the mean is 5 off
+    swapped = pm.relative_pose(rev, pred_reverse=fwd)[0].double()
+    back = invert_rigid(swapped)
+    assert relative_rotation_error_deg(back[:3, :3], est[:3, :3].double()) < 1e-3
+    # translations: the same two centre estimates, averaged in camera 1's or camera 2's frame
+    assert translation_angle_deg(back[:3, 3], est[:3, 3].double()) < 0.5
 
 
 def test_degenerate_predictions_give_nan_poses_not_exceptions():
