@@ -107,7 +107,7 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
         start = cfg.steps - cfg.decay_steps
         if step < start:
             return 1.0
-        t = min((step - start) / max(cfg.decay_steps, 1), 1.0)
+        t = min((step - start + 1) / max(cfg.decay_steps, 1), 1.0)  # update steps-1 runs at min_lr
         return floor + (1.0 - floor) * (1.0 - math.sqrt(t))
     t = min((step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1), 1.0)
     return floor + (1.0 - floor) * 0.5 * (1 + math.cos(math.pi * t))

@@ -82,6 +82,7 @@ def regression_loss(pred, view1: dict, view2: dict, alpha: float = 0.2, metric: 
 
 
 MIN_BASELINE = 0.01  # translations shorter than this (in mean point distances) have no direction to learn
+DIR_EPS = 0.05       # smoothing of the predicted translation's norm in the direction term (mean point distances)
 
 
 def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = False, dir_weight: float = 0.0):
@@ -91,7 +92,8 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     scale for both in metric mode).
 
     ``dir_weight`` > 0 adds the chord distance of the translation directions (2 sin(angle / 2), like the
-    rotation term) over pairs whose true baseline is at least ``MIN_BASELINE``: the distance of the
+    rotation term; each translation divided by sqrt(|t|^2 + DIR_EPS^2) rather than |t|, which bounds the gradient
+    at t = 0) over pairs whose true baseline is at least ``MIN_BASELINE``: the distance of the
     translations is small for short baselines whatever their direction, this term is not. Returns (loss,
     details with the mean rotation error in degrees and, with ``dir_weight``, the mean direction error)."""
     _, _, s_gt, s_pr = _scales(pred, view1, view2, metric)
@@ -106,10 +108,18 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     details = {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
     if dir_weight > 0:
         ok = t_gt.norm(dim=1) >= MIN_BASELINE
-        chord = (F.normalize(t_pr, dim=1, eps=1e-8) - F.normalize(t_gt, dim=1, eps=1e-8)).norm(dim=1)
+        # directions with a smooth norm t / sqrt(|t|^2 + DIR_EPS^2), the same for both (zero at the truth): the
+        # gradient stays below ~1/DIR_EPS near t = 0 (a fresh head predicts exactly 0), where plain normalisation
+        # would swamp every other loss after clipping
+        def soft_unit(t):
+            return t / (t.square().sum(1, keepdim=True) + DIR_EPS ** 2).sqrt()
+
+        chord = (soft_unit(t_pr) - soft_unit(t_gt)).norm(dim=1)
         if bool(ok.any()):
             loss = loss + dir_weight * chord[ok].sum() / T.shape[0]
-            angle = torch.rad2deg(2 * torch.asin((chord[ok].detach() / 2).clamp(max=1)))
+            with torch.no_grad():
+                cos = (F.normalize(t_pr[ok], dim=1, eps=1e-8) * F.normalize(t_gt[ok], dim=1, eps=1e-8)).sum(1)
+                angle = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
             details["pose_dir_deg"] = float(angle.mean())
     return loss, details
 

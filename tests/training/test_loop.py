@@ -59,12 +59,14 @@ def test_learning_rate_warms_up_then_decays_to_the_minimum():
 
 def test_the_wsd_schedule_holds_the_rate_then_falls_to_the_minimum_as_one_minus_sqrt():
     cfg = TrainConfig(data="x", lr=1e-3, min_lr=1e-5, warmup=10, steps=110, schedule="wsd", decay_steps=40)
+    # lr_factor(k) is the rate of update k (0-based): updates 10..69 are stable, 70..109 decay
     assert abs(lr_factor(9, cfg) - 1.0) < 1e-12
-    assert all(lr_factor(s, cfg) == 1.0 for s in range(10, 71))  # stable until steps - decay_steps
+    assert all(lr_factor(s, cfg) == 1.0 for s in range(10, 70)) and lr_factor(70, cfg) < 1.0
     floor = cfg.min_lr / cfg.lr
-    assert abs(lr_factor(80, cfg) - (floor + (1 - floor) * (1 - 0.5))) < 1e-12  # t = 1/4: 1 - sqrt(t) = 1/2
-    assert abs(lr_factor(110, cfg) * cfg.lr - 1e-5) < 1e-12 and lr_factor(200, cfg) == lr_factor(110, cfg)
-    factors = [lr_factor(s, cfg) for s in range(70, 111)]
+    assert abs(lr_factor(79, cfg) - (floor + (1 - floor) * (1 - 0.5))) < 1e-12  # t = 10/40: 1 - sqrt(t) = 1/2
+    assert abs(lr_factor(109, cfg) * cfg.lr - 1e-5) < 1e-12  # the last update runs at min_lr
+    assert lr_factor(200, cfg) == lr_factor(109, cfg)
+    factors = [lr_factor(s, cfg) for s in range(69, 110)]
     assert all(a > b for a, b in zip(factors, factors[1:]))
 
 
