@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from benchmarks.bench_pose import errors, sift_pose  # noqa: E402
 from pointmap.pose import focal_from_prediction  # noqa: E402
+from pointmap.reconstruction import K_to_map  # noqa: E402
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
@@ -80,10 +81,8 @@ def calibrate_rig(data: Path):
 
 
 def _k_on_map(K: np.ndarray, view) -> np.ndarray:
-    """Intrinsics in the network input's pixels (View.map_from_original: u_map = (u + 0.5) sx - 0.5 - left)."""
-    sx, sy, left, top = view.map_from_original
-    return np.array([[K[0, 0] * sx, 0, (K[0, 2] + 0.5) * sx - 0.5 - left],
-                     [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5 - top], [0, 0, 1.0]])
+    """Intrinsics in the network input's pixels."""
+    return K_to_map(torch.from_numpy(K), torch.tensor(view.map_from_original, dtype=torch.float64)).numpy()
 
 
 def _resample(full: np.ndarray, view, shape) -> np.ndarray:
@@ -164,7 +163,9 @@ def main(argv=None) -> int:
     valid = (gt_disp > 0) & (z > 0)
     to_grey = lambda v: cv2.cvtColor((v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8),  # noqa: E731
                                      cv2.COLOR_RGB2GRAY)
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=5, P1=8 * 25, P2=32 * 25,
+    # disparity search range: the true disparities at this size (Aloe's reach ~85 px at 512), in steps of 16
+    n_disp = 16 * max(1, int(np.ceil(float(gt_disp.max()) * v1.map_from_original[0] / 16)))
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_disp, blockSize=5, P1=8 * 25, P2=32 * 25,
                                  uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
     d_sgbm = sgbm.compute(to_grey(v1), to_grey(v2)).astype(np.float32) / 16.0
     ok_sgbm = valid & (d_sgbm > 0)

@@ -1,7 +1,7 @@
 """Camera sampling: pairs and N-view sets with controlled overlap, baselines and fields of view.
 
 A view set is grown one view at a time: the first view looks at a point of interest of the scene; each
-further view is derived from a random earlier one ("reference") by one of four moves:
+further view is derived from a random earlier one ("reference") by one of six moves:
 
 - ``small``:  translation of 2-25 % of the viewing distance, look-at jitter;
 - ``medium``: orbit of 8-30 degrees about a surface point seen by the reference;
@@ -62,8 +62,10 @@ class CameraConfig:
         olo, ohi = self.overlap
         if not (0 <= olo <= ohi <= 1):
             raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap}")
-        if len(self.move_weights) != len(MOVES) or min(self.move_weights) < 0 or sum(self.move_weights) <= 0:
-            raise ValueError(f"move_weights expected {len(MOVES)} non-negative weights for {MOVES}, got {self.move_weights}")
+        if (len(self.move_weights) != len(MOVES) or not all(np.isfinite(self.move_weights))
+                or min(self.move_weights) < 0 or sum(self.move_weights) <= 0):
+            raise ValueError(f"move_weights expected {len(MOVES)} finite non-negative weights for {MOVES}, "
+                             f"got {self.move_weights}")
         if not (0 <= self.min_valid <= 1):
             raise ValueError(f"min_valid expected in [0, 1], got {self.min_valid}")
 

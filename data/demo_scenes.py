@@ -23,12 +23,15 @@ DEMO_SEED = 31_337_000  # a seed range never used for training sets
 DEMO = (("room", "room", 0.0), ("objects", "cluster", 0.0), ("courtyard", "courtyard", 0.0))
 
 
+DEMO_CAMERA = CameraConfig(orientation_weights=(0.0, 1.0, 0.0), short_side_ratios=(0.75,), overlap=(0.35, 0.9),
+                           move_weights=(0.3, 0.4, 0.3, 0.0, 0.0, 0.0), fov_deg=(50.0, 70.0))
+
+
 def render_demo(out: Path, views: int = 3, size: int = 320) -> list[Path]:
     from data.render import get_renderer
 
     renderer = get_renderer()
-    cam = CameraConfig(orientation_weights=(0.0, 1.0, 0.0), short_side_ratios=(0.75,), overlap=(0.35, 0.9),
-                       move_weights=(0.3, 0.4, 0.3, 0.0), fov_deg=(50.0, 70.0))
+    cam = DEMO_CAMERA
     written = []
     for k, (name, kind, low) in enumerate(DEMO):
         rng = np.random.default_rng([DEMO_SEED, k])

@@ -8,6 +8,7 @@ Shard ``k`` holds scenes ``[k * shard_size, (k + 1) * shard_size)``.
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing as mp
 import os
 import queue
@@ -374,18 +375,24 @@ def parse_moves(text: str | None) -> tuple:
     """``name=weight,...`` -> weights in MOVES order; () for None (the default weights)."""
     if text is None:
         return ()
-    weights = dict.fromkeys(MOVES, 0.0)
+    weights, seen = dict.fromkeys(MOVES, 0.0), set()
     for part in text.split(","):
         name, eq, value = part.partition("=")
-        if name.strip() not in weights or not eq:
+        name = name.strip()
+        if name not in weights or not eq:
             raise ValueError(f"--moves expected name=weight pairs with names from {MOVES}, got {part!r}")
+        if name in seen:
+            raise ValueError(f"--moves names {name!r} twice in {text!r}")
+        seen.add(name)
         try:
-            weights[name.strip()] = float(value)
+            weights[name] = float(value)
         except ValueError:
-            raise ValueError(f"--moves weight of {name.strip()!r} expected a number, got {value!r}") from None
-    if min(weights.values()) < 0 or sum(weights.values()) <= 0:
-        raise ValueError(f"--moves expected non-negative weights, not all 0, got {text!r}")
-    return tuple(weights[m] for m in MOVES)
+            raise ValueError(f"--moves weight of {name!r} expected a number, got {value!r}") from None
+    values = list(weights.values())
+    if not all(math.isfinite(v) and v >= 0 for v in values) or sum(values) <= 0:
+        raise ValueError(f"--moves expected finite non-negative weights, not all 0, got {text!r}")
+    out = tuple(weights[m] for m in MOVES)
+    return () if out == tuple(CameraConfig().move_weights) else out  # the default: stored as such
 
 
 def main(argv=None, *, _allow_reserved: bool = False) -> int:

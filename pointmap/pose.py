@@ -101,7 +101,7 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
       averaged: view 2's own-frame pointmap (reverse pass) onto its pointmap in view 1's frame (forward pass),
       and view 1's own-frame pointmap (forward) onto its pointmap in view 2's frame (reverse), inverted. The
       rotation is the chordal mean of the two, the translation (camera 2's centre, in the forward pass's units)
-      their mean. Its rotation is the inverse of ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No
+      their mean (one way alone when the other has fewer than 3 usable pixels). Its rotation is the inverse of ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No
       intrinsics needed. On held-out pairs the average beats either direction alone (docs/models.md).
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
@@ -149,16 +149,17 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             fwd = _own_onto_other(own2, pred_reverse.conf1[b], pts2, conf2, keep)
             bwd = _own_onto_other(pred.pts1_cam1[b].detach().float().cpu(), pred.conf1[b],
                                   pred_reverse.pts2_cam1[b].detach().float().cpu(), pred_reverse.conf2[b], keep)
-            if fwd is None or bwd is None:
-                continue
-            (_, R_a, t_a), (s_b, R_b, t_b) = fwd, bwd
             # bwd maps view 1's own frame (forward units) into camera 2's frame (reverse units): inverted, camera
             # 2's centre in camera 1's frame is -R_b^T t_b / s_b (forward units), its orientation R_b^T
-            U, _, Vh = torch.linalg.svd(R_a + R_b.T)
+            estimates = ([] if fwd is None else [(fwd[1], fwd[2])]) + \
+                        ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
+            if not estimates:
+                continue
+            U, _, Vh = torch.linalg.svd(sum(R for R, _ in estimates))  # chordal mean (one estimate: itself)
             d = torch.sign(torch.det(U @ Vh))
             out[b] = torch.eye(4)
             out[b, :3, :3] = (U @ torch.diag(torch.stack([d.new_tensor(1.0), d.new_tensor(1.0), d])) @ Vh).float()
-            out[b, :3, 3] = (0.5 * (t_a - R_b.T @ t_b / s_b)).float()
+            out[b, :3, 3] = (sum(t for _, t in estimates) / len(estimates)).float()
         else:
             pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)
             if pose is not None:

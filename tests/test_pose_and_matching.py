@@ -84,6 +84,11 @@ def test_the_two_pass_pose_averages_both_directions_and_its_rotation_inverts_the
     assert relative_rotation_error_deg(back[:3, :3], est[:3, :3].double()) < 1e-3
     # translations: the same two centre estimates, averaged in camera 1's or camera 2's frame
     assert translation_angle_deg(back[:3, 3], est[:3, 3].double()) < 0.5
+    # one way unusable (no finite own-frame points): the other alone, exact here
+    blind = as_pred(p1 * float("nan"), p2)
+    one = pm.relative_pose(blind, pred_reverse=as_pred(own2 * 0.5, transform_points(invert_rigid(gt), p1) * 0.5))[0]
+    r, t = pose_errors(one, gt)
+    assert r < 1e-3 and t < 1e-2
 
 
 def test_degenerate_predictions_give_nan_poses_not_exceptions():

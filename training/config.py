@@ -77,11 +77,12 @@ class TrainConfig:
         cfg = cls(**values)
         if cfg.task not in ("train", "pretrain"):
             p.error(f"--task expected 'train' or 'pretrain', got {cfg.task!r}")
-        if cfg.schedule not in ("cosine", "wsd"):
-            p.error(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
-        if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
-            p.error(f"--schedule wsd needs 0 < --decay_steps <= --steps - --warmup "
-                    f"({cfg.steps} - {cfg.warmup}), got {cfg.decay_steps}")
+        from training.loop import check_schedule
+
+        try:
+            check_schedule(cfg)
+        except ValueError as e:
+            p.error(str(e))
         if cfg.init_heads not in ("strict", "fresh"):
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:

@@ -94,6 +94,17 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 
 
+def check_schedule(cfg: TrainConfig) -> None:
+    """ValueError (one line) for a schedule that cannot run as configured."""
+    if cfg.schedule not in ("cosine", "wsd"):
+        raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
+    if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
+        raise ValueError(f"--schedule wsd needs 0 < --decay_steps <= --steps - --warmup "
+                         f"({cfg.steps} - {cfg.warmup}), got {cfg.decay_steps}")
+    if cfg.schedule == "cosine" and cfg.decay_steps:
+        raise ValueError(f"--decay_steps {cfg.decay_steps} is for --schedule wsd (cosine decays over --steps)")
+
+
 def lr_factor(step: int, cfg: TrainConfig) -> float:
     """The learning rate at ``step`` as a factor of ``cfg.lr``: linear warmup, then either cosine decay to
     min_lr at ``cfg.steps``, or (``schedule="wsd"``) constant until the last ``decay_steps`` steps, which fall to
@@ -213,6 +224,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
     every ``ckpt_every`` steps to ``out/last.pt``. Returns the last metrics.
     """
+    check_schedule(cfg)
     rank, world, device = setup_distributed()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
@@ -231,10 +243,11 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         optimizer.load_state_dict(ck["optimizer"])
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
-        # the schedule is the current config's (lr, shape, length), not the one the checkpoint was written with
+        # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
-        for group in optimizer.param_groups:
-            group["lr"] = cfg.lr * lr_factor(start, cfg)
+        for group, fresh in zip(optimizer.param_groups, make_optimizer(model, cfg).param_groups):
+            group["lr"], group["initial_lr"] = cfg.lr * lr_factor(start, cfg), cfg.lr
+            group["weight_decay"] = fresh["weight_decay"]
         scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
         if world == 1:
             _set_rng_state(ck["rng"])

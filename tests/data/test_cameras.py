@@ -21,7 +21,7 @@ class _NoScene:
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_a_slide_keeps_the_orientation_within_3_degrees_and_moves_mostly_sideways(seed):
+def test_a_slide_keeps_the_orientation_within_3_degrees_and_moves_5_to_40_percent_sideways(seed):
     ref = _ref()
     eye, T = _related_pose(np.random.default_rng(seed), _NoScene(), ref, "slide", CameraConfig())
     R0, e0 = ref.cam2world[:3, :3], ref.cam2world[:3, 3]
@@ -52,14 +52,24 @@ def test_the_default_weights_draw_the_moves_the_four_move_engine_drew():
 def test_move_weights_parse_by_name_and_bad_ones_are_refused():
     assert parse_moves(None) == ()
     assert parse_moves("slide=0.5, pan=0.25,small=0.25") == (0.25, 0.0, 0.0, 0.0, 0.5, 0.25)
-    for bad in ("slid=1", "slide", "slide=x", "slide=-1,pan=2", "slide=0"):
+    assert parse_moves("small=0.3,medium=0.25,wide=0.3,zoom=0.15") == ()  # the default, stored as the default
+    for bad in ("slid=1", "slide", "slide=x", "slide=-1,pan=2", "slide=0", "slide=nan", "slide=inf",
+                "slide=1,slide=2"):
         with pytest.raises(ValueError, match="--moves"):
             parse_moves(bad)
     with pytest.raises(ValueError, match="move_weights expected 6"):
         GenConfig(scenes=1, moves=(1.0, 0.0))
+    with pytest.raises(ValueError, match="finite non-negative"):
+        CameraConfig(move_weights=(1.0, 0.0, 0.0, 0.0, float("nan"), 0.0))
 
 
 def test_a_run_stores_its_move_weights_only_when_they_are_not_the_default():
     assert "moves" not in GenConfig(scenes=1).to_dict()
     cfg = GenConfig(scenes=1, moves=parse_moves("slide=1"))
     assert GenConfig.from_dict(cfg.to_dict()) == cfg and cfg.camera().move_weights == (0, 0, 0, 0, 1.0, 0)
+
+
+def test_the_demo_scene_camera_config_is_valid():
+    from data.demo_scenes import DEMO_CAMERA
+
+    assert len(DEMO_CAMERA.move_weights) == len(MOVES) and DEMO_CAMERA.move_weights[MOVES.index("zoom")] == 0

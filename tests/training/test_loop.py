@@ -80,6 +80,15 @@ def test_schedule_options_are_checked_on_the_command_line(capsys):
     cfg = TrainConfig.from_args(["--data", "x", "--schedule", "wsd", "--steps", "100", "--decay_steps", "20",
                                  "--warmup", "10"])
     assert cfg.schedule == "wsd" and cfg.decay_steps == 20
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--decay_steps", "20"])
+    assert "--decay_steps 20 is for --schedule wsd" in capsys.readouterr().err
+
+
+def test_a_config_built_in_code_with_an_impossible_schedule_is_refused_by_fit(tmp_path):
+    with pytest.raises(ValueError, match="--schedule wsd needs 0 < --decay_steps"):
+        run(tmp_path / "x", 4, schedule="wsd", decay_steps=0)
+    assert not (tmp_path / "x" / "last.pt").exists()
 
 
 def test_a_wsd_run_saves_its_stable_checkpoint_and_a_longer_run_resumes_from_it_at_full_rate(tmp_path):
@@ -91,7 +100,9 @@ def test_a_wsd_run_saves_its_stable_checkpoint_and_a_longer_run_resumes_from_it_
     assert torch.load(stable, weights_only=True)["step"] == 4
     (tmp_path / "long").mkdir()
     shutil.copy(stable, tmp_path / "long" / "last.pt")
-    run(tmp_path / "long", 10, schedule="wsd", decay_steps=2, log_every=1, lr=2e-4)  # a new lr is honoured too
+    run(tmp_path / "long", 10, schedule="wsd", decay_steps=2, log_every=1, lr=2e-4, weight_decay=0.01)  # new lr, wd
+    groups = torch.load(tmp_path / "long" / "last.pt", weights_only=True)["optimizer"]["param_groups"]
+    assert [g["weight_decay"] for g in groups] == [0.01, 0.0] and all(g["initial_lr"] == 2e-4 for g in groups)
     with open(tmp_path / "long" / "train.csv", newline="") as fh:
         lrs = {int(r["step"]): float(r["lr"]) for r in csv.DictReader(fh)}
     assert min(lrs) == 5 and max(lrs) == 10
