@@ -32,7 +32,25 @@ def cmd_pair(args) -> int:
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet)
     for p in paths:
         print(p)
+    print(pair_summary(Path(args.out) / "pair.npz"))
     return 0
+
+
+def pair_summary(npz: Path) -> str:
+    """One line on the relative pose and focals stored by ``write_pair_outputs``."""
+    import numpy as np
+
+    z = np.load(npz)
+    T = z["cam2world_2_in_1"].astype(np.float64)
+    if not np.isfinite(T).all():
+        return "relative pose: not found (too few confident pixels)"
+    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
+    t = T[:3, 3] / max(np.linalg.norm(T[:3, 3]), 1e-12)
+    f1 = float(z["focal1"]) / z["map_from_original1"][0]
+    f2 = float(z["focal2"]) / z["map_from_original2"][0]
+    return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "
+            f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward); focal {f1:.0f} / {f2:.0f} px "
+            f"(original pixels)")
 
 
 def cmd_reconstruct(args) -> int:

@@ -7,7 +7,7 @@ import pointmap as pm
 from pointmap.cli import main
 
 
-def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(tmp_path):
+def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(tmp_path, capsys):
     torch.manual_seed(0)
     weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
     import cv2
@@ -18,6 +18,7 @@ def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(t
     out = tmp_path / "out"
     assert main(["pair", str(tmp_path / "im0.png"), str(tmp_path / "im1.png"), "-o", str(out),
                  "--model", str(weights), "--size", "64"]) == 0
+    assert "view 2 relative to view 1: rotation" in capsys.readouterr().out
     names = sorted(p.name for p in out.iterdir())
     assert names == ["conf1.png", "conf2.png", "depth1.png", "depth2.png", "matches.png", "pair.npz", "pair.ply"]
     z = np.load(out / "pair.npz")
