@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     load_state_strict(model, ck["model"], source=a.ckpt)
     cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
-                  "data": Path(cfg["data"]).name, "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
+                  "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   "heldout_metrics": last_eval(Path(a.metrics)) if a.metrics else {}, "note": a.note,
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
