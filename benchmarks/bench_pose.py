@@ -60,6 +60,25 @@ def errors(est, gt):
     return float(relative_rotation_error_deg(e[:3, :3], g[:3, :3])), float(translation_angle_deg(e[:3, 3], g[:3, 3]))
 
 
+def model_at_size(name: str, size: int | None):
+    """(model, input size): ``size`` or the size the model was trained at (its provenance; 224 if unknown)."""
+    model = pm.load_model(name)
+    return model, size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+
+
+def print_pose_table(res: dict, first: str) -> None:
+    """Markdown rows of RRA@15 / RTA@15 / median errors from {(group, method): [(rot err, dir err), ...]};
+    a method without translation (all dir errors NaN) prints '-'."""
+    print(f"| {first} | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for (group, name), vals in res.items():
+        v = np.array(vals)
+        rta, dir_med = (("-", "-") if np.isnan(v[:, 1]).all()
+                        else (f"{100 * np.mean(v[:, 1] < 15):.0f}%", f"{np.median(v[:, 1]):.1f}"))
+        print(f"| {group} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {rta} | "
+              f"{np.median(v[:, 0]):.1f} | {dir_med} |")
+
+
 def main(argv=None) -> int:
     from data.datasets import PairDataset
 
@@ -71,8 +90,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    model = pm.load_model(a.model)
-    size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+    model, size = model_at_size(a.model, a.size)
     ds = PairDataset(a.data, size=size, augment=False, split="all")
     res = defaultdict(lambda: defaultdict(list))
     n = min(a.pairs, len(ds))
@@ -106,15 +124,8 @@ def main(argv=None) -> int:
             for c in cats:
                 res[c][name].append((r, t))
     print(f"{n} held-out pairs from {a.data}; model {a.model!r}\n")
-    print("| category | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
-    print("|---|---|---|---|---|---|---|")
-    for c in sorted(res, key=lambda c: (c != "all", c)):
-        for name, vals in res[c].items():
-            v = np.array(vals)
-            rta, dir_med = (("-", "-") if np.isnan(v[:, 1]).all()
-                            else (f"{100 * np.mean(v[:, 1] < 15):.0f}%", f"{np.median(v[:, 1]):.1f}"))
-            print(f"| {c} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {rta} | "
-                  f"{np.median(v[:, 0]):.1f} | {dir_med} |")
+    print_pose_table({(c, name): vals for c in sorted(res, key=lambda c: (c != "all", c))
+                      for name, vals in res[c].items()}, "category")
     return 0
 
 

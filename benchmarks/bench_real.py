@@ -35,7 +35,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pointmap as pm  # noqa: E402
-from benchmarks.bench_pose import errors, sift_pose  # noqa: E402
+from benchmarks.bench_pose import errors, model_at_size, print_pose_table, sift_pose  # noqa: E402
 from pointmap.pose import focal_from_prediction  # noqa: E402
 from pointmap.reconstruction import K_to_map  # noqa: E402
 
@@ -136,8 +136,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    model = pm.load_model(a.model)
-    size = a.size or int((getattr(model, "provenance", None) or {}).get("image_size", 224))
+    model, size = model_at_size(a.model, a.size)
 
     pairs, K1, D1, K2, D2, gt, rms, n_cal = calibrate_rig(a.data)
     res, focal_err = {}, []
@@ -176,14 +175,7 @@ def main(argv=None) -> int:
 
     print(f"model {a.model!r} at {size} px; rig calibrated on {n_cal} of {len(pairs)} pairs, stereo RMS {rms:.3f} px; "
           f"true rig rotation {errors(np.eye(4), gt)[0]:.1f} deg\n")
-    print("| set | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
-    print("|---|---|---|---|---|---|---|")
-    for (s, name), vals in res.items():
-        v = np.array(vals)
-        rta, dmed = (("-", "-") if np.isnan(v[:, 1]).all()
-                     else (f"{100 * np.mean(v[:, 1] < 15):.0f}%", f"{np.median(v[:, 1]):.1f}"))
-        print(f"| {s} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.0f}% | {rta} | {np.median(v[:, 0]):.1f} | "
-              f"{dmed} |")
+    print_pose_table(res, "set")
     print(f"\nstereo rig, model focal (no K given) vs calibrated: median relative error {np.median(focal_err):.1%}")
     print("\naloe depth, in disparity space after a least-squares scale + shift (GT disparity in full-size pixels):\n")
     print("| method | mean abs residual (px) | Pearson r | pixels scored |")

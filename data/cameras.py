@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from data.geom import correspondences, intrinsics_from_fov, look_at, overlap
+from data.geom import axis_angle, correspondences, intrinsics_from_fov, look_at, overlap
 from pointmap.errors import ShapeError
 
 MOVES = ("small", "medium", "wide", "zoom", "slide", "pan")
@@ -169,13 +169,6 @@ def _focus_point(rng, ref: View):
     return ref.cam2world[:3, :3] @ p_cam + ref.cam2world[:3, 3], d
 
 
-def _axis_angle(axis, angle: float) -> np.ndarray:
-    """Rotation matrix of ``angle`` radians about ``axis`` (Rodrigues)."""
-    k = _unit(np.asarray(axis, np.float64))
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
-
-
 def _posed(R: np.ndarray, eye: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, eye
@@ -185,18 +178,18 @@ def _posed(R: np.ndarray, eye: np.ndarray) -> np.ndarray:
 def _related_pose(rng, scene, ref: View, move: str, cfg):
     eye0 = ref.cam2world[:3, 3]
     R0 = ref.cam2world[:3, :3]
-    if move == "slide":
+    if move in ("slide", "pan"):  # moves that keep no look-at point: scaled by the reference's median depth
         d = float(np.median(ref.depth[ref.depth > 0]))
+    if move == "slide":
         side = rng.uniform(0.05, 0.4) * rng.choice([-1, 1])
         offset = np.array([side, rng.normal(0, 0.05), rng.uniform(-0.15, 0.15)]) * d  # camera axes
-        R = R0 @ _axis_angle(rng.normal(size=3), np.radians(rng.uniform(0, 3)))
+        R = R0 @ axis_angle(rng.normal(size=3), np.radians(rng.uniform(0, 3)))
         eye = eye0 + R0 @ offset
         return eye, _posed(R, eye)
     if move == "pan":
-        d = float(np.median(ref.depth[ref.depth > 0]))
         yaw = np.radians(rng.uniform(8, 35)) * rng.choice([-1, 1])
         pitch = np.radians(rng.uniform(-8, 8))
-        R = _axis_angle([0, 0, 1], yaw) @ R0 @ _axis_angle([1, 0, 0], pitch)  # world vertical, then camera x
+        R = axis_angle([0, 0, 1], yaw) @ R0 @ axis_angle([1, 0, 0], pitch)  # world vertical, then camera x
         eye = eye0 + _unit(rng.normal(size=3)) * d * rng.uniform(0, 0.04)
         return eye, _posed(R, eye)
     P, d = _focus_point(rng, ref)

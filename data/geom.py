@@ -49,6 +49,17 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
     return T
 
 
+def axis_angle(axis, angle: float) -> np.ndarray:
+    """[3, 3] rotation of ``angle`` radians about ``axis`` (any length > 0; Rodrigues)."""
+    k = np.asarray(axis, np.float64)
+    n = np.linalg.norm(k)
+    if k.shape != (3,) or n < 1e-12:
+        raise ShapeError(f"axis_angle expected a non-zero axis of shape (3,), got {k!r}")
+    k = k / n
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+
+
 def invert_rigid(T: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     R = T[:3, :3]

@@ -39,13 +39,16 @@ def cmd_pair(args) -> int:
 def pair_summary(npz: Path) -> str:
     """One line on the relative pose and focals stored by ``write_pair_outputs``."""
     import numpy as np
+    import torch
+
+    from pointmap.geometry.rotations import rotation_angle
 
     z = np.load(npz)
-    T = z["cam2world_2_in_1"].astype(np.float64)
-    if not np.isfinite(T).all():
+    T = torch.from_numpy(z["cam2world_2_in_1"]).double()
+    if not torch.isfinite(T).all():
         return "relative pose: not found (too few confident pixels)"
-    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
-    t = T[:3, 3] / max(np.linalg.norm(T[:3, 3]), 1e-12)
+    angle = float(torch.rad2deg(rotation_angle(T[:3, :3])))
+    t = torch.nn.functional.normalize(T[:3, 3], dim=0, eps=1e-12)
     f1 = float(z["focal1"]) / z["map_from_original1"][0]
     f2 = float(z["focal2"]) / z["map_from_original2"][0]
     return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "

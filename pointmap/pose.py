@@ -8,6 +8,7 @@ import torch
 from pointmap.errors import ShapeError
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
+from pointmap.geometry.rotations import project_to_rotation
 from pointmap.prediction import PairPrediction
 
 
@@ -101,8 +102,9 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
       averaged: view 2's own-frame pointmap (reverse pass) onto its pointmap in view 1's frame (forward pass),
       and view 1's own-frame pointmap (forward) onto its pointmap in view 2's frame (reverse), inverted. The
       rotation is the chordal mean of the two, the translation (camera 2's centre, in the forward pass's units)
-      their mean (one way alone when the other has fewer than 3 usable pixels). Its rotation is the inverse of ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No
-      intrinsics needed. On held-out pairs the average beats either direction alone (docs/models.md).
+      their mean (one way alone when the other has fewer than 3 usable pixels). Its rotation is the inverse of
+      ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No intrinsics needed. On held-out pairs the average
+      beats either direction alone (docs/models.md).
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
       camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
@@ -155,10 +157,8 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
                         ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
             if not estimates:
                 continue
-            U, _, Vh = torch.linalg.svd(sum(R for R, _ in estimates))  # chordal mean (one estimate: itself)
-            d = torch.sign(torch.det(U @ Vh))
             out[b] = torch.eye(4)
-            out[b, :3, :3] = (U @ torch.diag(torch.stack([d.new_tensor(1.0), d.new_tensor(1.0), d])) @ Vh).float()
+            out[b, :3, :3] = project_to_rotation(sum(R for R, _ in estimates)).float()  # chordal mean
             out[b, :3, 3] = (sum(t for _, t in estimates) / len(estimates)).float()
         else:
             pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)

@@ -4,12 +4,7 @@ from __future__ import annotations
 
 import torch
 
-
-def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
-    U, _, Vh = torch.linalg.svd(M)
-    d = torch.sign(torch.det(U @ Vh))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    return U @ D @ Vh
+from pointmap.geometry.rotations import project_to_rotation
 
 
 def similarity_to_known(cam2world: torch.Tensor, known: dict, min_spread: float = 1e-6):

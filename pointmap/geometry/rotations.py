@@ -17,6 +17,15 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     return torch.atan2(sin, cos)
 
 
+def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
+    """The rotation nearest to a [3, 3] matrix in Frobenius norm (SVD, det fixed to +1). Applied to a sum of
+    rotations it is their chordal mean."""
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.det(U @ Vh))
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    return U @ D @ Vh
+
+
 def relative_rotation_error_deg(R_pred: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
     """Geodesic distance in degrees between rotations [..., 3, 3]."""
     return torch.rad2deg(rotation_angle(R_pred.transpose(-1, -2) @ R_gt))

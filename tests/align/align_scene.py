@@ -153,7 +153,7 @@ def chain_pairs(n: int, window: int = 2) -> list:
 
 def pose_errors(cam2world_est: np.ndarray, cam2world_gt: np.ndarray):
     """(max rotation error deg, max centre error / scene size, similarity) after Sim(3) on centres+rotations."""
-    from pointmap.align.gauge import project_to_rotation
+    from pointmap.geometry.rotations import project_to_rotation
 
     est = torch.as_tensor(cam2world_est, dtype=torch.float64)
     gt = torch.as_tensor(cam2world_gt, dtype=torch.float64)

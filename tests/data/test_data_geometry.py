@@ -5,10 +5,24 @@ import pytest
 import torch
 
 from data.cameras import CameraConfig, sample_views
-from data.geom import correspondences, decode_corr, encode_corr, intrinsics_from_fov, look_at, unproject
+from data.geom import (
+    axis_angle,
+    correspondences,
+    decode_corr,
+    encode_corr,
+    intrinsics_from_fov,
+    look_at,
+    unproject,
+)
 from data.scene import make_scene
 from pointmap.errors import ShapeError
-from pointmap.geometry import depth_to_points_cam, invert_rigid, project, transform_points
+from pointmap.geometry import (
+    axis_angle_to_matrix,
+    depth_to_points_cam,
+    invert_rigid,
+    project,
+    transform_points,
+)
 
 
 def _reproject_checks(d1, K1, T1, d2, K2, T2, corr):
@@ -79,6 +93,16 @@ def test_numpy_unprojection_matches_the_library():
     ours = unproject(d, K)
     lib = depth_to_points_cam(torch.from_numpy(d).double(), torch.from_numpy(K)).numpy()
     assert np.allclose(ours, lib, atol=1e-9)
+
+
+def test_numpy_axis_angle_rotation_matches_the_library():
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        axis, angle = rng.normal(size=3), rng.uniform(-np.pi, np.pi)
+        lib = axis_angle_to_matrix(torch.from_numpy(axis / np.linalg.norm(axis) * angle)).numpy()
+        assert np.allclose(axis_angle(axis, angle), lib, atol=1e-12)
+    with pytest.raises(ShapeError, match="non-zero axis"):
+        axis_angle([0.0, 0.0, 0.0], 1.0)
 
 
 def test_look_at_builds_an_opencv_camera_facing_the_target():
