@@ -26,6 +26,22 @@ def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> fl
     return float(((p.clamp_min(0) * scale - g).abs() / g).mean())
 
 
+def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tensor, gt_z: torch.Tensor,
+                   valid: torch.Tensor, min_baseline: float = 0.01) -> float:
+    """Length of the predicted baseline over the true one, after the median depth alignment of ``abs_rel`` (the
+    prediction's units are its own): 1 is the right length, < 1 a camera placed too close to the first. NaN when
+    the true baseline is under ``min_baseline`` of the median depth (no direction to get right) or the
+    prediction has no usable depth or translation."""
+    p, g = pred_z[valid].double(), gt_z[valid].double()
+    front = p > 0
+    if front.sum() == 0 or not bool(torch.isfinite(t_pred).all()):
+        return float("nan")
+    if float(t_gt.double().norm()) < min_baseline * float(g.median()):
+        return float("nan")
+    scale = torch.median(g[front] / p[front])
+    return float(t_pred.double().norm() * scale / t_gt.double().norm())
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count), and their number."""
@@ -45,11 +61,12 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, 
 
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
-    """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred). ``coarse_acc``:
+    """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
+    ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1); ``coarse_acc``:
     top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors)."""
-    rot_err, tr_err, rels, precs, coarse = [], [], [], [], []
+    rot_err, tr_err, rels, precs, coarse, ratios = [], [], [], [], [], []
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
@@ -72,6 +89,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             tr_err += torch.where(ok, te, torch.full_like(te, 180.0)).tolist()
             for b in range(len(its)):
                 rels.append(abs_rel(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b]))
+                ratios.append(baseline_ratio(cam2world_pred[b, :3, 3], pred.pts1_cam1[b, ..., 2],
+                                             cam2world_gt[b, :3, 3], v1["depth_z"][b], v1["valid"][b]))
                 p, cnt = match_precision(pred[b], v1["corr"][b])
                 if cnt:
                     precs.append(p)
@@ -88,9 +107,11 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     tr_m.append(float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3])) if good else 180.0)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
+    ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
+            "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

@@ -21,6 +21,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert 0 <= ev["rot_err_med"] <= 180 and 0 <= ev["trans_err_med"] <= 180
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
+    assert math.isnan(ev["baseline_ratio"]) or ev["baseline_ratio"] >= 0
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100
 
 
@@ -55,3 +56,18 @@ def test_the_evaluate_command_refuses_missing_data_and_foreign_checkpoints_in_on
     assert main(["--model", str(tmp_path / "junk.pt"), "--data", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and len(err.strip().splitlines()) == 1
+
+
+def test_baseline_ratio_is_the_predicted_over_the_true_baseline_whatever_the_prediction_units():
+    from training.evaluate import baseline_ratio
+
+    gt_z = torch.rand(8, 8) + 1.0
+    valid = torch.ones(8, 8, dtype=torch.bool)
+    t_gt = torch.tensor([0.3, 0.0, 0.1])
+    for units in (1.0, 0.01, 7.0):  # a prediction in other units: depth and translation both scaled
+        assert math.isclose(baseline_ratio(t_gt * units, gt_z * units, t_gt, gt_z, valid), 1.0, rel_tol=1e-6)
+        assert math.isclose(baseline_ratio(0.4 * t_gt * units, gt_z * units, t_gt, gt_z, valid), 0.4, rel_tol=1e-6)
+    # no baseline to speak of, a failed pose, no depth in front: NaN, never a number that looks like a result
+    assert math.isnan(baseline_ratio(t_gt, gt_z, torch.tensor([1e-4, 0.0, 0.0]), gt_z, valid))
+    assert math.isnan(baseline_ratio(torch.full((3,), float("nan")), gt_z, t_gt, gt_z, valid))
+    assert math.isnan(baseline_ratio(t_gt, -gt_z, t_gt, gt_z, valid))
