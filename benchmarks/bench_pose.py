@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pointmap as pm  # noqa: E402
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
+from pointmap.pose import pose_from_essential  # noqa: E402
 
 
 def sift_pose(img1: np.ndarray, img2: np.ndarray, K1: np.ndarray, K2: np.ndarray):
@@ -41,16 +42,7 @@ def sift_pose(img1: np.ndarray, img2: np.ndarray, K1: np.ndarray, K2: np.ndarray
         return None
     p1 = np.float64([k1[m.queryIdx].pt for m in good])
     p2 = np.float64([k2[m.trainIdx].pt for m in good])
-    # normalise with each camera's intrinsics, then the essential matrix in normalised coordinates
-    n1 = cv2.undistortPoints(p1[:, None], K1, None)[:, 0]
-    n2 = cv2.undistortPoints(p2[:, None], K2, None)[:, 0]
-    E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / K1[0, 0])
-    if E is None or E.shape != (3, 3):
-        return None
-    _, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
-    world2cam2 = np.eye(4)
-    world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
-    return np.linalg.inv(world2cam2)
+    return pose_from_essential(p1, p2, K1, K2, threshold_px=1.0)
 
 
 def errors(est, gt):

@@ -1,4 +1,5 @@
-"""Two-view relative pose from a pair prediction: PnP-RANSAC (OpenCV) or weighted Procrustes."""
+"""Two-view relative pose from a pair prediction: PnP-RANSAC (OpenCV) or weighted Procrustes; from pixel
+correspondences alone: the essential matrix (OpenCV)."""
 
 from __future__ import annotations
 
@@ -186,6 +187,35 @@ def _pose_from_matches(pts1_cam1: torch.Tensor, m, hw2, K2):
     fin = torch.isfinite(pts).all(-1) & torch.isfinite(xy2).all(-1)
     # matches may be quantised to patch cells (match_coarse): a looser inlier threshold than dense PnP
     return _pnp_any_focal(pts[fin].double().numpy(), xy2[fin].double().numpy(), K2, *hw2, reproj_frac=0.04)
+
+
+def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float = 0.999) -> np.ndarray | None:
+    """View 2's cam2world [4, 4] float64 in view 1's frame (unit translation) from pixel correspondences
+    ``xy1``, ``xy2`` [M, 2] (u, v) and the intrinsics [3, 3] of each view: five-point essential matrix in
+    RANSAC (OpenCV) on normalised coordinates, inlier threshold ``threshold_px`` pixels of view 1, then the
+    cheirality test. Needs no depth at all (the classical two-view pipeline). None with fewer than 5
+    correspondences or no solution; ShapeError for wrong inputs."""
+    import cv2
+
+    xy1, xy2 = np.asarray(xy1, dtype=np.float64), np.asarray(xy2, dtype=np.float64)
+    K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
+    if xy1.ndim != 2 or xy1.shape[1:] != (2,) or xy1.shape != xy2.shape:
+        raise ShapeError(f"xy1, xy2 expected matching [M, 2] pixel arrays, got {list(xy1.shape)} and {list(xy2.shape)}")
+    if K1.shape != (3, 3) or K2.shape != (3, 3):
+        raise ShapeError(f"K1, K2 expected [3, 3], got {list(K1.shape)} and {list(K2.shape)}")
+    keep = np.isfinite(xy1).all(1) & np.isfinite(xy2).all(1)
+    xy1, xy2 = xy1[keep], xy2[keep]
+    if len(xy1) < 5:
+        return None
+    n1 = cv2.undistortPoints(xy1[:, None], K1, None)[:, 0]
+    n2 = cv2.undistortPoints(xy2[:, None], K2, None)[:, 0]
+    E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=prob, threshold=threshold_px / K1[0, 0])
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
+    world2cam2 = np.eye(4)
+    world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
+    return np.linalg.inv(world2cam2)
 
 
 def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:

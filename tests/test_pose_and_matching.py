@@ -206,3 +206,30 @@ def test_coarse_matches_refined_inside_the_matched_cell_land_on_the_exact_pixel(
     near = ((coarse.xy2 - m.xy1 - torch.tensor([float(dx), float(dy)])).abs() <= p).all(-1)  # coarse cell right or adjacent
     assert int(inside.sum()) >= 20 and bool(exact[inside & near].all()) and float(exact[inside].float().mean()) > 0.9
     assert not bool(((coarse.xy2 - coarse.xy1) == torch.tensor([float(dx), float(dy)])).all(-1).any())
+
+
+def test_the_essential_matrix_pose_needs_only_pixels_and_intrinsics_and_survives_outliers():
+    g = torch.Generator().manual_seed(3)
+    _, _, _, _, gt = two_views(angle_deg=15.0)
+    X = torch.rand(300, 3, generator=g, dtype=torch.float64) * torch.tensor([4.0, 3.0, 3.0]) \
+        + torch.tensor([-2.0, -1.5, 3.0])  # a volume in front of both cameras (not a plane)
+    Kp = torch.tensor([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], dtype=torch.float64)  # a 640 x 480 camera
+    uv1 = (X / X[:, 2:]) @ Kp.T
+    X2 = transform_points(invert_rigid(gt), X)
+    uv2 = (X2 / X2[:, 2:]) @ Kp.T
+    bad = torch.rand(300, generator=g) < 0.3
+    uv2[bad, :2] = torch.rand(int(bad.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
+    K = Kp
+    est = pm.pose_from_essential(uv1[:, :2].numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy())
+    r, t = pose_errors(torch.from_numpy(est), gt)
+    assert r < 0.5 and t < 1.0
+    assert abs(float(torch.from_numpy(est)[:3, 3].norm()) - 1.0) < 1e-9  # the direction only: unit length
+    # rows with NaN are dropped, too few correspondences give None, wrong shapes are refused
+    nan_rows = uv1[:, :2].clone()
+    nan_rows[:5] = float("nan")
+    assert pm.pose_from_essential(nan_rows.numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy()) is not None
+    assert pm.pose_from_essential(uv1[:4, :2].numpy(), uv2[:4, :2].numpy(), K.numpy(), K.numpy()) is None
+    with pytest.raises(pm.ShapeError, match=r"\[M, 2\]"):
+        pm.pose_from_essential(uv1.numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy())
+    with pytest.raises(pm.ShapeError, match=r"\[3, 3\]"):
+        pm.pose_from_essential(uv1[:, :2].numpy(), uv2[:, :2].numpy(), K[:2].numpy(), K.numpy())

@@ -119,6 +119,70 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             "pairs": float(len(rot))}
 
 
+SOURCE_ROWS = ("model matches + model depth", "model matches + true depth", "true matches + model depth",
+               "true matches + true depth", "model matches, essential matrix (no depth)")
+
+
+@torch.inference_mode()
+def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, seed: int = 0) -> dict:
+    """Where the two-view pose error comes from. The pose of view 2 by PnP-RANSAC with its true K, from each
+    combination of correspondences (the model's ``match_coarse``, or ``n_true`` true ones drawn per pair from the
+    ground-truth correspondences) and view-1 geometry (the model's own pointmap, or the true depth
+    unprojected with the true K), plus the model's matches through the essential matrix (true K1, K2; no depth).
+    Returns {row of ``SOURCE_ROWS``: {"RRA15", "RTA15", "rot_err_med", "trans_err_med"}} over the first
+    ``n_pairs`` pairs (pairs with fewer than 20 true correspondences left out); a failed pose counts 180 deg.
+    "true matches + true depth" is the check of the method itself (~100 %)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from pointmap.geometry import depth_to_points_cam
+    from pointmap.matching import Matches
+    from pointmap.pose import pose_from_essential
+
+    if not getattr(model, "cfg", None) or not model.cfg.desc_dim:
+        raise ValueError("pose_error_sources needs a model with a descriptor head (its matches are one source)")
+    patch = model.cfg.patch_size
+    errs: dict = {k: [] for k in SOURCE_ROWS}
+    for i in range(min(n_pairs, len(dataset))):
+        a, b = dataset[i]
+        corr = a["corr"]
+        v, u = torch.isfinite(corr).all(-1).nonzero(as_tuple=True)
+        if len(v) < 20:
+            continue
+        pick = torch.from_numpy(np.random.default_rng(seed + i).choice(len(v), min(n_true, len(v)), replace=False))
+        xy1 = torch.stack([u[pick], v[pick]], -1).float()
+        true_m = Matches(xy1, corr[v[pick], u[pick]].float(), torch.ones(len(pick)))
+        pred = model(a["img"][None], b["img"][None])
+        model_m = match_coarse(pred, patch)
+        true_pts = depth_to_points_cam(a["depth_z"].double(), a["K"].double()).float()
+        true_pts[~a["valid"]] = float("nan")
+        with_true = replace(pred, pts1_cam1=true_pts[None])
+        gt = invert_rigid(a["cam2world"].double()) @ b["cam2world"].double()
+        K2 = b["K"].double()
+        ests = [relative_pose(pr, K2=K2, matches=[m])[0] for pr, m in
+                ((pred, model_m), (with_true, model_m), (pred, true_m), (with_true, true_m))]
+        e = pose_from_essential(model_m.xy1.numpy(), model_m.xy2.numpy(), a["K"].double().numpy(), K2.numpy(),
+                                threshold_px=0.02 * max(a["img"].shape[-2:]))  # cell-quantised matches: loose
+        ests.append(torch.full((4, 4), float("nan")) if e is None else torch.from_numpy(e))
+        for name, est in zip(SOURCE_ROWS, ests):
+            if bool(torch.isfinite(est).all()):
+                errs[name].append((float(relative_rotation_error_deg(est[:3, :3].double(), gt[:3, :3])),
+                                   float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3]))))
+            else:
+                errs[name].append((180.0, 180.0))
+    out = {}
+    for name, v in errs.items():
+        t = torch.tensor(v, dtype=torch.float64).reshape(-1, 2)
+        if len(t) == 0:
+            continue
+        out[name] = {"RRA15": float((t[:, 0] < 15).double().mean() * 100),
+                     "RTA15": float((t[:, 1] < 15).double().mean() * 100),
+                     "rot_err_med": float(t[:, 0].median()), "trans_err_med": float(t[:, 1].median()),
+                     "pairs": len(t)}
+    return out
+
+
 def main(argv=None) -> int:
     """``python -m training.evaluate --model M --data HELDOUT [--size S] [--pairs N]``: the held-out metrics of
     a training checkpoint (``.pt``) or of model weights (a name or a file ``pm.load_model`` takes)."""
@@ -137,6 +201,9 @@ def main(argv=None) -> int:
                    help="input size, a multiple of 16 (default: the size the model was trained at)")
     p.add_argument("--pairs", type=int, default=139, help="the first N held-out pairs")
     p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--sources", action="store_true",
+                   help="also print where the pose error comes from (pose_error_sources: model vs true matches "
+                        "and depth), a markdown table before the JSON line")
     a = p.parse_args(argv)
     if a.threads > 0:
         torch.set_num_threads(a.threads)
@@ -160,6 +227,17 @@ def main(argv=None) -> int:
     except (pm.PointmapError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if a.sources:
+        try:
+            src = pose_error_sources(model.eval(), ds, a.pairs)
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print("| correspondences + view-1 geometry (PnP, true K) | pairs | RRA@15 | RTA@15 | median rot err | "
+              "median dir err |\n|---|---|---|---|---|---|")
+        for name, r in src.items():
+            print(f"| {name} | {r['pairs']} | {r['RRA15']:.1f}% | {r['RTA15']:.1f}% | {r['rot_err_med']:.1f} | "
+                  f"{r['trans_err_med']:.1f} |")
     res = evaluate_pairs(model.eval(), ds, a.pairs)
     print(json.dumps({"model": a.model, "size": size, **{k: round(v, 4) for k, v in res.items()}}))
     sys.stdout.flush()

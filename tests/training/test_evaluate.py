@@ -71,3 +71,28 @@ def test_baseline_ratio_is_the_predicted_over_the_true_baseline_whatever_the_pre
     assert math.isnan(baseline_ratio(t_gt, gt_z, torch.tensor([1e-4, 0.0, 0.0]), gt_z, valid))
     assert math.isnan(baseline_ratio(torch.full((3,), float("nan")), gt_z, t_gt, gt_z, valid))
     assert math.isnan(baseline_ratio(t_gt, -gt_z, t_gt, gt_z, valid))
+
+
+def test_pose_error_sources_split_the_pose_error_between_matches_and_depth_and_the_oracle_is_exact():
+    from training.evaluate import SOURCE_ROWS, pose_error_sources
+
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"]).eval()
+    res = pose_error_sources(model, PlanePairs(3, H=32, W=32), n_pairs=3)
+    assert tuple(res) == SOURCE_ROWS
+    oracle = res["true matches + true depth"]  # true correspondences on true geometry: the method itself
+    assert oracle["pairs"] == 3 and oracle["RRA15"] == 100 and oracle["RTA15"] == 100
+    assert oracle["rot_err_med"] < 0.5 and oracle["trans_err_med"] < 2
+    for r in res.values():
+        assert 0 <= r["RRA15"] <= 100 and 0 <= r["RTA15"] <= 100 and 0 <= r["rot_err_med"] <= 180
+
+
+def test_pose_error_sources_refuse_a_model_without_matches():
+    import pytest
+
+    from pointmap.model import ModelConfig
+    from training.evaluate import pose_error_sources
+
+    cfg = ModelConfig.from_dict({**PRESETS["test"].to_dict(), "head": "linear", "desc_dim": 0})
+    with pytest.raises(ValueError, match="descriptor head"):
+        pose_error_sources(PointmapNet(cfg).eval(), PlanePairs(1), n_pairs=1)
