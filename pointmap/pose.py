@@ -194,15 +194,20 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     ``xy1``, ``xy2`` [M, 2] (u, v) and the intrinsics [3, 3] of each view: five-point essential matrix in
     RANSAC (OpenCV) on normalised coordinates, inlier threshold ``threshold_px`` pixels of view 1, then the
     cheirality test. Needs no depth at all (the classical two-view pipeline). None with fewer than 5
-    correspondences or no solution; ShapeError for wrong inputs."""
+    correspondences or no solution with at least 5 inliers in front of both cameras (e.g. no motion);
+    ShapeError for wrong inputs."""
     import cv2
 
     xy1, xy2 = np.asarray(xy1, dtype=np.float64), np.asarray(xy2, dtype=np.float64)
     K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
     if xy1.ndim != 2 or xy1.shape[1:] != (2,) or xy1.shape != xy2.shape:
         raise ShapeError(f"xy1, xy2 expected matching [M, 2] pixel arrays, got {list(xy1.shape)} and {list(xy2.shape)}")
-    if K1.shape != (3, 3) or K2.shape != (3, 3):
-        raise ShapeError(f"K1, K2 expected [3, 3], got {list(K1.shape)} and {list(K2.shape)}")
+    for name, K in (("K1", K1), ("K2", K2)):
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ShapeError(f"{name} expected a finite [3, 3] intrinsics matrix with positive focals, got "
+                             f"{K.tolist() if K.size <= 9 else list(K.shape)}")
+    if not (threshold_px > 0 and 0 < prob < 1):
+        raise ShapeError(f"threshold_px expected > 0 and prob in (0, 1), got {threshold_px} and {prob}")
     keep = np.isfinite(xy1).all(1) & np.isfinite(xy2).all(1)
     xy1, xy2 = xy1[keep], xy2[keep]
     if len(xy1) < 5:
@@ -212,7 +217,9 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=prob, threshold=threshold_px / K1[0, 0])
     if E is None or E.shape != (3, 3):
         return None
-    _, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
+    n_front, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
+    if n_front < 5:
+        return None
     world2cam2 = np.eye(4)
     world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
     return np.linalg.inv(world2cam2)

@@ -213,23 +213,41 @@ def test_the_essential_matrix_pose_needs_only_pixels_and_intrinsics_and_survives
     _, _, _, _, gt = two_views(angle_deg=15.0)
     X = torch.rand(300, 3, generator=g, dtype=torch.float64) * torch.tensor([4.0, 3.0, 3.0]) \
         + torch.tensor([-2.0, -1.5, 3.0])  # a volume in front of both cameras (not a plane)
-    Kp = torch.tensor([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], dtype=torch.float64)  # a 640 x 480 camera
-    uv1 = (X / X[:, 2:]) @ Kp.T
+    K1 = torch.tensor([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], dtype=torch.float64)  # 640 x 480
+    K2 = torch.tensor([[800.0, 0, 300.0], [0, 780.0, 250.0], [0, 0, 1]], dtype=torch.float64)  # another camera
+    uv1 = ((X / X[:, 2:]) @ K1.T)[:, :2]
     X2 = transform_points(invert_rigid(gt), X)
-    uv2 = (X2 / X2[:, 2:]) @ Kp.T
+    uv2 = ((X2 / X2[:, 2:]) @ K2.T)[:, :2]
     bad = torch.rand(300, generator=g) < 0.3
-    uv2[bad, :2] = torch.rand(int(bad.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
-    K = Kp
-    est = pm.pose_from_essential(uv1[:, :2].numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy())
+    uv2[bad] = torch.rand(int(bad.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
+    k1, k2 = K1.numpy(), K2.numpy()
+    est = pm.pose_from_essential(uv1.numpy(), uv2.numpy(), k1, k2)
     r, t = pose_errors(torch.from_numpy(est), gt)
     assert r < 0.5 and t < 1.0
     assert abs(float(torch.from_numpy(est)[:3, 3].norm()) - 1.0) < 1e-9  # the direction only: unit length
-    # rows with NaN are dropped, too few correspondences give None, wrong shapes are refused
-    nan_rows = uv1[:, :2].clone()
-    nan_rows[:5] = float("nan")
-    assert pm.pose_from_essential(nan_rows.numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy()) is not None
-    assert pm.pose_from_essential(uv1[:4, :2].numpy(), uv2[:4, :2].numpy(), K.numpy(), K.numpy()) is None
+    swapped = pm.pose_from_essential(uv1.numpy(), uv2.numpy(), k2, k1)  # each view needs its own intrinsics
+    assert swapped is None or max(pose_errors(torch.from_numpy(swapped), gt)) > 2
+    nan_rows = uv1.clone()  # rows with NaN are dropped, the rest still give the pose
+    nan_rows[:40] = float("nan")
+    r, t = pose_errors(torch.from_numpy(pm.pose_from_essential(nan_rows.numpy(), uv2.numpy(), k1, k2)), gt)
+    assert r < 0.5 and t < 1.0
+
+
+def test_the_essential_matrix_pose_gives_none_without_a_solution_and_refuses_bad_inputs():
+    g = torch.Generator().manual_seed(4)
+    uv = torch.rand(100, 2, generator=g, dtype=torch.float64) * 400
+    k = K.numpy()
+    assert pm.pose_from_essential(uv[:4].numpy(), uv[:4].numpy() + 3, k, k) is None  # fewer than 5
+    assert pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k) is None  # no motion: nothing in front of both
     with pytest.raises(pm.ShapeError, match=r"\[M, 2\]"):
-        pm.pose_from_essential(uv1.numpy(), uv2[:, :2].numpy(), K.numpy(), K.numpy())
-    with pytest.raises(pm.ShapeError, match=r"\[3, 3\]"):
-        pm.pose_from_essential(uv1[:, :2].numpy(), uv2[:, :2].numpy(), K[:2].numpy(), K.numpy())
+        pm.pose_from_essential(uv[:, :1].numpy(), uv.numpy(), k, k)
+    with pytest.raises(pm.ShapeError, match="K1 expected"):
+        pm.pose_from_essential(uv.numpy(), uv.numpy(), k[:2], k)
+    bad_k = k.copy()
+    bad_k[0, 0] = 0.0
+    with pytest.raises(pm.ShapeError, match="K2 expected"):
+        pm.pose_from_essential(uv.numpy(), uv.numpy(), k, bad_k)
+    with pytest.raises(pm.ShapeError, match="threshold_px"):
+        pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, threshold_px=0.0)
+    with pytest.raises(pm.ShapeError, match="prob"):
+        pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, prob=1.5)

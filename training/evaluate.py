@@ -140,9 +140,11 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
     from pointmap.matching import Matches
     from pointmap.pose import pose_from_essential
 
-    if not getattr(model, "cfg", None) or not model.cfg.desc_dim:
-        raise ValueError("pose_error_sources needs a model with a descriptor head (its matches are one source)")
-    patch = model.cfg.patch_size
+    cfg = getattr(getattr(model, "module", model), "cfg", None)
+    if cfg is None or not cfg.desc_dim:
+        raise ValueError("pose_error_sources needs a model with a descriptor head (its matches are one source), "
+                         f"got {'no model config' if cfg is None else 'desc_dim 0'}")
+    patch = cfg.patch_size
     errs: dict = {k: [] for k in SOURCE_ROWS}
     for i in range(min(n_pairs, len(dataset))):
         a, b = dataset[i]

@@ -61,12 +61,17 @@ def test_the_evaluate_command_refuses_missing_data_and_foreign_checkpoints_in_on
 def test_baseline_ratio_is_the_predicted_over_the_true_baseline_whatever_the_prediction_units():
     from training.evaluate import baseline_ratio
 
-    gt_z = torch.rand(8, 8) + 1.0
+    g = torch.Generator().manual_seed(0)
+    gt_z = torch.rand(8, 8, generator=g) + 1.0
     valid = torch.ones(8, 8, dtype=torch.bool)
+    valid[:, :3] = False
+    pred_z = gt_z * (1 + 0.1 * torch.randn(8, 8, generator=g))  # a noisy prediction ...
+    pred_z[~valid] = 1e6  # ... with junk where there is no ground truth (must not count)
+    scale = torch.median(gt_z[valid] / pred_z[valid])  # the alignment AbsRel uses, on valid pixels only
     t_gt = torch.tensor([0.3, 0.0, 0.1])
     for units in (1.0, 0.01, 7.0):  # a prediction in other units: depth and translation both scaled
-        assert math.isclose(baseline_ratio(t_gt * units, gt_z * units, t_gt, gt_z, valid), 1.0, rel_tol=1e-6)
-        assert math.isclose(baseline_ratio(0.4 * t_gt * units, gt_z * units, t_gt, gt_z, valid), 0.4, rel_tol=1e-6)
+        t_pred = 0.4 * t_gt / scale * units
+        assert math.isclose(baseline_ratio(t_pred, pred_z * units, t_gt, gt_z, valid), 0.4, rel_tol=1e-5)
     # no baseline to speak of, a failed pose, no depth in front: NaN, never a number that looks like a result
     assert math.isnan(baseline_ratio(t_gt, gt_z, torch.tensor([1e-4, 0.0, 0.0]), gt_z, valid))
     assert math.isnan(baseline_ratio(torch.full((3,), float("nan")), gt_z, t_gt, gt_z, valid))
@@ -85,6 +90,38 @@ def test_pose_error_sources_split_the_pose_error_between_matches_and_depth_and_t
     assert oracle["rot_err_med"] < 0.5 and oracle["trans_err_med"] < 2
     for r in res.values():
         assert 0 <= r["RRA15"] <= 100 and 0 <= r["RTA15"] <= 100 and 0 <= r["rot_err_med"] <= 180
+
+
+class TrueDepthModel(torch.nn.Module):
+    """A stand-in whose view-1 pointmap is the truth (and whose descriptors are noise): "true matches + model
+    depth" must then be as exact as the oracle row, "model matches + ..." must not."""
+
+    def __init__(self, dataset):
+        super().__init__()
+        self.inner = PointmapNet(PRESETS["test"]).eval()
+        self.cfg = self.inner.cfg
+        self.truth = [dataset[i][0] for i in range(len(dataset))]
+        self.calls = 0
+
+    def forward(self, img1, img2):
+        from dataclasses import replace
+
+        from pointmap.geometry import depth_to_points_cam
+
+        v1 = self.truth[self.calls]
+        self.calls += 1
+        return replace(self.inner(img1, img2), pts1_cam1=depth_to_points_cam(v1["depth_z"], v1["K"])[None])
+
+
+def test_pose_error_sources_put_the_model_depth_and_the_true_matches_in_the_right_rows():
+    from training.evaluate import pose_error_sources
+
+    torch.manual_seed(0)
+    data = PlanePairs(3, H=32, W=32)
+    res = pose_error_sources(TrueDepthModel(data), data, n_pairs=3)
+    exact = res["true matches + model depth"]
+    assert exact["RRA15"] == 100 and exact["RTA15"] == 100 and exact["rot_err_med"] < 0.5
+    assert res["model matches + model depth"] == res["model matches + true depth"]  # the same geometry here
 
 
 def test_pose_error_sources_refuse_a_model_without_matches():
