@@ -13,16 +13,31 @@ from pointmap.pose import relative_pose
 from training.losses import patch_matching_loss
 
 
+def _depth_scale(p: torch.Tensor, g: torch.Tensor):
+    """The median ratio true / predicted depth over the pixels predicted in front (p, g: valid pixels, float64)
+    that puts a scale-free prediction in the truth's units, or None when no pixel is predicted in front."""
+    front = p > 0
+    return torch.median(g[front] / p[front]) if bool(front.any()) else None
+
+
+def _pose_errors(est: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
+    """(rotation error, translation direction error) in degrees of a cam2world [4, 4] against the truth; a pose
+    that was not found (any NaN) counts 180 for both."""
+    if not bool(torch.isfinite(est).all()):
+        return 180.0, 180.0
+    return (float(relative_rotation_error_deg(est[:3, :3].double(), gt[:3, :3].double())),
+            float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3].double())))
+
+
 def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
     """AbsRel of a depth map after median scale alignment (the prediction is scale-free); pixels predicted
     behind the camera count with their full relative error."""
     p, g = pred_z[valid].double(), gt_z[valid].double()
     if p.numel() == 0:
         return float("nan")
-    front = p > 0
-    if front.sum() == 0:
+    scale = _depth_scale(p, g)
+    if scale is None:
         return 1.0
-    scale = torch.median(g[front] / p[front])
     return float(((p.clamp_min(0) * scale - g).abs() / g).mean())
 
 
@@ -33,12 +48,11 @@ def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tenso
     the true baseline is under ``min_baseline`` of the median depth (no direction to get right) or the
     prediction has no usable depth or translation."""
     p, g = pred_z[valid].double(), gt_z[valid].double()
-    front = p > 0
-    if front.sum() == 0 or not bool(torch.isfinite(t_pred).all()):
+    scale = _depth_scale(p, g)
+    if scale is None or not bool(torch.isfinite(t_pred).all()):
         return float("nan")
     if float(t_gt.double().norm()) < min_baseline * float(g.median()):
         return float("nan")
-    scale = torch.median(g[front] / p[front])
     return float(t_pred.double().norm() * scale / t_gt.double().norm())
 
 
@@ -101,10 +115,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     if not math.isnan(acc):
                         coarse.append(acc)
                     est = relative_pose(pred[b], K2=v2["K"][b].double(), matches=[match_coarse(pred[b], patch)])[0]
-                    good = bool(torch.isfinite(est).all())
-                    gt = cam2world_gt[b]
-                    rot_m.append(float(relative_rotation_error_deg(est[:3, :3].double(), gt[:3, :3])) if good else 180.0)
-                    tr_m.append(float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3])) if good else 180.0)
+                    r, t = _pose_errors(est, cam2world_gt[b])
+                    rot_m.append(r)
+                    tr_m.append(t)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
@@ -168,11 +181,7 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
                                 threshold_px=0.02 * max(a["img"].shape[-2:]))  # cell-quantised matches: loose
         ests.append(torch.full((4, 4), float("nan")) if e is None else torch.from_numpy(e))
         for name, est in zip(SOURCE_ROWS, ests):
-            if bool(torch.isfinite(est).all()):
-                errs[name].append((float(relative_rotation_error_deg(est[:3, :3].double(), gt[:3, :3])),
-                                   float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3]))))
-            else:
-                errs[name].append((180.0, 180.0))
+            errs[name].append(_pose_errors(est, gt))
     out = {}
     for name, v in errs.items():
         t = torch.tensor(v, dtype=torch.float64).reshape(-1, 2)
