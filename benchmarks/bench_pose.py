@@ -3,7 +3,9 @@ OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Repor
 category (scene kind, low texture, wide baseline = true rotation > 30 degrees, translation only = true rotation
 < 5 degrees, as in a stereo rig). For models with descriptors,
 "model matches+PnP (known K)" is MASt3R-style: the model's patch-level matches (pm.match_coarse) lifted by
-view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets). A last row, "no rotation",
+view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets); "model R + match direction
+(known K)" keeps the model's pose and re-estimates only its translation direction from the same matches given
+its rotation (pm.with_match_direction: two-point RANSAC on the epipolar constraint). A last row, "no rotation",
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
 anything about rotation.
 
@@ -101,16 +103,17 @@ def main(argv=None) -> int:
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
-        cm = None
+        cm = hybrid = None
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
-            patch = model.cfg.patch_size
-            cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[pm.match_coarse(pred, patch)])[0].numpy()
+            m = pm.match_coarse(pred, model.cfg.patch_size)
+            cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[m])[0].numpy()
+            hybrid = pm.with_match_direction(torch.from_numpy(ours), m, v1["K"].double(), v2["K"].double()).numpy()
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
-        rows = [("model", ours), ("model matches+PnP (known K)", cm), ("sift+E (known K)", base),
-                ("no rotation", None)]
+        rows = [("model", ours), ("model matches+PnP (known K)", cm), ("model R + match direction (known K)", hybrid),
+                ("sift+E (known K)", base), ("no rotation", None)]
         for name, est in rows:
-            if name.startswith("model matches") and cm is None:
+            if name.startswith("model ") and est is None:  # a model without descriptors has no matches
                 continue
             r, t = errors(est, gt) if name != "no rotation" else (errors(np.eye(4), gt)[0], float("nan"))
             for c in cats:

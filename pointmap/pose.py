@@ -1,5 +1,5 @@
 """Two-view relative pose from a pair prediction: PnP-RANSAC (OpenCV) or weighted Procrustes; from pixel
-correspondences alone: the essential matrix (OpenCV)."""
+correspondences alone: the essential matrix (OpenCV), or the translation direction given the rotation."""
 
 from __future__ import annotations
 
@@ -198,18 +198,9 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     ShapeError for wrong inputs."""
     import cv2
 
-    xy1, xy2 = np.asarray(xy1, dtype=np.float64), np.asarray(xy2, dtype=np.float64)
-    K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
-    if xy1.ndim != 2 or xy1.shape[1:] != (2,) or xy1.shape != xy2.shape:
-        raise ShapeError(f"xy1, xy2 expected matching [M, 2] pixel arrays, got {list(xy1.shape)} and {list(xy2.shape)}")
-    for name, K in (("K1", K1), ("K2", K2)):
-        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ShapeError(f"{name} expected a finite [3, 3] intrinsics matrix with positive focals, got "
-                             f"{K.tolist() if K.size <= 9 else list(K.shape)}")
-    if not (threshold_px > 0 and 0 < prob < 1):
-        raise ShapeError(f"threshold_px expected > 0 and prob in (0, 1), got {threshold_px} and {prob}")
-    keep = np.isfinite(xy1).all(1) & np.isfinite(xy2).all(1)
-    xy1, xy2 = xy1[keep], xy2[keep]
+    if not 0 < prob < 1:
+        raise ShapeError(f"prob expected in (0, 1), got {prob}")
+    xy1, xy2, K1, K2 = _checked_pixels(xy1, xy2, K1, K2, threshold_px)
     if len(xy1) < 5:
         return None
     n1 = cv2.undistortPoints(xy1[:, None], K1, None)[:, 0]
@@ -223,6 +214,113 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     world2cam2 = np.eye(4)
     world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
     return np.linalg.inv(world2cam2)
+
+
+def _checked_pixels(xy1, xy2, K1, K2, threshold_px):
+    """float64 (xy1, xy2, K1, K2) of the correspondence solvers, rows with a non-finite value dropped;
+    ShapeError for wrong shapes, intrinsics or threshold."""
+    xy1, xy2 = np.asarray(xy1, dtype=np.float64), np.asarray(xy2, dtype=np.float64)
+    K1, K2 = np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64)
+    if xy1.ndim != 2 or xy1.shape[1:] != (2,) or xy1.shape != xy2.shape:
+        raise ShapeError(f"xy1, xy2 expected matching [M, 2] pixel arrays, got {list(xy1.shape)} and {list(xy2.shape)}")
+    for name, K in (("K1", K1), ("K2", K2)):
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ShapeError(f"{name} expected a finite [3, 3] intrinsics matrix with positive focals, got "
+                             f"{K.tolist() if K.size <= 9 else list(K.shape)}")
+    if not threshold_px > 0:
+        raise ShapeError(f"threshold_px expected > 0, got {threshold_px}")
+    keep = np.isfinite(xy1).all(1) & np.isfinite(xy2).all(1)
+    return xy1[keep], xy2[keep], K1, K2
+
+
+def _bearings(xy, K):
+    """Unit viewing rays [M, 3] of pixels (u, v) through intrinsics K."""
+    r = np.c_[xy, np.ones(len(xy))] @ np.linalg.inv(K).T
+    return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+
+def translation_from_matches(R, xy1, xy2, K1, K2, threshold_px: float = 2.0, prob: float = 0.999,
+                             max_iters: int = 1000, seed: int = 0) -> np.ndarray | None:
+    """Direction [3] float64 (unit) of camera 2's centre in view 1's frame, given the relative rotation ``R``
+    (view 2's cam2world rotation in view 1's frame, e.g. the model's) and pixel correspondences ``xy1``, ``xy2``
+    [M, 2] with each view's intrinsics [3, 3].
+
+    With the rotation known, the epipolar constraint is linear in t: t . (R r2 x r1) = 0 for the rays r1, r2 of
+    a correspondence, so two correspondences fix the direction (their cross product). Two-point RANSAC
+    (adaptive: stops once ``prob`` says an all-inlier sample was drawn, at most ``max_iters`` samples, fixed
+    ``seed``) with the angular distance of r1 from the epipolar plane of (t, R r2), inlier within
+    ``threshold_px`` / focal of view 1; then least squares over the inliers and the sign that puts the most
+    inliers in front of both cameras. Depth-free, so a pointmap model's rotation plus its own matches gives a
+    translation direction that does not inherit the errors of its depth or baseline. None with fewer than 5
+    inliers; ShapeError for wrong inputs (R must be a rotation)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
+            or np.linalg.det(R) < 0:
+        raise ShapeError(f"R expected a [3, 3] rotation matrix, got {R.tolist() if R.size <= 9 else list(R.shape)}")
+    if not (0 < prob < 1 and max_iters >= 1):
+        raise ShapeError(f"prob expected in (0, 1) and max_iters >= 1, got {prob} and {max_iters}")
+    xy1, xy2, K1, K2 = _checked_pixels(xy1, xy2, K1, K2, threshold_px)
+    if len(xy1) < 5:
+        return None
+    r1, r2 = _bearings(xy1, K1), _bearings(xy2, K2) @ R.T  # both in view 1's frame
+    A = np.cross(r2, r1)  # t . A_i = 0 for the true t
+
+    def residual(t):  # [..., M] |sin| of the angle between r1 and the plane spanned by t and R r2
+        n = np.cross(t[..., None, :], r2)
+        return np.abs((n * r1).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12)
+
+    thr = threshold_px / K1[0, 0]
+    rng = np.random.default_rng(seed)
+    best, n_best, iters, done = None, 0, max_iters, 0
+    while done < iters:
+        k = min(256, iters - done)
+        i = rng.integers(0, len(A), size=(k, 2))
+        t = np.cross(A[i[:, 0]], A[i[:, 1]])
+        norm = np.linalg.norm(t, axis=1)
+        t = t[norm > 1e-12] / norm[norm > 1e-12, None]
+        done += k
+        if len(t) == 0:
+            continue
+        inl = residual(t) < thr  # [k, M]
+        j = int(inl.sum(1).argmax())
+        if inl[j].sum() > n_best:
+            best, n_best = inl[j], int(inl[j].sum())
+            w = n_best / len(A)
+            iters = min(max_iters, int(np.ceil(np.log(1 - prob) / np.log(max(1 - w * w, 1e-12)))))
+    if n_best < 5:
+        return None
+    t = np.linalg.svd(A[best] / np.linalg.norm(A[best], axis=1, keepdims=True).clip(1e-12))[2][-1]
+    # cheirality: a r1 = b R r2 + t with a, b > 0 for a point in front of both cameras (2 x 2 normal equations)
+    a11, a12, a22 = (r1[best] ** 2).sum(1), -(r1[best] * r2[best]).sum(1), (r2[best] ** 2).sum(1)
+    det = np.maximum(a11 * a22 - a12 ** 2, 1e-12)
+    b1, b2 = r1[best] @ t, -(r2[best] @ t)
+    a = (a22 * b1 - a12 * b2) / det
+    b = (a11 * b2 - a12 * b1) / det
+    front = ((a > 0) & (b > 0)).sum(), ((a < 0) & (b < 0)).sum()  # -t flips both signs
+    return t if front[0] >= front[1] else -t
+
+
+def with_match_direction(cam2world: torch.Tensor, m, K1, K2, threshold_px: float = 2.0) -> torch.Tensor:
+    """A pose [4, 4] (view 2's cam2world in view 1's frame, e.g. from ``relative_pose``) with its translation
+    direction re-estimated by ``translation_from_matches`` from the matches ``m`` (``pointmap.matching.Matches``)
+    given its own rotation and the intrinsics [3, 3]; the baseline length is kept. The pose is returned
+    unchanged when it is not finite or no direction is found (fewer than 5 inliers); a zero baseline gets unit
+    length."""
+    if not isinstance(cam2world, torch.Tensor) or tuple(cam2world.shape) != (4, 4):
+        raise ShapeError(f"cam2world expected a [4, 4] tensor, got "
+                         f"{list(cam2world.shape) if hasattr(cam2world, 'shape') else type(cam2world).__name__}")
+    if not bool(torch.isfinite(cam2world).all()):
+        return cam2world
+    d = translation_from_matches(cam2world[:3, :3].double().numpy(), m.xy1.detach().double().cpu().numpy(),
+                                 m.xy2.detach().double().cpu().numpy(),
+                                 np.asarray(K1, dtype=np.float64), np.asarray(K2, dtype=np.float64),
+                                 threshold_px=threshold_px)
+    if d is None:
+        return cam2world
+    out = cam2world.clone()
+    length = float(cam2world[:3, 3].norm())
+    out[:3, 3] = torch.from_numpy(d).to(out.dtype) * (length if length > 0 else 1.0)
+    return out
 
 
 def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:

@@ -251,3 +251,104 @@ def test_the_essential_matrix_pose_gives_none_without_a_solution_and_refuses_bad
         pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, threshold_px=0.0)
     with pytest.raises(pm.ShapeError, match="prob"):
         pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, prob=1.5)
+
+
+def _scene_pixels(gt, n=300, seed=5):
+    """Pixels of a random 3D volume in front of camera 1 (640 x 480, K1) and camera 2 (``gt``, K2)."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, 3, generator=g, dtype=torch.float64) * torch.tensor([4.0, 3.0, 3.0]) + torch.tensor([-2.0, -1.5, 3.0])
+    K1 = torch.tensor([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], dtype=torch.float64)
+    K2 = torch.tensor([[700.0, 0, 300.0], [0, 690.0, 250.0], [0, 0, 1]], dtype=torch.float64)
+    X2 = transform_points(invert_rigid(gt), X)
+    return ((X / X[:, 2:]) @ K1.T)[:, :2], ((X2 / X2[:, 2:]) @ K2.T)[:, :2], K1, K2, g
+
+
+def _direction_by_sphere_search(R, xy1, xy2, K1, K2, n=200_000, seed=0):
+    """Slow reference: the unit t among ``n`` random directions with the smallest summed squared epipolar
+    residual (all correspondences inliers)."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    t = t / t.norm(dim=1, keepdim=True)
+
+    def rays(xy, K):
+        r = torch.cat([xy, torch.ones(len(xy), 1, dtype=torch.float64)], 1) @ torch.linalg.inv(K).T
+        return r / r.norm(dim=1, keepdim=True)
+
+    A = torch.cross(rays(xy2, K2) @ R.T, rays(xy1, K1), dim=1)
+    cost = ((t @ A.T) ** 2).sum(1)
+    return t[cost.argmin()]
+
+
+def test_the_translation_direction_from_matches_given_the_rotation_survives_outliers_and_finds_the_sign():
+    for direction in ((0.6, 0.1, 0.05), (-0.3, 0.05, -0.8)):  # sideways, and backwards (the sign matters)
+        _, _, _, _, gt = two_views(angle_deg=15.0, t=direction)
+        uv1, uv2, K1, K2, g = _scene_pixels(gt)
+        clean = pm.translation_from_matches(gt[:3, :3].numpy(), uv1.numpy(), uv2.numpy(), K1.numpy(), K2.numpy())
+        assert float(translation_angle_deg(torch.from_numpy(clean), gt[:3, 3])) < 0.01
+        assert abs(float(torch.from_numpy(clean).norm()) - 1.0) < 1e-9
+        noisy = uv2 + torch.randn(uv2.shape, generator=g, dtype=torch.float64) * 0.5
+        bad = torch.rand(len(uv2), generator=g) < 0.6  # 60% outliers: a 2-point sample still finds the inliers
+        noisy[bad] = torch.rand(int(bad.sum()), 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
+        est = pm.translation_from_matches(gt[:3, :3].numpy(), uv1.numpy(), noisy.numpy(), K1.numpy(), K2.numpy())
+        assert float(translation_angle_deg(torch.from_numpy(est), gt[:3, 3])) < 1.0
+        # a rotation 3 degrees off moves the direction, but not away
+        off = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(3.0)], dtype=torch.float64)) @ gt[:3, :3]
+        est_off = pm.translation_from_matches(off.numpy(), uv1.numpy(), noisy.numpy(), K1.numpy(), K2.numpy(),
+                                              threshold_px=8.0)
+        assert float(translation_angle_deg(torch.from_numpy(est_off), gt[:3, 3])) < 15.0
+
+
+def test_the_ransac_direction_agrees_with_an_exhaustive_search_over_directions():
+    _, _, _, _, gt = two_views(angle_deg=10.0, t=(0.2, -0.4, 0.5))
+    uv1, uv2, K1, K2, g = _scene_pixels(gt, n=120, seed=7)
+    uv2 = uv2 + torch.randn(uv2.shape, generator=g, dtype=torch.float64) * 0.3
+    R = gt[:3, :3]
+    est = torch.from_numpy(pm.translation_from_matches(R.numpy(), uv1.numpy(), uv2.numpy(), K1.numpy(), K2.numpy(),
+                                                       threshold_px=5.0))
+    ref = _direction_by_sphere_search(R, uv1, uv2, K1, K2)
+    # the search is sign-free (t and -t score the same): compare the lines, and the sign against the truth
+    assert float(translation_angle_deg(est, ref)) < 1.0 or float(translation_angle_deg(est, -ref)) < 1.0
+    assert float(translation_angle_deg(est, gt[:3, 3])) < 1.0
+
+
+def test_the_translation_direction_drops_nan_rows_gives_none_without_inliers_and_refuses_bad_inputs():
+    _, _, _, _, gt = two_views(angle_deg=15.0)
+    uv1, uv2, K1, K2, g = _scene_pixels(gt)
+    R, k1, k2 = gt[:3, :3].numpy(), K1.numpy(), K2.numpy()
+    nan_rows = uv1.clone()
+    nan_rows[:50] = float("nan")
+    est = pm.translation_from_matches(R, nan_rows.numpy(), uv2.numpy(), k1, k2)
+    assert float(translation_angle_deg(torch.from_numpy(est), gt[:3, 3])) < 0.01
+    assert pm.translation_from_matches(R, uv1[:4].numpy(), uv2[:4].numpy(), k1, k2) is None  # fewer than 5
+    noise = torch.rand(300, 2, generator=g, dtype=torch.float64) * 600  # unrelated pixels: < 5 on any plane
+    assert pm.translation_from_matches(R, noise[:6].numpy(), noise[6:12].numpy(), k1, k2, threshold_px=0.01) is None
+    with pytest.raises(pm.ShapeError, match="rotation"):
+        pm.translation_from_matches(R * 2, uv1.numpy(), uv2.numpy(), k1, k2)
+    with pytest.raises(pm.ShapeError, match="rotation"):
+        pm.translation_from_matches(-R, uv1.numpy(), uv2.numpy(), k1, k2)  # a reflection
+    with pytest.raises(pm.ShapeError, match=r"\[M, 2\]"):
+        pm.translation_from_matches(R, uv1.numpy(), uv2[:10].numpy(), k1, k2)
+    with pytest.raises(pm.ShapeError, match="K2 expected"):
+        pm.translation_from_matches(R, uv1.numpy(), uv2.numpy(), k1, k2[:2])
+    with pytest.raises(pm.ShapeError, match="threshold_px"):
+        pm.translation_from_matches(R, uv1.numpy(), uv2.numpy(), k1, k2, threshold_px=-1.0)
+    with pytest.raises(pm.ShapeError, match="max_iters"):
+        pm.translation_from_matches(R, uv1.numpy(), uv2.numpy(), k1, k2, max_iters=0)
+
+
+def test_a_pose_with_its_direction_from_matches_keeps_its_rotation_and_baseline_length():
+    _, _, _, _, gt = two_views(angle_deg=15.0)
+    uv1, uv2, K1, K2, _ = _scene_pixels(gt)
+    m = pm.Matches(uv1.float(), uv2.float(), torch.ones(len(uv1)))
+    wrong = gt.clone().float()
+    wrong[:3, 3] = torch.tensor([0.0, 0.0, 2.5])  # right rotation, wrong direction, baseline 2.5
+    fixed = pm.with_match_direction(wrong, m, K1.numpy(), K2.numpy())
+    assert float(translation_angle_deg(fixed[:3, 3].double(), gt[:3, 3])) < 0.1
+    assert abs(float(fixed[:3, 3].norm()) - 2.5) < 1e-5 and torch.equal(fixed[:3, :3], wrong[:3, :3])
+    assert torch.equal(wrong[:3, 3], torch.tensor([0.0, 0.0, 2.5]))  # the input is not modified
+    few = pm.Matches(uv1[:3].float(), uv2[:3].float(), torch.ones(3))
+    assert torch.equal(pm.with_match_direction(wrong, few, K1.numpy(), K2.numpy()), wrong)  # no direction: unchanged
+    lost = torch.full((4, 4), float("nan"))
+    assert torch.isnan(pm.with_match_direction(lost, m, K1.numpy(), K2.numpy())).all()
+    with pytest.raises(pm.ShapeError, match=r"\[4, 4\]"):
+        pm.with_match_direction(wrong[:3], m, K1.numpy(), K2.numpy())

@@ -9,7 +9,7 @@ import torch
 from pointmap.geometry.cameras import invert_rigid
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
 from pointmap.matching import match, match_coarse
-from pointmap.pose import relative_pose
+from pointmap.pose import relative_pose, with_match_direction
 from training.losses import patch_matching_loss
 
 
@@ -79,9 +79,12 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1); ``coarse_acc``:
     top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
-    pointmap, PnP with the true K (MASt3R-style; models with descriptors)."""
+    pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RTA15_match_dir``: the model's pose
+    with its translation direction replaced by ``pointmap.pose.with_match_direction`` on the same matches given the model's
+    rotation and the true K (the rotation, hence RRA@15, unchanged; a pair without a direction keeps the model's)."""
     rot_err, tr_err, rels, precs, coarse, ratios = [], [], [], [], [], []
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
+    tr_dir = []  # the model's rotation + the translation direction from its matches
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -114,10 +117,13 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     acc = patch_matching_loss(pred.desc1[b:b + 1], pred.desc2[b:b + 1], v1["corr"][b:b + 1], patch)[1]
                     if not math.isnan(acc):
                         coarse.append(acc)
-                    est = relative_pose(pred[b], K2=v2["K"][b].double(), matches=[match_coarse(pred[b], patch)])[0]
+                    m = match_coarse(pred[b], patch)
+                    est = relative_pose(pred[b], K2=v2["K"][b].double(), matches=[m])[0]
                     r, t = _pose_errors(est, cam2world_gt[b])
                     rot_m.append(r)
                     tr_m.append(t)
+                    hybrid = with_match_direction(cam2world_pred[b], m, v1["K"][b], v2["K"][b])
+                    tr_dir.append(_pose_errors(hybrid, cam2world_gt[b])[1])
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
@@ -128,7 +134,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
-                "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m)} if rot_m else {}),
+                "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m),
+                "RTA15_match_dir": 100 * sum(t < 15 for t in tr_dir) / len(tr_dir)} if rot_m else {}),
             "pairs": float(len(rot))}
 
 
