@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -29,7 +30,18 @@ def cmd_pair(args) -> int:
     from pointmap.io_pair import write_pair_outputs
 
     model, size = _model_and_size(args.model, args.size)
-    paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet)
+    focal = None
+    if args.focal is not None:
+        try:
+            focal = [float(f) for f in args.focal.split(",")]
+        except ValueError:
+            focal = []
+        if len(focal) not in (1, 2) or not all(math.isfinite(f) and f > 0 for f in focal):
+            raise PointmapError(f"--focal expected F or F1,F2 (positive, in pixels), got {args.focal!r}")
+        if len(focal) == 1:
+            focal = focal * 2
+    paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
+                               focal=focal)
     for p in paths:
         print(p)
     print(pair_summary(Path(args.out) / "pair.npz"))
@@ -52,8 +64,10 @@ def pair_summary(npz: Path) -> str:
     f1 = float(z["focal1"]) / z["map_from_original1"][0]
     f2 = float(z["focal2"]) / z["map_from_original2"][0]
     return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "
-            f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward); focal {f1:.0f} / {f2:.0f} px "
-            f"(original pixels)")
+            f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward"
+            f"{'; direction from the matches' if 'direction_from_matches' in z and bool(z['direction_from_matches']) else ''}"
+            f"); focal {f1:.0f} / {f2:.0f} px "
+            f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''})")
 
 
 def cmd_reconstruct(args) -> int:
@@ -105,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("-o", "--out", required=True)
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     a.add_argument("--size", type=int, default=None, help="network input size (224 or 512; default: the model's)")
+    a.add_argument("--focal", default=None, metavar="F[,F2]",
+                   help="known focal length(s) in original pixels (principal point at the centre): stored instead "
+                        "of the estimate, and the translation direction is re-estimated from the matches")
     a.set_defaults(fn=cmd_pair)
 
     r = sub.add_parser("reconstruct", help="many images to poses, intrinsics and a dense cloud")

@@ -30,3 +30,25 @@ def test_the_pair_command_refuses_a_missing_image_with_exit_code_2(tmp_path, cap
     assert main(["pair", str(tmp_path / "nope.png"), str(tmp_path / "nope2.png"), "-o", str(tmp_path / "o"),
                  "--model", "small"]) == 2
     assert "image not found" in capsys.readouterr().err
+
+
+def test_the_pair_command_stores_given_focals_and_refuses_malformed_ones(tmp_path, capsys):
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    import cv2
+
+    rng = np.random.default_rng(1)
+    for k in range(2):
+        cv2.imwrite(str(tmp_path / f"im{k}.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    ims = [str(tmp_path / "im0.png"), str(tmp_path / "im1.png")]
+    out = tmp_path / "out"
+    assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", "70,90"]) == 0
+    assert "focal 70 / 90 px (original pixels, given)" in capsys.readouterr().out
+    z = np.load(out / "pair.npz")
+    assert bool(z["focal_given"]) and abs(float(z["focal1"]) / z["map_from_original1"][0] - 70) < 1e-3
+    assert abs(float(z["focal2"]) / z["map_from_original2"][0] - 90) < 1e-3
+    assert np.isfinite(z["cam2world_2_in_1"]).all() or np.isnan(z["cam2world_2_in_1"]).all()
+    for bad in ("abc", "-5", "1,2,3", "nan"):
+        assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", bad]) == 2
+        err = capsys.readouterr().err
+        assert "focal" in err and bad in err
