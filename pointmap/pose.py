@@ -273,7 +273,7 @@ def translation_from_matches(R, xy1, xy2, K1, K2, threshold_px: float = 2.0, pro
     rng = np.random.default_rng(seed)
     best, n_best, iters, done = None, 0, max_iters, 0
     while done < iters:
-        k = min(256, iters - done)
+        k = min(max(1, 2_000_000 // len(A)), 256, iters - done)  # hypotheses per batch: bounded memory
         i = rng.integers(0, len(A), size=(k, 2))
         t = np.cross(A[i[:, 0]], A[i[:, 1]])
         norm = np.linalg.norm(t, axis=1)
