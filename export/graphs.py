@@ -43,18 +43,26 @@ class FullGraph(_Graph):
 
 
 class EncoderGraph(_Graph):
-    def forward(self, img: torch.Tensor) -> torch.Tensor:
+    """img -> tokens [B, h, w, enc_dim] (and, with a descriptor stem, local [B, h, w, desc_stem * p * p])."""
+
+    def forward(self, img: torch.Tensor):
         enc = self.model.encode(img.to(self.compute_dtype))
         h, w = enc.grid
-        return enc.tokens.reshape(img.shape[0], h, w, self.model.cfg.enc_dim).float()
+        tokens = enc.tokens.reshape(img.shape[0], h, w, enc.tokens.shape[-1]).float()
+        if enc.local is None:
+            return tokens
+        return tokens, enc.local.reshape(img.shape[0], h, w, enc.local.shape[-1]).float()
 
 
 class DecoderGraph(_Graph):
-    def forward(self, tokens1: torch.Tensor, tokens2: torch.Tensor) -> tuple:
+    def forward(self, tokens1: torch.Tensor, tokens2: torch.Tensor, local1: torch.Tensor | None = None,
+                local2: torch.Tensor | None = None) -> tuple:
         encs = []
-        for t in (tokens1, tokens2):
+        for t, loc in ((tokens1, local1), (tokens2, local2)):
             B, h, w, C = t.shape
-            encs.append(Encoded(t.to(self.compute_dtype).reshape(B, h * w, C), (h, w)))
+            if loc is not None:
+                loc = loc.reshape(B, h * w, loc.shape[-1])
+            encs.append(Encoded(t.to(self.compute_dtype).reshape(B, h * w, C), (h, w), loc))
         return _outputs(self.model, self.model.decode_pair(*encs))
 
 
@@ -98,16 +106,20 @@ def graph_specs(model: PointmapNet, split: bool, compute_dtype: torch.dtype = to
             inputs={"img1": ["batch", 3, "height1", "width1"], "img2": ["batch", 3, "height2", "width2"]},
             outputs=pix,
         )]
-    tok1 = torch.rand(2, 5, 7, C)
-    tok2 = torch.rand(2, 6, 4, C)
+    args = (torch.rand(2, 5, 7, C), torch.rand(2, 6, 4, C))
+    enc_out = {"tokens": ["batch", "grid_h", "grid_w", C]}
+    dec_in = {"tokens1": ["batch", "grid_h1", "grid_w1", C], "tokens2": ["batch", "grid_h2", "grid_w2", C]}
+    dec_dyn = {"tokens1": {0: B, 1: dims["gh1"], 2: dims["gw1"]}, "tokens2": {0: B, 1: dims["gh2"], 2: dims["gw2"]}}
+    if cfg.desc_stem:  # the stem's local features travel beside the tokens, in the same [B, h, w, .] layout
+        L = cfg.desc_stem * p * p
+        args += (torch.rand(2, 5, 7, L), torch.rand(2, 6, 4, L))
+        enc_out["local"] = ["batch", "grid_h", "grid_w", L]
+        dec_in.update(local1=["batch", "grid_h1", "grid_w1", L], local2=["batch", "grid_h2", "grid_w2", L])
+        dec_dyn.update(local1=dec_dyn["tokens1"], local2=dec_dyn["tokens2"])
     return [
         dict(file=ENCODER_GRAPH, role="encoder", wrapper=EncoderGraph(model, compute_dtype), args=(ex1,),
              dynamic_shapes={"img": {0: B, 2: p * dims["gh"], 3: p * dims["gw"]}},
-             inputs={"img": ["batch", 3, "height", "width"]},
-             outputs={"tokens": ["batch", "grid_h", "grid_w", C]}),
-        dict(file=DECODER_GRAPH, role="decoder", wrapper=DecoderGraph(model, compute_dtype), args=(tok1, tok2),
-             dynamic_shapes={"tokens1": {0: B, 1: dims["gh1"], 2: dims["gw1"]},
-                             "tokens2": {0: B, 1: dims["gh2"], 2: dims["gw2"]}},
-             inputs={"tokens1": ["batch", "grid_h1", "grid_w1", C], "tokens2": ["batch", "grid_h2", "grid_w2", C]},
-             outputs=pix),
+             inputs={"img": ["batch", 3, "height", "width"]}, outputs=enc_out),
+        dict(file=DECODER_GRAPH, role="decoder", wrapper=DecoderGraph(model, compute_dtype), args=args,
+             dynamic_shapes=dec_dyn, inputs=dec_in, outputs=pix),
     ]

@@ -23,7 +23,7 @@ from pointmap.model.net import PointmapNet
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 FORMAT = "pointmap/1"
-HEAD_PREFIXES = ("downstream_head", "pose_head")  # everything else is the trunk (encoder, decoders)
+HEAD_PREFIXES = ("downstream_head", "pose_head", "desc_stem")  # everything else is the trunk (encoder, decoders)
 
 # --------------------------------------------------------------------------------------------------
 # constructor strings: AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), ...)

@@ -107,4 +107,6 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
 
 def _stack(encs: list):
     first = encs[0]
+    if hasattr(first, "cat"):
+        return first.cat(encs)
     return type(first)(torch.cat([e.tokens for e in encs], dim=0), first.grid)

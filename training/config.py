@@ -39,6 +39,7 @@ class TrainConfig:
     coarse_temperature: float = 0.1
     attn_weight: float = 0.0       # weight of the cross-attention supervision (losses.cross_attention_loss; 0 = off)
     pose_head: bool = False        # build --preset with a pose head (model.heads.PoseHead): rigid view-2 points
+    desc_stem: int = 0             # > 0: build --preset with a descriptor stem of this many channels (DescStem)
     pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
     pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)

@@ -257,7 +257,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         ddp_model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None,
             find_unused_parameters=any("dpt" in n for n, _ in model.named_parameters()))
-    step_model = torch.compile(ddp_model) if cfg.compile else ddp_model
+    # static shapes: one compilation per aspect ratio (three at most in our datasets); the dynamic-shape graph
+    # of a model with a descriptor stem fails to compile in torch 2.13's inductor (symbolic stride order)
+    step_model = torch.compile(ddp_model, dynamic=False) if cfg.compile else ddp_model
     logger = Logger(out, rank == 0)
     n_aspects = len(getattr(dataset, "aspects", [None]))
     sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects)

@@ -47,6 +47,8 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
     ``--init_heads fresh`` builds ``--preset`` and takes only the trunk (and heads whose shapes match) from
     ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R."""
     preset = PRESETS[cfg.preset].replace(pose_head=True) if cfg.pose_head else PRESETS[cfg.preset]
+    if cfg.desc_stem:
+        preset = preset.replace(desc_stem=cfg.desc_stem)
     if not cfg.init:
         return PointmapNet(preset)
     state, model_cfg, kind = _init_state(Path(cfg.init))
@@ -58,6 +60,9 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         return model.train()
     if cfg.pose_head and not model_cfg.pose_head:
         raise CheckpointError(f"--init {cfg.init} has no pose head: add --init_heads fresh to start one")
+    if cfg.desc_stem and model_cfg.desc_stem != cfg.desc_stem:
+        raise CheckpointError(f"--init {cfg.init} has desc_stem {model_cfg.desc_stem}, --desc_stem asks for "
+                              f"{cfg.desc_stem}: add --init_heads fresh to start a new one")
     model = PointmapNet(model_cfg)
     load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     return model.train()

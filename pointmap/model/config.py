@@ -41,6 +41,8 @@ class ModelConfig:
     metric: bool = False          # outputs in metres (MASt3R metric) rather than normalised units
     pose_head: bool = False       # view 2's head predicts its points in its OWN frame and a pose head the
                                   # cam2 -> cam1 transform; pts2_cam1 is their composition (rigid by construction)
+    desc_stem: int = 0            # > 0: channels of a full-resolution convolutional stem whose local features each
+                                  # descriptor head fuses into its output (0: none, as the official heads)
 
     def __post_init__(self) -> None:
         errors = []
@@ -56,6 +58,8 @@ class ModelConfig:
             errors.append(f"head {self.head!r} needs desc_dim > 0, got {self.desc_dim}")
         if not self.head.startswith("catmlp") and self.desc_dim:
             errors.append(f"desc_dim={self.desc_dim} needs a catmlp head, got {self.head!r}")
+        if self.desc_stem < 0 or (self.desc_stem and not self.has_desc):
+            errors.append(f"desc_stem expected 0, or > 0 with a descriptor head, got {self.desc_stem} (desc_dim {self.desc_dim})")
         for name in ("depth_mode", "conf_mode", "desc_conf_mode"):
             mode = getattr(self, name)
             if len(mode) != 3 or mode[0] not in ("exp", "linear", "square", "sigmoid"):

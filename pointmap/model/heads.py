@@ -11,6 +11,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from pointmap.errors import ShapeError
 from pointmap.model.blocks import LayerNorm, Mlp
 from pointmap.model.config import ModelConfig
 
@@ -102,8 +103,32 @@ class DPT(nn.Module):
         return self.head(p1)
 
 
+class DescStem(nn.Module):
+    """Full-resolution local features for the descriptor heads: three 3 x 3 convolutions (dilation 1, 2, 4:
+    a 15-pixel receptive field) on the normalised image, run once per image like the encoder.
+
+    The ViT sees 16 x 16 patches through one linear map; a descriptor decoded from a patch token cannot
+    tell pixels inside the patch apart well, which is what 3-pixel matching needs. Output in token layout
+    ``[B, h*w, C*p*p]`` (pixel-unshuffled) so it travels with the tokens (``Encoded.local``, the ONNX
+    encoder/decoder interface)."""
+
+    def __init__(self, channels: int, patch: int) -> None:
+        super().__init__()
+        self.patch = patch
+        self.convs = nn.ModuleList([nn.Conv2d(3, channels, 3, padding=1),
+                                    nn.Conv2d(channels, channels, 3, padding=2, dilation=2),
+                                    nn.Conv2d(channels, channels, 3, padding=4, dilation=4)])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for conv in self.convs:
+            x = F.gelu(conv(x))
+        return F.pixel_unshuffle(x, self.patch).flatten(2).transpose(1, 2)
+
+
 class DownstreamHead(nn.Module):
-    """One view's head: points + confidence (linear or DPT), plus optional MASt3R descriptors."""
+    """One view's head: points + confidence (linear or DPT), plus optional MASt3R descriptors (with
+    ``desc_stem``, refined by a 1 x 1 convolution over [stem features, descriptor channels], added as a
+    residual and zero-initialised so that a model gaining a stem starts as the model it was)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -117,9 +142,24 @@ class DownstreamHead(nn.Module):
             cat_dim = cfg.enc_dim + cfg.dec_dim
             out = (cfg.desc_dim + int(cfg.two_confs)) * cfg.patch_size**2
             self.head_local_features = Mlp(cat_dim, int(cfg.desc_hidden_factor * cat_dim), out)
+            if cfg.desc_stem:
+                n = cfg.desc_dim + int(cfg.two_confs)
+                self.desc_fuse = nn.Conv2d(cfg.desc_stem + n, n, 1)
+                self.reset_fuse()
 
-    def forward(self, tokens: list, H: int, W: int) -> torch.Tensor:
-        """Raw channels [B, 4 (+ desc_dim + two_confs), H, W]: x, y, z, conf, desc..., desc_conf."""
+    def fuse_local(self, desc: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+        """desc [B, n, H, W] + desc_fuse([stem features, desc]); local in token layout [B, h*w, C*p*p]."""
+        p = self.cfg.patch_size
+        stem = F.pixel_shuffle(tokens_to_map(local, desc.shape[-2] // p, desc.shape[-1] // p), p)
+        return desc + self.desc_fuse(torch.cat([stem, desc], dim=1))
+
+    def reset_fuse(self) -> None:
+        nn.init.zeros_(self.desc_fuse.weight)
+        nn.init.zeros_(self.desc_fuse.bias)
+
+    def forward(self, tokens: list, H: int, W: int, local: torch.Tensor | None = None) -> torch.Tensor:
+        """Raw channels [B, 4 (+ desc_dim + two_confs), H, W]: x, y, z, conf, desc..., desc_conf.
+        ``local``: the DescStem's features in token layout, required when the config has ``desc_stem``."""
         p = self.cfg.patch_size
         if hasattr(self, "proj"):
             raw = F.pixel_shuffle(tokens_to_map(self.proj(tokens[-1]), H // p, W // p), p)
@@ -127,7 +167,13 @@ class DownstreamHead(nn.Module):
             raw = self.dpt(tokens, H, W)
         if self.cfg.has_desc:
             feats = self.head_local_features(torch.cat([tokens[0], tokens[-1]], dim=-1))
-            raw = torch.cat([raw, F.pixel_shuffle(tokens_to_map(feats, H // p, W // p), p)], dim=1)
+            desc = F.pixel_shuffle(tokens_to_map(feats, H // p, W // p), p)
+            if self.cfg.desc_stem:
+                if local is None:
+                    raise ShapeError("this model has a descriptor stem (desc_stem): its heads need the encoder's "
+                                     "local features (Encoded.local); got none")
+                desc = self.fuse_local(desc, local)
+            raw = torch.cat([raw, desc], dim=1)
         return raw
 
 

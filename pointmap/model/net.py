@@ -13,7 +13,7 @@ from pointmap.errors import ShapeError
 from pointmap.geometry.cameras import transform_points
 from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
 from pointmap.model.config import ModelConfig
-from pointmap.model.heads import DownstreamHead, PoseHead, postprocess
+from pointmap.model.heads import DescStem, DownstreamHead, PoseHead, postprocess
 from pointmap.prediction import PairPrediction
 
 
@@ -27,15 +27,25 @@ class PatchEmbed(nn.Module):
 
 
 class Encoded:
-    """Encoder output of a batch of images: tokens [B, N, enc_dim] and the patch grid (h, w)."""
+    """Encoder output of a batch of images: tokens [B, N, enc_dim], the patch grid (h, w), and for a model
+    with a descriptor stem its local features ``local`` [B, N, desc_stem * patch**2] (else None)."""
 
-    __slots__ = ("tokens", "grid")
+    __slots__ = ("tokens", "grid", "local")
 
-    def __init__(self, tokens: torch.Tensor, grid: tuple) -> None:
-        self.tokens, self.grid = tokens, grid
+    def __init__(self, tokens: torch.Tensor, grid: tuple, local: torch.Tensor | None = None) -> None:
+        self.tokens, self.grid, self.local = tokens, grid, local
 
     def __getitem__(self, idx) -> Encoded:
-        return Encoded(self.tokens[idx], self.grid)
+        return Encoded(self.tokens[idx], self.grid, None if self.local is None else self.local[idx])
+
+    @staticmethod
+    def cat(encs: list) -> Encoded:
+        """Concatenate along the batch (all on the same grid)."""
+        first = encs[0]
+        if any(e.grid != first.grid for e in encs):
+            raise ShapeError(f"cannot batch encodings on different grids: {sorted({e.grid for e in encs})}")
+        local = None if first.local is None else torch.cat([e.local for e in encs], dim=0)
+        return Encoded(torch.cat([e.tokens for e in encs], dim=0), first.grid, local)
 
 
 class PointmapNet(nn.Module):
@@ -63,6 +73,7 @@ class PointmapNet(nn.Module):
         self.downstream_head1 = DownstreamHead(cfg)
         self.downstream_head2 = DownstreamHead(cfg)
         self.pose_head = PoseHead(cfg) if cfg.pose_head else None
+        self.desc_stem = DescStem(cfg.desc_stem, cfg.patch_size) if cfg.desc_stem else None
         self.register_buffer("img_mean", torch.tensor(cfg.img_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("img_std", torch.tensor(cfg.img_std).view(1, 3, 1, 1), persistent=False)
         self.rope = RopeCache(cfg.rope_base)
@@ -71,6 +82,9 @@ class PointmapNet(nn.Module):
         nn.init.xavier_uniform_(w.view(w.shape[0], -1))
         if self.pose_head is not None:
             self.pose_head.reset_parameters()
+        if self.desc_stem is not None:
+            self.downstream_head1.reset_fuse()
+            self.downstream_head2.reset_fuse()
 
     # -- checks ------------------------------------------------------------------------------------
     def check_images(self, name: str, img: torch.Tensor) -> None:
@@ -88,14 +102,16 @@ class PointmapNet(nn.Module):
 
     # -- stages ------------------------------------------------------------------------------------
     def encode(self, img: torch.Tensor) -> Encoded:
-        """[B, 3, H, W] in [0, 1] -> Encoded (tokens after enc_norm)."""
+        """[B, 3, H, W] in [0, 1] -> Encoded (tokens after enc_norm; the descriptor stem's features)."""
         p = self.cfg.patch_size
         h, w = img.shape[-2] // p, img.shape[-1] // p
-        x = self.patch_embed((img - self.img_mean) / self.img_std)
+        img = (img - self.img_mean) / self.img_std
+        x = self.patch_embed(img)
         rope = self.rope(h, w, self.cfg.enc_dim // self.cfg.enc_heads, x.device, x.dtype)
         for blk in self.enc_blocks:
             x = blk(x, rope)
-        return Encoded(self.enc_norm(x), (h, w))
+        local = self.desc_stem(img) if self.desc_stem is not None else None
+        return Encoded(self.enc_norm(x), (h, w), local)
 
     def decode(self, enc1: Encoded, enc2: Encoded) -> tuple[list, list]:
         """Both decoder branches, simultaneous exchange. Returns per view [enc, dec_1, ..., dec_L (normed)]."""
@@ -111,12 +127,15 @@ class PointmapNet(nn.Module):
         out1[-1], out2[-1] = self.dec_norm(out1[-1]), self.dec_norm(out2[-1])
         return out1, out2
 
-    def heads(self, tok1: list, tok2: list, grid1: tuple, grid2: tuple) -> PairPrediction:
+    def heads(self, tok1: list, tok2: list, grid1: tuple, grid2: tuple,
+              local1: torch.Tensor | None = None, local2: torch.Tensor | None = None) -> PairPrediction:
         p = self.cfg.patch_size
         tok1 = [t.float() for t in tok1]
         tok2 = [t.float() for t in tok2]
-        o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p), self.cfg)
-        o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p), self.cfg)
+        local1 = None if local1 is None else local1.float()
+        local2 = None if local2 is None else local2.float()
+        o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p, local1), self.cfg)
+        o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p, local2), self.cfg)
         if self.pose_head is not None:  # o2["pts"] is in view 2's own frame: move it into view 1's
             T = self.pose_head(tok1[-1], tok2[-1], grid1, grid2, o1["pts"])
             o2["pts"] = transform_points(T, o2["pts"])
@@ -129,7 +148,7 @@ class PointmapNet(nn.Module):
         if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
             raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
         tok1, tok2 = self.decode(enc1, enc2)
-        return self.heads(tok1, tok2, enc1.grid, enc2.grid)
+        return self.heads(tok1, tok2, enc1.grid, enc2.grid, enc1.local, enc2.local)
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> PairPrediction:
         self.check_images("img1", img1)

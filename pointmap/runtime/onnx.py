@@ -4,7 +4,7 @@
 
     model = pm.load_model("exports/small")        # a directory written by the exporter, or one .onnx file
     pred = model(img1, img2)                      # [B, 3, H, W] float in [0, 1] -> PairPrediction
-    enc = model.encode(img)                       # Encoded(tokens [B, N, enc_dim], grid (h, w))
+    enc = model.encode(img)                       # Encoded(tokens [B, N, enc_dim], grid (h, w), local)
     pred = model.decode_pair(enc1, enc2)          # decoders + heads on cached encoder outputs
 
 Inputs are checked exactly as ``PointmapNet`` checks them (same ShapeError messages); normalisation and
@@ -250,9 +250,11 @@ class OnnxPointmapModel:
                             "export with --split to encode once per image", self.path)
                 self._warned_unsplit = True
             return _ImageBatch(img, grid)
-        (tok,) = self._run(ENCODER_GRAPH, {"img": self._np(img)}, ["tokens"])
-        B, h, w, C = tok.shape
-        return Encoded(torch.from_numpy(tok).reshape(B, h * w, C), (h, w))
+        names = ["tokens", "local"] if self.cfg.desc_stem else ["tokens"]
+        outs = self._run(ENCODER_GRAPH, {"img": self._np(img)}, names)
+        B, h, w, C = outs[0].shape
+        local = torch.from_numpy(outs[1]).reshape(B, h * w, -1) if self.cfg.desc_stem else None
+        return Encoded(torch.from_numpy(outs[0]).reshape(B, h * w, C), (h, w), local)
 
     def decode_pair(self, enc1, enc2) -> PairPrediction:
         """Decoders and heads on two Encoded batches of equal batch size -> PairPrediction."""
@@ -265,13 +267,21 @@ class OnnxPointmapModel:
                              self._out_names)
             return self._prediction(outs)
         feeds = {}
-        for name, enc in (("tokens1", enc1), ("tokens2", enc2)):
+        p, L = self.cfg.patch_size, self.cfg.desc_stem * self.cfg.patch_size**2
+        for k, enc in ((1, enc1), (2, enc2)):
             t = enc.tokens
             h, w = enc.grid
             if t.ndim != 3 or t.shape[1] != h * w or t.shape[2] != self.cfg.enc_dim:
-                raise ShapeError(f"{name} expected [B, {h}*{w}, {self.cfg.enc_dim}] for grid {(h, w)}, "
+                raise ShapeError(f"tokens{k} expected [B, {h}*{w}, {self.cfg.enc_dim}] for grid {(h, w)}, "
                                  f"got {list(t.shape)}")
-            feeds[name] = self._np(t).reshape(t.shape[0], h, w, t.shape[2])
+            feeds[f"tokens{k}"] = self._np(t).reshape(t.shape[0], h, w, t.shape[2])
+            if L:
+                loc = getattr(enc, "local", None)
+                if loc is None or tuple(loc.shape) != (t.shape[0], h * w, L):
+                    got = None if loc is None else list(loc.shape)
+                    raise ShapeError(f"local{k} expected [B, {h}*{w}, {L}] (the descriptor stem's features, "
+                                     f"{self.cfg.desc_stem} channels x {p}x{p}), got {got}")
+                feeds[f"local{k}"] = self._np(loc).reshape(t.shape[0], h, w, L)
         return self._prediction(self._run(DECODER_GRAPH, feeds, self._out_names))
 
 

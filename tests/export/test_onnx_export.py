@@ -204,13 +204,34 @@ def test_a_pose_head_model_exports_with_parity(tmp_path):
     assert report["passed"], report["cases"]
 
 
-def test_the_half_precision_graph_of_a_pose_head_model_keeps_the_pose_head_in_float32():
+@pytest.mark.parametrize("extra, module", [(dict(pose_head=True), "pose_head.out"),
+                                           (dict(desc_stem=4), "downstream_head1.desc_fuse")])
+def test_the_half_precision_graph_keeps_the_pose_head_and_the_descriptor_fuse_in_float32(extra, module):
     from export.graphs import FullGraph, half_backbone
 
-    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True)).eval()
+    model = pm.PointmapNet(PRESETS["test"].replace(**extra)).eval()
     half = half_backbone(model)
-    assert half.pose_head.out.weight.dtype == torch.float32
+    assert half.get_submodule(module).weight.dtype == torch.float32
     img = torch.rand(1, 3, 32, 32)
     with torch.no_grad():
         out = FullGraph(half, torch.float16)(img, img)
     assert all(torch.isfinite(o).all() for o in out)
+
+
+def test_a_descriptor_stem_model_exports_split_with_its_local_features_between_the_graphs(tmp_path):
+    from pointmap.model.net import Encoded
+
+    torch.manual_seed(0)
+    model = pm.PointmapNet(PRESETS["test"].replace(desc_stem=4)).eval()
+    with torch.no_grad():  # away from the zero-initialised fuse, so the stem's path is exercised
+        for head in (model.downstream_head1, model.downstream_head2):
+            head.desc_fuse.weight.normal_(0, 0.5)
+    export_model(model, tmp_path / "stem", split=True, parity="quick", quiet=True)
+    runner = pm.load_model(tmp_path / "stem")
+    assert runner.cfg.desc_stem == 4
+    report = check_parity(model, runner, [(64, 96, 96, 64, 2)])
+    assert report["passed"], report["cases"]
+    enc = runner.encode(torch.rand(1, 3, 32, 48))
+    assert enc.local.shape == (1, 6, 4 * 16 * 16)
+    with pytest.raises(pm.ShapeError, match="local1"):
+        runner.decode_pair(Encoded(enc.tokens, enc.grid), enc)

@@ -168,3 +168,98 @@ def test_the_pose_heads_translation_follows_the_scale_of_the_predicted_points():
         T, T3 = head(tok1, tok2, (2, 2), (2, 2), pts1), head(tok1, tok2, (2, 2), (2, 2), 3 * pts1)
     assert torch.allclose(T[:, :3, :3], T3[:, :3, :3], atol=1e-5)  # the rotation ignores the scale
     assert torch.allclose(3 * T[:, :3, 3], T3[:, :3, 3], atol=1e-5) and T[:, :3, 3].abs().max() > 1e-3
+
+
+def _stem_model(channels: int = 4, fuse_std: float = 0.0):
+    torch.manual_seed(0)
+    model = PointmapNet(pm.PRESETS["test"].replace(desc_stem=channels)).eval()
+    if fuse_std:
+        with torch.no_grad():
+            for head in (model.downstream_head1, model.downstream_head2):
+                head.desc_fuse.weight.normal_(0, fuse_std)
+    return model
+
+
+def test_a_model_gaining_a_descriptor_stem_starts_as_the_model_it_was(tiny_model):
+    from pointmap.checkpoint import load_trunk
+
+    stem = PointmapNet(tiny_model.cfg.replace(desc_stem=4)).eval()
+    fresh = load_trunk(stem, tiny_model.state_dict())
+    assert fresh and all(k.startswith(("desc_stem.", "downstream_head1.desc_fuse", "downstream_head2.desc_fuse"))
+                         for k in fresh)
+    a, b = torch.rand(1, 3, 32, 48), torch.rand(1, 3, 32, 48)
+    with torch.no_grad():
+        ref, got = tiny_model(a, b), stem(a, b)
+    for name, t in ref.as_dict().items():
+        assert torch.equal(t, getattr(got, name)), name
+
+
+def test_the_descriptor_stem_changes_only_descriptors():
+    model = _stem_model(fuse_std=0.5)
+    plain = PointmapNet(model.cfg.replace(desc_stem=0)).eval()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k in plain.state_dict()})
+    a, b = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 48)
+    with torch.no_grad():
+        got, ref = model(a, b), plain(a, b)
+    assert torch.equal(got.pts1_cam1, ref.pts1_cam1) and torch.equal(got.conf2, ref.conf2)
+    assert float((got.desc1 - ref.desc1).norm(dim=-1).min()) > 1e-4
+    assert float((got.desc_conf2 - ref.desc_conf2).abs().max()) > 1e-4
+
+
+def test_the_descriptor_stem_sees_a_pixel_within_its_15_pixel_receptive_field_only():
+    from pointmap.model.heads import DescStem
+
+    torch.manual_seed(0)
+    stem = DescStem(4, 16).eval()
+    a = torch.rand(1, 3, 48, 48)
+    b = a.clone()
+    b[0, :, 20, 30] += 0.5
+    with torch.no_grad():  # back to [B, C, H, W] from the token layout
+        fa, fb = (torch.nn.functional.pixel_shuffle(stem(x).transpose(1, 2).reshape(1, 4 * 256, 3, 3), 16)
+                  for x in (a, b))
+    changed = (fa - fb).abs().amax(dim=1)[0] > 0
+    ys, xs = torch.nonzero(changed, as_tuple=True)
+    assert changed[20, 30]
+    assert int(ys.min()) == 20 - 7 and int(ys.max()) == 20 + 7 and int(xs.min()) == 30 - 7 and int(xs.max()) == 30 + 7
+
+
+def test_the_descriptor_stem_learns_from_the_first_step():
+    model = _stem_model().train()
+    p = model(torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32))
+    (p.desc1.sum() + p.desc2.square().sum() + p.desc_conf1.sum()).backward()
+    assert model.downstream_head1.desc_fuse.weight.grad.abs().sum() > 0  # zero-init fuse, non-zero gradient
+    assert model.desc_stem.convs[0].weight.grad is not None
+
+
+def test_cached_encodings_of_a_stem_model_carry_its_local_features_through_batching():
+    from pointmap.model.net import Encoded
+
+    model = _stem_model(fuse_std=0.5)
+    a, b, c = (torch.rand(1, 3, 32, 48) for _ in range(3))
+    with torch.no_grad():
+        ea, eb, ec = model.encode(a), model.encode(b), model.encode(c)
+        assert ea.local.shape == (1, 2 * 3, 4 * 16 * 16)
+        both = model.decode_pair(Encoded.cat([ea, eb]), Encoded.cat([eb, ec]))
+        ref = model(torch.cat([a, b]), torch.cat([b, c]))
+        views = [a[0], b[0], c[0]]
+        preds = pm.predict_pairs(model, views, [(0, 1), (1, 2)], batch_size=2, quiet=True)
+    for name, t in ref.as_dict().items():
+        assert torch.allclose(t, getattr(both, name), atol=1e-5), name
+    assert torch.allclose(preds[(1, 2)].desc1, ref.desc1[1:2], atol=1e-5)
+    with pytest.raises(pm.ShapeError, match="different grids"):
+        Encoded.cat([ea, model.encode(torch.rand(1, 3, 32, 32))])
+
+
+def test_a_stem_model_refuses_encodings_without_local_features():
+    from pointmap.model.net import Encoded
+
+    model = _stem_model()
+    enc = model.encode(torch.rand(1, 3, 32, 32))
+    with pytest.raises(pm.ShapeError, match="local features"):
+        model.decode_pair(Encoded(enc.tokens, enc.grid), enc)
+
+
+@pytest.mark.parametrize("kw", [dict(desc_stem=-1), dict(desc_stem=8, head="linear", desc_dim=0)])
+def test_invalid_descriptor_stems_are_refused_by_the_config(kw):
+    with pytest.raises(pm.CheckpointError, match="desc_stem"):
+        pm.PRESETS["test"].replace(**kw)

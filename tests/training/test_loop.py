@@ -264,6 +264,25 @@ def test_fresh_heads_init_takes_the_trunk_and_keeps_only_head_tensors_whose_shap
         build_model(dataclasses.replace(cfg, preset="test_wide"))
 
 
+def test_a_descriptor_stem_joins_a_checkpoint_only_with_fresh_heads_and_starts_as_its_model(tmp_path):
+    import dataclasses
+
+    import pointmap as pm
+    from pointmap.errors import CheckpointError
+    from training.train import build_model
+
+    src = PointmapNet(PRESETS["test"]).eval()
+    pm.save_model(src, tmp_path / "src.safetensors")
+    cfg = TrainConfig(data="x", preset="test", init=str(tmp_path / "src.safetensors"), desc_stem=4)
+    with pytest.raises(CheckpointError, match="init_heads fresh"):
+        build_model(cfg)
+    model = build_model(dataclasses.replace(cfg, init_heads="fresh")).eval()
+    assert model.cfg.desc_stem == 4 and model.desc_stem is not None
+    a, b = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(model(a, b).desc1, src(a, b).desc1)
+
+
 def test_fresh_heads_init_without_init_is_refused():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--init_heads", "fresh"])
