@@ -3,6 +3,7 @@ encoder-cached N-image inference against naive per-pair encoding (as the officia
 
     python benchmarks/bench_inference.py --presets small dust3r_224_linear --sizes 224 512 --runs 5
     python benchmarks/bench_inference.py --official /path/to/dust3r   # adds the official model, same run
+    python benchmarks/bench_inference.py --presets small --sizes 160 512 --desc-stem 24   # + a stem row per preset
 
 Prints markdown tables; results are recorded in docs/benchmarks.md.
 """
@@ -20,7 +21,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 import pointmap as pm
 
-SHAPES = {224: (224, 224), 512: (384, 512)}
+SHAPES = {160: (160, 160), 224: (224, 224), 512: (384, 512)}
 
 
 def median_time(fn, runs: int, warmup: int = 1) -> float:
@@ -47,10 +48,19 @@ def flops_of(fn) -> int:
     return fc.get_total_flops()
 
 
-def bench_pairs(presets, sizes, runs, ceiling, official=None):
-    rows = []
+def variants(presets, desc_stem: int = 0):
+    """(label, ModelConfig) per preset, plus the same preset with a descriptor stem (compared in the same run)."""
     for name in presets:
-        model = pm.PointmapNet(pm.PRESETS[name]).eval()
+        cfg = pm.PRESETS[name]
+        yield name, cfg
+        if desc_stem and cfg.has_desc:
+            yield f"{name} + desc_stem {desc_stem}", cfg.replace(desc_stem=desc_stem)
+
+
+def bench_pairs(presets, sizes, runs, ceiling, official=None, desc_stem: int = 0):
+    rows = []
+    for name, cfg in variants(presets, desc_stem):
+        model = pm.PointmapNet(cfg).eval()
         for size in sizes:
             H, W = SHAPES[size]
             a, b = torch.rand(1, 3, H, W), torch.rand(1, 3, H, W)
@@ -129,13 +139,15 @@ def main(argv=None) -> int:
     p.add_argument("--cache-counts", nargs="+", type=int, default=[2, 4, 8, 16])
     p.add_argument("--official", default=None, help="path to an official dust3r checkout (with croco) to compare")
     p.add_argument("--quick", action="store_true", help="small preset only, 3 runs, N up to 8")
+    p.add_argument("--desc-stem", type=int, default=0,
+                   help="also time each descriptor preset with a descriptor stem of this many channels")
     a = p.parse_args(argv)
     if a.quick:
         a.presets, a.runs, a.cache_counts, a.sizes = ["small"], 3, [2, 4, 8], [224]
     torch.set_num_threads(a.threads)
     ceiling = matmul_ceiling()
     print(f"threads: {a.threads}; float32 matmul ceiling (2048^3): {ceiling:.1f} GFLOP/s")
-    bench_pairs(a.presets, a.sizes, a.runs, ceiling, a.official)
+    bench_pairs(a.presets, a.sizes, a.runs, ceiling, a.official, a.desc_stem)
     bench_cache(a.cache_preset, a.sizes[0], a.cache_counts, max(1, a.runs // 2))
     return 0
 
