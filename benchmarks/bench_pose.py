@@ -3,9 +3,9 @@ OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Repor
 category (scene kind, low texture, wide baseline = true rotation > 30 degrees, translation only = true rotation
 < 5 degrees, as in a stereo rig). For models with descriptors,
 "model matches+PnP (known K)" is MASt3R-style: the model's patch-level matches (pm.match_coarse) lifted by
-view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets); "model R + match direction
-(known K)" keeps the model's pose and re-estimates only its translation direction from the same matches given
-its rotation (pm.with_match_direction: two-point RANSAC on the epipolar constraint). A last row, "no rotation",
+view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets); "model refined on
+matches (known K)" takes the model's pose as a prior and refines its rotation and translation direction on the same
+matches (pm.refine_pose_with_matches: robust least squares on the epipolar constraint). A last row, "no rotation",
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
 anything about rotation.
 
@@ -107,10 +107,10 @@ def main(argv=None) -> int:
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
             m = pm.match_coarse(pred, model.cfg.patch_size)
             cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[m])[0].numpy()
-            hybrid = pm.with_match_direction(torch.from_numpy(ours), m, v1["K"].double(), v2["K"].double()).numpy()
+            hybrid = pm.refine_pose_with_matches(torch.from_numpy(ours), m, v1["K"].double(), v2["K"].double()).numpy()
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
-        rows = [("model", ours), ("model matches+PnP (known K)", cm), ("model R + match direction (known K)", hybrid),
+        rows = [("model", ours), ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),
                 ("sift+E (known K)", base), ("no rotation", None)]
         for name, est in rows:
             if name.startswith("model ") and est is None:  # a model without descriptors has no matches

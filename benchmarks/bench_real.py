@@ -18,8 +18,8 @@ Two sets:
   (StereoSGBM) on the same network-size images.
 
 Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the model's coarse matches +
-PnP with the true K, the model's pose with its translation direction from those matches given its rotation and the
-true K (``pm.with_match_direction``), SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
+PnP with the true K, the model's pose refined on those matches with the
+true K (``pm.refine_pose_with_matches``), SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
 (``pointmap.pose.focal_from_prediction``, no intrinsics given) is compared with the calibrated one.
 """
 
@@ -113,8 +113,8 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
             m = pm.match_coarse(pred, model.cfg.patch_size)
             rows.append(("model matches+PnP (known K)",
                          errors(pm.relative_pose(pred, K2=torch.from_numpy(k2), matches=[m])[0].numpy(), gt)))
-            rows.append(("model R + match direction (known K)",
-                         errors(pm.with_match_direction(ours, m, k1, k2).numpy(), gt)))
+            rows.append(("model refined on matches (known K)",
+                         errors(pm.refine_pose_with_matches(ours, m, k1, k2).numpy(), gt)))
         to_u8 = lambda v: (v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         rows.append(("SIFT+E (known K)", errors(sift_pose(to_u8(v1), to_u8(v2), k1, k2), gt)))
         focal_err = abs(float(focal_from_prediction(pred)[0]) - k1[0, 0]) / k1[0, 0]

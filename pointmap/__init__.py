@@ -22,7 +22,12 @@ from pointmap.inference import predict_pairs
 from pointmap.matching import Matches, match, match_coarse
 from pointmap.model import PRESETS, ModelConfig, PointmapNet
 from pointmap.pairs import check_connected, make_pairs
-from pointmap.pose import pose_from_essential, relative_pose, translation_from_matches, with_match_direction
+from pointmap.pose import (
+    pose_from_essential,
+    refine_pose_with_matches,
+    relative_pose,
+    translation_from_matches,
+)
 from pointmap.prediction import PairPrediction
 from pointmap.reconstruction import Reconstruction
 
@@ -45,5 +50,5 @@ __all__ = [
     "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "match_coarse", "ModelConfig", "PRESETS",
     "PairPrediction", "PointmapError", "PointmapNet", "Reconstruction", "ShapeError", "View", "__version__",
     "check_connected", "global_align", "load_images", "load_model", "make_pairs", "match", "predict_pairs",
-    "reconstruct", "relative_pose", "pose_from_essential", "translation_from_matches", "with_match_direction", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
+    "reconstruct", "relative_pose", "pose_from_essential", "translation_from_matches", "refine_pose_with_matches", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
 ]

@@ -65,7 +65,7 @@ def pair_summary(npz: Path) -> str:
     f2 = float(z["focal2"]) / z["map_from_original2"][0]
     return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "
             f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward"
-            f"{'; direction from the matches' if 'direction_from_matches' in z and bool(z['direction_from_matches']) else ''}"
+            f"{'; refined on the matches' if 'refined_on_matches' in z and bool(z['refined_on_matches']) else ''}"
             f"); focal {f1:.0f} / {f2:.0f} px "
             f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''})")
 
@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--size", type=int, default=None, help="network input size (224 or 512; default: the model's)")
     a.add_argument("--focal", default=None, metavar="F[,F2]",
                    help="known focal length(s) in original pixels (principal point at the centre): stored instead "
-                        "of the estimate, and the translation direction is re-estimated from the matches")
+                        "of the estimate, and the model's pose is refined on its matches")
     a.set_defaults(fn=cmd_pair)
 
     r = sub.add_parser("reconstruct", help="many images to poses, intrinsics and a dense cloud")

@@ -67,13 +67,13 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
 
     ``focal``: the known focal lengths (f1, f2) in ORIGINAL pixels (principal points at the image centres): they
-    are stored instead of the estimated ones, and the translation direction is re-estimated from the model's
-    matches given its rotation (``pointmap.pose.with_match_direction``; needs a model with descriptors)."""
+    are stored instead of the estimated ones, and the model's pose is refined on its own matches (rotation and
+    translation direction, ``pointmap.pose.refine_pose_with_matches``; needs a model with descriptors)."""
     import trimesh
 
     from pointmap.images import load_images
     from pointmap.matching import match, match_coarse
-    from pointmap.pose import focal_from_prediction, relative_pose, with_match_direction
+    from pointmap.pose import focal_from_prediction, refine_pose_with_matches, relative_pose
     from pointmap.reconstruction import K_to_map
 
     if focal is not None:
@@ -88,7 +88,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     pred, pred_rev = pred.map(lambda t: t.float()), pred_rev.map(lambda t: t.float())
     m = match(pred)
     cam2world_2 = relative_pose(pred, pred_reverse=pred_rev)[0]
-    direction_from_matches = False
+    refined_on_matches = False
     if focal is None:
         focal1 = focal_from_prediction(pred)[0]
         focal2 = focal_from_prediction(pred_rev)[0]
@@ -101,8 +101,8 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
         focal1, focal2 = K[0][0, 0].float(), K[1][0, 0].float()
         if pred.has_desc:
             patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
-            refined = with_match_direction(cam2world_2, match_coarse(pred, patch), K[0].numpy(), K[1].numpy())
-            direction_from_matches = not torch.equal(refined, cam2world_2)
+            refined = refine_pose_with_matches(cam2world_2, match_coarse(pred, patch), K[0].numpy(), K[1].numpy())
+            refined_on_matches = not torch.equal(refined, cam2world_2)
             cam2world_2 = refined
     out.mkdir(parents=True, exist_ok=True)
     rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
@@ -111,7 +111,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
                   conf1=pred.conf1[0].numpy(), conf2=pred.conf2[0].numpy(), img1=rgb1, img2=rgb2,
                   matches_xy1=m.xy1.numpy(), matches_xy2=m.xy2.numpy(), matches_score=m.score.numpy(),
                   cam2world_2_in_1=cam2world_2.numpy(), focal1=focal1.numpy(), focal2=focal2.numpy(),
-                  focal_given=np.array(focal is not None), direction_from_matches=np.array(direction_from_matches),
+                  focal_given=np.array(focal is not None), refined_on_matches=np.array(refined_on_matches),
                   map_from_original1=np.array(views[0].map_from_original),
                   map_from_original2=np.array(views[1].map_from_original))
     with atomic_path(out / "pair.npz") as tmp:

@@ -9,7 +9,7 @@ import torch
 from pointmap.geometry.cameras import invert_rigid
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
 from pointmap.matching import match, match_coarse
-from pointmap.pose import relative_pose, with_match_direction
+from pointmap.pose import refine_pose_with_matches, relative_pose
 from training.losses import patch_matching_loss
 
 
@@ -79,12 +79,12 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1); ``coarse_acc``:
     top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
-    pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RTA15_match_dir``: the model's pose
-    with its translation direction replaced by ``pointmap.pose.with_match_direction`` on the same matches given the model's
-    rotation and the true K (the rotation, hence RRA@15, unchanged; a pair without a direction keeps the model's)."""
+    pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
+    model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
+    whose matches give no direction keeps the model's pose)."""
     rot_err, tr_err, rels, precs, coarse, ratios = [], [], [], [], [], []
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
-    tr_dir = []  # the model's rotation + the translation direction from its matches
+    rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -122,8 +122,10 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     r, t = _pose_errors(est, cam2world_gt[b])
                     rot_m.append(r)
                     tr_m.append(t)
-                    hybrid = with_match_direction(cam2world_pred[b], m, v1["K"][b], v2["K"][b])
-                    tr_dir.append(_pose_errors(hybrid, cam2world_gt[b])[1])
+                    refined = refine_pose_with_matches(cam2world_pred[b], m, v1["K"][b], v2["K"][b])
+                    r, t = _pose_errors(refined, cam2world_gt[b])
+                    rot_r.append(r)
+                    tr_r.append(t)
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
@@ -135,7 +137,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
                 "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m),
-                "RTA15_match_dir": 100 * sum(t < 15 for t in tr_dir) / len(tr_dir)} if rot_m else {}),
+                "RRA15_refined": 100 * sum(r < 15 for r in rot_r) / len(rot_r),
+                "RTA15_refined": 100 * sum(t < 15 for t in tr_r) / len(tr_r)} if rot_m else {}),
             "pairs": float(len(rot))}
 
 

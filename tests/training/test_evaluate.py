@@ -22,7 +22,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
     assert math.isnan(ev["baseline_ratio"]) or ev["baseline_ratio"] >= 0
-    assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_match_dir"] <= 100
+    assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
 
 
 def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path, capsys):
