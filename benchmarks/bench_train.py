@@ -2,6 +2,10 @@
 (with --data) the data-loading time per batch, which must stay well below the step time.
 
     python benchmarks/bench_train.py --preset small --size 224 --batch 8 --threads 2 [--data SHARDS]
+    python benchmarks/bench_train.py --preset small --size 160 --recipe shipped --amp [--compile]
+
+--amp adds bf16-autocast rows (training --amp bf16) next to the float32 ones, with each mode's first-step loss.
+--recipe shipped times the shipped model's step (pose head; attention, coarse and pose losses on).
 """
 
 from __future__ import annotations
@@ -41,13 +45,21 @@ def main(argv=None) -> int:
     p.add_argument("--data", default=None, help="shard root: also time data loading")
     p.add_argument("--compile", action="store_true",
                    help="also time the step with torch.compile (as training --compile true), in the same run")
+    p.add_argument("--amp", action="store_true", help="also time bf16 autocast (training --amp bf16), same run")
+    p.add_argument("--recipe", choices=("plain", "shipped"), default="plain",
+                   help="plain: regression + matching; shipped: + pose head, attention, coarse and pose losses")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     ceiling = matmul_ceiling()
-    model = pm.PointmapNet(pm.PRESETS[a.preset]).train()
-    cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
+    torch.manual_seed(0)
+    if a.recipe == "shipped":
+        model = pm.PointmapNet(pm.PRESETS[a.preset].replace(pose_head=True)).train()
+        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024, match_weight=0.25, temperature=0.1,
+                          coarse_weight=1.0, attn_weight=0.5, attn_heads=2, pose_weight=1.0, pose_dir_weight=0.5)
+    else:
+        model = pm.PointmapNet(pm.PRESETS[a.preset]).train()
+        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
     step = make_step(cfg)
-    opt = torch.optim.AdamW(model.parameters(), 1e-4)
     batch = synthetic_batch(a.batch, a.size, a.size)
 
     with FlopCounterMode(display=False) as fc:
@@ -55,34 +67,47 @@ def main(argv=None) -> int:
         loss.backward()
     flops = fc.get_total_flops()
 
-    def timed(net):
+    initial = {k: v.clone() for k, v in model.state_dict().items()}
+
+    def timed(net, amp: bool):
+        model.load_state_dict(initial)  # every mode starts from the same weights: its first loss is comparable
+        opt = torch.optim.AdamW(model.parameters(), 1e-4)
+
         def one():
-            loss, _ = step(net, batch, 0)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+                loss, _ = step(net, batch, 0)
             opt.zero_grad()
             loss.backward()
             opt.step()
+            return float(loss.detach())
 
         t0 = time.perf_counter()
-        one()  # warm-up (compilation, for a compiled model)
+        loss = one()  # warm-up (compilation, for a compiled model)
         first = time.perf_counter() - t0
         times = []
         for _ in range(a.steps):
             t = time.perf_counter()
             one()
             times.append(time.perf_counter() - t)
-        return statistics.median(times), first
+        return statistics.median(times), first, loss
 
-    rows = [("eager", *timed(model))]
-    if a.compile:
-        rows.append(("torch.compile", *timed(torch.compile(model))))
-    print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s\n")
-    print("| preset | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for mode, t, first in rows:
+    compiled = torch.compile(model) if a.compile else None
+    rows = []
+    for amp in (False, True) if a.amp else (False,):
+        precision = "bf16 autocast" if amp else "float32"
+        rows.append((f"eager, {precision}", *timed(model, amp)))
+        if compiled is not None:
+            rows.append((f"torch.compile, {precision}", *timed(compiled, amp)))
+    print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s, recipe {a.recipe}\n")
+    print("| preset | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling "
+          "| first loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for mode, t, first, loss in rows:
         print(f"| {a.preset} | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | {a.batch / t:.2f} | "
-              f"{flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% |")
-    if a.compile:
-        print(f"\ncompiled / eager speed: {rows[0][1] / rows[1][1]:.2f}x")
+              f"{flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% | {loss:.4f} |")
+    print()
+    for mode, t, _, _ in rows[1:]:
+        print(f"{mode} / {rows[0][0]} speed: {rows[0][1] / t:.2f}x")
     t = rows[0][1]
     if a.data:
         from data.datasets import PairDataset

@@ -269,7 +269,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, disable=cfg.quiet or rank != 0, dynamic_ncols=True)
     t0, seen, metrics = time.time(), 0, {}
     step = start
-    use_bf16 = device.type == "cuda" and torch.cuda.is_bf16_supported()
+    use_bf16 = use_autocast(cfg, device)
     model.train()
     for batch in loader:
         batch = _to(batch, device)
@@ -311,6 +311,14 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     if world > 1:
         dist.barrier()
     return {"step": step, **metrics}
+
+
+def use_autocast(cfg: TrainConfig, device: torch.device) -> bool:
+    """Whether the training step runs under bf16 autocast (``--amp``). The step functions keep their losses in
+    float32 (training.train casts the network's outputs back before any loss)."""
+    if cfg.amp == "bf16":
+        return True
+    return cfg.amp == "auto" and device.type == "cuda" and torch.cuda.is_bf16_supported()
 
 
 def _to(batch, device):

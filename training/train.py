@@ -127,7 +127,7 @@ class ForwardTaps:
 
     def scores(self, heads: int) -> tuple[list, list]:
         """Logits [B, heads, Nq, Nk] per decoder layer: (view-1 queries over view 2, view-2 queries over view 1)."""
-        return tuple([m.scores(*args, heads=heads) for m, args in self.cross[v]] for v in (1, 2))
+        return tuple([m.scores(*_fp32(args), heads=heads) for m, args in self.cross[v]] for v in (1, 2))
 
 
 def make_step(cfg: TrainConfig):
@@ -139,37 +139,54 @@ def make_step(cfg: TrainConfig):
         taps = step_fn.taps
         with taps.recording():
             pred = model(view1["img"], view2["img"])
-        loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
-        if pred.has_desc and cfg.match_weight > 0:
-            lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
-            loss = loss + cfg.match_weight * lm
-            details.update(match_loss=float(lm.detach()), match_acc=acc)
-        if pred.has_desc and cfg.coarse_weight > 0:
-            patch = getattr(model, "module", model).cfg.patch_size
-            lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)
-            loss = loss + cfg.coarse_weight * lc
-            details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
-        if cfg.pose_weight > 0:
-            lp, d = pose_loss(taps.pose, pred, view1, view2, metric=cfg.metric, dir_weight=cfg.pose_dir_weight)
-            loss = loss + cfg.pose_weight * lp
-            details.update(pose_loss=float(lp.detach()), **d)
-        if cfg.attn_weight > 0:
-            net = getattr(model, "module", model)
-            counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
-            min_px = net.cfg.patch_size ** 2 // 8  # a token takes part when >= 1/8 of its pixels are co-visible
-            s12, s21 = taps.scores(cfg.attn_heads)
-            la, acc = cross_attention_loss(s12, s21, counts, min_pixels=min_px)
-            loss = loss + cfg.attn_weight * la
-            details.update(attn_loss=float(la.detach()), attn_acc=acc)
-            if taps.match is not None:  # the pose head's own correspondence field, supervised the same way
-                lm2, acc2 = cross_attention_loss([taps.match[:, None]], [], counts, min_pixels=min_px)
-                loss = loss + cfg.attn_weight * lm2
-                details.update(pose_match_loss=float(lm2.detach()), pose_match_acc=acc2)
-        taps.clear()
-        return loss, details
+        # under --amp the forward ran in bf16; every loss is computed in float32, outside autocast
+        pred = pred.map(_fp32)
+        with torch.autocast(pred.pts1_cam1.device.type, enabled=False):
+            return _losses(cfg, model, taps, pred, view1, view2, gen)
 
     step_fn.taps = None  # ForwardTaps, made at the first step (it needs the model)
     return step_fn
+
+
+def _fp32(x):
+    """Floating tensors (also inside tuples and lists) as float32; anything else as it is."""
+    if torch.is_tensor(x):
+        return x.float() if x.is_floating_point() else x
+    if isinstance(x, (tuple, list)):
+        return type(x)(_fp32(v) for v in x)
+    return x
+
+
+def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen):
+    """The step's total loss and its logged details, from a float32 prediction and the recorded taps."""
+    loss, details = regression_loss(pred, view1, view2, alpha=cfg.alpha, metric=cfg.metric)
+    if pred.has_desc and cfg.match_weight > 0:
+        lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
+        loss = loss + cfg.match_weight * lm
+        details.update(match_loss=float(lm.detach()), match_acc=acc)
+    if pred.has_desc and cfg.coarse_weight > 0:
+        patch = getattr(model, "module", model).cfg.patch_size
+        lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)
+        loss = loss + cfg.coarse_weight * lc
+        details.update(coarse_loss=float(lc.detach()), coarse_acc=acc)
+    if cfg.pose_weight > 0:
+        lp, d = pose_loss(_fp32(taps.pose), pred, view1, view2, metric=cfg.metric, dir_weight=cfg.pose_dir_weight)
+        loss = loss + cfg.pose_weight * lp
+        details.update(pose_loss=float(lp.detach()), **d)
+    if cfg.attn_weight > 0:
+        net = getattr(model, "module", model)
+        counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
+        min_px = net.cfg.patch_size ** 2 // 8  # a token takes part when >= 1/8 of its pixels are co-visible
+        s12, s21 = taps.scores(cfg.attn_heads)
+        la, acc = cross_attention_loss(s12, s21, counts, min_pixels=min_px)
+        loss = loss + cfg.attn_weight * la
+        details.update(attn_loss=float(la.detach()), attn_acc=acc)
+        if taps.match is not None:  # the pose head's own correspondence field, supervised the same way
+            lm2, acc2 = cross_attention_loss([_fp32(taps.match)[:, None]], [], counts, min_pixels=min_px)
+            loss = loss + cfg.attn_weight * lm2
+            details.update(pose_match_loss=float(lm2.detach()), pose_match_acc=acc2)
+    taps.clear()
+    return loss, details
 
 
 def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:

@@ -301,3 +301,32 @@ def test_the_csv_log_keeps_one_header_when_a_resumed_run_adds_columns(tmp_path):
         rows = list(csv.DictReader(fh))
     assert [r["pairs"] for r in rows] == ["139.0", "139.0"]
     assert [r["coarse_acc"] for r in rows] == ["", "0.1"] and None not in rows[1]
+
+
+def test_a_bf16_autocast_step_keeps_its_losses_in_float32_and_close_to_the_float32_step(tmp_path):
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
+    cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1, pose_weight=1.0, coarse_weight=0.5)
+    full, d32 = make_step(cfg)(model, batch, 0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        half, d16 = make_step(cfg)(model, batch, 0)
+    assert half.dtype == torch.float32 and d16.keys() == d32.keys()
+    assert abs(float(half.detach()) - float(full.detach())) < 0.02 * abs(float(full.detach()))
+    half.backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
+
+
+def test_amp_bf16_trains_on_cpu_and_auto_leaves_cpu_training_in_float32(tmp_path):
+    from training.loop import use_autocast
+
+    assert use_autocast(dataclasses.replace(config(tmp_path, 1), amp="bf16"), torch.device("cpu"))
+    assert not use_autocast(config(tmp_path, 1), torch.device("cpu"))
+    assert not use_autocast(dataclasses.replace(config(tmp_path, 1), amp="off"), torch.device("cuda"))
+    model = run(tmp_path / "bf16", 3, amp="bf16")
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert (tmp_path / "bf16" / "last.pt").exists()
+
+
+def test_an_unknown_amp_mode_is_refused_with_the_choices():
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
