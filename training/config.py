@@ -52,6 +52,8 @@ class TrainConfig:
     workers: int = 1               # data-loading processes
     threads: int = 0               # torch threads (0: torch default)
     max_minutes: float = 0.0       # stop (after a checkpoint) when this wall time is spent; 0 = no limit
+    decay_by_time: bool = False    # wsd + --max_minutes: the stable phase ends when the minutes left fit just the
+                                   # decay at the pace measured so far (--steps is then an upper bound)
     amp: str = "auto"              # bf16 autocast of the network's forward: "auto" (GPUs that support it), "bf16"
                                    # (any device: CPUs with avx512_bf16 or AMX run its matmuls ~2x faster), "off";
                                    # losses are always computed in float32
@@ -87,6 +89,9 @@ class TrainConfig:
             check_schedule(cfg)
         except ValueError as e:
             p.error(str(e))
+        if cfg.decay_by_time and (cfg.schedule != "wsd" or cfg.max_minutes <= 0):
+            p.error("--decay_by_time true needs --schedule wsd and --max_minutes > 0 (the decay is placed so that "
+                    f"it ends when the minutes run out), got --schedule {cfg.schedule} --max_minutes {cfg.max_minutes}")
         if cfg.amp not in ("auto", "bf16", "off"):
             p.error(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
         if cfg.init_heads not in ("strict", "fresh"):

@@ -8,6 +8,7 @@ Runs single-process or under ``torchrun`` (DDP: gloo on CPU, nccl on GPU).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import random
@@ -124,6 +125,39 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
     return floor + (1.0 - floor) * 0.5 * (1 + math.cos(math.pi * t))
 
 
+class DecayByTime:
+    """``--decay_by_time``: places a wsd run's end (``cfg.steps``) so that its decay ends as ``--max_minutes`` runs
+    out. The stable phase has a constant learning rate, so where it ends is free until the decay starts: at every
+    step the decay starts when the seconds left (less ``reserve``, the last evaluation's duration) fit no more than
+    ``decay_steps`` steps at the pace of this process since its ``warm``-th step (compilation excluded,
+    evaluations and checkpoints included). From then on the end is fixed, and saved with every checkpoint, so a
+    resumed run finishes the same decay. ``--steps`` stays an upper bound."""
+
+    def __init__(self, cfg: TrainConfig, start: int, t0: float, warm: int = 20) -> None:
+        self.cfg, self.start, self.t0, self.warm = cfg, start, t0, warm
+        self.mark = None  # (step, time) the pace is measured from
+
+    def decaying(self, step: int) -> bool:
+        return step >= self.cfg.steps - self.cfg.decay_steps
+
+    def update(self, step: int, now: float, reserve: float = 0.0) -> bool:
+        """Move the end for the state after ``step`` updates; True when the decay starts at this call."""
+        if self.decaying(step):
+            return False
+        if self.mark is None:
+            if step - self.start >= self.warm:
+                self.mark = (step, now)
+            return False
+        if step == self.mark[0]:
+            return False
+        pace = (now - self.mark[1]) / (step - self.mark[0])
+        left = self.cfg.max_minutes * 60 - (now - self.t0) - reserve
+        if left > self.cfg.decay_steps * pace:
+            return False
+        self.cfg.steps = step + self.cfg.decay_steps
+        return True
+
+
 # -- checkpoints ----------------------------------------------------------------------------------
 def _rng_state() -> dict:
     np_state = np.random.get_state()
@@ -225,6 +259,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     every ``ckpt_every`` steps to ``out/last.pt``. Returns the last metrics.
     """
     check_schedule(cfg)
+    cfg = dataclasses.replace(cfg)  # --decay_by_time moves cfg.steps: the caller's config stays as given
     rank, world, device = setup_distributed()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
@@ -243,6 +278,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         optimizer.load_state_dict(ck["optimizer"])
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
+        saved = ck.get("train_config", {})
+        if cfg.decay_by_time and saved.get("decay_by_time") and start >= saved["steps"] - saved["decay_steps"]:
+            cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
         for group, fresh in zip(optimizer.param_groups, make_optimizer(model, cfg).param_groups):
@@ -269,6 +307,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, disable=cfg.quiet or rank != 0, dynamic_ncols=True)
     t0, seen, metrics = time.time(), 0, {}
     step = start
+    by_time = DecayByTime(cfg, start, t0) if cfg.decay_by_time else None
+    eval_seconds = 0.0
     use_bf16 = use_autocast(cfg, device)
     model.train()
     for batch in loader:
@@ -293,6 +333,19 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if step % cfg.log_every == 0:
             logger.log("train", step, metrics)
         stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
+        if by_time is not None:
+            moved = rank == 0 and by_time.update(step, time.time(), reserve=eval_seconds)
+            if world > 1:  # every rank follows rank 0's clock: one schedule for all
+                end = torch.tensor([cfg.steps], dtype=torch.int64)
+                dist.broadcast(end, 0)
+                moved, cfg.steps = moved or int(end) != cfg.steps, int(end)
+            if moved:  # the next update already runs at the first decay step's rate
+                for group in optimizer.param_groups:
+                    group["lr"] = cfg.lr * lr_factor(step, cfg)
+                scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
+                bar.total = cfg.steps
+                if rank == 0:
+                    tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
         if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
             # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
             save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg)
@@ -300,12 +353,14 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             save_checkpoint(last, model, optimizer, scheduler, step, cfg)
         if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):
             model.eval()
+            t_eval = time.time()
             ev = eval_fn(model)
+            eval_seconds = time.time() - t_eval
             model.train()
             logger.log("eval", step, ev)
             metrics.update({f"eval_{k}": v for k, v in ev.items()})
             tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
-        if stop:
+        if stop or step >= cfg.steps:
             break
     bar.close()
     if world > 1:

@@ -330,3 +330,60 @@ def test_amp_bf16_trains_on_cpu_and_auto_leaves_cpu_training_in_float32(tmp_path
 def test_an_unknown_amp_mode_is_refused_with_the_choices():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
+
+
+def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay(tmp_path):
+    from training.loop import DecayByTime
+
+    cfg = dataclasses.replace(config(tmp_path, 1000), schedule="wsd", decay_steps=10, max_minutes=1.0,
+                              decay_by_time=True)
+    clock = DecayByTime(cfg, start=0, t0=0.0, warm=5)
+    # 1 s per step after a 30 s first step (compilation): the pace is measured from step 5 on
+    started = [s for s in range(1, 1000) if clock.update(s, 30.0 + (s - 1) * 1.0)]
+    # at step s, 60 - (29 + s) s are left: the decay starts when that is <= 10 steps of 1 s, i.e. at s = 21
+    assert started == [21] and cfg.steps == 31
+    assert not clock.update(22, 51.0) and cfg.steps == 31  # fixed once decaying
+
+
+def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_keeps_that_end(tmp_path, monkeypatch):
+    import csv
+    import types
+
+    import training.loop as loop
+
+    now = [0.0]
+
+    def fake_time():  # every reading of the clock advances it by 50 ms: a deterministic pace
+        now[0] += 0.05
+        return now[0]
+
+    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+    out = tmp_path / "run"
+    model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1,
+                ckpt_every=5)
+    rows = list(csv.DictReader(open(out / "train.csv")))
+    end = int(rows[-1]["step"])
+    assert 20 < end < 400, end                      # ended by the clock, long before the --steps bound
+    lrs = [float(r["lr"]) for r in rows]
+    assert lrs[end - 8] == pytest.approx(2e-4)      # stable until the decay
+    assert lrs[-1] == pytest.approx(1e-6)           # the last update ran at min_lr
+    assert (out / f"stable_{end - 6}.pt").exists()
+    ck = torch.load(out / "last.pt", weights_only=True)
+    assert ck["step"] == end and ck["train_config"]["steps"] == end
+    # a resumed run that finds its checkpoint mid-decay finishes the same decay (no recalibration)
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(config(out, 400), schedule="wsd", decay_steps=6, max_minutes=0.15,
+                              decay_by_time=True, log_every=1, ckpt_every=5)
+    mid = torch.load(out / f"stable_{end - 6}.pt", weights_only=True)
+    torch.save(mid, out / "last.pt")
+    model2 = PointmapNet(PRESETS["test"])
+    result = fit(cfg, model2, PlanePairs(6), collate, make_step(cfg))
+    assert result["step"] == end
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), model2.state_dict().values()))
+
+
+def test_decay_by_time_is_refused_without_wsd_or_a_time_limit():
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--decay_by_time", "true", "--max_minutes", "10"])
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--decay_by_time", "true", "--schedule", "wsd", "--decay_steps", "5"])
