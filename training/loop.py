@@ -128,10 +128,10 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
 class DecayByTime:
     """``--decay_by_time``: places a wsd run's end (``cfg.steps``) so that its decay ends as ``--max_minutes`` runs
     out. The stable phase has a constant learning rate, so where it ends is free until the decay starts: at every
-    step the decay starts when the seconds left (less ``reserve``, the last evaluation's duration) fit no more than
-    ``decay_steps`` steps at the pace of this process since its ``warm``-th step (compilation excluded,
-    evaluations and checkpoints included). From then on the end is fixed, and saved with every checkpoint, so a
-    resumed run finishes the same decay. ``--steps`` stays an upper bound."""
+    step after warmup the decay starts when the seconds left (less ``reserve``: the last evaluation's and
+    checkpoint's durations) fit no more than ``decay_steps`` + 2 steps at the pace of this process since its
+    ``warm``-th step (compilation excluded, evaluations and checkpoints included). From then on the end is fixed,
+    and saved with every checkpoint, so a resumed run finishes the same decay. ``--steps`` stays an upper bound."""
 
     def __init__(self, cfg: TrainConfig, start: int, t0: float, warm: int = 20) -> None:
         self.cfg, self.start, self.t0, self.warm = cfg, start, t0, warm
@@ -142,7 +142,7 @@ class DecayByTime:
 
     def update(self, step: int, now: float, reserve: float = 0.0) -> bool:
         """Move the end for the state after ``step`` updates; True when the decay starts at this call."""
-        if self.decaying(step):
+        if self.decaying(step) or step < self.cfg.warmup:
             return False
         if self.mark is None:
             if step - self.start >= self.warm:
@@ -152,7 +152,7 @@ class DecayByTime:
             return False
         pace = (now - self.mark[1]) / (step - self.mark[0])
         left = self.cfg.max_minutes * 60 - (now - self.t0) - reserve
-        if left > self.cfg.decay_steps * pace:
+        if left > (self.cfg.decay_steps + 2) * pace:
             return False
         self.cfg.steps = step + self.cfg.decay_steps
         return True
@@ -279,7 +279,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})
-        if cfg.decay_by_time and saved.get("decay_by_time") and start >= saved["steps"] - saved["decay_steps"]:
+        if cfg.decay_by_time and saved.get("decay_by_time") and start > saved["steps"] - saved["decay_steps"]:
             cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
@@ -308,7 +308,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     t0, seen, metrics = time.time(), 0, {}
     step = start
     by_time = DecayByTime(cfg, start, t0) if cfg.decay_by_time else None
-    eval_seconds = 0.0
+    eval_seconds = ckpt_seconds = 0.0  # the last evaluation's and checkpoint's durations (--decay_by_time)
     use_bf16 = use_autocast(cfg, device)
     model.train()
     for batch in loader:
@@ -325,6 +325,21 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         scheduler.step()
         step += 1
         seen += cfg.batch_size * world
+        stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
+        moved = by_time is not None and rank == 0 and by_time.update(step, time.time(),
+                                                                     reserve=eval_seconds + ckpt_seconds)
+        if world > 1 and cfg.max_minutes > 0:
+            # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would hang)
+            shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
+            dist.broadcast(shared, 0)
+            moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
+        if moved:  # the next update already runs at the first decay step's rate
+            for group in optimizer.param_groups:
+                group["lr"] = cfg.lr * lr_factor(step, cfg)
+            scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
+            bar.total = cfg.steps
+            if rank == 0:
+                tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
         rate = seen / max(time.time() - t0, 1e-9)
         metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
                    "pairs_per_s": rate, **metrics}
@@ -332,25 +347,13 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
         if step % cfg.log_every == 0:
             logger.log("train", step, metrics)
-        stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
-        if by_time is not None:
-            moved = rank == 0 and by_time.update(step, time.time(), reserve=eval_seconds)
-            if world > 1:  # every rank follows rank 0's clock: one schedule for all
-                end = torch.tensor([cfg.steps], dtype=torch.int64)
-                dist.broadcast(end, 0)
-                moved, cfg.steps = moved or int(end) != cfg.steps, int(end)
-            if moved:  # the next update already runs at the first decay step's rate
-                for group in optimizer.param_groups:
-                    group["lr"] = cfg.lr * lr_factor(step, cfg)
-                scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
-                bar.total = cfg.steps
-                if rank == 0:
-                    tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
         if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
             # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
             save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg)
         if rank == 0 and (step % cfg.ckpt_every == 0 or step == cfg.steps or stop):
+            t_ckpt = time.time()
             save_checkpoint(last, model, optimizer, scheduler, step, cfg)
+            ckpt_seconds = time.time() - t_ckpt
         if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):
             model.eval()
             t_eval = time.time()

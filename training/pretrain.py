@@ -22,7 +22,8 @@ def make_step(cfg: TrainConfig):
     def step_fn(model, batch, step):
         view1, view2 = batch
         pred, mask = model(view1["img"], view2["img"])
-        loss = completion_loss(pred, view1["img"], mask, PRESETS[cfg.preset].patch_size)
+        with torch.autocast(pred.device.type, enabled=False):  # under --amp the forward ran in bf16; the loss not
+            loss = completion_loss(pred.float(), view1["img"], mask, PRESETS[cfg.preset].patch_size)
         return loss, {}
 
     return step_fn

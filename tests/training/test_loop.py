@@ -303,12 +303,29 @@ def test_the_csv_log_keeps_one_header_when_a_resumed_run_adds_columns(tmp_path):
     assert [r["coarse_acc"] for r in rows] == ["", "0.1"] and None not in rows[1]
 
 
-def test_a_bf16_autocast_step_keeps_its_losses_in_float32_and_close_to_the_float32_step(tmp_path):
+def test_a_bf16_autocast_step_keeps_its_losses_in_float32_and_close_to_the_float32_step(tmp_path, monkeypatch):
+    import training.train as train
+
+    seen = {}  # loss name -> dtypes of every floating tensor it was given
+
+    def spy(name, fn):
+        def wrapped(*args, **kwargs):
+            flat = [*args, *kwargs.values()]
+            flat = [y for x in flat for y in (x if isinstance(x, (list, tuple)) else [x])]
+            flat = [y for x in flat for y in (x.as_dict().values() if hasattr(x, "as_dict") else [x])]
+            seen.setdefault(name, set()).update(t.dtype for t in flat if torch.is_tensor(t) and t.is_floating_point())
+            assert not torch.is_autocast_enabled("cpu"), f"{name} ran under autocast"
+            return fn(*args, **kwargs)
+        return wrapped
+
+    for name in ("regression_loss", "matching_loss", "patch_matching_loss", "pose_loss", "cross_attention_loss"):
+        monkeypatch.setattr(train, name, spy(name, getattr(train, name)))
     model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1, pose_weight=1.0, coarse_weight=0.5)
     full, d32 = make_step(cfg)(model, batch, 0)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         half, d16 = make_step(cfg)(model, batch, 0)
+    assert len(seen) == 5 and all(dtypes == {torch.float32} for dtypes in seen.values()), seen
     assert half.dtype == torch.float32 and d16.keys() == d32.keys()
     assert abs(float(half.detach()) - float(full.detach())) < 0.02 * abs(float(full.detach()))
     half.backward()
@@ -340,9 +357,11 @@ def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay
     clock = DecayByTime(cfg, start=0, t0=0.0, warm=5)
     # 1 s per step after a 30 s first step (compilation): the pace is measured from step 5 on
     started = [s for s in range(1, 1000) if clock.update(s, 30.0 + (s - 1) * 1.0)]
-    # at step s, 60 - (29 + s) s are left: the decay starts when that is <= 10 steps of 1 s, i.e. at s = 21
-    assert started == [21] and cfg.steps == 31
-    assert not clock.update(22, 51.0) and cfg.steps == 31  # fixed once decaying
+    # at step s, 60 - (29 + s) s are left: the decay starts when that is <= 10 + 2 steps of 1 s, i.e. at s = 19
+    assert started == [19] and cfg.steps == 29
+    assert not clock.update(22, 51.0) and cfg.steps == 29  # fixed once decaying
+    late = dataclasses.replace(cfg, steps=1000, warmup=500)
+    assert not any(DecayByTime(late, 0, 0.0, warm=5).update(s, 30.0 + s) for s in range(1, 500))  # not in warmup
 
 
 def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_keeps_that_end(tmp_path, monkeypatch):
@@ -358,25 +377,34 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
         return now[0]
 
     monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+    saved = loop.save_checkpoint
+
+    def keep_every_checkpoint(path, model, optimizer, scheduler, step, cfg, extra=None):
+        saved(path, model, optimizer, scheduler, step, cfg, extra)
+        if path.name == "last.pt":
+            shutil.copy(path, tmp_path / f"ckpt_{step}.pt")
+
+    monkeypatch.setattr(loop, "save_checkpoint", keep_every_checkpoint)
     out = tmp_path / "run"
-    model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1,
-                ckpt_every=5)
+    model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1)
     rows = list(csv.DictReader(open(out / "train.csv")))
     end = int(rows[-1]["step"])
     assert 20 < end < 400, end                      # ended by the clock, long before the --steps bound
-    lrs = [float(r["lr"]) for r in rows]
-    assert lrs[end - 8] == pytest.approx(2e-4)      # stable until the decay
-    assert lrs[-1] == pytest.approx(1e-6)           # the last update ran at min_lr
+    lr = {int(r["step"]): float(r["lr"]) for r in rows}  # the rate of the update after each logged step
+    assert lr[end - 7] == pytest.approx(2e-4)       # stable until the decay
+    assert 1e-6 < lr[end - 6] < 2e-4                # the decay's first update
+    assert lr[end - 2] > 1e-6 and lr[end - 1] == pytest.approx(1e-6)  # the last update ran at min_lr
     assert (out / f"stable_{end - 6}.pt").exists()
     ck = torch.load(out / "last.pt", weights_only=True)
     assert ck["step"] == end and ck["train_config"]["steps"] == end
-    # a resumed run that finds its checkpoint mid-decay finishes the same decay (no recalibration)
+    # a run resumed from a checkpoint written mid-decay finishes the same decay (no new pace measurement)
+    out2 = tmp_path / "resumed"
+    out2.mkdir()
+    shutil.copy(tmp_path / f"ckpt_{end - 3}.pt", out2 / "last.pt")
     torch.manual_seed(0)
-    cfg = dataclasses.replace(config(out, 400), schedule="wsd", decay_steps=6, max_minutes=0.15,
-                              decay_by_time=True, log_every=1, ckpt_every=5)
-    mid = torch.load(out / f"stable_{end - 6}.pt", weights_only=True)
-    torch.save(mid, out / "last.pt")
     model2 = PointmapNet(PRESETS["test"])
+    cfg = dataclasses.replace(config(out2, 400), schedule="wsd", decay_steps=6, max_minutes=0.15,
+                              decay_by_time=True, log_every=1)
     result = fit(cfg, model2, PlanePairs(6), collate, make_step(cfg))
     assert result["step"] == end
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), model2.state_dict().values()))
