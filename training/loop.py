@@ -95,8 +95,8 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
 
 
-def check_schedule(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule that cannot run as configured."""
+def check_loop_options(cfg: TrainConfig) -> None:
+    """ValueError (one line) for a schedule, ``--decay_by_time`` or ``--amp`` that cannot run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
@@ -104,6 +104,12 @@ def check_schedule(cfg: TrainConfig) -> None:
                          f"({cfg.steps} - {cfg.warmup}), got {cfg.decay_steps}")
     if cfg.schedule == "cosine" and cfg.decay_steps:
         raise ValueError(f"--decay_steps {cfg.decay_steps} is for --schedule wsd (cosine decays over --steps)")
+    if cfg.decay_by_time and (cfg.schedule != "wsd" or cfg.max_minutes <= 0):
+        raise ValueError("--decay_by_time true needs --schedule wsd and --max_minutes > 0 (the decay is placed so "
+                         f"that it ends when the minutes run out), got --schedule {cfg.schedule} "
+                         f"--max_minutes {cfg.max_minutes}")
+    if cfg.amp not in ("auto", "bf16", "off"):
+        raise ValueError(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
 
 
 def lr_factor(step: int, cfg: TrainConfig) -> float:
@@ -258,7 +264,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
     every ``ckpt_every`` steps to ``out/last.pt``. Returns the last metrics.
     """
-    check_schedule(cfg)
+    check_loop_options(cfg)
     cfg = dataclasses.replace(cfg)  # --decay_by_time moves cfg.steps: the caller's config stays as given
     rank, world, device = setup_distributed()
     if cfg.threads > 0:
@@ -325,9 +331,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         scheduler.step()
         step += 1
         seen += cfg.batch_size * world
-        stop = cfg.max_minutes > 0 and (time.time() - t0) / 60 > cfg.max_minutes
-        moved = by_time is not None and rank == 0 and by_time.update(step, time.time(),
-                                                                     reserve=eval_seconds + ckpt_seconds)
+        now = time.time()
+        stop = cfg.max_minutes > 0 and (now - t0) / 60 > cfg.max_minutes
+        moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
         if world > 1 and cfg.max_minutes > 0:
             # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would hang)
             shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
@@ -340,7 +346,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             bar.total = cfg.steps
             if rank == 0:
                 tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
-        rate = seen / max(time.time() - t0, 1e-9)
+        rate = seen / max(now - t0, 1e-9)
         metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
                    "pairs_per_s": rate, **metrics}
         bar.update(1)

@@ -410,8 +410,15 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), model2.state_dict().values()))
 
 
-def test_decay_by_time_is_refused_without_wsd_or_a_time_limit():
+def test_decay_by_time_is_refused_without_wsd_or_a_time_limit(tmp_path):
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--decay_by_time", "true", "--max_minutes", "10"])
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--decay_by_time", "true", "--schedule", "wsd", "--decay_steps", "5"])
+    # fit, called directly, refuses it too
+    cfg = dataclasses.replace(config(tmp_path, 10), schedule="wsd", decay_steps=5, decay_by_time=True)
+    with pytest.raises(ValueError, match="--max_minutes > 0"):
+        fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(2), collate, make_step(cfg))
+    with pytest.raises(ValueError, match="--amp expected"):
+        fit(dataclasses.replace(config(tmp_path, 10), amp="fp8"), PointmapNet(PRESETS["test"]), PlanePairs(2),
+            collate, make_step(cfg))
