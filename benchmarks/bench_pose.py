@@ -1,7 +1,8 @@
 """Two-view relative pose on held-out rendered pairs: the model (from its own pointmaps) against an
 OpenCV SIFT + essential-matrix baseline that is GIVEN the true intrinsics. Reported overall and by
 category (scene kind, low texture, wide baseline = true rotation > 30 degrees, translation only = true rotation
-< 5 degrees, as in a stereo rig). For models with descriptors,
+< 5 degrees, as in a stereo rig, short baseline = camera centres less than 0.1 x view 1's median depth apart,
+where the translation direction rests on little parallax). For models with descriptors,
 "model matches+PnP (known K)" is MASt3R-style: the model's patch-level matches (pm.match_coarse) lifted by
 view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline gets); "model refined on
 matches (known K)" takes the model's pose as a prior and refines its rotation and translation direction on the same
@@ -99,6 +100,8 @@ def main(argv=None) -> int:
             cats.append("wide (>30 deg)")
         if true_rot < 5:
             cats.append("translation only (<5 deg)")
+        if np.linalg.norm(gt[:3, 3]) < 0.1 * float(v1["depth_z"][v1["valid"]].median()):
+            cats.append("short baseline (<0.1 depth)")
         with torch.inference_mode():
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
