@@ -285,7 +285,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})
-        if cfg.decay_by_time and saved.get("decay_by_time") and start > saved["steps"] - saved["decay_steps"]:
+        if (cfg.decay_by_time and cfg.keep_decay and saved.get("decay_by_time")
+                and start > saved["steps"] - saved["decay_steps"]):
             cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)

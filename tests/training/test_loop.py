@@ -408,6 +408,14 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
     result = fit(cfg, model2, PlanePairs(6), collate, make_step(cfg))
     assert result["step"] == end
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), model2.state_dict().values()))
+    # --keep_decay false forgets that decay: the resumed leg runs at the stable rate until it places its own
+    out3 = tmp_path / "replaced"
+    out3.mkdir()
+    shutil.copy(tmp_path / f"ckpt_{end - 3}.pt", out3 / "last.pt")
+    fit(dataclasses.replace(cfg, out=str(out3), keep_decay=False), PointmapNet(PRESETS["test"]), PlanePairs(6),
+        collate, make_step(cfg))
+    lr3 = {int(r["step"]): float(r["lr"]) for r in csv.DictReader(open(out3 / "train.csv"))}
+    assert lr3[end - 2] == pytest.approx(2e-4) and max(lr3) > end
 
 
 def test_decay_by_time_is_refused_without_wsd_or_a_time_limit(tmp_path):
