@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The model card's held-out evaluation (docs/models.md, "How good it is") for one model file.
+# usage: bash benchmarks/model_card.sh MODEL DATA_DIR [THREADS]
+#   MODEL     a .safetensors file or a shipped name ("small")
+#   DATA_DIR  the folder holding the held-out sets eval_s424242, eval_p4_s434343, bench_s525252
+#             (rendered from their seeds: docs/models.md, "Reproduce")
+# The real-photograph rows need Debian's opencv-doc package (apt-get install opencv-doc).
+set -euo pipefail
+if [ $# -lt 2 ]; then
+  echo "usage: bash benchmarks/model_card.sh MODEL DATA_DIR [THREADS]" >&2
+  exit 2
+fi
+M=$1 D=$2 T=${3:-2}
+for s in eval_s424242 eval_p4_s434343 bench_s525252; do
+  [ -d "$D/$s" ] || { echo "model_card.sh: expected the held-out set $D/$s (docs/models.md, Reproduce)" >&2; exit 2; }
+done
+PY=${PYTHON:-python}
+export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl} OMP_NUM_THREADS=$T
+echo "== eval_s424242"; $PY -m training.evaluate --model "$M" --data "$D/eval_s424242" --threads "$T" 2>/dev/null | tail -3
+echo "== eval_p4_s434343"; $PY -m training.evaluate --model "$M" --data "$D/eval_p4_s434343" --threads "$T" 2>/dev/null | tail -3
+echo "== bench_s525252"; $PY benchmarks/bench_pose.py --data "$D/bench_s525252" --pairs 200 --model "$M" --threads 1 2>/dev/null
+REAL=/usr/share/doc/opencv-doc/examples/data
+if [ -d "$REAL" ]; then
+  echo "== real"; $PY benchmarks/bench_real.py --data "$REAL" --model "$M" 2>/dev/null
+else
+  echo "== real: skipped ($REAL missing: apt-get install opencv-doc)"
+fi
