@@ -11,17 +11,20 @@ if [ $# -lt 2 ]; then
   exit 2
 fi
 M=$1 D=$2 T=${3:-2}
+[ -e "$M" ] && M=$(realpath "$M")   # a file path; otherwise a shipped name such as "small"
+D=$(realpath -m "$D")
+cd "$(dirname "$0")/.."             # the repository root: training.evaluate runs as a module from there
 for s in eval_s424242 eval_p4_s434343 bench_s525252; do
   [ -d "$D/$s" ] || { echo "model_card.sh: expected the held-out set $D/$s (docs/models.md, Reproduce)" >&2; exit 2; }
 done
 PY=${PYTHON:-python}
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl} OMP_NUM_THREADS=$T
-echo "== eval_s424242"; $PY -m training.evaluate --model "$M" --data "$D/eval_s424242" --threads "$T" 2>/dev/null | tail -3
-echo "== eval_p4_s434343"; $PY -m training.evaluate --model "$M" --data "$D/eval_p4_s434343" --threads "$T" 2>/dev/null | tail -3
-echo "== bench_s525252"; $PY benchmarks/bench_pose.py --data "$D/bench_s525252" --pairs 200 --model "$M" --threads 1 2>/dev/null
+echo "== eval_s424242"; $PY -m training.evaluate --model "$M" --data "$D/eval_s424242" --threads "$T"
+echo "== eval_p4_s434343"; $PY -m training.evaluate --model "$M" --data "$D/eval_p4_s434343" --threads "$T"
+echo "== bench_s525252"; $PY benchmarks/bench_pose.py --data "$D/bench_s525252" --pairs 200 --model "$M" --threads 1
 REAL=/usr/share/doc/opencv-doc/examples/data
 if [ -d "$REAL" ]; then
-  echo "== real"; $PY benchmarks/bench_real.py --data "$REAL" --model "$M" 2>/dev/null
+  echo "== real"; $PY benchmarks/bench_real.py --data "$REAL" --model "$M"
 else
   echo "== real: skipped ($REAL missing: apt-get install opencv-doc)"
 fi
