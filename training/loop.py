@@ -361,7 +361,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             t_ckpt = time.time()
             save_checkpoint(last, model, optimizer, scheduler, step, cfg)
             ckpt_seconds = time.time() - t_ckpt
-        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps):
+        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps or stop):
+            # a run stopped by the clock evaluates its last state too: that is the row training.ship records
             model.eval()
             t_eval = time.time()
             ev = eval_fn(model)

@@ -430,3 +430,28 @@ def test_decay_by_time_is_refused_without_wsd_or_a_time_limit(tmp_path):
     with pytest.raises(ValueError, match="--amp expected"):
         fit(dataclasses.replace(config(tmp_path, 10), amp="fp8"), PointmapNet(PRESETS["test"]), PlanePairs(2),
             collate, make_step(cfg))
+
+
+def test_a_run_stopped_by_the_clock_evaluates_its_last_state(tmp_path, monkeypatch):
+    import csv
+    import types
+
+    import training.loop as loop
+
+    now = [0.0]
+
+    def fake_time():  # every reading of the clock advances it by 50 ms
+        now[0] += 0.05
+        return now[0]
+
+    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+    out = tmp_path / "run"
+    calls = []
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(config(out, 400), max_minutes=0.05)  # eval_every 1000: only the stop evaluates
+    result = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg),
+                 eval_fn=lambda model: calls.append(1) or {"evaluated": float(len(calls))})
+    assert 2 < result["step"] < 400, result["step"]  # stopped by the clock
+    rows = list(csv.DictReader(open(out / "eval.csv")))
+    assert len(calls) == 1 and [int(r["step"]) for r in rows] == [result["step"]]
+    assert torch.load(out / "last.pt", weights_only=True)["step"] == result["step"]
