@@ -262,7 +262,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     """Train ``model`` with ``step_fn(model, batch, step) -> (loss, metrics dict)``.
 
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
-    every ``ckpt_every`` steps to ``out/last.pt``. Returns the last metrics.
+    every ``ckpt_every`` steps to ``out/last.pt``; both also at the last step, whether ``--steps`` or
+    ``--max_minutes`` ended the run (eval.csv's last row, which training.ship records, is the saved state's).
+    Returns the last metrics.
     """
     check_loop_options(cfg)
     cfg = dataclasses.replace(cfg)  # --decay_by_time moves cfg.steps: the caller's config stays as given
@@ -357,12 +359,12 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
             # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
             save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg)
-        if rank == 0 and (step % cfg.ckpt_every == 0 or step == cfg.steps or stop):
+        ending = stop or step >= cfg.steps  # the last update: checkpointed and evaluated, whatever ended it
+        if rank == 0 and (step % cfg.ckpt_every == 0 or ending):
             t_ckpt = time.time()
             save_checkpoint(last, model, optimizer, scheduler, step, cfg)
             ckpt_seconds = time.time() - t_ckpt
-        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or step == cfg.steps or stop):
-            # a run stopped by the clock evaluates its last state too: that is the row training.ship records
+        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
             model.eval()
             t_eval = time.time()
             ev = eval_fn(model)
@@ -371,7 +373,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             logger.log("eval", step, ev)
             metrics.update({f"eval_{k}": v for k, v in ev.items()})
             tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
-        if stop or step >= cfg.steps:
+        if ending:
             break
     bar.close()
     if world > 1:

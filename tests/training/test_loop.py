@@ -24,6 +24,21 @@ def config(out, steps):
                        ckpt_every=1, eval_every=1000, workers=0, quiet=True, n_corr=64)
 
 
+def tick_clock(monkeypatch, seconds=0.05):
+    """Replace training.loop's clock by one that advances ``seconds`` at every reading: a deterministic pace."""
+    import types
+
+    import training.loop as loop
+
+    now = [0.0]
+
+    def fake_time():
+        now[0] += seconds
+        return now[0]
+
+    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+
+
 def run(out, steps, **overrides):
     torch.manual_seed(0)
     model = PointmapNet(PRESETS["test"])
@@ -366,17 +381,10 @@ def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay
 
 def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_keeps_that_end(tmp_path, monkeypatch):
     import csv
-    import types
 
     import training.loop as loop
 
-    now = [0.0]
-
-    def fake_time():  # every reading of the clock advances it by 50 ms: a deterministic pace
-        now[0] += 0.05
-        return now[0]
-
-    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+    tick_clock(monkeypatch)
     saved = loop.save_checkpoint
 
     def keep_every_checkpoint(path, model, optimizer, scheduler, step, cfg, extra=None):
@@ -434,17 +442,8 @@ def test_decay_by_time_is_refused_without_wsd_or_a_time_limit(tmp_path):
 
 def test_a_run_stopped_by_the_clock_evaluates_its_last_state(tmp_path, monkeypatch):
     import csv
-    import types
 
-    import training.loop as loop
-
-    now = [0.0]
-
-    def fake_time():  # every reading of the clock advances it by 50 ms
-        now[0] += 0.05
-        return now[0]
-
-    monkeypatch.setattr(loop, "time", types.SimpleNamespace(time=fake_time))
+    tick_clock(monkeypatch)
     out = tmp_path / "run"
     calls = []
     torch.manual_seed(0)
