@@ -56,6 +56,23 @@ def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tenso
     return float(t_pred.double().norm() * scale / t_gt.double().norm())
 
 
+def depth_ratio(pred_z1: torch.Tensor, gt_z1: torch.Tensor, valid1: torch.Tensor, pred_z2: torch.Tensor,
+                gt_z2: torch.Tensor, valid2: torch.Tensor) -> float:
+    """How much deeper one prediction places view 2's scene, relative to view 1's, than the truth has it: the
+    median depth scale of view 1 (``abs_rel``'s true / predicted) over view 2's, both views' depths taken in their
+    own camera frames from the same prediction. 1 is right; 1.2 puts view 2's scene 20% too far relative to
+    view 1's. A camera's forward motion is the difference of the two views' depths, so an error here is an error
+    in the translation's forward component of about ``|log ratio|`` x the depth (docs/models.md). NaN when either
+    view has no valid pixel predicted in front."""
+    scales = []
+    for p, g, v in ((pred_z1, gt_z1, valid1), (pred_z2, gt_z2, valid2)):
+        scale = _depth_scale(p[v].double(), g[v].double()) if bool(v.any()) else None
+        if scale is None or not bool(torch.isfinite(scale)):
+            return float("nan")
+        scales.append(scale)
+    return float(scales[0] / scales[1])
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count), and their number."""
@@ -76,13 +93,15 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, 
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
-    ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1); ``coarse_acc``:
+    ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1);
+    ``depth_ratio_err``: median over pairs of |log ``depth_ratio``|, view 2's depth in its own frame taken from the
+    forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in scale); ``coarse_acc``:
     top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
     whose matches give no direction keeps the model's pose)."""
-    rot_err, tr_err, rels, precs, coarse, ratios = [], [], [], [], [], []
+    rot_err, tr_err, rels, precs, coarse, ratios, dratios = [], [], [], [], [], [], []
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
     n = min(n_pairs, len(dataset))
@@ -108,6 +127,12 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                 rels.append(abs_rel(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b]))
                 ratios.append(baseline_ratio(cam2world_pred[b, :3, 3], pred.pts1_cam1[b, ..., 2],
                                              cam2world_gt[b, :3, 3], v1["depth_z"][b], v1["valid"][b]))
+                T = cam2world_pred[b].double()  # view 2's points back in its own frame: R^T (x - t)
+                own2_z = ((pred.pts2_cam1[b].double() - T[:3, 3]) @ T[:3, :3])[..., 2]
+                dr = depth_ratio(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b], own2_z,
+                                 v2["depth_z"][b], v2["valid"][b])
+                if math.isfinite(dr) and dr > 0:
+                    dratios.append(abs(math.log(dr)))
                 p, cnt = match_precision(pred[b], v1["corr"][b])
                 if cnt:
                     precs.append(p)
@@ -133,6 +158,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
             "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
+            "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

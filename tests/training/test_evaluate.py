@@ -22,6 +22,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
     assert math.isnan(ev["baseline_ratio"]) or ev["baseline_ratio"] >= 0
+    assert math.isnan(ev["depth_ratio_err"]) or ev["depth_ratio_err"] >= 0
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
 
 
@@ -133,3 +134,24 @@ def test_pose_error_sources_refuse_a_model_without_matches():
     cfg = ModelConfig.from_dict({**PRESETS["test"].to_dict(), "head": "linear", "desc_dim": 0})
     with pytest.raises(ValueError, match="descriptor head"):
         pose_error_sources(PointmapNet(cfg).eval(), PlanePairs(1), n_pairs=1)
+
+
+def test_depth_ratio_says_how_much_too_deep_view_2_is_placed_relative_to_view_1_whatever_the_units():
+    from training.evaluate import depth_ratio
+
+    g = torch.Generator().manual_seed(1)
+    gt1, gt2 = torch.rand(8, 8, generator=g) + 1.0, torch.rand(8, 8, generator=g) + 2.0
+    valid1 = torch.ones(8, 8, dtype=torch.bool)
+    valid2 = valid1.clone()
+    valid2[:2] = False
+    noisy2 = gt2 * (1 + 0.05 * torch.randn(8, 8, generator=g))
+    noisy2[~valid2] = -1e6  # junk where there is no ground truth: must not count
+    for units in (1.0, 0.02, 9.0):
+        # view 2's scene predicted 1.2x as deep as it is, relative to view 1's; the whole prediction in any units
+        r = depth_ratio(gt1 * units, gt1, valid1, noisy2 * 1.2 * units, gt2, valid2)
+        exact = float(torch.median(gt2[valid2] / noisy2[valid2]) ** -1)  # the noise's own median, then x 1.2
+        assert math.isclose(r, 1.2 * exact, rel_tol=1e-6) and abs(r - 1.2) < 0.05
+        assert math.isclose(depth_ratio(gt1 * units, gt1, valid1, gt2 * units, gt2, valid2), 1.0, rel_tol=1e-6)
+    # nothing predicted in front, or no valid pixel: NaN, never a number that looks like a result
+    assert math.isnan(depth_ratio(gt1, gt1, valid1, -gt2, gt2, valid2))
+    assert math.isnan(depth_ratio(gt1, gt1, torch.zeros_like(valid1), gt2, gt2, valid2))
