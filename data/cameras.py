@@ -16,6 +16,11 @@ The first four aim every new view at a point the reference sees, which ties the 
 ``slide`` and ``pan`` break that tie (real photographs often have one without the other). Their default weight is
 0, so a run without ``--moves`` draws the same views as before they existed.
 
+Every view draws its own field of view (``fov_deg``) unless the set is taken with one camera (a share
+``same_camera`` of the sets: all views keep view 0's intrinsics). With independent fields of view a zoom-in
+looks like a step forward, so a pair's forward motion can only be read from perspective cues; one camera,
+the common case of a phone, a video or a stereo rig, lets the image magnification tell it (docs/data.md).
+
 Every candidate is rendered depth-only first and rejected when degenerate: camera inside an
 obstacle box or outside the scene's camera region, geometry closer than ``min_depth`` on more than 1 %
 of pixels (inside/touching geometry), fewer than ``min_valid`` pixels with depth, or overlap with its
@@ -54,6 +59,9 @@ class CameraConfig:
     big_roll_share: float = 0.1                         # share of views with roll up to 30 deg
     principal_jitter: float = 0.03                      # fraction of the image size
     max_tries: int = 25
+    same_camera: float = 0.0                            # share of view sets taken with one camera: every view
+                                                        # has view 0's intrinsics (0 draws nothing: older runs
+                                                        # render as before)
 
     def __post_init__(self):
         lo, hi = self.fov_deg
@@ -68,6 +76,8 @@ class CameraConfig:
                              f"got {self.move_weights}")
         if not (0 <= self.min_valid <= 1):
             raise ValueError(f"min_valid expected in [0, 1], got {self.min_valid}")
+        if not (0 <= self.same_camera <= 1):
+            raise ValueError(f"same_camera expected a share in [0, 1], got {self.same_camera}")
 
 
 @dataclass
@@ -233,6 +243,7 @@ def sample_views(rng: np.random.Generator, scene, renderer, n_views: int, size: 
     if not isinstance(n_views, (int, np.integer)) or n_views < 1:
         raise ValueError(f"n_views expected an int >= 1, got {n_views!r}")
     width, height = image_size(rng, size, cfg)
+    one_camera = cfg.same_camera > 0 and rng.random() < cfg.same_camera
     views: list[View] = []
     ov = np.eye(n_views)
     done = np.eye(n_views, dtype=bool)
@@ -241,7 +252,7 @@ def sample_views(rng: np.random.Generator, scene, renderer, n_views: int, size: 
     for k in range(n_views):
         accepted = False
         for _ in range(cfg.max_tries):
-            K = sample_K(rng, width, height, cfg)
+            K = views[0].K if one_camera and views else sample_K(rng, width, height, cfg)
             if k == 0:
                 T = _first_pose(rng, scene, K, width, cfg)
                 if T is None:

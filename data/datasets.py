@@ -11,7 +11,8 @@
 - ``heldout(root_dir)``: renders (once) and opens the fixed evaluation set from reserved seeds.
 
 Augmentation (``augment=True``): random order swap, random resized crop (K, depth, valid and corr
-updated consistently; depth and masks resampled with nearest neighbour), colour jitter (brightness,
+updated consistently; depth and masks resampled with nearest neighbour; by default both views cropped at the
+same scale, ``crop_link``, so a pair keeps its rendered focal ratio), colour jitter (brightness,
 contrast, saturation, hue), white balance, exposure/gamma, blur and sensor noise.
 """
 
@@ -90,11 +91,12 @@ def _load_view(reader: ShardReader, scene: str, meta: dict, k: int):
 # augmentation helpers (numpy, per view)
 
 
-def _crop_box(rng, src_w, src_h, out_w, out_h, scale_range, center=False):
-    """A crop (x0, y0, cw, ch) of the source with the output's aspect ratio."""
+def _crop_box(rng, src_w, src_h, out_w, out_h, scale_range, center=False, scale=None):
+    """A crop (x0, y0, cw, ch) of the source with the output's aspect ratio; its side is ``scale`` (default: the
+    square root of a draw from ``scale_range``, an area fraction) times the largest such crop's."""
     ar = out_w / out_h
     max_w = min(src_w, src_h * ar)
-    s = 1.0 if center else math.sqrt(rng.uniform(*scale_range))
+    s = 1.0 if center else (math.sqrt(rng.uniform(*scale_range)) if scale is None else scale)
     cw = max_w * s
     ch = cw / ar
     if center:
@@ -209,10 +211,16 @@ class PairDataset(Dataset):
     augmentation (off: deterministic centre crop + resize only when the rendered size differs).
     split: "train", "val" (a fixed ~``val_percent`` % of scenes, chosen by hashing the scene id) or
     "all". verify: check every shard's sha256 before use (shards that fail are reported and skipped).
+    crop_link: probability that view 2's random crop has view 1's scale (its position stays random): a crop
+    rescales the focal length, so independent crops of two views make a pair whose focal lengths differ by up
+    to 1.4x, and a zoom-in then looks like a step forward. Linked, the pair keeps the focal ratio it was
+    rendered with (the data engine's ``--same-camera-share`` decides how often that is 1), and the image
+    magnification between the views tells the camera's forward motion (docs/data.md).
     """
 
     def __init__(self, root, size: int = 224, augment: bool = True, split: str = "train", *,
-                 val_percent: float = 2.0, crop_scale=(0.5, 1.0), swap_p: float = 0.5, verify: bool = True):
+                 val_percent: float = 2.0, crop_scale=(0.5, 1.0), swap_p: float = 0.5, crop_link: float = 1.0,
+                 verify: bool = True):
         if split not in SPLITS:
             raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
         if not 0 <= val_percent <= 100:
@@ -225,6 +233,9 @@ class PairDataset(Dataset):
         self.augment = bool(augment)
         self.crop_scale = (float(lo), float(hi))
         self.swap_p = float(swap_p)
+        if not 0 <= crop_link <= 1:
+            raise ValueError(f"crop_link expected a probability in [0, 1], got {crop_link}")
+        self.crop_link = float(crop_link)
         self.root, self.config, entries = _open_root(root, verify)
         if self.config.get("kind") != "pairs":
             raise ShardError(f"{self.root} was rendered with --kind {self.config.get('kind')}; PairDataset needs "
@@ -281,7 +292,9 @@ class PairDataset(Dataset):
         h, w = d1.shape
         box1 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment)
         rgb1, d1, K1, A1 = _apply_crop(rgb1, d1, K1, box1, out_w, out_h)
-        box2 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment)
+        link = self.augment and (self.crop_link >= 1 or (self.crop_link > 0 and rng.random() < self.crop_link))
+        box2 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment,
+                         scale=box1[2] / min(w, h * out_w / out_h) if link else None)
         if self.augment:  # centre view 2's crop on where view 1's crop content lands, so they overlap
             x0, y0, cw, ch = box2
             seen = _warp_corr(corr, A1, np.array([[1.0, 0, 0], [0, 1.0, 0]]), out_w, out_h, h, w)

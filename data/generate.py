@@ -61,6 +61,7 @@ class GenConfig:
     photo_dirs: tuple = ()         # where the photographs are (default: data.textures.DEFAULT_PHOTO_DIRS)
     photo_fingerprint: str = ""    # of the collection used (filled by generate; checked on resume)
     moves: tuple = ()              # camera move weights in data.cameras.MOVES order; () = CameraConfig's default
+    same_camera: float = 0.0       # share of scenes whose views share one camera's intrinsics (CameraConfig)
 
     def __post_init__(self):
         if self.kind not in ("pairs", "views"):
@@ -79,6 +80,7 @@ class GenConfig:
             raise ValueError(f"photo_share expected in [0, 1], got {self.photo_share}")
         if self.moves:
             CameraConfig(move_weights=tuple(self.moves))  # raises ValueError for a wrong count or weights
+        CameraConfig(same_camera=self.same_camera)  # raises ValueError outside [0, 1]
         if not 0 <= self.overlap_lo <= self.overlap_hi <= 1:
             raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap_lo}, {self.overlap_hi}")
 
@@ -87,9 +89,8 @@ class GenConfig:
         return (self.scenes + self.shard_size - 1) // self.shard_size
 
     def camera(self) -> CameraConfig:
-        if self.moves:
-            return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi), move_weights=tuple(self.moves))
-        return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi))
+        extra = {"move_weights": tuple(self.moves)} if self.moves else {}
+        return CameraConfig(overlap=(self.overlap_lo, self.overlap_hi), same_camera=self.same_camera, **extra)
 
     def photos(self):
         """The PhotoCollection of this run, or None when photos are off."""
@@ -114,6 +115,8 @@ class GenConfig:
             d["moves"] = list(self.moves)
         else:
             d.pop("moves")
+        if self.same_camera <= 0:
+            d.pop("same_camera")
         return d
 
     @classmethod
@@ -367,6 +370,9 @@ def build_parser():
     p.add_argument("--moves", default=None,
                    help="camera move weights, e.g. small=0.15,medium=0.15,wide=0.1,zoom=0.1,slide=0.35,pan=0.15 "
                         "(moves not named get 0; default small=0.3,medium=0.25,wide=0.3,zoom=0.15; data/cameras.py)")
+    p.add_argument("--same-camera-share", type=float, default=0.0,
+                   help="share of scenes whose views are all taken with one camera (view 0's intrinsics); the "
+                        "rest draw a field of view per view (data/cameras.py; default 0: renders as before)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -404,7 +410,8 @@ def main(argv=None, *, _allow_reserved: bool = False) -> int:
         cfg = GenConfig(kind=args.kind, scenes=args.scenes, views=args.views, size=args.size,
                         shard_size=args.shard_size, seed=args.seed, low_texture_share=args.low_texture_share,
                         overlap_lo=args.overlap[0], overlap_hi=args.overlap[1], photo_share=args.photo_share,
-                        photo_dirs=tuple(args.photo_dirs or ()), moves=parse_moves(args.moves))
+                        photo_dirs=tuple(args.photo_dirs or ()), moves=parse_moves(args.moves),
+                        same_camera=args.same_camera_share)
         if cfg.photo_share > 0:
             try:
                 fingerprint = cfg.photos().fingerprint

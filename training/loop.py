@@ -96,7 +96,7 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule, ``--decay_by_time`` or ``--amp`` that cannot run as configured."""
+    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp`` or ``--crop_link`` that cannot run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
@@ -108,6 +108,8 @@ def check_loop_options(cfg: TrainConfig) -> None:
         raise ValueError("--decay_by_time true needs --schedule wsd and --max_minutes > 0 (the decay is placed so "
                          f"that it ends when the minutes run out), got --schedule {cfg.schedule} "
                          f"--max_minutes {cfg.max_minutes}")
+    if not 0 <= cfg.crop_link <= 1:
+        raise ValueError(f"--crop_link expected a probability in [0, 1], got {cfg.crop_link}")
     if cfg.amp not in ("auto", "bf16", "off"):
         raise ValueError(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
 

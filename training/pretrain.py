@@ -47,7 +47,7 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
     model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
-    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train")
+    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train", crop_link=cfg.crop_link)
     eval_fn = None
     if cfg.eval_data:
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")

@@ -73,3 +73,24 @@ def test_the_demo_scene_camera_config_is_valid():
     from data.demo_scenes import DEMO_CAMERA
 
     assert len(DEMO_CAMERA.move_weights) == len(MOVES) and DEMO_CAMERA.move_weights[MOVES.index("zoom")] == 0
+
+
+def test_a_scene_taken_with_one_camera_gives_every_view_view_0s_intrinsics(renderer):
+    from data.cameras import sample_views
+    from data.scene import make_scene
+
+    for share, expect_same in ((1.0, True), (0.0, False)):
+        rng = np.random.default_rng(11)
+        scene = make_scene(rng, kind="cluster")
+        vs = sample_views(rng, scene, renderer, 3, 64, CameraConfig(same_camera=share), color=False)
+        same = [np.array_equal(v.K, vs.views[0].K) for v in vs.views[1:]]
+        assert all(same) if expect_same else not any(same)  # fields of view are drawn from 40-90 degrees
+
+
+def test_the_same_camera_share_is_stored_only_when_used_and_bad_shares_are_refused():
+    assert "same_camera" not in GenConfig(scenes=1).to_dict()  # older runs keep their stored configuration
+    cfg = GenConfig(scenes=1, same_camera=0.8)
+    assert GenConfig.from_dict(cfg.to_dict()) == cfg and cfg.camera().same_camera == 0.8
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="same_camera expected a share"):
+            GenConfig(scenes=1, same_camera=bad)

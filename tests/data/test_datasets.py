@@ -42,8 +42,9 @@ def test_pair_items_follow_the_design_contract_without_augmentation(tiny_pairs):
     assert (err <= 0.5).float().mean() >= 0.98
 
 
-def test_augmented_pairs_keep_crop_intrinsics_and_correspondences_consistent(tiny_pairs):
-    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+@pytest.mark.parametrize("crop_link", [1.0, 0.0])
+def test_augmented_pairs_keep_crop_intrinsics_and_correspondences_consistent(tiny_pairs, crop_link):
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all", crop_link=crop_link)
     torch.manual_seed(0)
     errs, with_covis, n = [], 0, 0
     for k in range(len(ds)):
@@ -130,3 +131,16 @@ def test_heldout_set_is_rendered_once_from_the_reserved_seed(tmp_path):
     data.heldout(tmp_path, kind="views", size=64, scenes=1, views=2)
     assert tar.stat().st_mtime_ns == before
     assert np.isfinite(ds[0]["depth_z"].numpy()).all()
+
+
+def test_linked_crops_keep_the_rendered_focal_ratio_and_unlinked_ones_change_it(tiny_pairs):
+    def ratios(**kw):
+        ds = PairDataset(tiny_pairs, size=64, split="all", swap_p=0.0, **kw)
+        return torch.tensor([float(v2["K"][0, 0] / v1["K"][0, 0]) for v1, v2 in (ds[k] for k in range(len(ds)))])
+
+    rendered = ratios(augment=False)  # centre crops at full scale: the ratio the renderer made
+    assert torch.allclose(ratios(augment=True), rendered, rtol=1e-5)  # crop_link=1.0 is the default (float32 K)
+    unlinked = ratios(augment=True, crop_link=0.0)
+    assert ((unlinked / rendered - 1).abs() > 0.02).sum() >= len(rendered) // 2  # crops up to 1.4x apart
+    with pytest.raises(ValueError, match="crop_link expected"):
+        PairDataset(tiny_pairs, size=64, split="all", crop_link=1.5)

@@ -364,6 +364,14 @@ def test_an_unknown_amp_mode_is_refused_with_the_choices():
         TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
 
 
+def test_a_crop_link_outside_0_to_1_is_refused_before_any_data_is_opened(capsys):
+    for bad in ("1.5", "-0.2", "nan"):
+        with pytest.raises(SystemExit):
+            TrainConfig.from_args(["--data", "x", "--crop_link", bad])
+        assert "--crop_link expected a probability" in capsys.readouterr().err
+    assert TrainConfig.from_args(["--data", "x", "--crop_link", "0.5"]).crop_link == 0.5
+
+
 def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay(tmp_path):
     from training.loop import DecayByTime
 
