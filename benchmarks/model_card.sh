@@ -2,8 +2,8 @@
 # The model card's held-out evaluation (docs/models.md, "How good it is") for one model file.
 # usage: bash benchmarks/model_card.sh MODEL DATA_DIR [THREADS]
 #   MODEL     a .safetensors file or a shipped name ("small")
-#   DATA_DIR  the folder holding the held-out sets eval_s424242, eval_p4_s434343, bench_s525252
-#             (rendered from their seeds: docs/models.md, "Reproduce")
+#   DATA_DIR  the folder holding the held-out sets eval_s424242, eval_p4_s434343, bench_s525252 and, when
+#             present, eval_cam_s464646 (rendered from their seeds: docs/models.md, "Reproduce")
 # The real-photograph rows need Debian's opencv-doc package (apt-get install opencv-doc).
 set -euo pipefail
 if [ $# -lt 2 ]; then
@@ -21,6 +21,11 @@ PY=${PYTHON:-python}
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl} OMP_NUM_THREADS=$T
 echo "== eval_s424242"; $PY -m training.evaluate --model "$M" --data "$D/eval_s424242" --threads "$T"
 echo "== eval_p4_s434343"; $PY -m training.evaluate --model "$M" --data "$D/eval_p4_s434343" --threads "$T"
+if [ -d "$D/eval_cam_s464646" ]; then  # pairs taken with one camera (session 18 on; docs/data.md)
+  echo "== eval_cam_s464646"; $PY -m training.evaluate --model "$M" --data "$D/eval_cam_s464646" --threads "$T"
+else
+  echo "== eval_cam_s464646: skipped ($D/eval_cam_s464646 missing: docs/models.md, Reproduce)"
+fi
 echo "== bench_s525252"; $PY benchmarks/bench_pose.py --data "$D/bench_s525252" --pairs 200 --model "$M" --threads 1
 REAL=/usr/share/doc/opencv-doc/examples/data
 if [ -d "$REAL" ]; then
