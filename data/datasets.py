@@ -91,13 +91,13 @@ def _load_view(reader: ShardReader, scene: str, meta: dict, k: int):
 # augmentation helpers (numpy, per view)
 
 
-def _crop_box(rng, src_w, src_h, out_w, out_h, scale_range, center=False, scale=None):
-    """A crop (x0, y0, cw, ch) of the source with the output's aspect ratio; its side is ``scale`` (default: the
-    square root of a draw from ``scale_range``, an area fraction) times the largest such crop's."""
+def _crop_box(rng, src_w, src_h, out_w, out_h, scale_range, center=False, width=None):
+    """A crop (x0, y0, cw, ch) of the source with the output's aspect ratio, ``width`` source pixels wide
+    (default: the largest such crop times the square root of a draw from ``scale_range``, an area
+    fraction)."""
     ar = out_w / out_h
     max_w = min(src_w, src_h * ar)
-    s = 1.0 if center else (math.sqrt(rng.uniform(*scale_range)) if scale is None else scale)
-    cw = max_w * s
+    cw = max_w if center else (max_w * math.sqrt(rng.uniform(*scale_range)) if width is None else width)
     ch = cw / ar
     if center:
         return (src_w - cw) / 2, (src_h - ch) / 2, cw, ch
@@ -292,9 +292,10 @@ class PairDataset(Dataset):
         h, w = d1.shape
         box1 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment)
         rgb1, d1, K1, A1 = _apply_crop(rgb1, d1, K1, box1, out_w, out_h)
-        link = self.augment and (self.crop_link >= 1 or (self.crop_link > 0 and rng.random() < self.crop_link))
+        link = self.augment and (self.crop_link >= 1
+                                 or (self.crop_link > 0 and rng.random() < self.crop_link))
         box2 = _crop_box(rng, w, h, out_w, out_h, self.crop_scale, center=not self.augment,
-                         scale=box1[2] / min(w, h * out_w / out_h) if link else None)
+                         width=box1[2] if link else None)
         if self.augment:  # centre view 2's crop on where view 1's crop content lands, so they overlap
             x0, y0, cw, ch = box2
             seen = _warp_corr(corr, A1, np.array([[1.0, 0, 0], [0, 1.0, 0]]), out_w, out_h, h, w)

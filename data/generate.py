@@ -78,11 +78,9 @@ class GenConfig:
             raise ValueError(f"low_texture_share expected in [0, 1], got {self.low_texture_share}")
         if not 0 <= self.photo_share <= 1:
             raise ValueError(f"photo_share expected in [0, 1], got {self.photo_share}")
-        if self.moves:
-            CameraConfig(move_weights=tuple(self.moves))  # raises ValueError for a wrong count or weights
-        CameraConfig(same_camera=self.same_camera)  # raises ValueError outside [0, 1]
         if not 0 <= self.overlap_lo <= self.overlap_hi <= 1:
             raise ValueError(f"overlap expected 0 <= lo <= hi <= 1, got {self.overlap_lo}, {self.overlap_hi}")
+        self.camera()  # raises ValueError for wrong move weights or a same_camera share outside [0, 1]
 
     @property
     def n_shards(self) -> int:
@@ -371,8 +369,9 @@ def build_parser():
                    help="camera move weights, e.g. small=0.15,medium=0.15,wide=0.1,zoom=0.1,slide=0.35,pan=0.15 "
                         "(moves not named get 0; default small=0.3,medium=0.25,wide=0.3,zoom=0.15; data/cameras.py)")
     p.add_argument("--same-camera-share", type=float, default=0.0,
-                   help="share of scenes whose views are all taken with one camera (view 0's intrinsics); the "
-                        "rest draw a field of view per view (data/cameras.py; default 0: renders as before)")
+                   help="share of scenes whose views are all taken with one camera (view 0's intrinsics); "
+                        "the rest draw a field of view per view (data/cameras.py; default 0: renders as "
+                        "before)")
     p.add_argument("--quiet", action="store_true")
     return p
 

@@ -34,8 +34,9 @@ class TrainConfig:
     match_weight: float = 0.075    # weight of the InfoNCE matching loss
     n_corr: int = 1024             # correspondences per pair for the matching loss
     max_rotation: float = 0.0      # curriculum: train only on pairs whose cameras differ by <= this (deg; 0 = all)
-    crop_link: float = 1.0         # probability that view 2's random crop has view 1's scale (data.PairDataset):
-                                   # the pair keeps its rendered focal ratio, so magnification means motion
+    crop_link: float = 1.0         # probability that view 2's random crop has view 1's scale
+                                   # (data.PairDataset): the pair keeps its rendered focal ratio, so
+                                   # magnification means motion
     temperature: float = 0.05
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
     coarse_temperature: float = 0.1

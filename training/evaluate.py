@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from pointmap.geometry.cameras import invert_rigid
+from pointmap.geometry.cameras import invert_rigid, transform_points
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
 from pointmap.matching import match, match_coarse
 from pointmap.pose import refine_pose_with_matches, relative_pose
@@ -59,14 +59,14 @@ def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tenso
 def depth_ratio(pred_z1: torch.Tensor, gt_z1: torch.Tensor, valid1: torch.Tensor, pred_z2: torch.Tensor,
                 gt_z2: torch.Tensor, valid2: torch.Tensor) -> float:
     """How much deeper one prediction places view 2's scene, relative to view 1's, than the truth has it: the
-    median depth scale of view 1 (``abs_rel``'s true / predicted) over view 2's, both views' depths taken in their
-    own camera frames from the same prediction. 1 is right; 1.2 puts view 2's scene 20% too far relative to
-    view 1's. A camera's forward motion is the difference of the two views' depths, so an error here is an error
-    in the translation's forward component of about ``|log ratio|`` x the depth (docs/models.md). NaN when either
-    view has no valid pixel predicted in front."""
+    median depth scale of view 1 (``abs_rel``'s true / predicted) over view 2's, both views' depths taken in
+    their own camera frames from the same prediction. 1 is right; 1.2 puts view 2's scene 20% too far
+    relative to view 1's. A camera's forward motion is the difference of the two views' depths, so an error
+    here is an error in the translation's forward component of about ``|log ratio|`` x the depth
+    (docs/models.md). NaN when either view has no valid pixel predicted in front."""
     scales = []
     for p, g, v in ((pred_z1, gt_z1, valid1), (pred_z2, gt_z2, valid2)):
-        scale = _depth_scale(p[v].double(), g[v].double()) if bool(v.any()) else None
+        scale = _depth_scale(p[v].double(), g[v].double())
         if scale is None or not bool(torch.isfinite(scale)):
             return float("nan")
         scales.append(scale)
@@ -94,9 +94,10 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, 
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
     ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1);
-    ``depth_ratio_err``: median over pairs of |log ``depth_ratio``|, view 2's depth in its own frame taken from the
-    forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in scale); ``coarse_acc``:
-    top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``), chance is 1 / patches;
+    ``depth_ratio_err``: median over pairs of |log ``depth_ratio``|, view 2's depth in its own frame taken
+    from the forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in
+    scale); ``coarse_acc``: top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``),
+    chance is 1 / patches;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
@@ -121,15 +122,15 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             ok = torch.isfinite(cam2world_pred).all(-1).all(-1)
             re = relative_rotation_error_deg(cam2world_pred[..., :3, :3].double(), cam2world_gt[..., :3, :3])
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
+            # view 2's depth in its own frame, through the estimated pose (depth_ratio)
+            own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
             rot_err += torch.where(ok, re, torch.full_like(re, 180.0)).tolist()
             tr_err += torch.where(ok, te, torch.full_like(te, 180.0)).tolist()
             for b in range(len(its)):
                 rels.append(abs_rel(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b]))
                 ratios.append(baseline_ratio(cam2world_pred[b, :3, 3], pred.pts1_cam1[b, ..., 2],
                                              cam2world_gt[b, :3, 3], v1["depth_z"][b], v1["valid"][b]))
-                T = cam2world_pred[b].double()  # view 2's points back in its own frame: R^T (x - t)
-                own2_z = ((pred.pts2_cam1[b].double() - T[:3, 3]) @ T[:3, :3])[..., 2]
-                dr = depth_ratio(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b], own2_z,
+                dr = depth_ratio(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b], own2_z[b],
                                  v2["depth_z"][b], v2["valid"][b])
                 if math.isfinite(dr) and dr > 0:
                     dratios.append(abs(math.log(dr)))

@@ -96,7 +96,8 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp`` or ``--crop_link`` that cannot run as configured."""
+    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp`` or ``--crop_link`` that cannot
+    run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:

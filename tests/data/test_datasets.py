@@ -136,10 +136,12 @@ def test_heldout_set_is_rendered_once_from_the_reserved_seed(tmp_path):
 def test_linked_crops_keep_the_rendered_focal_ratio_and_unlinked_ones_change_it(tiny_pairs):
     def ratios(**kw):
         ds = PairDataset(tiny_pairs, size=64, split="all", swap_p=0.0, **kw)
-        return torch.tensor([float(v2["K"][0, 0] / v1["K"][0, 0]) for v1, v2 in (ds[k] for k in range(len(ds)))])
+        pairs = (ds[k] for k in range(len(ds)))
+        return torch.tensor([float(v2["K"][0, 0] / v1["K"][0, 0]) for v1, v2 in pairs])
 
     rendered = ratios(augment=False)  # centre crops at full scale: the ratio the renderer made
-    assert torch.allclose(ratios(augment=True), rendered, rtol=1e-5)  # crop_link=1.0 is the default (float32 K)
+    # crop_link=1.0 is the default; K is float32
+    assert torch.allclose(ratios(augment=True), rendered, rtol=1e-5)
     unlinked = ratios(augment=True, crop_link=0.0)
     assert ((unlinked / rendered - 1).abs() > 0.02).sum() >= len(rendered) // 2  # crops up to 1.4x apart
     with pytest.raises(ValueError, match="crop_link expected"):

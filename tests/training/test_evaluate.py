@@ -147,11 +147,12 @@ def test_depth_ratio_says_how_much_too_deep_view_2_is_placed_relative_to_view_1_
     noisy2 = gt2 * (1 + 0.05 * torch.randn(8, 8, generator=g))
     noisy2[~valid2] = -1e6  # junk where there is no ground truth: must not count
     for units in (1.0, 0.02, 9.0):
-        # view 2's scene predicted 1.2x as deep as it is, relative to view 1's; the whole prediction in any units
+        # view 2's scene predicted 1.2x as deep as it is, relative to view 1's; the prediction in any units
         r = depth_ratio(gt1 * units, gt1, valid1, noisy2 * 1.2 * units, gt2, valid2)
         exact = float(torch.median(gt2[valid2] / noisy2[valid2]) ** -1)  # the noise's own median, then x 1.2
         assert math.isclose(r, 1.2 * exact, rel_tol=1e-6) and abs(r - 1.2) < 0.05
-        assert math.isclose(depth_ratio(gt1 * units, gt1, valid1, gt2 * units, gt2, valid2), 1.0, rel_tol=1e-6)
+        right = depth_ratio(gt1 * units, gt1, valid1, gt2 * units, gt2, valid2)
+        assert math.isclose(right, 1.0, rel_tol=1e-6)
     # nothing predicted in front, or no valid pixel: NaN, never a number that looks like a result
     assert math.isnan(depth_ratio(gt1, gt1, valid1, -gt2, gt2, valid2))
     assert math.isnan(depth_ratio(gt1, gt1, torch.zeros_like(valid1), gt2, gt2, valid2))
