@@ -73,6 +73,27 @@ def depth_ratio(pred_z1: torch.Tensor, gt_z1: torch.Tensor, valid1: torch.Tensor
     return float(scales[0] / scales[1])
 
 
+def forward_agreement(t_pred: torch.Tensor, t_gt: torch.Tensor, min_forward: float = 0.2) -> tuple[float, float]:
+    """How well predicted translation directions [N, 3] get the forward (z) component of the true ones [N, 3]
+    (camera 2's centre in camera 1's frame, any units): (Pearson correlation of the unit directions' z over the
+    pairs with a finite prediction and a true baseline, share of pairs whose true direction has |z| >=
+    ``min_forward`` with the predicted z of the same sign). A model that reads sideways motion but not depth
+    change has a correlation near 0 and a sign share near 0.5 (docs/models.md, What limits it). NaN for what
+    has no pair to count."""
+    tp, tg = t_pred.double(), t_gt.double()
+    ok = torch.isfinite(tp).all(-1) & (tp.norm(dim=-1) > 0) & (tg.norm(dim=-1) > 0)
+    zp = (tp[ok] / tp[ok].norm(dim=-1, keepdim=True))[:, 2]
+    zg = (tg[ok] / tg[ok].norm(dim=-1, keepdim=True))[:, 2]
+    corr = float("nan")
+    if len(zp) >= 3 and float(zp.std()) > 0 and float(zg.std()) > 0:
+        corr = float(torch.corrcoef(torch.stack([zp, zg]))[0, 1])
+    clear = zg.abs() >= min_forward
+    sign = float("nan")
+    if bool(clear.any()):
+        sign = float((torch.sign(zp[clear]) == torch.sign(zg[clear])).double().mean())
+    return corr, sign
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count), and their number."""
@@ -98,11 +119,14 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     from the forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in
     scale); ``coarse_acc``: top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``),
     chance is 1 / patches;
+    ``fwd_corr``/``fwd_sign``: ``forward_agreement`` of the estimated translation directions (the forward
+    component, which per-view focal lengths had hidden from training);
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
     whose matches give no direction keeps the model's pose)."""
     rot_err, tr_err, rels, precs, coarse, ratios, dratios = [], [], [], [], [], [], []
+    t_pred, t_true = [], []  # camera 2's centre in camera 1's frame, estimated and true (forward_agreement)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
     n = min(n_pairs, len(dataset))
@@ -124,6 +148,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
+            t_pred.append(cam2world_pred[..., :3, 3].double())
+            t_true.append(cam2world_gt[..., :3, 3])
             rot_err += torch.where(ok, re, torch.full_like(re, 180.0)).tolist()
             tr_err += torch.where(ok, te, torch.full_like(te, 180.0)).tolist()
             for b in range(len(its)):
@@ -155,11 +181,13 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
+    fwd_corr, fwd_sign = forward_agreement(torch.cat(t_pred), torch.cat(t_true)) if t_pred else (math.nan,) * 2
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
             "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
             "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
+            "fwd_corr": fwd_corr, "fwd_sign": fwd_sign,
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

@@ -23,6 +23,8 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert 0 <= ev["coarse_acc"] <= 1
     assert math.isnan(ev["baseline_ratio"]) or ev["baseline_ratio"] >= 0
     assert math.isnan(ev["depth_ratio_err"]) or ev["depth_ratio_err"] >= 0
+    assert math.isnan(ev["fwd_corr"]) or -1 <= ev["fwd_corr"] <= 1
+    assert math.isnan(ev["fwd_sign"]) or 0 <= ev["fwd_sign"] <= 1
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
 
 
@@ -156,3 +158,27 @@ def test_depth_ratio_says_how_much_too_deep_view_2_is_placed_relative_to_view_1_
     # nothing predicted in front, or no valid pixel: NaN, never a number that looks like a result
     assert math.isnan(depth_ratio(gt1, gt1, valid1, -gt2, gt2, valid2))
     assert math.isnan(depth_ratio(gt1, gt1, torch.zeros_like(valid1), gt2, gt2, valid2))
+
+
+def test_forward_agreement_tells_a_model_that_reads_depth_change_from_one_that_only_reads_sideways_motion():
+    from training.evaluate import forward_agreement
+
+    g = torch.Generator().manual_seed(0)
+    t_gt = torch.randn(200, 3, generator=g)
+    good = t_gt * 3.0 + 0.05 * torch.randn(200, 3, generator=g)  # other units
+    corr, sign = forward_agreement(good, t_gt)
+    assert corr > 0.95 and sign > 0.95
+    sideways = t_gt.clone()
+    sideways[:, 2] = torch.randn(200, generator=g)  # x, y right, the forward component noise
+    corr, sign = forward_agreement(sideways, t_gt)
+    assert abs(corr) < 0.3 and 0.3 < sign < 0.7
+    flipped = t_gt * torch.tensor([1.0, 1.0, -1.0])
+    corr, sign = forward_agreement(flipped, t_gt)
+    assert corr < -0.9 and sign == 0.0
+    # failed poses (NaN) and pairs without a baseline are left out; nothing to count gives NaN, not a number
+    holes = good.clone()
+    holes[:50] = float("nan")
+    assert forward_agreement(holes, t_gt)[0] > 0.95
+    assert all(math.isnan(v) for v in forward_agreement(torch.full((4, 3), float("nan")), t_gt[:4]))
+    only_sideways = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    assert math.isnan(forward_agreement(only_sideways, only_sideways)[1])
