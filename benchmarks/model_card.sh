@@ -5,6 +5,7 @@
 #   DATA_DIR  the folder holding the held-out sets eval_s424242, eval_p4_s434343, bench_s525252 and, when
 #             present, eval_cam_s464646 (rendered from their seeds: docs/models.md, "Reproduce")
 # The real-photograph rows need Debian's opencv-doc package (apt-get install opencv-doc).
+# Side by side with another model: save each output and run python benchmarks/compare_cards.py A.txt B.txt.
 set -euo pipefail
 if [ $# -lt 2 ]; then
   echo "usage: bash benchmarks/model_card.sh MODEL DATA_DIR [THREADS]" >&2

@@ -1,0 +1,140 @@
+"""Side by side: the model-card figures of several models, from the outputs of ``benchmarks/model_card.sh``.
+
+    bash benchmarks/model_card.sh OLD.safetensors DATA > old.txt
+    bash benchmarks/model_card.sh NEW.safetensors DATA > new.txt
+    python benchmarks/compare_cards.py old.txt new.txt [--names v15 v17]
+
+Prints one markdown row per figure (docs/models.md, "How good it is") and one column per card, then the
+totals a ship decision rests on: pairs with a rotation within 15 degrees over the synthetic card sets
+(``eval_s424242`` + ``eval_p4_s434343`` + ``bench_s525252``: 478 pairs; and with ``eval_cam_s464646`` when every
+card has it) and the same for translation. A figure a card lacks (a skipped section, an older card without a
+metric) shows as "-". Nothing here runs a model: it reads what the card script printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+
+EVAL_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646")
+# (label, key in an evaluate JSON line, format)
+EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), ("median rot err", "rot_err_med", "{:.1f}"),
+             ("median dir err", "trans_err_med", "{:.1f}"), ("AbsRel", "AbsRel", "{:.3f}"),
+             ("depth_ratio_err", "depth_ratio_err", "{:.3f}"), ("fwd_corr", "fwd_corr", "{:.2f}"),
+             ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"))
+BENCH_CATEGORIES = ("all", "low-texture", "wide (>30 deg)", "short baseline (<0.1 depth)")
+
+
+class CardError(ValueError):
+    pass
+
+
+def parse_card(text: str) -> dict:
+    """The figures of one ``model_card.sh`` output: {"eval": {set: {key: value}}, "bench": {category: (pairs,
+    RRA, RTA, med rot)}, "sift": (RRA, RTA) or None, "rig": (med rot, med dir) or None, "focal": %, "aloe_r": r}.
+    CardError when the text has none of the card's sections."""
+    sections: dict[str, list[str]] = {}
+    name = None
+    for line in text.splitlines():
+        m = re.match(r"^== (\S+)", line)
+        if m:
+            name = m.group(1).rstrip(":")
+            sections[name] = []
+        elif name is not None:
+            sections[name].append(line)
+    if not sections:
+        raise CardError("expected the output of benchmarks/model_card.sh (sections starting with '== '), found none")
+    card: dict = {"eval": {}, "bench": {}, "sift": None, "rig": None, "focal": None, "aloe_r": None}
+    for s in EVAL_SETS:
+        for line in sections.get(s, []):
+            if line.startswith("{"):
+                try:
+                    card["eval"][s] = json.loads(line)
+                except json.JSONDecodeError as e:
+                    raise CardError(f"{s}: a JSON line that does not parse ({e})") from None
+    for line in sections.get("bench_s525252", []):
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 7 and cells[2] in ("model", "sift+E (known K)") and cells[1].isdigit():
+            rra, rta = (float(c.rstrip("%")) if c != "-" else float("nan") for c in cells[3:5])
+            if cells[2] == "model":
+                card["bench"][cells[0]] = (int(cells[1]), rra, rta, float(cells[5]))
+            elif cells[0] == "all":
+                card["sift"] = (rra, rta)
+    for line in sections.get("real", []):
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 7 and cells[0] == "stereo rig" and cells[2].startswith("model (own pointmaps"):
+            card["rig"] = (float(cells[5]), float(cells[6]))
+        if len(cells) == 4 and cells[0].startswith("model (1 / depth"):
+            card["aloe_r"] = float(cells[2])
+        m = re.search(r"model focal .* median relative error ([\d.]+)%", line)
+        if m:
+            card["focal"] = float(m.group(1))
+    return card
+
+
+def _fmt(v, fmt: str) -> str:
+    return "-" if v is None or math.isnan(v) else fmt.format(v)
+
+
+def compare(cards: list[dict], names: list[str]) -> str:
+    """A markdown table, one column per card."""
+    rows = [f"| figure | {' | '.join(names)} |", "|---|" + "---|" * len(names)]
+
+    def row(label, values, fmt):
+        rows.append(f"| {label} | {' | '.join(_fmt(v, fmt) for v in values)} |")
+
+    for s in EVAL_SETS:
+        if not any(s in c["eval"] for c in cards):
+            continue
+        for label, key, fmt in EVAL_ROWS:
+            row(f"`{s}` {label}", [c["eval"].get(s, {}).get(key) for c in cards], fmt)
+    for cat in BENCH_CATEGORIES:
+        row(f"`bench_s525252` {cat}: RRA@15 %", [c["bench"].get(cat, (0, None))[1] for c in cards], "{:.0f}")
+    row("`bench_s525252` all: RTA@15 %", [c["bench"].get("all", (0, 0, None))[2] for c in cards], "{:.0f}")
+    row("`bench_s525252` all: median rot err", [c["bench"].get("all", (0, 0, 0, None))[3] for c in cards], "{:.1f}")
+    row("SIFT + E (true K), all: RRA@15 %", [(c["sift"] or (None,))[0] for c in cards], "{:.0f}")
+    row("real rig: median rot err", [(c["rig"] or (None,))[0] for c in cards], "{:.1f}")
+    row("real rig: median dir err", [(c["rig"] or (None, None))[1] for c in cards], "{:.1f}")
+    row("real rig: focal error %", [c["focal"] for c in cards], "{:.1f}")
+    row("Aloe: Pearson r", [c["aloe_r"] for c in cards], "{:.2f}")
+    for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
+        for sets in (EVAL_SETS[:2], EVAL_SETS):
+            totals = []
+            for c in cards:
+                if not all(s in c["eval"] for s in sets) or "all" not in c["bench"]:
+                    totals.append(None)
+                    continue
+                pairs = c["bench"]["all"][0] + sum(int(c["eval"][s]["pairs"]) for s in sets)
+                good = c["bench"]["all"][0] * c["bench"]["all"][i] / 100
+                good += sum(c["eval"][s]["pairs"] * c["eval"][s][key] / 100 for s in sets)
+                totals.append((round(good), pairs))
+            if all(t is None for t in totals):
+                continue
+            label = f"{metric} within 15 deg, pairs over {' + '.join(sets)} + bench_s525252"
+            rows.append(f"| {label} | {' | '.join('-' if t is None else f'{t[0]} / {t[1]}' for t in totals)} |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("cards", nargs="+", help="outputs of benchmarks/model_card.sh")
+    p.add_argument("--names", nargs="+", help="column names (default: the file names)")
+    a = p.parse_args(argv)
+    names = a.names or [Path(c).stem for c in a.cards]
+    if len(names) != len(a.cards):
+        p.error(f"--names expected {len(a.cards)} names (one per card), got {len(names)}")
+    try:
+        cards = [parse_card(Path(c).read_text()) for c in a.cards]
+    except (OSError, CardError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(compare(cards, names))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

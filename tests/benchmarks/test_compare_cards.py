@@ -1,0 +1,58 @@
+import json
+
+import pytest
+
+from benchmarks.compare_cards import CardError, compare, main, parse_card
+
+
+def _card(rra_s42, rra_p4, rra_all, cam=None, fwd=None):
+    ev = {"size": 224, "RTA15": 10.0, "rot_err_med": 14.0, "trans_err_med": 50.0, "AbsRel": 0.3,
+          "depth_ratio_err": 0.2, "match_prec": 0.12, "RRA15_matches": 44.0, "pairs": 100.0}
+    if fwd is not None:
+        ev["fwd_corr"] = fwd
+    lines = ["== eval_s424242", json.dumps({**ev, "RRA15": rra_s42}),
+             "== eval_p4_s434343", json.dumps({**ev, "RRA15": rra_p4})]
+    if cam is None:
+        lines += ["== eval_cam_s464646: skipped (missing)"]
+    else:
+        lines += ["== eval_cam_s464646", json.dumps({**ev, "RRA15": cam, "pairs": 50.0})]
+    lines += ["== bench_s525252", "200 held-out pairs", "",
+              "| category | pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |",
+              "|---|---|---|---|---|---|---|",
+              f"| all | 200 | model | {rra_all}% | 8% | 14.3 | 54.1 |",
+              "| all | 200 | sift+E (known K) | 22% | 9% | 173.1 | 137.9 |",
+              "| all | 200 | no rotation | 18% | - | 34.3 | - |",
+              "| low-texture | 77 | model | 53% | 9% | 14.2 | 47.9 |",
+              "== real",
+              "| stereo rig | 13 | model (own pointmaps, no K) | 85% | 0% | 9.3 | 39.4 |",
+              "| stereo rig | 13 | SIFT+E (known K) | 100% | 77% | 1.5 | 4.5 |",
+              "stereo rig, model focal (no K given) vs calibrated: median relative error 3.8%",
+              "| model (1 / depth of view 1) | 22.5 | 0.43 | 96% |"]
+    return "\n".join(lines)
+
+
+def test_a_card_is_read_back_into_the_figures_the_card_script_printed():
+    c = parse_card(_card(54.0, 73.0, 52, cam=44.0, fwd=0.17))
+    assert c["eval"]["eval_s424242"]["RRA15"] == 54.0 and c["eval"]["eval_cam_s464646"]["fwd_corr"] == 0.17
+    assert c["bench"]["all"] == (200, 52.0, 8.0, 14.3) and c["bench"]["low-texture"][1] == 53.0
+    assert c["sift"] == (22.0, 9.0) and c["rig"] == (9.3, 39.4) and c["focal"] == 3.8 and c["aloe_r"] == 0.43
+
+
+def test_the_comparison_counts_pairs_within_15_degrees_over_the_card_sets_and_marks_what_a_card_lacks():
+    old, new = parse_card(_card(50.0, 70.0, 50)), parse_card(_card(60.0, 70.0, 51, cam=40.0, fwd=0.4))
+    table = compare([old, new], ["old", "new"])
+    # 50 + 70 + 100 of 400 against 60 + 70 + 102; with eval_cam only where every card has it
+    assert "| rotation within 15 deg, pairs over eval_s424242 + eval_p4_s434343 + bench_s525252 | 220 / 400 | " \
+           "232 / 400 |" in table
+    assert "eval_cam_s464646 + bench_s525252 | - | 252 / 450 |" in table
+    assert "| `eval_s424242` fwd_corr | - | 0.40 |" in table
+
+
+def test_the_comparison_refuses_text_that_is_not_a_card(tmp_path, capsys):
+    with pytest.raises(CardError, match="model_card.sh"):
+        parse_card("just some log\nwith no sections\n")
+    (tmp_path / "junk.txt").write_text("nothing here")
+    assert main([str(tmp_path / "junk.txt")]) == 2
+    assert capsys.readouterr().err.startswith("error: expected the output of benchmarks/model_card.sh")
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "junk.txt"), "--names", "a", "b"])
