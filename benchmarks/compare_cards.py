@@ -76,6 +76,11 @@ def parse_card(text: str) -> dict:
     return card
 
 
+def _at(figures: tuple | None, i: int):
+    """Item ``i`` of a parsed tuple of figures, None when the card has no such tuple."""
+    return None if figures is None else figures[i]
+
+
 def _fmt(v, fmt: str) -> str:
     return "-" if v is None or math.isnan(v) else fmt.format(v)
 
@@ -93,12 +98,12 @@ def compare(cards: list[dict], names: list[str]) -> str:
         for label, key, fmt in EVAL_ROWS:
             row(f"`{s}` {label}", [c["eval"].get(s, {}).get(key) for c in cards], fmt)
     for cat in BENCH_CATEGORIES:
-        row(f"`bench_s525252` {cat}: RRA@15 %", [c["bench"].get(cat, (0, None))[1] for c in cards], "{:.0f}")
-    row("`bench_s525252` all: RTA@15 %", [c["bench"].get("all", (0, 0, None))[2] for c in cards], "{:.0f}")
-    row("`bench_s525252` all: median rot err", [c["bench"].get("all", (0, 0, 0, None))[3] for c in cards], "{:.1f}")
-    row("SIFT + E (true K), all: RRA@15 %", [(c["sift"] or (None,))[0] for c in cards], "{:.0f}")
-    row("real rig: median rot err", [(c["rig"] or (None,))[0] for c in cards], "{:.1f}")
-    row("real rig: median dir err", [(c["rig"] or (None, None))[1] for c in cards], "{:.1f}")
+        row(f"`bench_s525252` {cat}: RRA@15 %", [_at(c["bench"].get(cat), 1) for c in cards], "{:.0f}")
+    row("`bench_s525252` all: RTA@15 %", [_at(c["bench"].get("all"), 2) for c in cards], "{:.0f}")
+    row("`bench_s525252` all: median rot err", [_at(c["bench"].get("all"), 3) for c in cards], "{:.1f}")
+    row("SIFT + E (true K), all: RRA@15 %", [_at(c["sift"], 0) for c in cards], "{:.0f}")
+    row("real rig: median rot err", [_at(c["rig"], 0) for c in cards], "{:.1f}")
+    row("real rig: median dir err", [_at(c["rig"], 1) for c in cards], "{:.1f}")
     row("real rig: focal error %", [c["focal"] for c in cards], "{:.1f}")
     row("Aloe: Pearson r", [c["aloe_r"] for c in cards], "{:.2f}")
     for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
@@ -129,7 +134,7 @@ def main(argv=None) -> int:
         p.error(f"--names expected {len(a.cards)} names (one per card), got {len(names)}")
     try:
         cards = [parse_card(Path(c).read_text()) for c in a.cards]
-    except (OSError, CardError) as e:
+    except (OSError, ValueError) as e:  # CardError, or a figure that is not a number
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(compare(cards, names))

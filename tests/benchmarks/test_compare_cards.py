@@ -54,5 +54,9 @@ def test_the_comparison_refuses_text_that_is_not_a_card(tmp_path, capsys):
     (tmp_path / "junk.txt").write_text("nothing here")
     assert main([str(tmp_path / "junk.txt")]) == 2
     assert capsys.readouterr().err.startswith("error: expected the output of benchmarks/model_card.sh")
+    (tmp_path / "bad.txt").write_text(_card(50.0, 70.0, 50).replace("| 14.3 |", "| n/a |"))
+    assert main([str(tmp_path / "bad.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and len(err.strip().splitlines()) == 1
     with pytest.raises(SystemExit):
         main([str(tmp_path / "junk.txt"), "--names", "a", "b"])
