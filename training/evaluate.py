@@ -94,6 +94,19 @@ def forward_agreement(t_pred: torch.Tensor, t_gt: torch.Tensor, min_forward: flo
     return corr, sign
 
 
+def rra_by_angle(rot_err: torch.Tensor, angle_gt: torch.Tensor) -> tuple[float, float]:
+    """RRA@15 (%) over the pairs whose cameras are rotated less than 30 degrees apart, and over those rotated 45
+    degrees or more (``rot_err`` and ``angle_gt`` [N], degrees); NaN for a group without pairs. The held-out sets
+    hold 30-36% of pairs at 45 degrees or more (``python -m data.stats``), where rotation is hardest."""
+    if rot_err.shape != angle_gt.shape:
+        raise ValueError(f"rot_err and angle_gt expected the same shape, got {list(rot_err.shape)} and "
+                         f"{list(angle_gt.shape)}")
+    out = []
+    for group in (angle_gt < 30, angle_gt >= 45):
+        out.append(float((rot_err[group] < 15).double().mean() * 100) if group.any() else math.nan)
+    return out[0], out[1]
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count), and their number."""
@@ -127,8 +140,10 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     whose matches give no direction keeps the model's pose)."""
     rot_err, tr_err, rels, precs, coarse, ratios, dratios = [], [], [], [], [], [], []
     t_pred, t_true = [], []  # camera 2's centre in camera 1's frame, estimated and true (forward_agreement)
+    angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
+    eye3 = torch.eye(3, dtype=torch.float64)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -148,6 +163,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
+            angle_gt += relative_rotation_error_deg(cam2world_gt[..., :3, :3], eye3.expand_as(cam2world_gt[..., :3, :3])
+                                                    ).tolist()
             t_pred.append(cam2world_pred[..., :3, 3].double())
             t_true.append(cam2world_gt[..., :3, 3])
             rot_err += torch.where(ok, re, torch.full_like(re, 180.0)).tolist()
@@ -182,12 +199,13 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
     fwd_corr, fwd_sign = forward_agreement(torch.cat(t_pred), torch.cat(t_true)) if t_pred else (math.nan,) * 2
+    under30, over45 = rra_by_angle(rot, torch.tensor(angle_gt, dtype=torch.float64))
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
             "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
             "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
             "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
-            "fwd_corr": fwd_corr, "fwd_sign": fwd_sign,
+            "fwd_corr": fwd_corr, "fwd_sign": fwd_sign, "RRA15_under30": under30, "RRA15_over45": over45,
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

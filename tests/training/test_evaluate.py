@@ -2,13 +2,14 @@ import math
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 from pointmap.model import PRESETS, PointmapNet
 from training.evaluate import evaluate_pairs
 
 sys.path.insert(0, str(Path(__file__).parent))
-from synthetic import PlanePairs  # noqa: E402
+from synthetic import PlanePairs
 
 
 def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requested_pairs():
@@ -25,6 +26,8 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isnan(ev["depth_ratio_err"]) or ev["depth_ratio_err"] >= 0
     assert math.isnan(ev["fwd_corr"]) or -1 <= ev["fwd_corr"] <= 1
     assert math.isnan(ev["fwd_sign"]) or 0 <= ev["fwd_sign"] <= 1
+    # PlanePairs only translate: every pair is in the under-30-degree group, none in the over-45 one
+    assert ev["RRA15_under30"] == ev["RRA15"] and math.isnan(ev["RRA15_over45"])
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
 
 
@@ -182,3 +185,16 @@ def test_forward_agreement_tells_a_model_that_reads_depth_change_from_one_that_o
     assert all(math.isnan(v) for v in forward_agreement(torch.full((4, 3), float("nan")), t_gt[:4]))
     only_sideways = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
     assert math.isnan(forward_agreement(only_sideways, only_sideways)[1])
+
+
+def test_rotation_accuracy_by_angle_splits_pairs_at_30_and_45_degrees_of_true_rotation():
+    from training.evaluate import rra_by_angle
+
+    angle = torch.tensor([5.0, 29.9, 30.0, 44.9, 45.0, 80.0, 120.0], dtype=torch.float64)
+    err = torch.tensor([1.0, 20.0, 1.0, 1.0, 14.9, 15.0, 180.0], dtype=torch.float64)
+    under30, over45 = rra_by_angle(err, angle)
+    assert under30 == pytest.approx(50.0)  # 5 and 29.9 deg; 30 and 44.9 belong to neither group
+    assert over45 == pytest.approx(100 / 3)  # 45 deg counts; an error of exactly 15 does not
+    assert math.isnan(rra_by_angle(err[:2], angle[:2])[1])
+    with pytest.raises(ValueError, match="same shape"):
+        rra_by_angle(err, angle[:3])
