@@ -20,17 +20,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from pointmap.geometry.rotations import relative_rotation_error_deg
 
 ROTATION_BINS = (0.0, 15.0, 30.0, 45.0, 90.0, 180.0)  # degrees; the last bin includes 180
 OVERLAP_BINS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the smaller of the two views' co-visible fractions
 KINDS = ("room", "cluster", "courtyard")
 FOCAL_RATIO = 1.01  # above this, the two views' focal lengths count as different
-
-
-def rotation_deg(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
-    """Angle in degrees of the rotation between camera rotations ``R1``, ``R2`` [N, 3, 3]."""
-    cos = (np.einsum("nij,nij->n", R1, R2) - 1.0) / 2.0  # trace(R1^T R2) = sum of elementwise products
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def pair_records(root, split: str = "all", verify: bool = False) -> dict:
@@ -56,7 +53,8 @@ def pair_records(root, split: str = "all", verify: bool = False) -> dict:
         cols["focal_ratio"].append(max(fi, fj) / min(fi, fj))
         cols["scene"].append(int(meta["scene"]))
     out = {k: np.asarray(v) for k, v in cols.items()}
-    out["rotation_deg"] = rotation_deg(np.stack(R1), np.stack(R2))
+    out["rotation_deg"] = relative_rotation_error_deg(torch.from_numpy(np.stack(R1)), torch.from_numpy(np.stack(R2))
+                                                      ).numpy()
     out["scenes"] = len(set(cols["scene"]))
     return out
 
@@ -92,6 +90,15 @@ def summarize(rec: dict) -> dict:
     return out
 
 
+def _cell(statistic: str, v) -> str:
+    """A table cell: counts as integers, overlaps to 0.01, percentages and angles to 0.1; "-" for none or NaN."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, int):
+        return f"{v:d}"
+    return f"{v:.2f}" if statistic == "median overlap" else f"{v:.1f}"
+
+
 def format_table(names: list[str], summaries: list[dict]) -> str:
     """Markdown table, one row per statistic (the union, in first-seen order), one column per set."""
     rows: list[str] = []
@@ -99,12 +106,7 @@ def format_table(names: list[str], summaries: list[dict]) -> str:
         rows += [k for k in s if k not in rows]
     lines = ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for r in rows:
-        cells = []
-        for s in summaries:
-            v = s.get(r)
-            cells.append("-" if v is None else f"{v:d}" if isinstance(v, int) else
-                         "-" if not math.isfinite(v) else f"{v:.2f}" if r.startswith("median overlap") else f"{v:.1f}")
-        lines.append(f"| {r} | " + " | ".join(cells) + " |")
+        lines.append(f"| {r} | " + " | ".join(_cell(r, s.get(r)) for s in summaries) + " |")
     return "\n".join(lines)
 
 

@@ -7,7 +7,7 @@ import math
 import torch
 
 from pointmap.geometry.cameras import invert_rigid, transform_points
-from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
+from pointmap.geometry.rotations import relative_rotation_error_deg, rotation_angle, translation_angle_deg
 from pointmap.matching import match, match_coarse
 from pointmap.pose import refine_pose_with_matches, relative_pose
 from training.losses import patch_matching_loss
@@ -143,7 +143,6 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
-    eye3 = torch.eye(3, dtype=torch.float64)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -163,8 +162,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
-            angle_gt += relative_rotation_error_deg(cam2world_gt[..., :3, :3], eye3.expand_as(cam2world_gt[..., :3, :3])
-                                                    ).tolist()
+            angle_gt += torch.rad2deg(rotation_angle(cam2world_gt[..., :3, :3])).tolist()
             t_pred.append(cam2world_pred[..., :3, 3].double())
             t_true.append(cam2world_gt[..., :3, 3])
             rot_err += torch.where(ok, re, torch.full_like(re, 180.0)).tolist()

@@ -1,25 +1,13 @@
 import itertools
 import json
-import math
 
 import numpy as np
 import pytest
 import torch
 
 from data.datasets import PairDataset
-from data.stats import ROTATION_BINS, format_table, main, pair_records, rotation_deg, summarize
-from pointmap.geometry import axis_angle_to_matrix, invert_rigid, random_rotation, relative_rotation_error_deg
-
-
-def test_rotation_angle_agrees_with_the_library_rotation_error():
-    g = torch.Generator().manual_seed(0)
-    R1 = torch.stack([random_rotation(g) for _ in range(64)])
-    R2 = torch.stack([random_rotation(g) for _ in range(64)])
-    ours = rotation_deg(R1.numpy(), R2.numpy())
-    ref = relative_rotation_error_deg(R1, R2).numpy()
-    np.testing.assert_allclose(ours, ref, atol=1e-6)
-    about_z = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(30.0)], dtype=torch.float64))
-    assert rotation_deg(np.eye(3)[None], about_z.numpy()[None])[0] == pytest.approx(30.0)
+from data.stats import ROTATION_BINS, format_table, main, pair_records, summarize
+from pointmap.geometry import invert_rigid, relative_rotation_error_deg
 
 
 def test_pair_records_match_the_ground_truth_the_loader_serves(tiny_pairs):
