@@ -8,6 +8,8 @@
   tuples from ``AspectBatchSampler`` (one aspect ratio per batch).
 - ``MultiViewDataset(root, size=None)``: one item per scene with all its views stacked, for
   alignment and splatting evaluation.
+- ``pair_views(dataset)`` / ``camera_rotations_deg(view_pairs)``: each pair's scene metadata and the angle between
+  its two cameras, without decoding an image (``data.stats``, the rotation curriculum).
 - ``heldout(root_dir)``: renders (once) and opens the fixed evaluation set from reserved seeds.
 
 Augmentation (``augment=True``): random order swap, random resized crop (K, depth, valid and corr
@@ -30,6 +32,7 @@ from torch.utils.data import Dataset, Sampler
 from data.geom import decode_corr
 from data.shards import ShardError, ShardReader, completed_shards, load_json, read_npz, read_png
 from pointmap.errors import ShapeError
+from pointmap.geometry.rotations import relative_rotation_error_deg
 
 SPLITS = ("train", "val", "all")
 
@@ -202,6 +205,24 @@ def _inv(T):
     out[:3, :3] = T[:3, :3].T
     out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return out
+
+
+def pair_views(dataset):
+    """``(scene metadata, i, j)`` of every pair of a PairDataset (or anything with its ``items`` and shard store), in
+    item order: the pair is views ``meta["views"][i]`` and ``[j]``. Reads metadata only, no image is decoded."""
+    for k, scene, i, j in dataset.items:
+        yield dataset._store.reader(k).meta(scene), i, j
+
+
+def camera_rotations_deg(view_pairs) -> np.ndarray:
+    """Angle in degrees of the rotation between the two cameras of each ``(view i, view j)`` metadata pair (the
+    angle ``training.evaluate`` bins pairs by); float64 [N]."""
+    rot = [(np.asarray(vi["cam2world"], np.float64)[:3, :3], np.asarray(vj["cam2world"], np.float64)[:3, :3])
+           for vi, vj in view_pairs]
+    if not rot:
+        return np.zeros(0)
+    R1, R2 = (torch.from_numpy(np.stack(r)) for r in zip(*rot))
+    return relative_rotation_error_deg(R1, R2).numpy()
 
 
 class PairDataset(Dataset):

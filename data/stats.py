@@ -20,9 +20,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
-
-from pointmap.geometry.rotations import relative_rotation_error_deg
 
 ROTATION_BINS = (0.0, 15.0, 30.0, 45.0, 90.0, 180.0)  # degrees; the last bin includes 180
 OVERLAP_BINS = (0.0, 0.25, 0.5, 0.75, 1.0)  # the smaller of the two views' co-visible fractions
@@ -34,16 +31,14 @@ def pair_records(root, split: str = "all", verify: bool = False) -> dict:
     """Per-pair arrays of a ``--kind pairs`` root: ``kind`` (str), ``low_texture`` (bool), ``move`` (str, how view 2
     was made), ``rotation_deg``, ``overlap`` (min of the two directions), ``focal_ratio`` (>= 1), ``scene`` (int);
     plus ``scenes`` (the number of distinct scenes). ShardError (one line) for a root that is not a pair set."""
-    from data.datasets import PairDataset
+    from data.datasets import PairDataset, camera_rotations_deg, pair_views
 
     ds = PairDataset(root, size=64, augment=False, split=split, verify=verify)
     cols: dict[str, list] = {k: [] for k in ("kind", "low_texture", "move", "overlap", "focal_ratio", "scene")}
-    R1, R2 = [], []
-    for k, scene, i, j in ds.items:
-        meta = ds._store.reader(k).meta(scene)
+    views = []
+    for meta, i, j in pair_views(ds):
         vi, vj = meta["views"][i], meta["views"][j]
-        R1.append(np.asarray(vi["cam2world"], np.float64)[:3, :3])
-        R2.append(np.asarray(vj["cam2world"], np.float64)[:3, :3])
+        views.append((vi, vj))
         fi, fj = float(vi["K"][0][0]), float(vj["K"][0][0])
         cols["kind"].append(str(meta.get("kind", "?")))
         cols["low_texture"].append(bool(meta.get("low_texture", False)))
@@ -53,8 +48,7 @@ def pair_records(root, split: str = "all", verify: bool = False) -> dict:
         cols["focal_ratio"].append(max(fi, fj) / min(fi, fj))
         cols["scene"].append(int(meta["scene"]))
     out = {k: np.asarray(v) for k, v in cols.items()}
-    out["rotation_deg"] = relative_rotation_error_deg(torch.from_numpy(np.stack(R1)), torch.from_numpy(np.stack(R2))
-                                                      ).numpy()
+    out["rotation_deg"] = camera_rotations_deg(views)
     out["scenes"] = len(set(cols["scene"]))
     return out
 

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from pointmap.geometry.rotations import relative_rotation_error_deg
+from data.datasets import camera_rotations_deg, pair_views
 
 
 def _split_index(index, n: int):
@@ -79,12 +79,7 @@ def relative_rotations_deg(dataset) -> np.ndarray:
     """Ground-truth rotation angle between the two cameras of every pair (from the shard metadata)."""
     if isinstance(dataset, PairMix):
         return np.concatenate([relative_rotations_deg(p) for p in dataset.parts])
-    R1, R2 = [], []
-    for k, scene, i, j in dataset.items:
-        views = dataset._store.reader(k).meta(scene)["views"]
-        R1.append(np.asarray(views[i]["cam2world"], np.float64)[:3, :3])
-        R2.append(np.asarray(views[j]["cam2world"], np.float64)[:3, :3])
-    return relative_rotation_error_deg(torch.from_numpy(np.stack(R1)), torch.from_numpy(np.stack(R2))).numpy()
+    return camera_rotations_deg((m["views"][i], m["views"][j]) for m, i, j in pair_views(dataset))
 
 
 def limit_rotation(dataset, max_deg: float):
