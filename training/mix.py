@@ -5,7 +5,6 @@ from __future__ import annotations
 import bisect
 
 import numpy as np
-import torch
 from torch.utils.data import Dataset
 
 from data.datasets import camera_rotations_deg, pair_views
