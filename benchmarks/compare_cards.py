@@ -25,7 +25,8 @@ EVAL_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646")
 EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), ("median rot err", "rot_err_med", "{:.1f}"),
              ("RRA@15 % under 30 deg", "RRA15_under30", "{:.1f}"), ("RRA@15 % over 45 deg", "RRA15_over45", "{:.1f}"),
              ("median dir err", "trans_err_med", "{:.1f}"), ("AbsRel", "AbsRel", "{:.3f}"),
-             ("depth_ratio_err", "depth_ratio_err", "{:.3f}"), ("fwd_corr", "fwd_corr", "{:.2f}"),
+             ("depth_ratio_err", "depth_ratio_err", "{:.3f}"),
+             ("focal error (median, relative)", "focal_err", "{:.3f}"), ("fwd_corr", "fwd_corr", "{:.2f}"),
              ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"))
 BENCH_CATEGORIES = ("all", "low-texture", "wide (>30 deg)", "short baseline (<0.1 depth)")
 

@@ -7,6 +7,7 @@ import math
 import torch
 
 from pointmap.geometry.cameras import invert_rigid, transform_points
+from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.rotations import relative_rotation_error_deg, rotation_angle, translation_angle_deg
 from pointmap.matching import match, match_coarse
 from pointmap.pose import refine_pose_with_matches, relative_pose
@@ -107,6 +108,17 @@ def rra_by_angle(rot_err: torch.Tensor, angle_gt: torch.Tensor) -> tuple[float, 
     return out[0], out[1]
 
 
+def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """[B] relative error |f / f_true - 1| of the focal recovered from camera-frame pointmaps [B, H, W, 3] (a view's
+    pointmap in its own frame; ``pointmap.geometry.focal_from_pointmap``, the estimate ``pointmap demo`` and the
+    global aligner start from) against the true intrinsics K [B, 3, 3] (fx). 0.25: 25% too long or too short."""
+    if pts_cam.ndim != 4 or pts_cam.shape[-1] != 3 or K.shape != (pts_cam.shape[0], 3, 3):
+        raise ValueError(f"pts_cam [B, H, W, 3] and K [B, 3, 3] expected, got {list(pts_cam.shape)} and "
+                         f"{list(K.shape)}")
+    f = focal_from_pointmap(pts_cam.float()).double()
+    return (f / K[:, 0, 0].double() - 1).abs()
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count), and their number."""
@@ -132,6 +144,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     from the forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in
     scale); ``coarse_acc``: top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``),
     chance is 1 / patches;
+    ``focal_err``: median over both views of ``focal_error`` (each view's focal from its own-frame pointmap);
     ``fwd_corr``/``fwd_sign``: ``forward_agreement`` of the estimated translation directions (the forward
     component, which per-view focal lengths had hidden from training);
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
@@ -143,6 +156,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
+    focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         items = [dataset[k] for k in range(s, min(s + batch_size, n))]
@@ -162,6 +176,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
+            focal_errs += focal_error(pred.pts1_cam1, v1["K"]).tolist() + focal_error(pred_rev.pts1_cam1, v2["K"]).tolist()
             angle_gt += torch.rad2deg(rotation_angle(cam2world_gt[..., :3, :3])).tolist()
             t_pred.append(cam2world_pred[..., :3, 3].double())
             t_true.append(cam2world_gt[..., :3, 3])
@@ -204,6 +219,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
             "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
             "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
             "fwd_corr": fwd_corr, "fwd_sign": fwd_sign, "RRA15_under30": under30, "RRA15_over45": over45,
+            "focal_err": float(torch.tensor(focal_errs).nanmedian()) if focal_errs else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

@@ -26,6 +26,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isnan(ev["depth_ratio_err"]) or ev["depth_ratio_err"] >= 0
     assert math.isnan(ev["fwd_corr"]) or -1 <= ev["fwd_corr"] <= 1
     assert math.isnan(ev["fwd_sign"]) or 0 <= ev["fwd_sign"] <= 1
+    assert math.isfinite(ev["focal_err"]) and ev["focal_err"] >= 0
     # PlanePairs only translate: every pair is in the under-30-degree group, none in the over-45 one
     assert ev["RRA15_under30"] == ev["RRA15"] and math.isnan(ev["RRA15_over45"])
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
@@ -198,3 +199,18 @@ def test_rotation_accuracy_by_angle_splits_pairs_at_30_and_45_degrees_of_true_ro
     assert math.isnan(rra_by_angle(err[:2], angle[:2])[1])
     with pytest.raises(ValueError, match="same shape"):
         rra_by_angle(err, angle[:3])
+
+
+def test_focal_error_is_zero_for_a_true_pointmap_and_the_relative_error_for_a_wrong_focal():
+    from pointmap.geometry import depth_to_points_cam
+    from training.evaluate import focal_error
+
+    K = torch.tensor([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    depth = 2 + torch.rand(24, 32, generator=torch.Generator().manual_seed(0))
+    pts = depth_to_points_cam(depth, K)[None].expand(2, -1, -1, -1)
+    K_other = K.clone()
+    K_other[0, 0] = K_other[1, 1] = 24.0  # the pointmap was made with 30: 25% too long against 24
+    err = focal_error(pts, torch.stack([K, K_other]))
+    assert err[0] < 1e-3 and abs(float(err[1]) - 0.25) < 1e-3
+    with pytest.raises(ValueError, match="expected"):
+        focal_error(pts[0], K)
