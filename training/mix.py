@@ -7,7 +7,7 @@ import bisect
 import numpy as np
 from torch.utils.data import Dataset
 
-from data.datasets import camera_rotations_deg, pair_views
+from data.datasets import PairDataset, camera_rotations_deg, pair_views
 
 
 def _split_index(index, n: int):
@@ -48,8 +48,6 @@ class PairMix(Dataset):
 
 def open_pairs(spec: str, **kwargs):
     """``PairDataset`` of one root, or a ``PairMix`` of a comma-separated list of roots."""
-    from data.datasets import PairDataset
-
     roots = [r for r in spec.split(",") if r]
     if not roots:
         raise ValueError(f"--data expected one or more shard directories, got {spec!r}")
