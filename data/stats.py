@@ -67,7 +67,10 @@ def _shares(values: np.ndarray, edges) -> list[float]:
 def summarize(rec: dict) -> dict:
     """Ordered {statistic: value}: counts, then percentages of pairs, then medians."""
     n = len(rec["rotation_deg"])
-    pct = lambda mask: 100.0 * float(np.mean(mask))
+
+    def pct(mask) -> float:
+        return 100.0 * float(np.mean(mask))
+
     out = {"scenes": rec["scenes"], "pairs": n}
     for kind in KINDS:
         out[f"kind {kind} %"] = pct(rec["kind"] == kind)

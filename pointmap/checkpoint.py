@@ -183,7 +183,10 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
     if had_pose and model.pose_head is None:
         raise CheckpointError(f"{source} has a pose head (its view-2 head predicts in view 2's own frame); the model "
                               "has none and would read that head's output as view-1 points: build it with a pose head")
-    is_head = lambda k: k.startswith(HEAD_PREFIXES)
+
+    def is_head(k: str) -> bool:
+        return k.startswith(HEAD_PREFIXES)
+
     missing = [k for k in own if not is_head(k) and k not in state]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
               for k in own if not is_head(k) and k in state and tuple(state[k].shape) != tuple(own[k].shape)]
@@ -286,7 +289,7 @@ def load_model(src, device="cpu", **kwargs):
     """
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
-    if isinstance(src, str) and not os.path.sep in src and not Path(src).exists():
+    if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
         if (WEIGHTS_DIR / f"{src}.safetensors").exists():
             return load_own(WEIGHTS_DIR / f"{src}.safetensors").to(device).eval()
         if src in PRESETS:

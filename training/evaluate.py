@@ -121,7 +121,9 @@ def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
-    (only matches whose view-1 pixel has a GT correspondence count), and their number."""
+    (only matches whose view-1 pixel has a GT correspondence count), and their number. A pair without any
+    match scores 0 (it found nothing right); NaN only when it cannot be judged (no descriptors, or no match
+    lands where the ground truth has a correspondence)."""
     if not pred.has_desc:
         return float("nan"), 0
     m = match(pred)
@@ -190,8 +192,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                                  v2["depth_z"][b], v2["valid"][b])
                 if math.isfinite(dr) and dr > 0:
                     dratios.append(abs(math.log(dr)))
-                p, cnt = match_precision(pred[b], v1["corr"][b])
-                if cnt:
+                p, _ = match_precision(pred[b], v1["corr"][b])
+                if not math.isnan(p):  # a pair without matches counts, as 0
                     precs.append(p)
             if pred.has_desc:
                 patch = getattr(model, "module", model).cfg.patch_size

@@ -64,7 +64,10 @@ def test_asking_for_photos_where_there_are_none_is_a_clear_error(tmp_path, capsy
 def test_scenes_without_photos_draw_the_same_as_scenes_with_a_zero_photo_share(photo_dir):
     plain = make_scene(np.random.default_rng(4))
     zero = make_scene(np.random.default_rng(4), photos=PhotoCollection([photo_dir]), photo_share=0.0)
-    textures = lambda s: [m.material.texture for m in s.surfaces]
+
+    def textures(s):
+        return [m.material.texture for m in s.surfaces]
+
     assert len(textures(plain)) == len(textures(zero))
     assert all((x is None and y is None) or np.array_equal(x, y) for x, y in zip(textures(plain), textures(zero)))
     some = make_scene(np.random.default_rng(4), photos=PhotoCollection([photo_dir]), photo_share=1.0)
@@ -76,7 +79,10 @@ def test_a_photo_run_records_its_collection_and_is_reproducible(photo_dir, tmp_p
         assert main(["--out", str(tmp_path / name), *ARGS, "--photo-share", "0.7", "--photo-dirs", str(photo_dir)]) == 0
     cfg = json.loads((tmp_path / "a" / "config.json").read_text())
     assert cfg["photo_share"] == 0.7 and cfg["photo_fingerprint"] == PhotoCollection([photo_dir]).fingerprint
-    files = lambda d: {p.name: p.read_bytes() for p in sorted(d.iterdir()) if p.suffix == ".tar"}
+
+    def files(d):
+        return {p.name: p.read_bytes() for p in sorted(d.iterdir()) if p.suffix == ".tar"}
+
     assert files(tmp_path / "a") == files(tmp_path / "b")
     assert main(["--out", str(tmp_path / "plain"), *ARGS]) == 0
     assert "photo_share" not in json.loads((tmp_path / "plain" / "config.json").read_text())
@@ -85,7 +91,10 @@ def test_a_photo_run_records_its_collection_and_is_reproducible(photo_dir, tmp_p
 def test_a_zero_photo_share_renders_the_same_bytes_as_a_run_without_photos(photo_dir, tmp_path):
     assert main(["--out", str(tmp_path / "plain"), *ARGS]) == 0
     assert main(["--out", str(tmp_path / "zero"), *ARGS, "--photo-share", "0", "--photo-dirs", str(photo_dir)]) == 0
-    files = lambda d: {p.name: p.read_bytes() for p in sorted(d.iterdir())}
+
+    def files(d):
+        return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
+
     assert files(tmp_path / "plain") == files(tmp_path / "zero")
 
 

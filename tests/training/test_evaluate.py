@@ -214,3 +214,29 @@ def test_focal_error_is_zero_for_a_true_pointmap_and_the_relative_error_for_a_wr
     assert err[0] < 1e-3 and abs(float(err[1]) - 0.25) < 1e-3
     with pytest.raises(ValueError, match="expected"):
         focal_error(pts[0], K)
+
+
+def test_match_precision_scores_a_pair_without_matches_as_zero_and_only_unjudgeable_pairs_as_nan(monkeypatch):
+    from types import SimpleNamespace
+
+    import training.evaluate as ev
+
+    corr = torch.full((4, 5, 2), float("nan"))
+    corr[1, 2] = torch.tensor([3.0, 1.0])  # view-1 pixel (u=2, v=1) sees view-2 pixel (3, 1)
+    pred = SimpleNamespace(has_desc=True)
+
+    class Matches:
+        def __init__(self, xy1, xy2):
+            self.xy1, self.xy2 = torch.tensor(xy1).reshape(-1, 2), torch.tensor(xy2).reshape(-1, 2)
+
+        def __len__(self):
+            return len(self.xy1)
+
+    monkeypatch.setattr(ev, "match", lambda _: Matches([], []))
+    assert ev.match_precision(pred, corr) == (0.0, 0)
+    monkeypatch.setattr(ev, "match", lambda _: Matches([[2.0, 1.0], [0.0, 0.0]], [[3.5, 1.0], [1.0, 1.0]]))
+    assert ev.match_precision(pred, corr) == (1.0, 1)  # the match at (0, 0) has no ground truth: not judged
+    monkeypatch.setattr(ev, "match", lambda _: Matches([[0.0, 0.0]], [[1.0, 1.0]]))
+    p, n = ev.match_precision(pred, corr)
+    assert math.isnan(p) and n == 0
+    assert math.isnan(ev.match_precision(SimpleNamespace(has_desc=False), corr)[0])
