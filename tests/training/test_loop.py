@@ -156,7 +156,7 @@ def test_the_coarse_matching_loss_is_added_with_its_weight_when_switched_on(tmp_
     cfg = dataclasses.replace(config(tmp_path, 1), coarse_weight=0.5)
     both, d1 = make_step(cfg)(model, batch, 0)
     assert "coarse_loss" not in d0 and d1["coarse_loss"] > 0
-    assert abs(float(both) - float(base) - 0.5 * d1["coarse_loss"]) < 1e-4
+    assert abs(float(both.detach()) - float(base.detach()) - 0.5 * d1["coarse_loss"]) < 1e-4
 
 
 def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_query_projections(tmp_path):
@@ -165,7 +165,7 @@ def test_cross_attention_supervision_is_added_with_its_weight_and_reaches_the_qu
     cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1)
     step = make_step(cfg)
     both, d = step(model, batch, 0)
-    assert d["attn_loss"] > 0 and abs(float(both) - float(base) - 0.5 * d["attn_loss"]) < 1e-4
+    assert d["attn_loss"] > 0 and abs(float(both.detach()) - float(base.detach()) - 0.5 * d["attn_loss"]) < 1e-4
     both.backward()
     assert model.dec_blocks[0].cross_attn.projq.weight.grad.abs().sum() > 0
     assert model.dec_blocks2[-1].cross_attn.projk.weight.grad.abs().sum() > 0
