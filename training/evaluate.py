@@ -119,23 +119,23 @@ def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return (f / K[:, 0, 0].double() - 1).abs()
 
 
-def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> tuple[float, int]:
+def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> float:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
-    (only matches whose view-1 pixel has a GT correspondence count), and their number. A pair without any
+    (only matches whose view-1 pixel has a GT correspondence count). A pair without any
     match scores 0 (it found nothing right); NaN only when it cannot be judged (no descriptors, or no match
     lands where the ground truth has a correspondence)."""
     if not pred.has_desc:
-        return float("nan"), 0
+        return float("nan")
     m = match(pred)
     if len(m) == 0:
-        return 0.0, 0
+        return 0.0
     u, v = m.xy1[:, 0].long(), m.xy1[:, 1].long()
     gt = corr[v, u]
     ok = torch.isfinite(gt).all(-1)
     if ok.sum() == 0:
-        return float("nan"), 0
+        return float("nan")
     err = (gt[ok] - m.xy2[ok]).norm(dim=-1)
-    return float((err < tol).float().mean()), int(ok.sum())
+    return float((err < tol).float().mean())
 
 
 @torch.inference_mode()
@@ -192,7 +192,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                                  v2["depth_z"][b], v2["valid"][b])
                 if math.isfinite(dr) and dr > 0:
                     dratios.append(abs(math.log(dr)))
-                p, _ = match_precision(pred[b], v1["corr"][b])
+                p = match_precision(pred[b], v1["corr"][b])
                 if not math.isnan(p):  # a pair without matches counts, as 0
                     precs.append(p)
             if pred.has_desc:

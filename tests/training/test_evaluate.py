@@ -233,10 +233,9 @@ def test_match_precision_scores_a_pair_without_matches_as_zero_and_only_unjudgea
             return len(self.xy1)
 
     monkeypatch.setattr(ev, "match", lambda _: Matches([], []))
-    assert ev.match_precision(pred, corr) == (0.0, 0)
+    assert ev.match_precision(pred, corr) == 0.0
     monkeypatch.setattr(ev, "match", lambda _: Matches([[2.0, 1.0], [0.0, 0.0]], [[3.5, 1.0], [1.0, 1.0]]))
-    assert ev.match_precision(pred, corr) == (1.0, 1)  # the match at (0, 0) has no ground truth: not judged
+    assert ev.match_precision(pred, corr) == 1.0  # the match at (0, 0) has no ground truth: not judged
     monkeypatch.setattr(ev, "match", lambda _: Matches([[0.0, 0.0]], [[1.0, 1.0]]))
-    p, n = ev.match_precision(pred, corr)
-    assert math.isnan(p) and n == 0
-    assert math.isnan(ev.match_precision(SimpleNamespace(has_desc=False), corr)[0])
+    assert math.isnan(ev.match_precision(pred, corr))
+    assert math.isnan(ev.match_precision(SimpleNamespace(has_desc=False), corr))
