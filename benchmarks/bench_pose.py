@@ -10,7 +10,7 @@ matches (pm.refine_pose_with_matches: robust least squares on the epipolar const
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
 anything about rotation.
 
-    python benchmarks/bench_pose.py --data HELDOUT_SHARDS --model small [--pairs 200]
+    python benchmarks/bench_pose.py --data HELDOUT_SHARDS --model small [--pairs 200] [--per-pair CSV]
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
 from pointmap.pose import pose_from_essential  # noqa: E402
+from training.evaluate import PairResult, write_per_pair  # noqa: E402
 
 
 def sift_pose(img1: np.ndarray, img2: np.ndarray, K1: np.ndarray, K2: np.ndarray):
@@ -83,9 +84,12 @@ def main(argv=None) -> int:
     p.add_argument("--pairs", type=int, default=200)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
+                   help="also save the model's per-pair errors (set: the --data folder's name) for benchmarks/paired.py")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     model, size = model_at_size(a.model, a.size)
+    per_pair = []
     ds = PairDataset(a.data, size=size, augment=False, split="all")
     res = defaultdict(lambda: defaultdict(list))
     n = min(a.pairs, len(ds))
@@ -106,6 +110,7 @@ def main(argv=None) -> int:
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
+        per_pair.append(PairResult(idx, *errors(ours, gt), true_rot))
         cm = hybrid = None
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
             m = pm.match_coarse(pred, model.cfg.patch_size)
@@ -121,6 +126,8 @@ def main(argv=None) -> int:
             r, t = errors(est, gt) if name != "no rotation" else (errors(np.eye(4), gt)[0], float("nan"))
             for c in cats:
                 res[c][name].append((r, t))
+    if a.per_pair is not None:
+        write_per_pair(a.per_pair, Path(a.data).resolve().name, per_pair)
     print(f"{n} held-out pairs from {a.data}; model {a.model!r}\n")
     print_pose_table({(c, name): vals for c in sorted(res, key=lambda c: (c != "all", c))
                       for name, vals in res[c].items()}, "category")

@@ -39,6 +39,7 @@ import pointmap as pm  # noqa: E402
 from benchmarks.bench_pose import errors, model_at_size, print_pose_table, sift_pose  # noqa: E402
 from pointmap.pose import focal_from_prediction  # noqa: E402
 from pointmap.reconstruction import K_to_map  # noqa: E402
+from training.evaluate import PairResult, write_per_pair  # noqa: E402
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
@@ -138,17 +139,21 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="small")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
+                   help="also save the model's per-pair errors on the rig (set real_rig) for benchmarks/paired.py")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     model, size = model_at_size(a.model, a.size)
 
     pairs, K1, D1, K2, D2, gt, rms, n_cal = calibrate_rig(a.data)
-    res, focal_err = {}, []
-    for left, right in pairs:
+    res, focal_err, per_pair = {}, [], []
+    true_rot = errors(np.eye(4), gt)[0]
+    for k, (left, right) in enumerate(pairs):
         im1 = cv2.cvtColor(cv2.undistort(left, K1, D1), cv2.COLOR_GRAY2RGB)
         im2 = cv2.cvtColor(cv2.undistort(right, K2, D2), cv2.COLOR_GRAY2RGB)
         rows, ferr, _ = pose_rows(model, im1, im2, gt, size, K1, K2)
         focal_err.append(ferr)
+        per_pair.append(PairResult(k, *rows[0][1], true_rot))  # rows[0]: the model from its own pointmaps
         for name, e in rows:
             res.setdefault(("stereo rig", name), []).append(e)
 
@@ -177,6 +182,8 @@ def main(argv=None) -> int:
                   ("constant (prior)", *disparity_fit(np.zeros_like(z), gt_disp, valid), valid.mean()),
                   ("StereoSGBM (rectified pair, same size)", *disparity_fit(d_sgbm, gt_disp, ok_sgbm), ok_sgbm.mean())]
 
+    if a.per_pair is not None:
+        write_per_pair(a.per_pair, "real_rig", per_pair)
     print(f"model {a.model!r} at {size} px; rig calibrated on {n_cal} of {len(pairs)} pairs, stereo RMS {rms:.3f} px; "
           f"true rig rotation {errors(np.eye(4), gt)[0]:.1f} deg\n")
     print_pose_table(res, "set")

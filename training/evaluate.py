@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -19,6 +20,49 @@ def _depth_scale(p: torch.Tensor, g: torch.Tensor):
     that puts a scale-free prediction in the truth's units, or None when no pixel is predicted in front."""
     front = p > 0
     return torch.median(g[front] / p[front]) if bool(front.any()) else None
+
+
+class PairResult(NamedTuple):
+    """One pair's two-view pose result: its index in the held-out set, the rotation error and the translation
+    direction error (degrees; a pose not found counts 180 for both, a direction not defined is NaN) and the
+    true rotation angle between the two cameras (degrees; NaN when unknown)."""
+    pair: int
+    rot_err: float
+    dir_err: float
+    true_rot: float
+
+
+PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot")
+
+
+def write_per_pair(path, set_name: str, rows) -> None:
+    """Save per-pair results (``PairResult`` rows of one held-out set) as CSV, atomically; the file
+    ``benchmarks/paired.py`` reads. Several sets may share a file (the ``set`` column tells them apart):
+    ``rows`` are appended to the file's existing rows of other sets, and replace its rows of ``set_name``."""
+    import csv
+    import io
+    from pathlib import Path
+
+    from pointmap.atomic import atomic_open
+
+    if not set_name or "," in set_name or "\n" in set_name:
+        raise ValueError(f"set_name expected a non-empty name without commas or newlines, got {set_name!r}")
+    path = Path(path)
+    kept = []
+    if path.exists():
+        with open(path, newline="") as f:
+            old = list(csv.reader(f))
+        if not old or tuple(old[0]) != PER_PAIR_HEADER:
+            raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)}, got "
+                             f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
+        kept = [r for r in old[1:] if r and r[0] != set_name]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(PER_PAIR_HEADER)
+    w.writerows(kept)
+    w.writerows([set_name, int(r.pair), f"{r.rot_err:.4f}", f"{r.dir_err:.4f}", f"{r.true_rot:.4f}"] for r in rows)
+    with atomic_open(path, "w") as f:
+        f.write(buf.getvalue())
 
 
 def _pose_errors(est: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
@@ -139,8 +183,10 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> float:
 
 
 @torch.inference_mode()
-def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> dict:
+def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_pair: list | None = None) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
+    ``per_pair`` (a list) given: one ``PairResult`` per pair is appended to it, in dataset order (the rows
+    ``write_per_pair`` saves and ``benchmarks/paired.py`` compares between two models).
     ``baseline_ratio``: median of ``baseline_ratio`` (< 1: camera 2 placed too close to camera 1);
     ``depth_ratio_err``: median over pairs of |log ``depth_ratio``|, view 2's depth in its own frame taken
     from the forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in
@@ -158,15 +204,18 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
+    order = []  # the dataset index of each entry of rot_err / tr_err / angle_gt (batches regroup by shape)
     focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
-        items = [dataset[k] for k in range(s, min(s + batch_size, n))]
         groups: dict = {}
-        for it in items:  # batch items of equal shapes together
+        for k in range(s, min(s + batch_size, n)):  # batch items of equal shapes together
+            it = dataset[k]
             key = (tuple(it[0]["img"].shape), tuple(it[1]["img"].shape))
-            groups.setdefault(key, []).append(it)
-        for its in groups.values():
+            groups.setdefault(key, []).append((k, it))
+        for group in groups.values():
+            order += [k for k, _ in group]
+            its = [it for _, it in group]
             v1 = {k: torch.stack([it[0][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid", "corr")}
             v2 = {k: torch.stack([it[1][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid")}
             pred = model(v1["img"], v2["img"])
@@ -210,6 +259,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8) -> di
                     r, t = _pose_errors(refined, cam2world_gt[b])
                     rot_r.append(r)
                     tr_r.append(t)
+    if per_pair is not None:
+        per_pair += sorted(PairResult(k, r, t, a) for k, r, t, a in zip(order, rot_err, tr_err, angle_gt))
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
@@ -314,6 +365,10 @@ def main(argv=None) -> int:
     p.add_argument("--sources", action="store_true",
                    help="also print where the pose error comes from (pose_error_sources: model vs true matches "
                         "and depth), a markdown table before the JSON line")
+    p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
+                   help="also save each pair's rotation / direction error to this CSV (its rows for this set "
+                        "replaced, other sets' kept), for benchmarks/paired.py")
+    p.add_argument("--set", default=None, help="the set's name in --per-pair (default: the --data folder's name)")
     a = p.parse_args(argv)
     if a.threads > 0:
         torch.set_num_threads(a.threads)
@@ -348,7 +403,14 @@ def main(argv=None) -> int:
         for name, r in src.items():
             print(f"| {name} | {r['pairs']} | {r['RRA15']:.1f}% | {r['RTA15']:.1f}% | {r['rot_err_med']:.1f} | "
                   f"{r['trans_err_med']:.1f} |")
-    res = evaluate_pairs(model.eval(), ds, a.pairs)
+    rows = []
+    res = evaluate_pairs(model.eval(), ds, a.pairs, per_pair=rows)
+    if a.per_pair is not None:
+        try:
+            write_per_pair(a.per_pair, a.set or Path(a.data).resolve().name, rows)
+        except (OSError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     print(json.dumps({"model": a.model, "size": size, **{k: round(v, 4) for k, v in res.items()}}))
     sys.stdout.flush()
     return 0

@@ -32,6 +32,34 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
 
 
+class _MixedShapes(torch.utils.data.Dataset):
+    """Pairs 0 and 2 at 32 x 32, pair 1 at 32 x 48: evaluate_pairs batches 0 and 2 together, then 1."""
+
+    def __init__(self):
+        self.parts = [PlanePairs(3, seed=1), PlanePairs(3, W=48, seed=2), PlanePairs(3, seed=3)]
+
+    def __len__(self):
+        return 3
+
+    def __getitem__(self, i):
+        return self.parts[i][i]
+
+
+def test_per_pair_results_come_back_in_dataset_order_and_match_each_pair_evaluated_alone():
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"]).eval()
+    data = _MixedShapes()
+    rows = []
+    evaluate_pairs(model, data, n_pairs=3, batch_size=4, per_pair=rows)
+    assert [r.pair for r in rows] == [0, 1, 2]
+    for k in range(3):  # the slow reference: the pair on its own
+        alone = []
+        evaluate_pairs(model, torch.utils.data.Subset(data, [k]), n_pairs=1, per_pair=alone)
+        assert rows[k].rot_err == pytest.approx(alone[0].rot_err, abs=1e-3)
+        assert rows[k].dir_err == pytest.approx(alone[0].dir_err, abs=1e-3)
+        assert rows[k].true_rot == pytest.approx(0.0, abs=1e-3)  # PlanePairs only translate
+
+
 def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path, capsys):
     import json
     import os
@@ -47,9 +75,15 @@ def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path
                    cwd=root, env=env, check=True, capture_output=True, timeout=300)
     torch.manual_seed(0)
     weights = pm.save_model(PointmapNet(PRESETS["test"]), tmp_path / "m.safetensors")
-    assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--size", "64", "--pairs", "2"]) == 0
+    assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--size", "64", "--pairs", "2",
+                 "--per-pair", str(tmp_path / "pairs.csv")]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["size"] == 64 and 1 <= out["pairs"] <= 2 and 0 <= out["RRA15"] <= 100
+    from benchmarks.paired import read_per_pair
+
+    rows = read_per_pair(tmp_path / "pairs.csv")  # one row per evaluated pair, under the data folder's name
+    assert sorted(rows) == [("eval", k) for k in range(int(out["pairs"]))]
+    assert 100 * sum(r[0] < 15 for r in rows.values()) / len(rows) == pytest.approx(out["RRA15"], abs=0.01)
 
 
 def test_the_evaluate_command_refuses_missing_data_and_foreign_checkpoints_in_one_line(tmp_path, capsys):

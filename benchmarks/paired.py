@@ -1,0 +1,147 @@
+"""Two models on the same pairs, pair by pair: is a difference between their cards real or a draw?
+
+A card's aggregate (RRA@15 57.6% vs 61.2%, a median direction error of 25 vs 45 degrees) does not say whether
+the two models differ on the same pairs or trade wins at random. This script joins two per-pair files (written
+by ``--per-pair CSV`` of ``python -m training.evaluate``, ``benchmarks/bench_pose.py`` and
+``benchmarks/bench_real.py``, or by ``benchmarks/model_card.sh MODEL DATA THREADS PER_PAIR.csv``) on
+(set, pair) and prints, per set and over all sets:
+
+- for rotation and translation direction within ``--tol`` degrees: the pairs each model gets and the other
+  misses (the discordant pairs) and McNemar's exact two-sided p-value (binomial on the discordant pairs: the
+  chance of a split at least this uneven if the two models were equally good);
+- for the errors themselves: the median of B's error minus A's over the pairs, the pairs where B is lower /
+  higher, and the sign test's exact two-sided p-value.
+
+A small p (say < 0.05) says the difference is unlikely to be a draw of these pairs; it says nothing about the
+draw of the training run that made each model (two runs of one recipe differ too).
+
+    python benchmarks/paired.py v17.csv v21.csv --names v17 v21 [--tol 15]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from training.evaluate import PER_PAIR_HEADER  # noqa: E402
+
+
+class PairedError(ValueError):
+    """A per-pair file that cannot be read or two files that share no pairs."""
+
+
+def read_per_pair(path) -> dict:
+    """{(set, pair): (rot_err, dir_err, true_rot)} of a per-pair CSV; PairedError for anything else."""
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
+    if not rows or tuple(rows[0]) != PER_PAIR_HEADER:
+        raise PairedError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)}, got "
+                          f"{','.join(rows[0]) if rows else 'an empty file'}")
+    out = {}
+    for n, r in enumerate(rows[1:], start=2):
+        if not r:
+            continue
+        try:
+            if len(r) != len(PER_PAIR_HEADER):
+                raise ValueError(f"{len(r)} fields")
+            key = (r[0], int(r[1]))
+            vals = tuple(float(x) for x in r[2:])
+        except ValueError as e:
+            raise PairedError(f"{path}, line {n}: expected set,pair,rot_err,dir_err,true_rot, got {','.join(r)!r} "
+                              f"({e})") from e
+        if key in out:
+            raise PairedError(f"{path}, line {n}: pair {key[1]} of set {key[0]!r} appears twice")
+        out[key] = vals
+    return out
+
+
+def binomial_two_sided(k: int, n: int) -> float:
+    """Exact two-sided p-value of k successes in n fair coin flips (1.0 for n = 0): twice the smaller tail,
+    capped at 1."""
+    if not 0 <= k <= n:
+        raise ValueError(f"k expected in [0, n], got k={k}, n={n}")
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(k, n - k) + 1)) / 2 ** n
+    return min(1.0, 2 * tail)
+
+
+def compare_errors(a: list, b: list, tol: float) -> dict:
+    """Paired comparison of two models' errors (degrees) on the same pairs. NaN errors (a direction that is
+    not defined) drop the pair from this comparison. Returns {"pairs", "a_hits", "b_hits", "a_only",
+    "b_only", "mcnemar_p", "median_diff" (B - A), "b_lower", "b_higher", "sign_p"}."""
+    if len(a) != len(b):
+        raise ValueError(f"a and b expected the same pairs, got {len(a)} and {len(b)} errors")
+    both = [(x, y) for x, y in zip(a, b) if math.isfinite(x) and math.isfinite(y)]
+    a_only = sum(x < tol <= y for x, y in both)
+    b_only = sum(y < tol <= x for x, y in both)
+    diffs = sorted(y - x for x, y in both)
+    lower, higher = sum(d < 0 for d in diffs), sum(d > 0 for d in diffs)
+    mid = len(diffs) // 2
+    median = (float("nan") if not diffs else diffs[mid] if len(diffs) % 2 else (diffs[mid - 1] + diffs[mid]) / 2)
+    return {"pairs": len(both), "a_hits": sum(x < tol for x, _ in both), "b_hits": sum(y < tol for _, y in both),
+            "a_only": a_only, "b_only": b_only, "mcnemar_p": binomial_two_sided(min(a_only, b_only), a_only + b_only),
+            "median_diff": median, "b_lower": lower, "b_higher": higher,
+            "sign_p": binomial_two_sided(min(lower, higher), lower + higher)}
+
+
+def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
+    """({(set, "rotation" | "direction"): compare_errors(...)} over the pairs both files hold, per set and
+    for the set "all"; [notes on pairs held by one file only]). PairedError when no pair is shared."""
+    shared = sorted(set(a) & set(b))
+    if not shared:
+        raise PairedError(f"the two files share no (set, pair): sets {sorted({s for s, _ in a})} and "
+                          f"{sorted({s for s, _ in b})}")
+    notes = []
+    for name, mine, other in (("A", a, b), ("B", b, a)):
+        alone = sorted({s for s, _ in set(mine) - set(other)})
+        for s in alone:
+            n = sum(1 for k in mine if k[0] == s and k not in other)
+            notes.append(f"{name} alone holds {n} pairs of {s} (left out)")
+    out = {}
+    for s in sorted({k[0] for k in shared}) + ["all"]:
+        keys = [k for k in shared if s == "all" or k[0] == s]
+        for col, what in ((0, "rotation"), (1, "direction")):
+            out[(s, what)] = compare_errors([a[k][col] for k in keys], [b[k][col] for k in keys], tol)
+    return out, notes
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("a", type=Path, help="model A's per-pair CSV")
+    p.add_argument("b", type=Path, help="model B's per-pair CSV")
+    p.add_argument("--names", nargs=2, default=None, metavar=("A", "B"), help="the two models' names")
+    p.add_argument("--tol", type=float, default=15.0, help="degrees: the RRA / RTA threshold (default 15)")
+    args = p.parse_args(argv)
+    if not args.tol > 0:
+        p.error(f"--tol expected > 0, got {args.tol}")
+    na, nb = args.names or (args.a.stem, args.b.stem)
+    try:
+        res, notes = paired(read_per_pair(args.a), read_per_pair(args.b), args.tol)
+    except PairedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    t = f"{args.tol:g}"
+    print(f"| set | error | pairs | {na} within {t} | {nb} within {t} | {na} only | {nb} only | McNemar p | "
+          f"median {nb} - {na} | {nb} lower / higher | sign p |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for (s, what), r in res.items():
+        print(f"| {s} | {what} | {r['pairs']} | {r['a_hits']} | {r['b_hits']} | {r['a_only']} | {r['b_only']} | "
+              f"{r['mcnemar_p']:.3g} | {r['median_diff']:+.1f} | {r['b_lower']} / {r['b_higher']} | "
+              f"{r['sign_p']:.3g} |")
+    for n in notes:
+        print(f"\nnote: {n}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

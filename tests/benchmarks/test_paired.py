@@ -1,0 +1,102 @@
+import itertools
+
+import pytest
+
+from benchmarks.paired import PairedError, binomial_two_sided, compare_errors, main, paired, read_per_pair
+from training.evaluate import PairResult, write_per_pair
+
+
+def _brute_two_sided(k, n):
+    """Every sequence of n fair coin flips, counted when its split is at least as uneven as k of n."""
+    if n == 0:
+        return 1.0
+    hits = sum(min(sum(s), n - sum(s)) <= min(k, n - k) for s in itertools.product((0, 1), repeat=n))
+    return hits / 2 ** n
+
+
+@pytest.mark.parametrize("n", range(0, 11))
+def test_the_exact_binomial_p_value_agrees_with_counting_every_coin_sequence(n):
+    for k in range(n + 1):
+        assert binomial_two_sided(k, n) == pytest.approx(_brute_two_sided(k, n), abs=1e-12)
+    with pytest.raises(ValueError):
+        binomial_two_sided(n + 1, n)
+
+
+def test_the_paired_comparison_counts_discordant_pairs_and_drops_undefined_directions():
+    a = [5.0, 20.0, 10.0, 30.0, float("nan")]
+    b = [20.0, 5.0, 12.0, 10.0, 3.0]
+    r = compare_errors(a, b, tol=15)
+    assert r["pairs"] == 4 and r["a_hits"] == 2 and r["b_hits"] == 3
+    assert r["a_only"] == 1 and r["b_only"] == 2
+    assert r["mcnemar_p"] == pytest.approx(1.0)  # 1 against 2 discordant pairs: a draw
+    assert r["median_diff"] == pytest.approx(-6.5) and (r["b_lower"], r["b_higher"]) == (2, 2)
+    assert r["sign_p"] == pytest.approx(1.0)
+    # ten pairs all won by B: McNemar p = 2 / 2^10, the sign test the same
+    r = compare_errors([40.0] * 10, [1.0] * 10, tol=15)
+    assert r["b_only"] == 10 and r["mcnemar_p"] == pytest.approx(2 / 1024) and r["sign_p"] == pytest.approx(2 / 1024)
+    with pytest.raises(ValueError, match="same pairs"):
+        compare_errors([1.0], [1.0, 2.0], tol=15)
+
+
+def test_per_pair_files_round_trip_keep_other_sets_and_replace_a_rewritten_set(tmp_path):
+    f = tmp_path / "pairs.csv"
+    write_per_pair(f, "eval_a", [PairResult(0, 3.0, 40.0, 10.0), PairResult(1, 20.0, float("nan"), 50.0)])
+    write_per_pair(f, "real_rig", [PairResult(0, 7.0, 25.0, 0.3)])
+    write_per_pair(f, "eval_a", [PairResult(0, 4.0, 41.0, 10.0)])  # replaces eval_a's two rows
+    rows = read_per_pair(f)
+    assert set(rows) == {("eval_a", 0), ("real_rig", 0)}
+    assert rows[("eval_a", 0)] == (4.0, 41.0, 10.0) and rows[("real_rig", 0)] == (7.0, 25.0, 0.3)
+    assert not list(tmp_path.glob(".*tmp*"))  # written atomically: no temporary left behind
+    with pytest.raises(ValueError, match="without commas"):
+        write_per_pair(f, "a,b", [])
+
+
+def test_a_per_pair_file_refuses_to_overwrite_a_foreign_file_and_reading_rejects_malformed_rows(tmp_path):
+    foreign = tmp_path / "notes.csv"
+    foreign.write_text("name,value\nx,1\n")
+    with pytest.raises(ValueError, match="refusing to overwrite"):
+        write_per_pair(foreign, "eval_a", [PairResult(0, 1.0, 2.0, 3.0)])
+    assert foreign.read_text() == "name,value\nx,1\n"
+    with pytest.raises(PairedError, match="expected the header"):
+        read_per_pair(foreign)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("set,pair,rot_err,dir_err,true_rot\neval_a,0,1.0,x,3\n")
+    with pytest.raises(PairedError, match="line 2"):
+        read_per_pair(bad)
+    bad.write_text("set,pair,rot_err,dir_err,true_rot\neval_a,0,1,2,3\neval_a,0,1,2,3\n")
+    with pytest.raises(PairedError, match="twice"):
+        read_per_pair(bad)
+    with pytest.raises(PairedError, match="cannot read"):
+        read_per_pair(tmp_path / "missing.csv")
+
+
+def test_the_paired_table_joins_two_models_on_shared_pairs_per_set_and_overall(tmp_path, capsys):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    write_per_pair(a, "eval_a", [PairResult(k, 30.0, 60.0, 20.0) for k in range(8)])
+    write_per_pair(a, "real_rig", [PairResult(k, 5.0, 20.0, 0.3) for k in range(3)])
+    write_per_pair(b, "eval_a", [PairResult(k, 5.0, 60.0, 20.0) for k in range(10)])  # 2 pairs A lacks
+    write_per_pair(b, "real_rig", [PairResult(k, 5.0, 40.0, 0.3) for k in range(3)])
+    res, notes = paired(read_per_pair(a), read_per_pair(b))
+    assert res[("eval_a", "rotation")]["pairs"] == 8 and res[("eval_a", "rotation")]["b_only"] == 8
+    assert res[("eval_a", "rotation")]["mcnemar_p"] == pytest.approx(2 / 256)
+    assert res[("real_rig", "direction")]["b_higher"] == 3 and res[("real_rig", "direction")]["median_diff"] == 20
+    assert res[("all", "rotation")]["pairs"] == 11
+    assert notes == ["B alone holds 2 pairs of eval_a (left out)"]
+    assert main([str(a), str(b), "--names", "old", "new"]) == 0
+    out = capsys.readouterr().out
+    assert "| set | error | pairs | old within 15 | new within 15 |" in out
+    assert "| eval_a | rotation | 8 | 0 | 8 | 0 | 8 | 0.00781 | -25.0 | 8 / 0 | 0.00781 |" in out
+    assert "note: B alone holds 2 pairs of eval_a (left out)" in out
+
+
+def test_the_paired_command_fails_in_one_line_on_files_without_shared_pairs(tmp_path, capsys):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    write_per_pair(a, "eval_a", [PairResult(0, 1.0, 2.0, 3.0)])
+    write_per_pair(b, "eval_b", [PairResult(0, 1.0, 2.0, 3.0)])
+    assert main([str(a), str(b)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: the two files share no") and len(err.strip().splitlines()) == 1
+    assert main([str(a), str(tmp_path / "missing.csv")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([str(a), str(a), "--tol", "0"])
