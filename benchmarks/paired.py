@@ -97,6 +97,8 @@ def compare_errors(a: list, b: list, tol: float) -> dict:
 def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
     """({(set, "rotation" | "direction"): compare_errors(...)} over the pairs both files hold, per set and
     for the set "all"; [notes on pairs held by one file only]). PairedError when no pair is shared."""
+    if any(k[0] == "all" for k in (*a, *b)):
+        raise PairedError("a set named 'all' clashes with the pooled row; rename it")
     shared = sorted(set(a) & set(b))
     if not shared:
         raise PairedError(f"the two files share no (set, pair): sets {sorted({s for s, _ in a})} and "

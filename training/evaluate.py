@@ -35,32 +35,49 @@ class PairResult(NamedTuple):
 PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot")
 
 
+def _per_pair_rows_kept(path, set_name: str) -> list:
+    """The rows of other sets in an existing per-pair CSV at ``path`` ([] when there is none), after checking
+    ``set_name`` and that the file is a per-pair CSV; ValueError otherwise (nothing written)."""
+    import csv
+    from pathlib import Path
+
+    if not set_name or set_name == "all" or any(c in set_name for c in ',"\n\r'):
+        raise ValueError(f"set_name expected a non-empty name without commas, quotes or newlines, other than 'all' "
+                         f"(paired.py's pooled row), got {set_name!r}")
+    path = Path(path)
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        old = list(csv.reader(f))
+    if not old or tuple(old[0]) != PER_PAIR_HEADER:
+        raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)}, got "
+                         f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
+    return [r for r in old[1:] if r and r[0] != set_name]
+
+
+def check_per_pair(path, set_name: str) -> None:
+    """Raise ValueError now if ``write_per_pair(path, set_name, ...)`` would refuse later (a command checks
+    this before a long evaluation)."""
+    _per_pair_rows_kept(path, set_name)
+
+
 def write_per_pair(path, set_name: str, rows) -> None:
     """Save per-pair results (``PairResult`` rows of one held-out set) as CSV, atomically; the file
     ``benchmarks/paired.py`` reads. Several sets may share a file (the ``set`` column tells them apart):
-    ``rows`` are appended to the file's existing rows of other sets, and replace its rows of ``set_name``."""
+    ``rows`` are appended to the file's existing rows of other sets, and replace its rows of ``set_name``.
+    Errors are written at full precision (a 14.99996 stays under 15, as the card counted it)."""
     import csv
     import io
-    from pathlib import Path
 
     from pointmap.atomic import atomic_open
 
-    if not set_name or "," in set_name or "\n" in set_name:
-        raise ValueError(f"set_name expected a non-empty name without commas or newlines, got {set_name!r}")
-    path = Path(path)
-    kept = []
-    if path.exists():
-        with open(path, newline="") as f:
-            old = list(csv.reader(f))
-        if not old or tuple(old[0]) != PER_PAIR_HEADER:
-            raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)}, got "
-                             f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
-        kept = [r for r in old[1:] if r and r[0] != set_name]
+    kept = _per_pair_rows_kept(path, set_name)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(PER_PAIR_HEADER)
     w.writerows(kept)
-    w.writerows([set_name, int(r.pair), f"{r.rot_err:.4f}", f"{r.dir_err:.4f}", f"{r.true_rot:.4f}"] for r in rows)
+    w.writerows([set_name, int(r.pair), repr(float(r.rot_err)), repr(float(r.dir_err)), repr(float(r.true_rot))]
+                for r in rows)
     with atomic_open(path, "w") as f:
         f.write(buf.getvalue())
 
@@ -374,6 +391,15 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
     if a.pairs < 1:
         p.error(f"--pairs expected >= 1, got {a.pairs}")
+    set_name = a.set or Path(a.data).resolve().name
+    if a.per_pair is not None:
+        if a.set is None and "," in a.data:
+            p.error("--per-pair with several --data folders expected a --set name for their pairs together")
+        try:
+            check_per_pair(a.per_pair, set_name)
+        except (OSError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     try:
         if a.model.endswith(".pt"):  # a training checkpoint: architecture, weights and training size inside
             from pointmap.checkpoint import load_state_strict, official_to_ours
@@ -407,7 +433,7 @@ def main(argv=None) -> int:
     res = evaluate_pairs(model.eval(), ds, a.pairs, per_pair=rows)
     if a.per_pair is not None:
         try:
-            write_per_pair(a.per_pair, a.set or Path(a.data).resolve().name, rows)
+            write_per_pair(a.per_pair, set_name, rows)
         except (OSError, ValueError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2

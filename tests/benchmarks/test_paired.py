@@ -46,9 +46,11 @@ def test_per_pair_files_round_trip_keep_other_sets_and_replace_a_rewritten_set(t
     rows = read_per_pair(f)
     assert set(rows) == {("eval_a", 0), ("real_rig", 0)}
     assert rows[("eval_a", 0)] == (4.0, 41.0, 10.0) and rows[("real_rig", 0)] == (7.0, 25.0, 0.3)
-    assert not list(tmp_path.glob(".*tmp*"))  # written atomically: no temporary left behind
-    with pytest.raises(ValueError, match="without commas"):
-        write_per_pair(f, "a,b", [])
+    for bad in ("a,b", "all", ""):
+        with pytest.raises(ValueError, match="without commas"):
+            write_per_pair(f, bad, [])
+    write_per_pair(f, "edge", [PairResult(0, 14.99996, 15.0, 0.0)])  # full precision: still under 15
+    assert read_per_pair(f)[("edge", 0)][0] < 15
 
 
 def test_a_per_pair_file_refuses_to_overwrite_a_foreign_file_and_reading_rejects_malformed_rows(tmp_path):
@@ -68,6 +70,9 @@ def test_a_per_pair_file_refuses_to_overwrite_a_foreign_file_and_reading_rejects
         read_per_pair(bad)
     with pytest.raises(PairedError, match="cannot read"):
         read_per_pair(tmp_path / "missing.csv")
+    bad.write_text("set,pair,rot_err,dir_err,true_rot\nall,0,1,2,3\n")  # a set that would hide the pooled row
+    with pytest.raises(PairedError, match="clashes"):
+        paired(read_per_pair(bad), read_per_pair(bad))
 
 
 def test_the_paired_table_joins_two_models_on_shared_pairs_per_set_and_overall(tmp_path, capsys):

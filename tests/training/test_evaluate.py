@@ -84,6 +84,14 @@ def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path
     rows = read_per_pair(tmp_path / "pairs.csv")  # one row per evaluated pair, under the data folder's name
     assert sorted(rows) == [("eval", k) for k in range(int(out["pairs"]))]
     assert 100 * sum(r[0] < 15 for r in rows.values()) / len(rows) == pytest.approx(out["RRA15"], abs=0.01)
+    # a per-pair file that cannot be written is refused before the evaluation, not after it
+    (tmp_path / "notes.csv").write_text("name,value\n")
+    assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--per-pair",
+                 str(tmp_path / "notes.csv")]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # several folders need a --set name for their rows
+        main(["--model", str(weights), "--data", f"{tmp_path / 'eval'},{tmp_path / 'eval'}", "--per-pair",
+              str(tmp_path / "pairs.csv")])
 
 
 def test_the_evaluate_command_refuses_missing_data_and_foreign_checkpoints_in_one_line(tmp_path, capsys):
