@@ -2,6 +2,9 @@
 
     python -m training.ship --ckpt runs/train/last.pt --name small --metrics runs/train/eval.csv
 
+Several checkpoints of one run (``--ckpt A.pt B.pt C.pt``) ship their weight average (uniform, in float64):
+checkpoint averaging, which evens out the step-to-step wander of a model's answers along the end of a run.
+
 The provenance stored with the weights (steps, image size, data, held-out metrics, command) is what
 ``pm.load_model(name).provenance`` and docs/models.md report.
 """
@@ -15,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import WEIGHTS_DIR, load_state_strict, save_model
+from pointmap.checkpoint import WEIGHTS_DIR, CheckpointError, load_state_strict, save_model
 from pointmap.model import ModelConfig, PointmapNet
 from training.loop import load_checkpoint
 
@@ -28,29 +31,69 @@ def last_eval(path: Path) -> dict:
     return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")} if rows else {}
 
 
+def average_checkpoints(paths) -> dict:
+    """The last of ``paths``'s training checkpoints with its model weights replaced by the uniform average of all
+    of them (floating tensors averaged in float64 and cast back; any other tensor must be equal in all) and
+    ``averaged_steps`` set to their steps. CheckpointError when they are not 'train' checkpoints of one
+    architecture with the same tensors."""
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise CheckpointError("expected at least one checkpoint to average, got none")
+    cks = [load_checkpoint(p) for p in paths]
+    for p, ck in zip(paths, cks):
+        if ck.get("kind") != "train":
+            raise CheckpointError(f"{p} is a {ck.get('kind')!r} checkpoint; expected supervised ('train') ones")
+        if ck["model_config"] != cks[0]["model_config"]:
+            raise CheckpointError(f"{p} has another architecture than {paths[0]}: model configs differ in "
+                                  f"{sorted(k for k in ck['model_config'] if ck['model_config'][k] != cks[0]['model_config'].get(k))}")
+        if set(ck["model"]) != set(cks[0]["model"]):
+            raise CheckpointError(f"{p} holds other tensors than {paths[0]}: "
+                                  f"{sorted(set(ck['model']) ^ set(cks[0]['model']))[:5]}")
+    out = dict(cks[-1])
+    avg = {}
+    for k, last in cks[-1]["model"].items():
+        vals = [ck["model"][k] for ck in cks]
+        if any(v.shape != last.shape for v in vals):
+            raise CheckpointError(f"tensor {k} has shapes {sorted({tuple(v.shape) for v in vals})} across the "
+                                  "checkpoints; expected one")
+        if last.is_floating_point():
+            avg[k] = (sum(v.double() for v in vals) / len(vals)).to(last.dtype)
+        elif all(torch.equal(v, last) for v in vals):
+            avg[k] = last
+        else:
+            raise CheckpointError(f"non-floating tensor {k} differs across the checkpoints; cannot average it")
+    out["model"] = avg
+    out["averaged_steps"] = [int(ck["step"]) for ck in cks]
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--ckpt", required=True)
+    p.add_argument("--ckpt", required=True, nargs="+",
+                   help="a training checkpoint, or several of one run to ship their weight average")
     p.add_argument("--name", default="small")
     p.add_argument("--metrics", default=None, help="eval.csv of the run (its last row is recorded)")
     p.add_argument("--note", default="")
     p.add_argument("--out", default=None, help="default: pointmap/weights/NAME.safetensors")
     a = p.parse_args(argv)
-    ck = load_checkpoint(Path(a.ckpt))
-    if ck.get("kind") != "train":
-        print(f"error: {a.ckpt} is a {ck.get('kind')!r} checkpoint; ship a supervised ('train') one", file=sys.stderr)
+    try:
+        ck = average_checkpoints(a.ckpt)
+        model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
+        load_state_strict(model, ck["model"], source=a.ckpt[-1])
+    except (CheckpointError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
-    load_state_strict(model, ck["model"], source=a.ckpt)
     cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   "heldout_metrics": last_eval(Path(a.metrics)) if a.metrics else {}, "note": a.note,
+                  **({"averaged_steps": ck["averaged_steps"]} if len(a.ckpt) > 1 else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
     out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
     path = save_model(model, out, provenance=provenance, dtype=torch.float16)
-    print(f"{path} ({path.stat().st_size / 1e6:.1f} MB), step {ck['step']}")
+    avg = f", the average of steps {ck['averaged_steps']}" if len(a.ckpt) > 1 else ""
+    print(f"{path} ({path.stat().st_size / 1e6:.1f} MB), step {ck['step']}{avg}")
     return 0
 
 

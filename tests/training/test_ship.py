@@ -1,0 +1,59 @@
+"""training.ship: a training checkpoint (or the average of several) becomes a model file load_model reads."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.model import PRESETS, PointmapNet
+from training.config import TrainConfig
+from training.ship import average_checkpoints, main
+
+
+def _checkpoint(path, seed, step, cfg=PRESETS["test"], kind="train"):
+    torch.manual_seed(seed)
+    model = PointmapNet(cfg)
+    torch.save({"model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": step, "kind": kind,
+                "train_config": TrainConfig().to_dict()}, path)
+    return model
+
+
+def test_a_shipped_checkpoint_loads_back_as_the_same_model_in_fp16(tmp_path):
+    model = _checkpoint(tmp_path / "a.pt", seed=0, step=7)
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m.safetensors"), "--note", "n"]) == 0
+    back = pm.load_model(tmp_path / "m.safetensors")
+    assert back.provenance["steps"] == 7 and "averaged_steps" not in back.provenance
+    for k, v in model.state_dict().items():
+        if v.is_floating_point():
+            torch.testing.assert_close(back.state_dict()[k].float(), v.half().float())
+
+
+def test_several_checkpoints_ship_their_weight_average_as_averaging_by_hand_gives(tmp_path):
+    models = [_checkpoint(tmp_path / f"{i}.pt", seed=i, step=100 * (i + 1)) for i in range(3)]
+    paths = [str(tmp_path / f"{i}.pt") for i in range(3)]
+    ck = average_checkpoints(paths)
+    assert ck["step"] == 300 and ck["averaged_steps"] == [100, 200, 300]
+    for k, v in models[0].state_dict().items():  # the reference: each tensor summed by hand
+        if v.is_floating_point():
+            by_hand = (models[0].state_dict()[k].double() + models[1].state_dict()[k].double()
+                       + models[2].state_dict()[k].double()) / 3
+            torch.testing.assert_close(ck["model"][k].double(), by_hand, rtol=1e-6, atol=1e-7)
+    assert main(["--ckpt", *paths, "--out", str(tmp_path / "avg.safetensors")]) == 0
+    assert pm.load_model(tmp_path / "avg.safetensors").provenance["averaged_steps"] == [100, 200, 300]
+
+
+def test_averaging_refuses_checkpoints_of_other_architectures_or_kinds_in_one_line(tmp_path, capsys):
+    _checkpoint(tmp_path / "a.pt", seed=0, step=1)
+    _checkpoint(tmp_path / "b.pt", seed=1, step=2, cfg=replace(PRESETS["test"], enc_depth=3))
+    _checkpoint(tmp_path / "c.pt", seed=1, step=2, kind="pretrain")
+    with pytest.raises(pm.CheckpointError, match="another architecture"):
+        average_checkpoints([tmp_path / "a.pt", tmp_path / "b.pt"])
+    with pytest.raises(pm.CheckpointError, match="'pretrain' checkpoint"):
+        average_checkpoints([tmp_path / "a.pt", tmp_path / "c.pt"])
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    for bad in ("b.pt", "junk.pt"):
+        assert main(["--ckpt", str(tmp_path / "a.pt"), str(tmp_path / bad), "--out", str(tmp_path / "x.safetensors")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.safetensors").exists()
