@@ -15,7 +15,8 @@
 Augmentation (``augment=True``): random order swap, random resized crop (K, depth, valid and corr
 updated consistently; depth and masks resampled with nearest neighbour; by default both views cropped at the
 same scale, ``crop_link``, so a pair keeps its rendered focal ratio), colour jitter (brightness,
-contrast, saturation, hue), white balance, exposure/gamma, blur and sensor noise.
+contrast, saturation, hue), white balance, exposure/gamma, blur and sensor noise, and with probability
+``grey_p`` both views turned to grey (a monochrome camera: luma, repeated in the three channels).
 """
 
 from __future__ import annotations
@@ -174,6 +175,13 @@ def _photometric(rng, rgb):
     return np.clip(x, 0, 1).astype(np.float32)
 
 
+def _grey(x):
+    """An RGB float image [H, W, 3] as a monochrome camera sees it: OpenCV's luma (0.299 R + 0.587 G + 0.114 B)
+    in all three channels."""
+    g = cv2.cvtColor(np.ascontiguousarray(x, np.float32), cv2.COLOR_RGB2GRAY)
+    return np.repeat(g[..., None], 3, axis=-1)
+
+
 def _to_view(rgb_f, depth, K, cam2world, world2cam1):
     pts_cam = _unproject(depth, K)
     valid = depth > 0
@@ -237,11 +245,13 @@ class PairDataset(Dataset):
     to 1.4x, and a zoom-in then looks like a step forward. Linked, the pair keeps the focal ratio it was
     rendered with (the data engine's ``--same-camera-share`` decides how often that is 1), and the image
     magnification between the views tells the camera's forward motion (docs/data.md).
+    grey_p: probability that an augmented pair is seen by a monochrome camera (both views' luma in all three
+    channels, after the colour augmentation; 0 draws nothing, so the other augmentations stay as they were).
     """
 
     def __init__(self, root, size: int = 224, augment: bool = True, split: str = "train", *,
                  val_percent: float = 2.0, crop_scale=(0.5, 1.0), swap_p: float = 0.5, crop_link: float = 1.0,
-                 verify: bool = True):
+                 grey_p: float = 0.0, verify: bool = True):
         if split not in SPLITS:
             raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
         if not 0 <= val_percent <= 100:
@@ -257,6 +267,9 @@ class PairDataset(Dataset):
         if not 0 <= crop_link <= 1:
             raise ValueError(f"crop_link expected a probability in [0, 1], got {crop_link}")
         self.crop_link = float(crop_link)
+        if not 0 <= grey_p <= 1:
+            raise ValueError(f"grey_p expected a probability in [0, 1], got {grey_p}")
+        self.grey_p = float(grey_p)
         self.root, self.config, entries = _open_root(root, verify)
         if self.config.get("kind") != "pairs":
             raise ShardError(f"{self.root} was rendered with --kind {self.config.get('kind')}; PairDataset needs "
@@ -338,6 +351,8 @@ class PairDataset(Dataset):
         corr[~inside] = np.nan
         if self.augment:
             f1, f2 = _photometric(rng, rgb1), _photometric(rng, rgb2)
+            if self.grey_p > 0 and rng.random() < self.grey_p:
+                f1, f2 = _grey(f1), _grey(f2)
         else:
             f1, f2 = rgb1.astype(np.float32) / 255.0, rgb2.astype(np.float32) / 255.0
         w2c1 = _inv(T1)

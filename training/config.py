@@ -37,6 +37,8 @@ class TrainConfig:
     crop_link: float = 1.0         # probability that view 2's random crop has view 1's scale
                                    # (data.PairDataset): the pair keeps its rendered focal ratio, so
                                    # magnification means motion
+    grey_p: float = 0.0            # probability that a training pair is turned grey (both views; a monochrome
+                                   # camera, as OpenCV's stereo sample: data.PairDataset)
     temperature: float = 0.05
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
     coarse_temperature: float = 0.1

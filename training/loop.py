@@ -96,7 +96,7 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp`` or ``--crop_link`` that cannot
+    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp``, ``--crop_link`` or ``--grey_p`` that cannot
     run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
@@ -111,6 +111,8 @@ def check_loop_options(cfg: TrainConfig) -> None:
                          f"--max_minutes {cfg.max_minutes}")
     if not 0 <= cfg.crop_link <= 1:
         raise ValueError(f"--crop_link expected a probability in [0, 1], got {cfg.crop_link}")
+    if not 0 <= cfg.grey_p <= 1:
+        raise ValueError(f"--grey_p expected a probability in [0, 1], got {cfg.grey_p}")
     if cfg.amp not in ("auto", "bf16", "off"):
         raise ValueError(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
 

@@ -61,6 +61,24 @@ def test_augmented_pairs_keep_crop_intrinsics_and_correspondences_consistent(tin
     assert err.median() < 0.5 and torch.quantile(err, 0.95) < 1.5
 
 
+def test_a_grey_pair_is_the_colour_pair_in_luma_in_both_views_with_its_geometry_unchanged(tiny_pairs):
+    colour = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+    grey = PairDataset(tiny_pairs, size=64, augment=True, split="all", grey_p=1.0)
+    luma = torch.tensor([0.299, 0.587, 0.114])[:, None, None]
+    for k in range(len(colour)):
+        torch.manual_seed(k)  # the same random stream: the grey draw comes after every other augmentation
+        c1, c2 = colour[k]
+        torch.manual_seed(k)
+        g1, g2 = grey[k]
+        for c, g in ((c1, g1), (c2, g2)):
+            assert torch.equal(g["img"][0], g["img"][1]) and torch.equal(g["img"][1], g["img"][2])
+            torch.testing.assert_close(g["img"][0], (c["img"] * luma).sum(0), atol=2e-3, rtol=0)
+            assert torch.equal(g["K"], c["K"]) and torch.equal(g["depth_z"], c["depth_z"])
+        assert not torch.equal(c1["img"][0], c1["img"][1])  # the colour pair is in colour
+    with pytest.raises(ValueError, match="grey_p expected a probability"):
+        PairDataset(tiny_pairs, size=64, grey_p=1.5)
+
+
 def test_order_swap_uses_the_stored_reverse_correspondences(tiny_pairs):
     ds = PairDataset(tiny_pairs, size=64, augment=True, split="all", swap_p=1.0, crop_scale=(1.0, 1.0))
     v1, v2 = ds[0]

@@ -364,12 +364,13 @@ def test_an_unknown_amp_mode_is_refused_with_the_choices():
         TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
 
 
-def test_a_crop_link_outside_0_to_1_is_refused_before_any_data_is_opened(capsys):
+@pytest.mark.parametrize("option", ["crop_link", "grey_p"])
+def test_a_probability_option_outside_0_to_1_is_refused_before_any_data_is_opened(capsys, option):
     for bad in ("1.5", "-0.2", "nan"):
         with pytest.raises(SystemExit):
-            TrainConfig.from_args(["--data", "x", "--crop_link", bad])
-        assert "--crop_link expected a probability" in capsys.readouterr().err
-    assert TrainConfig.from_args(["--data", "x", "--crop_link", "0.5"]).crop_link == 0.5
+            TrainConfig.from_args(["--data", "x", f"--{option}", bad])
+        assert f"--{option} expected a probability" in capsys.readouterr().err
+    assert getattr(TrainConfig.from_args(["--data", "x", f"--{option}", "0.5"]), option) == 0.5
 
 
 def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay(tmp_path):
