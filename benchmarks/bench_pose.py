@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
 from pointmap.pose import pose_from_essential  # noqa: E402
-from training.evaluate import PairResult, write_per_pair  # noqa: E402
+from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
 
 
 def sift_pose(img1: np.ndarray, img2: np.ndarray, K1: np.ndarray, K2: np.ndarray):
@@ -87,6 +87,11 @@ def main(argv=None) -> int:
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
                    help="also save the model's per-pair errors (set: the --data folder's name) for benchmarks/paired.py")
     a = p.parse_args(argv)
+    if a.per_pair is not None:
+        try:  # before the long run, not after it
+            check_per_pair(a.per_pair, Path(a.data).resolve().name)
+        except (OSError, ValueError) as e:
+            p.error(str(e))
     torch.set_num_threads(a.threads)
     model, size = model_at_size(a.model, a.size)
     per_pair = []

@@ -39,7 +39,7 @@ import pointmap as pm  # noqa: E402
 from benchmarks.bench_pose import errors, model_at_size, print_pose_table, sift_pose  # noqa: E402
 from pointmap.pose import focal_from_prediction  # noqa: E402
 from pointmap.reconstruction import K_to_map  # noqa: E402
-from training.evaluate import PairResult, write_per_pair  # noqa: E402
+from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
@@ -142,6 +142,11 @@ def main(argv=None) -> int:
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
                    help="also save the model's per-pair errors on the rig (set real_rig) for benchmarks/paired.py")
     a = p.parse_args(argv)
+    if a.per_pair is not None:
+        try:  # before the long run, not after it
+            check_per_pair(a.per_pair, "real_rig")
+        except (OSError, ValueError) as e:
+            p.error(str(e))
     torch.set_num_threads(a.threads)
     model, size = model_at_size(a.model, a.size)
 
@@ -185,7 +190,7 @@ def main(argv=None) -> int:
     if a.per_pair is not None:
         write_per_pair(a.per_pair, "real_rig", per_pair)
     print(f"model {a.model!r} at {size} px; rig calibrated on {n_cal} of {len(pairs)} pairs, stereo RMS {rms:.3f} px; "
-          f"true rig rotation {errors(np.eye(4), gt)[0]:.1f} deg\n")
+          f"true rig rotation {true_rot:.1f} deg\n")
     print_pose_table(res, "set")
     print(f"\nstereo rig, model focal (no K given) vs calibrated: median relative error {np.median(focal_err):.1%}")
     print("\naloe depth, in disparity space after a least-squares scale + shift (GT disparity in full-size pixels):\n")
