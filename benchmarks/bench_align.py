@@ -1,6 +1,6 @@
 """Time and peak memory of global alignment against the number of images (alignment only).
 
-Predictions are ground-truth pointmaps of the analytic test scene (tests/align/scene.py) with 1%
+Predictions are ground-truth pointmaps of the analytic test scene (tests/align/align_scene.py) with 1%
 depth noise, 2% outliers, 0.3 deg per-pair pose noise and a random scale per pair, on a sparse cyclic
 sliding-window graph (every image paired with its next ``--window`` images). Each image count runs in
 a fresh subprocess so the peak RSS is its own. Writes a table (stdout, markdown) and a PNG plot.
@@ -29,7 +29,7 @@ def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
     import torch
 
     sys.path.insert(0, str(ROOT / "tests" / "align"))
-    from scene import gt_preds, make_scene, views_of
+    from align_scene import gt_preds, make_scene, views_of
 
     f = 0.85 * w
     sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
@@ -42,7 +42,7 @@ def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
 def run_one(n: int, h: int, w: int, window: int, official: str | None, niter: int) -> dict:
     sc, views, preds, pairs, np, torch = make_inputs(n, h, w, window)
     sys.path.insert(0, str(ROOT / "tests" / "align"))
-    from scene import pose_errors
+    from align_scene import pose_errors
 
     from pointmap.align import AlignConfig, global_align
 
@@ -74,7 +74,7 @@ def run_official(path: str, views, preds, sc, niter: int) -> dict:
     from dust3r.cloud_opt import GlobalAlignerMode, global_aligner  # noqa: E402  (official, run only)
 
     sys.path.insert(0, str(ROOT / "tests" / "align"))
-    from scene import pose_errors
+    from align_scene import pose_errors
 
     keys = sorted(preds)
     view1 = {"idx": [i for i, _ in keys], "instance": [str(i) for i, _ in keys],

@@ -16,10 +16,16 @@ import torch
 
 from pointmap.errors import GraphError, ShapeError
 
+CONF_TRANSFORMS = ("log", "m1", "sqrt", "id")
+# 'auto': log(conf) when the confidences spread above 1, conf itself when they sit at the floor
+AUTO_SPREAD_CONF = 1.1     # a confidence at least this high counts as "above the floor"
+AUTO_SPREAD_SHARE = 0.1    # ... and log is chosen when at least this share of the finite confidences is
+
 
 def conf_to_weight(conf: torch.Tensor, transform: str = "log") -> torch.Tensor:
     """Residual weights from confidences: 'log' (DUSt3R default, log(conf), 0 for conf <= 1),
-    'm1' (conf - 1), 'sqrt', or 'id' (conf itself). Never negative."""
+    'm1' (conf - 1), 'sqrt', or 'id' (conf itself). Never negative. ('auto' is resolved to one of these
+    by ``resolve_conf_transform`` before weights are made.)"""
     if transform == "log":
         w = torch.log(conf.clamp_min(1.0))
     elif transform == "m1":
@@ -29,7 +35,8 @@ def conf_to_weight(conf: torch.Tensor, transform: str = "log") -> torch.Tensor:
     elif transform == "id":
         w = conf
     else:
-        raise ValueError(f"conf_transform expected 'log', 'm1', 'sqrt' or 'id', got {transform!r}")
+        raise ValueError(f"conf_transform expected one of {CONF_TRANSFORMS} (or 'auto' in AlignConfig), "
+                         f"got {transform!r}")
     return torch.nan_to_num(w, nan=0.0, posinf=0.0).clamp_min(0.0)
 
 
@@ -104,6 +111,30 @@ def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> li
                                  f"{list(shapes[n])} (h, w)")
         keys.append((i, j))
     return sorted(keys)
+
+
+def resolve_conf_transform(transform: str, preds: dict, keys: list) -> str:
+    """``transform`` itself, or for 'auto': 'log' when at least AUTO_SPREAD_SHARE of the finite confidences
+    of the ``keys`` predictions reach AUTO_SPREAD_CONF, else 'id'.
+
+    log(conf) is DUSt3R's weighting for confidences that spread above their floor of 1 (the official models'
+    do: the demos threshold them at 1.5 and 3). A model whose confidences all sit at the floor (ours: the
+    shipped small model's stay below 1.03 on held-out scenes) would get weights of 1e-5 that are float32
+    rounding noise, and global alignment worse than its own pairwise poses (docs/alignment.md, measured);
+    conf itself then weighs the pixels (nearly) uniformly.
+    """
+    if transform != "auto":
+        conf_to_weight(torch.ones(1), transform)  # unknown names fail here, with the list of known ones
+        return transform
+    above = total = 0
+    for key in keys:
+        p = preds[key]
+        for c in (p.conf1, p.conf2):
+            c = c.detach()
+            finite = torch.isfinite(c)
+            above += int((finite & (c >= AUTO_SPREAD_CONF)).sum())
+            total += int(finite.sum())
+    return "log" if total and above >= AUTO_SPREAD_SHARE * total else "id"
 
 
 def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: int,

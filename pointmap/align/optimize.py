@@ -15,7 +15,14 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from pointmap.align.edges import build_stack, check_connected, check_preds, choose_stride, drop_empty_edges
+from pointmap.align.edges import (
+    build_stack,
+    check_connected,
+    check_preds,
+    choose_stride,
+    drop_empty_edges,
+    resolve_conf_transform,
+)
 from pointmap.align.fuse import fuse_depth
 from pointmap.align.gauge import apply_similarity, similarity_to_known
 from pointmap.align.init import init_mst, own_maps
@@ -35,7 +42,9 @@ class AlignConfig:
     optimizer: 'adam' (default), 'lbfgs', or 'none' (initialisation only)
     niter: maximum iterations; lr / lr_min with schedule 'cosine' | 'linear' | 'constant' (Adam)
     lr_focal: learning rate of log-focal (None = lr)
-    conf_transform: residual weight from confidence: 'log' (DUSt3R), 'm1', 'sqrt', 'id'
+    conf_transform: residual weight from confidence: 'auto' (default: 'log' when the confidences spread
+        above 1, as the official models' do, else 'id'; see edges.resolve_conf_transform), 'log' (DUSt3R),
+        'm1', 'sqrt', 'id'
     max_opt_pixels: pixels per image used while optimising (maps are stride-subsampled to fit);
         None = full resolution. ``stride`` overrides it.
     max_chunk_pixels: edge-pixels evaluated at once; caps the peak memory of one iteration
@@ -51,7 +60,7 @@ class AlignConfig:
     lr_min: float = 1e-6
     lr_focal: float | None = None
     schedule: str = "cosine"
-    conf_transform: str = "log"
+    conf_transform: str = "auto"
     max_opt_pixels: int | None = 96 * 64
     stride: int | None = None
     max_chunk_pixels: int = 2_000_000
@@ -105,7 +114,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
     known_poses = parse_known_poses(cam2world, n, pose_mask)
     stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
-    stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, cfg.conf_transform))
+    conf_transform = resolve_conf_transform(cfg.conf_transform, preds, keys)
+    stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, conf_transform))
     if len(stack.keys) < len(keys):
         try:
             check_connected(n, stack.keys)
@@ -148,12 +158,13 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         fxo, fyo, cxo, cyo = (x.double() for x in params.intrinsics())
         s_o, R_o, t_o = (x.double() for x in params.pw())
     depths, confs = fuse_depth(preds, stack.keys, info.shapes, c2w_out, fxo, fyo, cxo, cyo, s_o, R_o, t_o,
-                               cfg.conf_transform, cfg.fuse_iters)
+                               conf_transform, cfg.fuse_iters)
     return _build(info, c2w_out, (fxo, fyo, cxo, cyo), depths, confs, unit, known_poses, K_given, K_known,
                   report={**report, "init_seconds": seconds_init, "total_seconds": time.perf_counter() - t_start,
                           "num_images": n, "num_edges": stack.num_edges, "stride": stride,
                           "opt_pixels_per_image": stack.num_pixels, "chunk_edges": chunk,
                           "scale_fixed_by_known_poses": scale_fixed, "tree": init.tree,
+                          "conf_transform": conf_transform,
                           "known_pose_indices": sorted(known_poses),
                           "known_K_indices": [k for k in range(n) if K_known[k]],
                           "config": asdict(cfg)})

@@ -1,4 +1,6 @@
-"""global_align on ground-truth pointmaps of an analytic scene (tests/align/scene.py)."""
+"""global_align on ground-truth pointmaps of an analytic scene (tests/align/align_scene.py)."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -93,3 +95,18 @@ def test_scene_scale_is_consistent(scene):
     ratio = d_est / d_gt
     assert ratio.std() / ratio.mean() < 1e-3
     assert SCENE_SIZE > 0
+
+
+def test_auto_weighting_reads_log_of_spread_confidences_and_conf_itself_at_their_floor(scene):
+    """Confidences spread over 1..4 are weighted by log (DUSt3R); the same maps with every confidence squashed
+    to within 1e-5 of 1 (a model whose confidence sits at its floor) by conf itself, and still align."""
+    preds = gt_preds(scene, complete_pairs(6), seed=8, noise=0.01, outliers=0.03, pair_rot_deg=0.5)
+    spread = global_align(views_of(scene), preds, config=QUIET)
+    assert spread.info["align"]["conf_transform"] == "log"
+    floor = {k: replace(p, conf1=1 + (p.conf1 - 1) * 1e-5, conf2=1 + (p.conf2 - 1) * 1e-5) for k, p in preds.items()}
+    auto = global_align(views_of(scene), floor, config=QUIET)
+    assert auto.info["align"]["conf_transform"] == "id"
+    rot, centre, focal, _ = _errors(auto, scene)
+    assert rot < 0.5 and centre < 0.01 and focal < 0.02, (rot, centre, focal)
+    explicit = global_align(views_of(scene), floor, config=AlignConfig(quiet=True, conf_transform="id"))
+    assert torch.equal(explicit.cam2world, auto.cam2world) and torch.equal(explicit.depth_z, auto.depth_z)

@@ -57,9 +57,13 @@ def test_wrong_map_size(scene):
 
 
 def test_all_low_confidence_pairs(scene):
+    """Every confidence at 1: log weighting leaves nothing to align (a clear error); the default ('auto')
+    weighs the pixels by conf itself instead and aligns."""
     preds = gt_preds(scene, complete_pairs(4), seed=1, conf=1.0)
     with pytest.raises(GraphError, match="zero confidence weight"):
-        global_align(views_of(scene), preds, config=QUIET)
+        global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=30, conf_transform="log"))
+    recon = global_align(views_of(scene), preds, config=QUIET)
+    assert recon.info["align"]["conf_transform"] == "id" and torch.isfinite(recon.cam2world).all()
 
 
 def test_some_low_confidence_pairs_warn_and_still_align(scene):

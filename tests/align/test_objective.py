@@ -1,11 +1,19 @@
 """Fast paths against slow obviously-correct references: chunked objective, init, depth fusion."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 from align_scene import complete_pairs, gt_preds, make_scene, pose_errors
 
-from pointmap.align.edges import build_stack, check_preds, conf_to_weight
+from pointmap.align.edges import (
+    AUTO_SPREAD_CONF,
+    build_stack,
+    check_preds,
+    conf_to_weight,
+    resolve_conf_transform,
+)
 from pointmap.align.fuse import fuse_depth
 from pointmap.align.init import edge_similarities, init_mst
 from pointmap.align.objective import loss_and_grad, loss_reference
@@ -86,6 +94,32 @@ def test_conf_weights():
     assert torch.allclose(conf_to_weight(c, "m1")[2], torch.tensor(np.e - 1, dtype=torch.float32))
     with pytest.raises(ValueError, match="conf_transform"):
         conf_to_weight(c, "bogus")
+
+
+def test_auto_conf_transform_picks_log_once_a_tenth_of_the_confidences_leave_the_floor(setup):
+    _, preds, _ = setup
+    keys = sorted(preds)
+    n = sum(preds[k].conf1.numel() + preds[k].conf2.numel() for k in keys)
+
+    def with_share(count):  # every confidence at 1 except the first ``count`` pixels (in key order), at the threshold
+        out, left = {}, count
+        for k in keys:
+            c = []
+            for x in (preds[k].conf1, preds[k].conf2):
+                flat = torch.ones(x.numel(), dtype=x.dtype)
+                take = min(left, x.numel())
+                flat[:take] = AUTO_SPREAD_CONF
+                left -= take
+                c.append(flat.reshape(x.shape))
+            out[k] = replace(preds[k], conf1=c[0], conf2=c[1])
+        return out
+
+    tenth = -(-n // 10)  # ceil: the smallest count that is at least 10%
+    assert resolve_conf_transform("auto", with_share(tenth), keys) == "log"
+    assert resolve_conf_transform("auto", with_share(tenth - 1), keys) == "id"
+    assert resolve_conf_transform("sqrt", with_share(0), keys) == "sqrt"  # explicit names pass through
+    with pytest.raises(ValueError, match="conf_transform expected one of"):
+        resolve_conf_transform("rank", preds, keys)
 
 
 def test_init_exact_on_clean_maps():

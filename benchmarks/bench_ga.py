@@ -1,0 +1,147 @@
+"""Global alignment on held-out multi-view scenes: the model's pairwise poses against the poses global
+alignment makes of all of a scene's views at once, for several alignment settings on the SAME predictions.
+
+Each scene of the given held-out sets (4 views each) is predicted once on its complete pair graph (both
+orders); then for every camera pair (i < j):
+
+- "pairwise": ``pm.relative_pose(pred, pred_reverse)`` of that pair alone (what the model card measures);
+- "GA <setting>": the relative pose of cameras i and j after ``global_align`` of all the scene's views.
+
+A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
+':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only). The table gives RRA@15 / RTA@15 / median
+errors per set and overall, and the median focal error of each view (GA only; intrinsics unknown).
+``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
+PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
+
+    python benchmarks/bench_ga.py --model small --data DIR [DIR ...] [--scenes 24] [--settings auto log id]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pointmap as pm  # noqa: E402
+from pointmap.align import AlignConfig, global_align  # noqa: E402
+from pointmap.align.edges import CONF_TRANSFORMS  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_pose import errors, model_at_size  # noqa: E402
+
+from pointmap.geometry.rotations import rotation_angle  # noqa: E402
+from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
+
+
+def per_pair_path(prefix: str, method: str) -> Path:
+    return Path(f"{prefix}-{method.replace(' ', '_').replace(':', '_')}.csv")
+
+
+def parse_setting(s: str) -> AlignConfig:
+    """'log', 'id:lbfgs', 'auto:none' ... -> AlignConfig (quiet)."""
+    transform, _, opt = s.partition(":")
+    if transform not in CONF_TRANSFORMS + ("auto",):
+        raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
+    if opt not in ("", "adam", "lbfgs", "none"):
+        raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
+    return AlignConfig(conf_transform=transform, optimizer=opt or "adam", quiet=True)
+
+
+def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
+    """{method: [(rot err, dir err, true rotation), ...] over camera pairs i < j} and
+    {method: [focal err %, ...]}."""
+    imgs = [(x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for x in scene["img"]]
+    views = pm.load_images(imgs, size=size)
+    n = len(views)
+    pairs = pm.make_pairs(n)
+    preds = pm.predict_pairs(model, views, pairs, quiet=True)
+    gt = scene["cam2world"].double()
+    rel_gt = {(i, j): (torch.linalg.inv(gt[i]) @ gt[j]).numpy() for i, j in pairs}
+    true_rot = {k: float(torch.rad2deg(rotation_angle(torch.from_numpy(T[:3, :3])))) for k, T in rel_gt.items()}
+    out = defaultdict(list)
+    focal = defaultdict(list)
+    for i, j in pairs:
+        est = pm.relative_pose(preds[(i, j)], pred_reverse=preds[(j, i)])[0].double().numpy()
+        out["pairwise"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
+    f_gt = scene["K"][:, 0, 0].double()
+    for name, cfg in settings.items():
+        recon = global_align(views, preds, config=cfg)
+        c2w = recon.cam2world.double()
+        for i, j in pairs:
+            est = (torch.linalg.inv(c2w[i]) @ c2w[j]).numpy()
+            out[f"GA {name}"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
+        focal[f"GA {name}"] += (100 * (recon.K[:, 0, 0].double() - f_gt).abs() / f_gt).tolist()
+    return out, focal
+
+
+def main(argv=None) -> int:
+    from data.datasets import MultiViewDataset
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
+    ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
+    ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
+    ap.add_argument("--settings", nargs="+", type=parse_setting, default=None,
+                    help="alignment settings to compare (default: auto log id)")
+    ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
+                    help="write PREFIX-<method>.csv per method (benchmarks/paired.py reads them)")
+    args = ap.parse_args(argv)
+    if args.scenes is not None and args.scenes < 1:
+        ap.error(f"--scenes expected a positive count, got {args.scenes}")
+    names = [a.conf_transform + ("" if a.optimizer == "adam" else f":{a.optimizer}")
+             for a in (args.settings or [])] or ["auto", "log", "id"]
+    settings = {nm: parse_setting(nm) for nm in names}
+    if args.per_pair:
+        for m in ["pairwise"] + [f"GA {nm}" for nm in names]:
+            for d in args.data:
+                try:
+                    check_per_pair(per_pair_path(args.per_pair, m), Path(d).name)
+                except ValueError as e:
+                    ap.error(f"--per-pair: {e}")
+    torch.set_num_threads(args.threads)
+    model, size = model_at_size(args.model, args.size)
+    res = defaultdict(list)
+    foc = defaultdict(list)
+    for d in args.data:
+        ds = MultiViewDataset(d)
+        count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
+        for k in tqdm(range(count), desc=Path(d).name, leave=False):
+            scene = ds[k]
+            out, focal = scene_errors(model, size, scene, settings)
+            for m, v in out.items():
+                res[(Path(d).name, m)] += v
+                res[("overall", m)] += v
+            for m, v in focal.items():
+                foc[("overall", m)] += v
+        if args.per_pair:
+            for (group, m), v in res.items():
+                if group == Path(d).name:
+                    write_per_pair(per_pair_path(args.per_pair, m), group,
+                                   [PairResult(k, r, t, a) for k, (r, t, a) in enumerate(v)])
+    print(f"model {args.model} at {size}px; camera pairs of 4-view scenes; GA = global_align of each scene's views")
+    print("| set | camera pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
+        v = np.array(vals)
+        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {100 * np.mean(v[:, 1] < 15):.1f}% | "
+              f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+    print()
+    print("| method | views | median focal err | focal err < 10% |")
+    print("|---|---|---|---|")
+    for (_, m), vals in foc.items():
+        v = np.array(vals)
+        print(f"| {m} | {len(v)} | {np.median(v):.1f}% | {100 * np.mean(v < 10):.0f}% |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
