@@ -1,7 +1,7 @@
 """Global alignment on held-out multi-view scenes: the model's pairwise poses against the poses global
 alignment makes of all of a scene's views at once, for several alignment settings on the SAME predictions.
 
-Each scene of the given held-out sets (4 views each) is predicted once on its complete pair graph (both
+Each scene of the given held-out sets (the card's have 4 views each) is predicted once on its complete pair graph (both
 orders); then for every camera pair (i < j):
 
 - "pairwise": ``pm.relative_pose(pred, pred_reverse)`` of that pair alone (what the model card measures);
@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.align import AlignConfig, global_align  # noqa: E402
 from pointmap.align.edges import CONF_TRANSFORMS  # noqa: E402
+from pointmap.errors import PointmapError  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pose import errors, model_at_size  # noqa: E402
@@ -55,8 +56,8 @@ def parse_setting(s: str) -> AlignConfig:
 
 
 def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
-    """{method: [(rot err, dir err, true rotation), ...] over camera pairs i < j} and
-    {method: [focal err %, ...]}."""
+    """{method: [(rot err, dir err, true rotation), ...] over camera pairs i < j}, {method: [focal err %, ...]}
+    and the alignments that failed (their pairs count 180 degrees, their focals 100%)."""
     imgs = [(x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for x in scene["img"]]
     views = pm.load_images(imgs, size=size)
     n = len(views)
@@ -71,14 +72,21 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
         est = pm.relative_pose(preds[(i, j)], pred_reverse=preds[(j, i)])[0].double().numpy()
         out["pairwise"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
     f_gt = scene["K"][:, 0, 0].double()
+    failed = []
     for name, cfg in settings.items():
-        recon = global_align(views, preds, config=cfg)
+        try:
+            recon = global_align(views, preds, config=cfg)
+        except PointmapError as e:  # e.g. every weight zero under 'log': the scene counts as failed (180 deg)
+            failed.append(f"GA {name}: {e}")
+            out[f"GA {name}"] += [(180.0, 180.0, true_rot[k]) for k in pairs]
+            focal[f"GA {name}"] += [100.0] * n
+            continue
         c2w = recon.cam2world.double()
         for i, j in pairs:
             est = (torch.linalg.inv(c2w[i]) @ c2w[j]).numpy()
             out[f"GA {name}"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
         focal[f"GA {name}"] += (100 * (recon.K[:, 0, 0].double() - f_gt).abs() / f_gt).tolist()
-    return out, focal
+    return out, focal, failed
 
 
 def main(argv=None) -> int:
@@ -100,40 +108,52 @@ def main(argv=None) -> int:
     names = [a.conf_transform + ("" if a.optimizer == "adam" else f":{a.optimizer}")
              for a in (args.settings or [])] or ["auto", "log", "id"]
     settings = {nm: parse_setting(nm) for nm in names}
+    set_names = [Path(d).resolve().name for d in args.data]
+    twice = sorted({nm for nm in set_names if set_names.count(nm) > 1})
+    if twice:
+        ap.error(f"--data: set name(s) {twice} given twice (a set is named by its folder)")
     if args.per_pair:
         for m in ["pairwise"] + [f"GA {nm}" for nm in names]:
-            for d in args.data:
+            for nm in set_names:
                 try:
-                    check_per_pair(per_pair_path(args.per_pair, m), Path(d).name)
-                except ValueError as e:
+                    check_per_pair(per_pair_path(args.per_pair, m), nm)
+                except (ValueError, OSError) as e:
                     ap.error(f"--per-pair: {e}")
     torch.set_num_threads(args.threads)
     model, size = model_at_size(args.model, args.size)
     res = defaultdict(list)
     foc = defaultdict(list)
-    for d in args.data:
+    failures, view_counts = [], set()
+    for d, set_name in zip(args.data, set_names):
         ds = MultiViewDataset(d)
         count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
-        for k in tqdm(range(count), desc=Path(d).name, leave=False):
+        for k in tqdm(range(count), desc=set_name, leave=False):
             scene = ds[k]
-            out, focal = scene_errors(model, size, scene, settings)
+            view_counts.add(len(scene["img"]))
+            out, focal, failed = scene_errors(model, size, scene, settings)
+            failures += [f"{set_name} scene {k}: {f}" for f in failed]
             for m, v in out.items():
-                res[(Path(d).name, m)] += v
+                res[(set_name, m)] += v
                 res[("overall", m)] += v
             for m, v in focal.items():
                 foc[("overall", m)] += v
         if args.per_pair:
             for (group, m), v in res.items():
-                if group == Path(d).name:
+                if group == set_name:
                     write_per_pair(per_pair_path(args.per_pair, m), group,
                                    [PairResult(k, r, t, a) for k, (r, t, a) in enumerate(v)])
-    print(f"model {args.model} at {size}px; camera pairs of 4-view scenes; GA = global_align of each scene's views")
+    print(f"model {args.model} at {size}px; every camera pair of scenes of {sorted(view_counts)} views; "
+          "GA = global_align of each scene's views")
+    for f in failures:
+        print(f"alignment failed (its pairs count 180 degrees): {f}")
     print("| set | camera pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
     print("|---|---|---|---|---|---|---|")
     for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
         v = np.array(vals)
-        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {100 * np.mean(v[:, 1] < 15):.1f}% | "
-              f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+        d = v[:, 1][~np.isnan(v[:, 1])]  # a direction is undefined when the true baseline is zero
+        rta, dir_med = (f"{100 * np.mean(d < 15):.1f}%", f"{np.median(d):.1f}") if len(d) else ("-", "-")
+        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {rta} | "
+              f"{np.median(v[:, 0]):.1f} | {dir_med} |")
     print()
     print("| method | views | median focal err | focal err < 10% |")
     print("|---|---|---|---|")

@@ -3,7 +3,8 @@
 A card's aggregate (RRA@15 57.6% vs 61.2%, a median direction error of 25 vs 45 degrees) does not say whether
 the two models differ on the same pairs or trade wins at random. This script joins two per-pair files (written
 by ``--per-pair CSV`` of ``python -m training.evaluate``, ``benchmarks/bench_pose.py`` and
-``benchmarks/bench_real.py``, or by ``benchmarks/model_card.sh MODEL DATA THREADS PER_PAIR.csv``) on
+``benchmarks/bench_real.py``, or by ``benchmarks/model_card.sh MODEL DATA THREADS PER_PAIR.csv``; ``bench_ga.py``
+writes one per alignment method) on
 (set, pair) and prints, per set and over all sets:
 
 - for rotation and translation direction within ``--tol`` degrees: the pairs each model gets and the other

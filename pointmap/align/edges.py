@@ -114,8 +114,9 @@ def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> li
 
 
 def resolve_conf_transform(transform: str, preds: dict, keys: list) -> str:
-    """``transform`` itself, or for 'auto': 'log' when at least AUTO_SPREAD_SHARE of the finite confidences
-    of the ``keys`` predictions reach AUTO_SPREAD_CONF, else 'id'.
+    """``transform`` itself, or for 'auto': 'log' when at least AUTO_SPREAD_SHARE of the usable pixels of the
+    ``keys`` predictions (finite points, finite confidence > 0) have a confidence of AUTO_SPREAD_CONF or more,
+    else 'id'.
 
     log(conf) is DUSt3R's weighting for confidences that spread above their floor of 1 (the official models'
     do: the demos threshold them at 1.5 and 3). A model whose confidences all sit at the floor (ours: the
@@ -129,11 +130,12 @@ def resolve_conf_transform(transform: str, preds: dict, keys: list) -> str:
     above = total = 0
     for key in keys:
         p = preds[key]
-        for c in (p.conf1, p.conf2):
+        for c, pts in ((p.conf1, p.pts1_cam1), (p.conf2, p.pts2_cam1)):
             c = c.detach()
-            finite = torch.isfinite(c)
-            above += int((finite & (c >= AUTO_SPREAD_CONF)).sum())
-            total += int(finite.sum())
+            # pixels alignment can weigh: finite points, finite confidence above 0 (masks set it to 0)
+            usable = torch.isfinite(c) & (c > 0) & torch.isfinite(pts.detach()).all(-1)
+            above += int((usable & (c >= AUTO_SPREAD_CONF)).sum())
+            total += int(usable.sum())
     return "log" if total and above >= AUTO_SPREAD_SHARE * total else "id"
 
 
@@ -174,18 +176,19 @@ def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: 
                      score=score, stride=stride, keys=list(keys))
 
 
-def drop_empty_edges(stack: EdgeStack) -> EdgeStack:
-    """Remove edges whose weights are all zero (e.g. every confidence <= 1), with a warning."""
+def drop_empty_edges(stack: EdgeStack, conf_transform: str = "log") -> EdgeStack:
+    """Remove edges whose weights are all zero (masked out, or every confidence <= 1 under 'log'), with a
+    warning; ``conf_transform`` is the one the weights were made with (named in the messages)."""
     alive = (stack.w_i.sum(1) > 0) & (stack.w_j.sum(1) > 0)
     if bool(alive.all()):
         return stack
+    why = ("every confidence <= 1 under conf_transform='log' (conf_transform='id' weighs them), or masked out"
+           if conf_transform in ("log", "m1") else "confidence 0 (masked out) or no finite points")
     if not bool(alive.any()):
-        raise GraphError("every pair has zero confidence weight (all conf <= 1 with the 'log' transform?); "
-                         "nothing to align. Check the predictions or use conf_transform='id'.")
+        raise GraphError(f"every pair has zero weight in view 1 or view 2 ({why}); nothing to align")
     dead = [stack.keys[e] for e in range(stack.num_edges) if not alive[e]]
-    warnings.warn(f"{len(dead)} pair(s) have no usable confidence (all weights zero, e.g. conf <= 1 "
-                  f"with conf_transform='log') and are ignored: {dead[:8]}{' ...' if len(dead) > 8 else ''}",
-                  stacklevel=3)
+    warnings.warn(f"{len(dead)} pair(s) have zero weight in a view ({why}) and are ignored: "
+                  f"{dead[:8]}{' ...' if len(dead) > 8 else ''}", stacklevel=3)
     keep = alive.nonzero()[:, 0]
     return EdgeStack(i=stack.i[keep], j=stack.j[keep], pred_i=stack.pred_i[keep], pred_j=stack.pred_j[keep],
                      w_i=stack.w_i[keep], w_j=stack.w_j[keep], uv=stack.uv, pix_valid=stack.pix_valid,

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import torch
 
 from pointmap.align.edges import (
+    CONF_TRANSFORMS,
     build_stack,
     check_connected,
     check_preds,
@@ -69,6 +70,14 @@ class AlignConfig:
     fuse_iters: int = 1
     quiet: bool = False
 
+    def __post_init__(self):
+        """Names are checked here, before any inference or initialisation runs on a bad config."""
+        for field, value, allowed in (("optimizer", self.optimizer, ("adam", "lbfgs", "none")),
+                                      ("schedule", self.schedule, ("cosine", "linear", "constant")),
+                                      ("conf_transform", self.conf_transform, ("auto",) + CONF_TRANSFORMS)):
+            if value not in allowed:
+                raise ValueError(f"AlignConfig.{field} expected one of {allowed}, got {value!r}")
+
 
 def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
     """Fill unknown focals by Weiszfeld on each image's own full-resolution map (fx = fy)."""
@@ -115,7 +124,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     known_poses = parse_known_poses(cam2world, n, pose_mask)
     stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
     conf_transform = resolve_conf_transform(cfg.conf_transform, preds, keys)
-    stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, conf_transform))
+    stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, conf_transform), conf_transform)
     if len(stack.keys) < len(keys):
         try:
             check_connected(n, stack.keys)

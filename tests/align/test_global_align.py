@@ -110,3 +110,9 @@ def test_auto_weighting_reads_log_of_spread_confidences_and_conf_itself_at_their
     assert rot < 0.5 and centre < 0.01 and focal < 0.02, (rot, centre, focal)
     explicit = global_align(views_of(scene), floor, config=AlignConfig(quiet=True, conf_transform="id"))
     assert torch.equal(explicit.cam2world, auto.cam2world) and torch.equal(explicit.depth_z, auto.depth_z)
+
+
+@pytest.mark.parametrize("field, value", [("conf_transform", "rank"), ("optimizer", "sgd"), ("schedule", "step")])
+def test_a_config_with_an_unknown_name_is_refused_when_it_is_made(field, value):
+    with pytest.raises(ValueError, match=f"AlignConfig.{field} expected one of"):
+        AlignConfig(**{field: value})

@@ -122,6 +122,24 @@ def test_auto_conf_transform_picks_log_once_a_tenth_of_the_confidences_leave_the
         resolve_conf_transform("rank", preds, keys)
 
 
+def test_auto_conf_transform_counts_only_pixels_alignment_can_weigh(setup):
+    """Masked pixels (confidence 0), NaN confidences and NaN points are left out of the count: confidences of 3+
+    on the 5% of pixels a mask keeps still read as spread."""
+    _, preds, _ = setup
+    keys = sorted(preds)
+    g = torch.Generator().manual_seed(3)
+    masked = {}
+    for k in keys:
+        p = preds[k]
+        keep1, keep2 = (torch.rand(c.shape, generator=g) < 0.05 for c in (p.conf1, p.conf2))
+        conf1 = torch.where(keep1, p.conf1, torch.zeros_like(p.conf1))
+        conf2 = torch.where(keep2, p.conf2, torch.full_like(p.conf2, float("nan")))
+        pts1 = torch.where(keep1[..., None], p.pts1_cam1, torch.full_like(p.pts1_cam1, float("nan")))
+        masked[k] = replace(p, conf1=conf1, conf2=conf2, pts1_cam1=pts1)
+    assert float(preds[keys[0]].conf1.min()) >= 3.0
+    assert resolve_conf_transform("auto", masked, keys) == "log"
+
+
 def test_init_exact_on_clean_maps():
     sc = make_scene(5, 32, 48, seed=32)
     preds = gt_preds(sc, [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4), (1, 3)], seed=2)

@@ -57,5 +57,9 @@ def test_the_ga_benchmark_refuses_a_foreign_per_pair_file_before_running(scenes_
     with pytest.raises(SystemExit) as e:
         main(["--model", str(model_path), "--data", str(data), "--size", "64", "--per-pair", str(tmp_path / "pp")])
     assert e.value.code == 2 and "--per-pair" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as e:
         main(["--model", str(model_path), "--data", str(data), "--settings", "rank"])
+    assert e.value.code == 2 and "conf_transform expected 'auto' or one of" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["--model", str(model_path), "--data", str(data), str(data)])
+    assert e.value.code == 2 and "twice" in capsys.readouterr().err
