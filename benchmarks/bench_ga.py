@@ -8,8 +8,9 @@ orders); then for every camera pair (i < j):
 - "GA <setting>": the relative pose of cameras i and j after ``global_align`` of all the scene's views.
 
 A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
-':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only). The table gives RRA@15 / RTA@15 / median
-errors per set and overall, and the median focal error of each view (GA only; intrinsics unknown).
+':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), and '+K' at the end to give the alignment the
+scenes' true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep). The table gives RRA@15 / RTA@15 / median
+errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
 
@@ -45,14 +46,21 @@ def per_pair_path(prefix: str, method: str) -> Path:
     return Path(f"{prefix}-{method.replace(' ', '_').replace(':', '_')}.csv")
 
 
-def parse_setting(s: str) -> AlignConfig:
-    """'log', 'id:lbfgs', 'auto:none' ... -> AlignConfig (quiet)."""
-    transform, _, opt = s.partition(":")
+def parse_setting(s: str) -> tuple[AlignConfig, bool]:
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K' ... -> (AlignConfig (quiet), whether the true intrinsics are given)."""
+    body, known_K = (s[:-2], True) if s.endswith("+K") else (s, False)
+    transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
-    return AlignConfig(conf_transform=transform, optimizer=opt or "adam", quiet=True)
+    return AlignConfig(conf_transform=transform, optimizer=opt or "adam", quiet=True), known_K
+
+
+def setting_name(s: str) -> str:
+    """argparse type: a setting string, checked (parse_setting's errors)."""
+    parse_setting(s)
+    return s
 
 
 def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
@@ -73,9 +81,9 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
         out["pairwise"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
     f_gt = scene["K"][:, 0, 0].double()
     failed = []
-    for name, cfg in settings.items():
+    for name, (cfg, known_K) in settings.items():
         try:
-            recon = global_align(views, preds, config=cfg)
+            recon = global_align(views, preds, config=cfg, K=scene["K"].double() if known_K else None)
         except PointmapError as e:  # e.g. every weight zero under 'log': the scene counts as failed (180 deg)
             failed.append(f"GA {name}: {e}")
             out[f"GA {name}"] += [(180.0, 180.0, true_rot[k]) for k in pairs]
@@ -96,7 +104,7 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
     ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
     ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
-    ap.add_argument("--settings", nargs="+", type=parse_setting, default=None,
+    ap.add_argument("--settings", nargs="+", type=setting_name, default=None,
                     help="alignment settings to compare (default: auto log id)")
     ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
     ap.add_argument("--threads", type=int, default=2)
@@ -105,8 +113,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes expected a positive count, got {args.scenes}")
-    names = [a.conf_transform + ("" if a.optimizer == "adam" else f":{a.optimizer}")
-             for a in (args.settings or [])] or ["auto", "log", "id"]
+    names = list(dict.fromkeys(args.settings or ["auto", "log", "id"]))
     settings = {nm: parse_setting(nm) for nm in names}
     set_names = [Path(d).resolve().name for d in args.data]
     twice = sorted({nm for nm in set_names if set_names.count(nm) > 1})

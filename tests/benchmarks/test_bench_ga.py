@@ -34,8 +34,8 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     data, model_path = scenes_and_model
     prefix = tmp_path / "pp"
     assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1",
-                 "--settings", "log", "id", "--per-pair", str(prefix)]) == 0
-    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "GA_log", "GA_id")}
+                 "--settings", "log", "id", "id+K", "--per-pair", str(prefix)]) == 0
+    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "GA_log", "GA_id", "GA_id+K")}
     assert all(len(r) == 2 * 3 for r in rows.values())  # 2 scenes x 3 camera pairs
     # the first scene's pair (0, 1) aligned with conf itself, recomputed here
     scene = MultiViewDataset(data)[0]
@@ -49,6 +49,13 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     assert float(rows["GA_id"][0]["rot_err"]) == pytest.approx(float(relative_rotation_error_deg(est[:3, :3], true[:3, :3])), abs=1e-3)
     angle = np.degrees(np.arccos(np.clip((np.trace(true[:3, :3].numpy()) - 1) / 2, -1, 1)))
     assert float(rows["pairwise"][0]["true_rot"]) == pytest.approx(angle, abs=1e-4)
+    # '+K' hands the alignment the scene's true intrinsics (and that changes the result)
+    assert rows["GA_id+K"][0]["rot_err"] != rows["GA_id"][0]["rot_err"]
+    c2w_K = global_align(views, preds, K=scene["K"].double(),
+                         config=AlignConfig(conf_transform="id", quiet=True)).cam2world.double()
+    est_K = torch.linalg.inv(c2w_K[0]) @ c2w_K[1]
+    assert float(rows["GA_id+K"][0]["rot_err"]) == pytest.approx(
+        float(relative_rotation_error_deg(est_K[:3, :3], true[:3, :3])), abs=1e-3)
 
 
 def test_the_ga_benchmark_refuses_a_foreign_per_pair_file_before_running(scenes_and_model, tmp_path, capsys):
