@@ -26,20 +26,22 @@ def _model_and_size(name: str, size: int | None):
     return model, size
 
 
+def parse_focals(text: str, n: int) -> list[float]:
+    """``--focal``: one focal for all ``n`` images or one per image, comma-separated, positive, in pixels."""
+    try:
+        focal = [float(f) for f in text.split(",")]
+    except ValueError:
+        focal = []
+    if len(focal) not in (1, n) or not all(math.isfinite(f) and f > 0 for f in focal):
+        raise PointmapError(f"--focal expected F or {n} comma-separated values (positive, in pixels), got {text!r}")
+    return focal * n if len(focal) == 1 else focal
+
+
 def cmd_pair(args) -> int:
     from pointmap.io_pair import write_pair_outputs
 
     model, size = _model_and_size(args.model, args.size)
-    focal = None
-    if args.focal is not None:
-        try:
-            focal = [float(f) for f in args.focal.split(",")]
-        except ValueError:
-            focal = []
-        if len(focal) not in (1, 2) or not all(math.isfinite(f) and f > 0 for f in focal):
-            raise PointmapError(f"--focal expected F or F1,F2 (positive, in pixels), got {args.focal!r}")
-        if len(focal) == 1:
-            focal = focal * 2
+    focal = None if args.focal is None else parse_focals(args.focal, 2)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal)
     for p in paths:
@@ -73,8 +75,18 @@ def pair_summary(npz: Path) -> str:
 def cmd_reconstruct(args) -> int:
     from pointmap.pipeline import reconstruct
 
+    K = None
+    if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
+        import torch
+
+        from pointmap.images import image_sizes
+
+        focal = parse_focals(args.focal, len(args.images))
+        K = torch.zeros(len(args.images), 3, 3, dtype=torch.float64)
+        for k, ((w, h), f) in enumerate(zip(image_sizes(args.images), focal)):
+            K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
     model, size = _model_and_size(args.model, args.size)
-    recon = reconstruct(model, args.images, graph=args.graph, size=size, min_conf=args.min_conf,
+    recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, refine=args.refine, quiet=args.quiet)
     formats = tuple(f.strip() for f in args.export.split(",") if f.strip())
     out = Path(args.out)
@@ -131,6 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--size", type=int, default=None)
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
     r.add_argument("--export", default="ply,glb,colmap,npz")
+    r.add_argument("--focal", default=None, metavar="F[,F2,...]",
+                   help="known focal length in pixels of the images as given (one for all, or one per image); the "
+                        "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
+                        "the camera translations (docs/alignment.md)")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,

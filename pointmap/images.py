@@ -87,6 +87,14 @@ def _read(src, index: int):
     return im, path.name
 
 
+def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
+    """(width, height) of each image as ``load_images`` reads it (EXIF orientation applied): the "original
+    pixels" that known intrinsics refer to."""
+    if isinstance(paths_or_arrays, (str, Path, np.ndarray)):
+        paths_or_arrays = [paths_or_arrays]
+    return [_read(src, i)[0].size for i, src in enumerate(paths_or_arrays)]
+
+
 def prepare(im, size: int, *, square_ok: bool = False):
     """Resize and centre-crop a PIL RGB image as the official ``load_images`` does.
 

@@ -52,3 +52,31 @@ def test_the_pair_command_stores_given_focals_and_refuses_malformed_ones(tmp_pat
         assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", bad]) == 2
         err = capsys.readouterr().err
         assert "focal" in err and bad in err
+
+
+def test_the_reconstruct_command_holds_given_focals_fixed_with_the_principal_point_at_each_image_centre(tmp_path,
+                                                                                                       capsys):
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    import cv2
+
+    rng = np.random.default_rng(2)
+    ims = []
+    for k in range(3):
+        ims.append(str(tmp_path / f"im{k}.png"))
+        cv2.imwrite(ims[-1], rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    out = tmp_path / "out"
+    args = ["--quiet", "reconstruct", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--export", "npz"]
+    assert main([*args, "--focal", "70,75,80"]) == 0
+    K = load_npz(out / "reconstruction.npz").K.double()
+    assert torch.allclose(K[:, 0, 0], torch.tensor([70.0, 75.0, 80.0], dtype=torch.float64), atol=1e-3)
+    assert torch.allclose(K[:, 1, 1], K[:, 0, 0])
+    assert torch.allclose(K[:, 0, 2], torch.full((3,), 39.5, dtype=torch.float64), atol=1e-3)
+    assert torch.allclose(K[:, 1, 2], torch.full((3,), 29.5, dtype=torch.float64), atol=1e-3)
+    capsys.readouterr()
+    for bad in ("70,75", "0", "inf"):
+        assert main([*args, "--focal", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--focal expected F or 3 comma-separated values" in err and bad in err
