@@ -8,8 +8,9 @@ orders); then for every camera pair (i < j):
 - "GA <setting>": the relative pose of cameras i and j after ``global_align`` of all the scene's views.
 
 A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
-':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), and '+K' at the end to give the alignment the
-scenes' true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep). The table gives RRA@15 / RTA@15 / median
+':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), then '+K' to give the alignment the scenes'
+true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep) and/or '+F' for
+one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646). The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
@@ -47,14 +48,18 @@ def per_pair_path(prefix: str, method: str) -> Path:
 
 
 def parse_setting(s: str) -> tuple[AlignConfig, bool]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K' ... -> (AlignConfig (quiet), whether the true intrinsics are given)."""
-    body, known_K = (s[:-2], True) if s.endswith("+K") else (s, False)
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F' ... -> (AlignConfig (quiet), whether the true intrinsics
+    are given)."""
+    body, *flags = s.split("+")
+    if any(f not in ("K", "F") for f in flags) or len(set(flags)) < len(flags):
+        raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics) and/or '+F' (shared focal)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
-    return AlignConfig(conf_transform=transform, optimizer=opt or "adam", quiet=True), known_K
+    cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags, quiet=True)
+    return cfg, "K" in flags
 
 
 def setting_name(s: str) -> str:

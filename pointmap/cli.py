@@ -85,9 +85,12 @@ def cmd_reconstruct(args) -> int:
         K = torch.zeros(len(args.images), 3, 3, dtype=torch.float64)
         for k, ((w, h), f) in enumerate(zip(image_sizes(args.images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    from pointmap.align import AlignConfig
+
+    align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
     model, size = _model_and_size(args.model, args.size)
     recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, min_conf=args.min_conf,
-                        conf_percentile=args.conf_percentile, refine=args.refine, quiet=args.quiet)
+                        conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
     formats = tuple(f.strip() for f in args.export.split(",") if f.strip())
     out = Path(args.out)
     written = recon.save(out, formats=formats)
@@ -147,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
                         "the camera translations (docs/alignment.md)")
+    r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
+                   help="the images come from one camera (same size, same zoom): estimate one focal for all")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,

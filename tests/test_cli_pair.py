@@ -75,6 +75,9 @@ def test_the_reconstruct_command_holds_given_focals_fixed_with_the_principal_poi
     assert torch.allclose(K[:, 1, 1], K[:, 0, 0])
     assert torch.allclose(K[:, 0, 2], torch.full((3,), 39.5, dtype=torch.float64), atol=1e-3)
     assert torch.allclose(K[:, 1, 2], torch.full((3,), 29.5, dtype=torch.float64), atol=1e-3)
+    assert main([*args, "--shared-focal"]) == 0  # one focal estimated for the three images
+    K = load_npz(out / "reconstruction.npz").K.double()
+    assert float(K[:, 0, 0].max() - K[:, 0, 0].min()) == 0.0 and float(K[0, 0, 0]) != 70.0
     capsys.readouterr()
     for bad in ("70,75", "0", "inf"):
         assert main([*args, "--focal", bad]) == 2

@@ -52,6 +52,9 @@ class AlignConfig:
     early_stop_tol / early_stop_window: stop when the loss improved by less than tol (relative)
         over the last ``window`` iterations
     fuse_iters: reweighting passes of the full-resolution depth fusion (0 = weighted least squares)
+    shared_focal: all images come from one camera: one focal for all of them (started at the median of the
+        per-image estimates), as MASt3R's ``shared_intrinsics``; needs images of one original size and K
+        given for all images or none
     quiet: no progress bar
     """
 
@@ -68,6 +71,7 @@ class AlignConfig:
     early_stop_tol: float = 1e-4
     early_stop_window: int = 20
     fuse_iters: int = 1
+    shared_focal: bool = False
     quiet: bool = False
 
     def __post_init__(self):
@@ -131,6 +135,10 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         except GraphError as err:
             raise GraphError(f"after dropping zero-confidence pairs: {err}") from None
     fx, fy, cx, cy = _initial_focals(preds, stack, info.shapes, fx, fy, cx, cy, K_known)
+    if cfg.shared_focal:
+        _check_one_camera(info, K_known)
+        if not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
+            fx = fy = torch.full_like(fx, float(fx.median()))
     t_init = time.perf_counter()
     init = init_mst(stack, fx, fy, cx, cy)
     c2w, depth, pw_s, pw_R, pw_t = init.cam2world, init.depth, init.pw_s, init.pw_R, init.pw_t
@@ -158,7 +166,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         c2w[i, :3, 3] /= unit
     pose_free = torch.tensor([i not in known_poses for i in range(n)])
     params = AlignParams(c2w, pose_free, depth / unit, fx, fy, cx, cy, ~K_known, pw_s / unit, pw_R,
-                         pw_t / unit, scale_free=not scale_fixed)
+                         pw_t / unit, scale_free=not scale_fixed, shared_focal=cfg.shared_focal)
     seconds_init = time.perf_counter() - t_init
     chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
     report = run(params, stack, cfg, chunk)
@@ -177,6 +185,16 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                           "known_pose_indices": sorted(known_poses),
                           "known_K_indices": [k for k in range(n) if K_known[k]],
                           "config": asdict(cfg)})
+
+
+def _check_one_camera(info, K_known) -> None:
+    """shared_focal: one focal in map pixels is one camera only if every image was resized and cropped alike."""
+    sizes = sorted(set(info.original_sizes))
+    if len(sizes) > 1 or not bool((info.map_from_original == info.map_from_original[0]).all()):
+        raise ShapeError(f"shared_focal expects images of one camera (one original size), got sizes {sizes[:5]}")
+    if bool(K_known.any()) and not bool(K_known.all()):
+        raise PointmapError("shared_focal with K known for some images only: give K for all images (then the "
+                            "focal is fixed) or for none")
 
 
 def _build(info, c2w, intr, depths, confs, unit, known_poses, K_given, K_known, report) -> Reconstruction:

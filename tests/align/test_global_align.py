@@ -116,3 +116,29 @@ def test_auto_weighting_reads_log_of_spread_confidences_and_conf_itself_at_their
 def test_a_config_with_an_unknown_name_is_refused_when_it_is_made(field, value):
     with pytest.raises(ValueError, match=f"AlignConfig.{field} expected one of"):
         AlignConfig(**{field: value})
+
+
+def test_a_shared_focal_is_one_value_for_all_images_and_recovers_one_camera():
+    sc = make_scene(5, 32, 48, seed=11, focal_range=(44.0, 44.0))
+    preds = gt_preds(sc, complete_pairs(5), seed=12, noise=0.01, outliers=0.03, pair_rot_deg=0.5)
+    free = global_align(views_of(sc), preds, config=QUIET)
+    shared = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, shared_focal=True))
+    f_free, f_shared = free.K[:, 0, 0].double(), shared.K[:, 0, 0].double()
+    assert float(f_shared.max() - f_shared.min()) == 0.0 and float(f_free.max() - f_free.min()) > 0.0
+    assert abs(float(f_shared[0]) / 44.0 - 1) < 0.02, f_shared
+    rot, centre, _, _ = _errors(shared, sc)
+    assert rot < 0.5 and centre < 0.01, (rot, centre)
+
+
+def test_a_shared_focal_is_refused_for_images_of_two_sizes_or_for_k_known_for_some_images_only(scene):
+    from pointmap.errors import PointmapError, ShapeError
+
+    preds = gt_preds(scene, complete_pairs(6), seed=13)
+    views = views_of(scene)
+    views[2].original_size = (96, 64)
+    views[2].map_from_original = (0.5, 0.5, 0.0, 0.0)
+    with pytest.raises(ShapeError, match="shared_focal expects images of one camera"):
+        global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=True))
+    K0 = torch.from_numpy(scene["K"][0])
+    with pytest.raises(PointmapError, match="give K for all images"):
+        global_align(views_of(scene), preds, K={0: K0}, config=AlignConfig(quiet=True, shared_focal=True))
