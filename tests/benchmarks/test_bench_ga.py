@@ -70,3 +70,17 @@ def test_the_ga_benchmark_refuses_a_foreign_per_pair_file_before_running(scenes_
     with pytest.raises(SystemExit) as e:
         main(["--model", str(model_path), "--data", str(data), str(data)])
     assert e.value.code == 2 and "twice" in capsys.readouterr().err
+
+
+def test_a_setting_names_the_weighting_the_optimizer_and_the_known_intrinsics_or_shared_focal():
+    import argparse
+
+    from benchmarks.bench_ga import parse_setting
+
+    cfg, known_K = parse_setting("id:lbfgs+F+K")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K) == ("id", "lbfgs", True, True)
+    cfg, known_K = parse_setting("auto")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K) == ("auto", "adam", False, False)
+    for bad in ("auto+X", "auto+K+K", "rank", "log:sgd"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_setting(bad)
