@@ -82,6 +82,9 @@ def cmd_reconstruct(args) -> int:
         from pointmap.images import image_sizes
 
         focal = parse_focals(args.focal, len(args.images))
+        if args.shared_focal and len(set(focal)) > 1:
+            raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
+                                f"focals ({args.focal}); give one value or drop --shared-focal")
         K = torch.zeros(len(args.images), 3, 3, dtype=torch.float64)
         for k, ((w, h), f) in enumerate(zip(image_sizes(args.images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)

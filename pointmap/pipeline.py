@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import torch
 
-from pointmap.align.optimize import AlignConfig, global_align
+from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
 from pointmap.errors import GraphError, ShapeError
 from pointmap.io.points import confidence_mask
 
@@ -96,6 +96,8 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512,
 
     cfg = align or AlignConfig(quiet=quiet)
     views = load_images(paths_or_arrays, size=size)
+    if cfg.shared_focal:  # refuse now, not after the inference of every pair
+        check_one_camera([v.original_size for v in views], [v.map_from_original for v in views])
     n = len(views)
     if n < 2:
         raise GraphError(f"reconstruct needs at least 2 images, got {n}")
@@ -121,9 +123,11 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512,
             m = match(preds[(i, j)])
             matches[(i, j)] = m
         known = recon.info["align"].get("known_pose_indices", [])
+        # a shared focal is held as aligned: the sparse stage's per-image focal factors would split it
+        fixed_K = True if cfg.shared_focal or (K is not None and not isinstance(K, dict)) else \
+            (list(K) if isinstance(K, dict) else ())
         recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
-                               fixed_intrinsics=True if K is not None and not isinstance(K, dict) else
-                               (list(K) if isinstance(K, dict) else ()))
+                               fixed_intrinsics=fixed_K)
     keep = confidence_mask(recon.conf, min_conf, conf_percentile)
     if user_masks is not None:
         keep &= user_masks

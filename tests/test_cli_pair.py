@@ -75,10 +75,16 @@ def test_the_reconstruct_command_holds_given_focals_fixed_with_the_principal_poi
     assert torch.allclose(K[:, 1, 1], K[:, 0, 0])
     assert torch.allclose(K[:, 0, 2], torch.full((3,), 39.5, dtype=torch.float64), atol=1e-3)
     assert torch.allclose(K[:, 1, 2], torch.full((3,), 29.5, dtype=torch.float64), atol=1e-3)
-    assert main([*args, "--shared-focal"]) == 0  # one focal estimated for the three images
-    K = load_npz(out / "reconstruction.npz").K.double()
-    assert float(K[:, 0, 0].max() - K[:, 0, 0].min()) == 0.0 and float(K[0, 0, 0]) != 70.0
+    for extra in ([], ["--refine"]):  # one focal estimated for the three images, kept by the sparse refinement
+        assert main([*args, "--shared-focal", *extra]) == 0
+        f = load_npz(out / "reconstruction.npz").K[:, 0, 0].double()
+        assert float(f.max() - f.min()) == 0.0, (extra, f)
     capsys.readouterr()
+    assert main([*args, "--shared-focal", "--focal", "70,75,80"]) == 2
+    assert "--shared-focal says one camera, but --focal gives 3 different focals" in capsys.readouterr().err
+    cv2.imwrite(ims[2], rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))  # same aspect, another size
+    assert main([*args, "--shared-focal"]) == 2
+    assert "all of one size" in capsys.readouterr().err
     for bad in ("70,75", "0", "inf"):
         assert main([*args, "--focal", bad]) == 2
         err = capsys.readouterr().err

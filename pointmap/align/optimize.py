@@ -53,8 +53,8 @@ class AlignConfig:
         over the last ``window`` iterations
     fuse_iters: reweighting passes of the full-resolution depth fusion (0 = weighted least squares)
     shared_focal: all images come from one camera: one focal for all of them (started at the median of the
-        per-image estimates), as MASt3R's ``shared_intrinsics``; needs images of one original size and K
-        given for all images or none
+        per-image estimates), as MASt3R's ``shared_intrinsics``; needs images of one original size, resized and
+        cropped alike, and K given for all images (one focal) or none (``check_one_camera``)
     quiet: no progress bar
     """
 
@@ -125,6 +125,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     keys = check_preds(preds, n, info.shapes)
     check_connected(n, keys)
     K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
+    if cfg.shared_focal:
+        check_one_camera(info.original_sizes, info.map_from_original, K_known, fx)
     known_poses = parse_known_poses(cam2world, n, pose_mask)
     stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
     conf_transform = resolve_conf_transform(cfg.conf_transform, preds, keys)
@@ -135,10 +137,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         except GraphError as err:
             raise GraphError(f"after dropping zero-confidence pairs: {err}") from None
     fx, fy, cx, cy = _initial_focals(preds, stack, info.shapes, fx, fy, cx, cy, K_known)
-    if cfg.shared_focal:
-        _check_one_camera(info, K_known)
-        if not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
-            fx = fy = torch.full_like(fx, float(fx.median()))
+    if cfg.shared_focal and not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
+        fx = fy = torch.full_like(fx, float(fx.quantile(0.5)))
     t_init = time.perf_counter()
     init = init_mst(stack, fx, fy, cx, cy)
     c2w, depth, pw_s, pw_R, pw_t = init.cam2world, init.depth, init.pw_s, init.pw_R, init.pw_t
@@ -187,14 +187,23 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                           "config": asdict(cfg)})
 
 
-def _check_one_camera(info, K_known) -> None:
-    """shared_focal: one focal in map pixels is one camera only if every image was resized and cropped alike."""
-    sizes = sorted(set(info.original_sizes))
-    if len(sizes) > 1 or not bool((info.map_from_original == info.map_from_original[0]).all()):
-        raise ShapeError(f"shared_focal expects images of one camera (one original size), got sizes {sizes[:5]}")
-    if bool(K_known.any()) and not bool(K_known.all()):
-        raise PointmapError("shared_focal with K known for some images only: give K for all images (then the "
-                            "focal is fixed) or for none")
+def check_one_camera(original_sizes, map_from_original, K_known=None, fx=None) -> None:
+    """``shared_focal``'s preconditions: every image of one original size, resized and cropped alike (one focal
+    in map pixels is then one camera); K known for all images or none, and if for all, one focal."""
+    sizes = sorted(set(tuple(s) for s in original_sizes))
+    if len(sizes) > 1:
+        raise ShapeError(f"shared_focal expects images of one camera, all of one size; got sizes (w, h) {sizes[:5]}")
+    mfo = torch.as_tensor(map_from_original, dtype=torch.float64)
+    if not bool((mfo == mfo[0]).all()):
+        raise ShapeError("shared_focal expects images resized and cropped alike (one map_from_original); got "
+                         f"{sorted(set(tuple(float(x) for x in r) for r in mfo))[:3]}")
+    if K_known is not None and bool(K_known.any()):
+        if not bool(K_known.all()):
+            raise PointmapError("shared_focal with K known for some images only: give K for all images (then the "
+                                "focal is fixed) or for none")
+        if fx is not None and float(fx.max() - fx.min()) > 1e-6 * float(fx.max()):
+            raise PointmapError(f"shared_focal with known focals that differ ({sorted(set(round(float(f), 3) for f in fx))[:5]} "
+                                "map px): one camera has one focal; drop shared_focal or give one K")
 
 
 def _build(info, c2w, intr, depths, confs, unit, known_poses, K_given, K_known, report) -> Reconstruction:

@@ -35,7 +35,8 @@ class AlignParams(torch.nn.Module):
         self.register_buffer("pw_ls_mean", pw_s.log().mean().to(dtype))
         self.scale_free = scale_free
         self.xi = torch.nn.Parameter(torch.zeros(n, 6, dtype=dtype))
-        # shared_focal: one log-focal for every image whose focal is free (one camera), started at their mean
+        # shared_focal: one log-focal for every image whose focal is free (one camera), started at the mean of
+        # their starting focals (global_align gives them all one value: the median of the per-image estimates)
         self.log_f = torch.nn.Parameter((fx.log().mean(0, keepdim=True) if shared_focal else fx.log()).to(dtype))
         self.log_depth = torch.nn.Parameter(depth.clamp_min(1e-8).log().to(dtype))
         self.pw_phi = torch.nn.Parameter(torch.zeros(E, 3, dtype=dtype))

@@ -137,8 +137,32 @@ def test_a_shared_focal_is_refused_for_images_of_two_sizes_or_for_k_known_for_so
     views = views_of(scene)
     views[2].original_size = (96, 64)
     views[2].map_from_original = (0.5, 0.5, 0.0, 0.0)
-    with pytest.raises(ShapeError, match="shared_focal expects images of one camera"):
+    with pytest.raises(ShapeError, match="shared_focal expects images of one camera, all of one size"):
+        global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=True))
+    views = views_of(scene)  # one size, but one image cropped differently
+    views[2].map_from_original = (1.0, 1.0, 2.0, 0.0)
+    with pytest.raises(ShapeError, match="resized and cropped alike"):
         global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=True))
     K0 = torch.from_numpy(scene["K"][0])
     with pytest.raises(PointmapError, match="give K for all images"):
         global_align(views_of(scene), preds, K={0: K0}, config=AlignConfig(quiet=True, shared_focal=True))
+    with pytest.raises(PointmapError, match="known focals that differ"):
+        global_align(views_of(scene), preds, K=torch.from_numpy(scene["K"]),
+                     config=AlignConfig(quiet=True, shared_focal=True))
+
+
+def test_a_shared_focal_is_one_parameter_that_the_loss_moves():
+    from pointmap.align.params import AlignParams
+
+    n, E, P = 3, 2, 5
+    f = torch.tensor([40.0, 44.0, 48.0], dtype=torch.float64)
+    params = AlignParams(torch.eye(4, dtype=torch.float64).repeat(n, 1, 1), torch.ones(n, dtype=torch.bool),
+                         torch.ones(n, P, dtype=torch.float64), f, f, f * 0, f * 0, torch.ones(n, dtype=torch.bool),
+                         torch.ones(E, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(E, 1, 1),
+                         torch.zeros(E, 3, dtype=torch.float64), scale_free=True, shared_focal=True)
+    assert params.log_f.shape == (1,)
+    fx, fy, _, _ = params.intrinsics()
+    assert torch.allclose(fx.double(), torch.full((3,), float(f.log().mean().exp()), dtype=torch.float64))
+    uv = torch.rand(n, P, 2) * 10
+    params.world_points(uv)[..., 0].sum().backward()
+    assert params.log_f.grad is not None and float(params.log_f.grad.abs()) > 0
