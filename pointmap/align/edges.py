@@ -19,7 +19,7 @@ from pointmap.errors import GraphError, ShapeError
 CONF_TRANSFORMS = ("log", "m1", "sqrt", "id")
 # 'auto': log(conf) when the confidences spread above 1, conf itself when they sit at the floor
 AUTO_SPREAD_CONF = 1.1     # a confidence at least this high counts as "above the floor"
-AUTO_SPREAD_SHARE = 0.1    # ... and log is chosen when at least this share of the finite confidences is
+AUTO_SPREAD_SHARE = 0.1    # ... and log is chosen when at least this share of the usable pixels' confidences is
 
 
 def conf_to_weight(conf: torch.Tensor, transform: str = "log") -> torch.Tensor:
@@ -125,7 +125,8 @@ def resolve_conf_transform(transform: str, preds: dict, keys: list) -> str:
     conf itself then weighs the pixels (nearly) uniformly.
     """
     if transform != "auto":
-        conf_to_weight(torch.ones(1), transform)  # unknown names fail here, with the list of known ones
+        if transform not in CONF_TRANSFORMS:
+            raise ValueError(f"conf_transform expected one of {CONF_TRANSFORMS} (or 'auto'), got {transform!r}")
         return transform
     above = total = 0
     for key in keys:
