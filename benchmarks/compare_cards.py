@@ -27,7 +27,9 @@ EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), (
              ("median dir err", "trans_err_med", "{:.1f}"), ("AbsRel", "AbsRel", "{:.3f}"),
              ("depth_ratio_err", "depth_ratio_err", "{:.3f}"),
              ("focal error (median, relative)", "focal_err", "{:.3f}"), ("fwd_corr", "fwd_corr", "{:.2f}"),
-             ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"))
+             ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"),
+             ("confidence >= 1.1, share of pixels", "conf_spread", "{:.3f}"),
+             ("AbsRel of the confident half / all", "conf_order", "{:.3f}"))
 BENCH_CATEGORIES = ("all", "low-texture", "wide (>30 deg)", "short baseline (<0.1 depth)")
 
 

@@ -30,6 +30,9 @@ class TrainConfig:
     weight_decay: float = 0.05
     clip: float = 1.0
     alpha: float = 0.2             # confidence regulariser of the regression loss
+    conf_reset: float = 0.0        # > 0: restart both heads' confidence channel at this confidence everywhere
+                                   # (weights 0, bias set; must be above the floor of 1) before training from
+                                   # --init, for a channel that collapsed to its floor (train.reset_confidence)
     metric: bool = False           # metric regression (GT scale for both)
     match_weight: float = 0.075    # weight of the InfoNCE matching loss
     n_corr: int = 1024             # correspondences per pair for the matching loss
@@ -101,7 +104,9 @@ class TrainConfig:
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:
             p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
-        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight"):
+        if cfg.conf_reset and not cfg.init:
+            p.error("--conf_reset restarts the confidence of an --init model; a model from scratch starts fresh anyway")
+        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "conf_reset"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.attn_heads < 1:

@@ -103,6 +103,24 @@ def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> fl
     return float(((p.clamp_min(0) * scale - g).abs() / g).mean())
 
 
+def confidence_order(conf: torch.Tensor, pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor,
+                     floor: float = 1.1) -> tuple[float, float]:
+    """(share of the valid pixels whose confidence is ``floor`` or more, the AbsRel of the more confident half of
+    the valid pixels divided by the AbsRel of all of them): the first says whether the confidence has left its
+    floor of 1 (``pointmap.align.edges.AUTO_SPREAD_CONF``), the second whether it orders the errors (below 1:
+    the confident half is the more accurate; 1 for a flat confidence, whose "half" is every pixel). One median
+    scale alignment over all valid pixels, as ``abs_rel``."""
+    c, p, g = conf[valid].double(), pred_z[valid].double(), gt_z[valid].double()
+    if p.numel() == 0:
+        return float("nan"), float("nan")
+    scale = _depth_scale(p, g)
+    if scale is None:
+        return float((c >= floor).double().mean()), float("nan")
+    err = (p.clamp_min(0) * scale - g).abs() / g
+    top = c >= c.median()
+    return float((c >= floor).double().mean()), float(err[top].mean() / err.mean().clamp_min(1e-12))
+
+
 def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tensor, gt_z: torch.Tensor,
                    valid: torch.Tensor, min_baseline: float = 0.01) -> float:
     """Length of the predicted baseline over the true one, after the median depth alignment of ``abs_rel`` (the
@@ -209,6 +227,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     from the forward pass's ``pts2_cam1`` through the estimated pose (0: the two views' depths agree in
     scale); ``coarse_acc``: top-1 accuracy of the patch-level matching (``losses.patch_matching_loss``),
     chance is 1 / patches;
+    ``conf_spread`` / ``conf_order``: mean / median over pairs of ``confidence_order`` (view 1);
     ``focal_err``: median over both views of ``focal_error`` (each view's focal from its own-frame pointmap);
     ``fwd_corr``/``fwd_sign``: ``forward_agreement`` of the estimated translation directions (the forward
     component, which per-view focal lengths had hidden from training);
@@ -217,6 +236,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
     whose matches give no direction keeps the model's pose)."""
     rot_err, tr_err, rels, precs, coarse, ratios, dratios = [], [], [], [], [], [], []
+    spreads, orders = [], []  # confidence_order of view 1's confidence (forward pass)
     t_pred, t_true = [], []  # camera 2's centre in camera 1's frame, estimated and true (forward_agreement)
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
@@ -252,6 +272,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             tr_err += torch.where(ok, te, torch.full_like(te, 180.0)).tolist()
             for b in range(len(its)):
                 rels.append(abs_rel(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b]))
+                sp, co = confidence_order(pred.conf1[b], pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b])
+                spreads.append(sp)
+                orders.append(co)
                 ratios.append(baseline_ratio(cam2world_pred[b, :3, 3], pred.pts1_cam1[b, ..., 2],
                                              cam2world_gt[b, :3, 3], v1["depth_z"][b], v1["valid"][b]))
                 dr = depth_ratio(pred.pts1_cam1[b, ..., 2], v1["depth_z"][b], v1["valid"][b], own2_z[b],
@@ -292,6 +315,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             "focal_err": float(torch.tensor(focal_errs).nanmedian()) if focal_errs else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
+            "conf_spread": float(torch.tensor(spreads).nanmean()) if spreads else float("nan"),
+            "conf_order": float(torch.tensor(orders).nanmedian()) if orders else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
                 "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m),
                 "RRA15_refined": 100 * sum(r < 15 for r in rot_r) / len(rot_r),

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 from pathlib import Path
 
@@ -57,6 +58,8 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         fresh = load_trunk(model, state, source=cfg.init)
         print(f"--init {cfg.init}: trunk loaded; {len(fresh)} head tensors start fresh"
               + (f" (e.g. {fresh[:3]})" if fresh else ""), file=sys.stderr)
+        if cfg.conf_reset:
+            reset_confidence(model, cfg.conf_reset)
         return model.train()
     if cfg.pose_head and not model_cfg.pose_head:
         raise CheckpointError(f"--init {cfg.init} has no pose head: add --init_heads fresh to start one")
@@ -65,7 +68,31 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
                               f"{cfg.desc_stem}: add --init_heads fresh to start a new one")
     model = PointmapNet(model_cfg)
     load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
+    if cfg.conf_reset:
+        reset_confidence(model, cfg.conf_reset)
     return model.train()
+
+
+def reset_confidence(model: PointmapNet, conf: float) -> None:
+    """Restart both heads' pointmap confidence at ``conf`` everywhere (``DownstreamHead.reset_conf``).
+
+    Why: the confidence is ``1 + exp(x)`` and DUSt3R's loss ``conf * err - alpha * log(conf)`` wants it above 1
+    only where the normalised error is below alpha (0.2). A young model's error is above that everywhere, so
+    x falls; once it is near -13 (as in the shipped v17: every pixel's confidence 1.000) its gradient is
+    scaled by e^-13 and the channel stays dead even where the error has since fallen below alpha (a third
+    of v17's pixels). A resumed run loads its own weights after this, so only the first start is affected."""
+    kind, vmin, vmax = model.cfg.conf_mode
+    if not vmin < conf < vmax:
+        raise ValueError(f"--conf_reset expected a confidence between the model's floor {vmin} and ceiling "
+                         f"{vmax}, got {conf}")
+    if kind == "sigmoid":
+        u = (conf - vmin) / (vmax - vmin)
+        raw = math.log(u / (1 - u))
+    else:
+        raw = math.log(conf - vmin)
+    for head in (model.downstream_head1, model.downstream_head2):
+        head.reset_conf(raw)
+    print(f"--conf_reset {conf}: confidence channels restart at raw {raw:.3f}", file=sys.stderr)
 
 
 def collate(items):

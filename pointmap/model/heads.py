@@ -157,6 +157,21 @@ class DownstreamHead(nn.Module):
         nn.init.zeros_(self.desc_fuse.weight)
         nn.init.zeros_(self.desc_fuse.bias)
 
+    @torch.no_grad()
+    def reset_conf(self, raw: float) -> None:
+        """Make the confidence channel (channel 3) output ``raw`` at every pixel: its weights zeroed, its bias
+        set. With the official ``vmin + exp(x)`` confidence, a channel driven to x = -13 passes gradients
+        scaled by e^-13 and can never rise again (training/train.py, ``--conf_reset``); restarting it from a
+        constant gives it back its gradient while leaving points and descriptors untouched."""
+        if hasattr(self, "proj"):
+            n = self.cfg.patch_size ** 2  # pixel_shuffle: channel c is rows c*p*p .. (c+1)*p*p - 1
+            self.proj.weight[3 * n: 4 * n].zero_()
+            self.proj.bias[3 * n: 4 * n].fill_(raw)
+        else:
+            last = self.dpt.head[-1]
+            last.weight[3].zero_()
+            last.bias[3].fill_(raw)
+
     def forward(self, tokens: list, H: int, W: int, local: torch.Tensor | None = None) -> torch.Tensor:
         """Raw channels [B, 4 (+ desc_dim + two_confs), H, W]: x, y, z, conf, desc..., desc_conf.
         ``local``: the DescStem's features in token layout, required when the config has ``desc_stem``."""

@@ -243,6 +243,33 @@ def test_rotation_accuracy_by_angle_splits_pairs_at_30_and_45_degrees_of_true_ro
         rra_by_angle(err, angle[:3])
 
 
+def test_confidence_order_tells_a_flat_confidence_from_one_that_ranks_the_errors():
+    from training.evaluate import confidence_order
+
+    g = torch.Generator().manual_seed(0)
+    gt = 2 + torch.rand(16, 16, generator=g)
+    rel = 0.3 * torch.rand(16, 16, generator=g)  # each pixel's relative depth error
+    sign = torch.ones(16, 16)
+    sign[:, ::2] = -1  # errors both ways, so the median scale alignment leaves each pixel's error near rel
+    pred = gt * (1 + sign * rel) / 1.5  # any scale: the prediction is scale-free
+    valid = torch.ones(16, 16, dtype=torch.bool)
+    valid[0] = False
+    # slow reference: the scale and the two means written out over the valid pixels
+    p, t, e_true = pred[valid].double(), gt[valid].double(), None
+    scale = torch.median(t / p)
+    e_true = (p * scale - t).abs() / t
+    flat = torch.ones(16, 16)
+    assert confidence_order(flat, pred, gt, valid) == (0.0, pytest.approx(1.0))
+    good = 1 + 1 / (rel + 0.01)  # high where the error is low
+    spread, order = confidence_order(good, pred, gt, valid)
+    c = good[valid].double()
+    assert spread == pytest.approx(float((c >= 1.1).double().mean()))
+    assert order == pytest.approx(float(e_true[c >= c.median()].mean() / e_true.mean()))
+    assert order < 0.8
+    assert confidence_order(1 + rel, pred, gt, valid)[1] > 1.2  # confident where wrong
+    assert all(math.isnan(v) for v in confidence_order(good, pred, gt, torch.zeros_like(valid)))
+
+
 def test_focal_error_is_zero_for_a_true_pointmap_and_the_relative_error_for_a_wrong_focal():
     from pointmap.geometry import depth_to_points_cam
     from training.evaluate import focal_error

@@ -298,6 +298,51 @@ def test_a_descriptor_stem_joins_a_checkpoint_only_with_fresh_heads_and_starts_a
         assert torch.equal(model(a, b).desc1, src(a, b).desc1)
 
 
+@pytest.mark.parametrize("head", ["catmlp+dpt", "catmlp+linear"])
+def test_conf_reset_revives_a_collapsed_confidence_and_leaves_points_and_descriptors_unchanged(tmp_path, head):
+    import dataclasses
+    import math
+
+    import pointmap as pm
+    from training.losses import regression_loss
+    from training.train import build_model, reset_confidence
+
+    src = PointmapNet(dataclasses.replace(PRESETS["test"], head=head)).eval()
+    reset_confidence(src, 1 + math.exp(-13.0))  # collapsed, as the shipped v17's confidence (raw -13)
+    pm.save_model(src, tmp_path / "src.safetensors")
+    cfg = TrainConfig(data="x", preset="test", init=str(tmp_path / "src.safetensors"), conf_reset=1.2)
+    model = build_model(cfg).eval()
+    v1, v2 = PlanePairs(n=1)[0]
+    v1, v2 = ({k: v[None] for k, v in v.items()} for v in (v1, v2))
+
+    def conf_grad(m):
+        m.zero_grad()
+        regression_loss(m(v1["img"], v2["img"]), v1, v2)[0].backward()
+        h = m.downstream_head1
+        last = h.proj if hasattr(h, "proj") else h.dpt.head[-1]
+        g = last.bias.grad
+        return float(g[3 * 256: 4 * 256].abs().sum() if hasattr(h, "proj") else g[3].abs())
+
+    with torch.no_grad():
+        a, b = src(v1["img"], v2["img"]), model(v1["img"], v2["img"])
+    assert torch.equal(a.pts1_cam1, b.pts1_cam1) and torch.equal(a.pts2_cam1, b.pts2_cam1)
+    assert torch.equal(a.desc1, b.desc1)
+    assert torch.allclose(b.conf1, torch.full_like(b.conf1, 1.2)) and torch.allclose(b.conf2, torch.full_like(b.conf2, 1.2))
+    assert float(a.conf1.max()) < 1.0 + 1e-5
+    # the collapsed channel passes gradients scaled by e^-13; the restarted one passes them at full scale
+    dead, live = conf_grad(src.train()), conf_grad(model.train())
+    assert live > 1e4 * dead and live > 1e-3
+    with pytest.raises(ValueError, match="between the model's floor"):
+        build_model(dataclasses.replace(cfg, conf_reset=0.5))
+
+
+def test_conf_reset_needs_an_init_model_and_a_positive_value():
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--conf_reset", "1.2"])
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--init", "m.safetensors", "--conf_reset", "-1"])
+
+
 def test_fresh_heads_init_without_init_is_refused():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--init_heads", "fresh"])
