@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import torch
 
+from pointmap.align.edges import AUTO_SPREAD_CONF
 from pointmap.geometry.cameras import invert_rigid, transform_points
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.rotations import relative_rotation_error_deg, rotation_angle, translation_angle_deg
@@ -91,34 +92,43 @@ def _pose_errors(est: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
             float(translation_angle_deg(est[:3, 3].double(), gt[:3, 3].double())))
 
 
-def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
-    """AbsRel of a depth map after median scale alignment (the prediction is scale-free); pixels predicted
-    behind the camera count with their full relative error."""
+def depth_rel_errors(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> torch.Tensor | None:
+    """|scale * pred - gt| / gt per valid pixel (float64, in ``valid``'s order) after the median scale alignment of
+    ``_depth_scale`` (the prediction is scale-free); pixels predicted behind the camera count with their full
+    relative error. Empty when no pixel is valid; None when no pixel is predicted in front (no scale)."""
     p, g = pred_z[valid].double(), gt_z[valid].double()
     if p.numel() == 0:
-        return float("nan")
+        return p
     scale = _depth_scale(p, g)
     if scale is None:
+        return None
+    return (p.clamp_min(0) * scale - g).abs() / g
+
+
+def abs_rel(pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor) -> float:
+    """AbsRel of a depth map after median scale alignment (``depth_rel_errors``): NaN without valid pixels, 1
+    when no pixel is predicted in front."""
+    err = depth_rel_errors(pred_z, gt_z, valid)
+    if err is None:
         return 1.0
-    return float(((p.clamp_min(0) * scale - g).abs() / g).mean())
+    return float(err.mean()) if err.numel() else float("nan")
 
 
 def confidence_order(conf: torch.Tensor, pred_z: torch.Tensor, gt_z: torch.Tensor, valid: torch.Tensor,
-                     floor: float = 1.1) -> tuple[float, float]:
+                     floor: float = AUTO_SPREAD_CONF) -> tuple[float, float]:
     """(share of the valid pixels whose confidence is ``floor`` or more, the AbsRel of the more confident half of
     the valid pixels divided by the AbsRel of all of them): the first says whether the confidence has left its
     floor of 1 (``pointmap.align.edges.AUTO_SPREAD_CONF``), the second whether it orders the errors (below 1:
     the confident half is the more accurate; 1 for a flat confidence, whose "half" is every pixel). One median
-    scale alignment over all valid pixels, as ``abs_rel``."""
-    c, p, g = conf[valid].double(), pred_z[valid].double(), gt_z[valid].double()
-    if p.numel() == 0:
+    scale alignment over all valid pixels (``depth_rel_errors``, as ``abs_rel``)."""
+    c = conf[valid].double()
+    if c.numel() == 0:
         return float("nan"), float("nan")
-    scale = _depth_scale(p, g)
-    if scale is None:
-        return float((c >= floor).double().mean()), float("nan")
-    err = (p.clamp_min(0) * scale - g).abs() / g
-    top = c >= c.median()
-    return float((c >= floor).double().mean()), float(err[top].mean() / err.mean().clamp_min(1e-12))
+    spread = float((c >= floor).double().mean())
+    err = depth_rel_errors(pred_z, gt_z, valid)
+    if err is None:
+        return spread, float("nan")
+    return spread, float(err[c >= c.median()].mean() / err.mean().clamp_min(1e-12))
 
 
 def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tensor, gt_z: torch.Tensor,

@@ -58,16 +58,14 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         fresh = load_trunk(model, state, source=cfg.init)
         print(f"--init {cfg.init}: trunk loaded; {len(fresh)} head tensors start fresh"
               + (f" (e.g. {fresh[:3]})" if fresh else ""), file=sys.stderr)
-        if cfg.conf_reset:
-            reset_confidence(model, cfg.conf_reset)
-        return model.train()
-    if cfg.pose_head and not model_cfg.pose_head:
-        raise CheckpointError(f"--init {cfg.init} has no pose head: add --init_heads fresh to start one")
-    if cfg.desc_stem and model_cfg.desc_stem != cfg.desc_stem:
-        raise CheckpointError(f"--init {cfg.init} has desc_stem {model_cfg.desc_stem}, --desc_stem asks for "
-                              f"{cfg.desc_stem}: add --init_heads fresh to start a new one")
-    model = PointmapNet(model_cfg)
-    load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
+    else:
+        if cfg.pose_head and not model_cfg.pose_head:
+            raise CheckpointError(f"--init {cfg.init} has no pose head: add --init_heads fresh to start one")
+        if cfg.desc_stem and model_cfg.desc_stem != cfg.desc_stem:
+            raise CheckpointError(f"--init {cfg.init} has desc_stem {model_cfg.desc_stem}, --desc_stem asks for "
+                                  f"{cfg.desc_stem}: add --init_heads fresh to start a new one")
+        model = PointmapNet(model_cfg)
+        load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
         reset_confidence(model, cfg.conf_reset)
     return model.train()
@@ -233,10 +231,10 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
 
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(argv)
-    model = build_model(cfg)
     try:
+        model = build_model(cfg)
         check_model_options(cfg, model)
-    except ValueError as e:
+    except (ValueError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",

@@ -336,6 +336,17 @@ def test_conf_reset_revives_a_collapsed_confidence_and_leaves_points_and_descrip
         build_model(dataclasses.replace(cfg, conf_reset=0.5))
 
 
+def test_the_training_command_reports_a_conf_reset_below_the_floor_in_one_line(tmp_path, capsys):
+    import pointmap as pm
+    from training.train import main
+
+    pm.save_model(PointmapNet(PRESETS["test"]), tmp_path / "src.safetensors")
+    code = main(["--data", "x", "--init", str(tmp_path / "src.safetensors"), "--conf_reset", "0.5"])
+    err = capsys.readouterr().err
+    assert code == 2 and "error: --conf_reset expected a confidence between the model's floor 1.0" in err
+    assert "Traceback" not in err
+
+
 def test_conf_reset_needs_an_init_model_and_a_positive_value():
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--conf_reset", "1.2"])
