@@ -17,6 +17,13 @@ Two sets:
   and the residual is reported against a constant (the trivial prior) and OpenCV's semi-global block matching
   (StereoSGBM) on the same network-size images.
 
+- **motorcycle** (Middlebury 2014 ``Motorcycle``, the quarter-size colour pair with its ground-truth disparity that
+  scikit-image ships in ``skimage/data``: ``pip install scikit-image``, or ``--middlebury DIR``): a rectified pair
+  with its calibration (focal 994.978 px, principal points 311.193 / 342.279 x 254.877, baseline 193.001 mm), so
+  the pose rows with the true K run, the focal is scored, and depth is scored in metric depth
+  (Z = f B / (d + 31.086)): AbsRel after the median scale (the held-out sets' ``abs_rel``), next to StereoSGBM's
+  depth on the same images through the true calibration. Skipped with a note when the files are not found.
+
 Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the model's coarse matches +
 PnP with the true K, the model's pose refined on those matches with the
 true K (``pm.refine_pose_with_matches``), SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
@@ -43,6 +50,10 @@ from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
+# Middlebury 2014 Motorcycle at a quarter of its size, as scikit-image ships it (skimage.data.stereo_motorcycle's
+# documentation): focal, left principal point, the right one's x offset (doffs), baseline in metres
+MOTO_F, MOTO_C, MOTO_DOFFS, MOTO_B = 994.978, (311.193, 254.877), 31.086, 0.193001
+MOTO_FILES = ("motorcycle_left.png", "motorcycle_right.png", "motorcycle_disp.npz")
 
 
 def _read(path: Path, flags=cv2.IMREAD_COLOR) -> np.ndarray:
@@ -123,6 +134,51 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
     return rows, focal_err, (v1, v2, pred)
 
 
+def skimage_data_dir() -> Path | None:
+    """scikit-image's bundled data folder (holding the Middlebury motorcycle pair), or None when it is not installed.
+    Found without importing scikit-image."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("skimage")
+    if spec is None or not spec.origin:
+        return None
+    return Path(spec.origin).parent / "data"
+
+
+def motorcycle(folder: Path):
+    """The Middlebury motorcycle pair: (left RGB, right RGB, true depth in metres (NaN where unknown), K1, K2,
+    cam2world of the right camera in the left frame); SystemExit with what is missing otherwise."""
+    missing = [n for n in MOTO_FILES if not (folder / n).is_file()]
+    if missing:
+        raise SystemExit(f"bench_real: {folder} lacks {', '.join(missing)} (expected scikit-image's data folder: "
+                         f"pip install scikit-image, or --middlebury DIR)")
+    left, right = (cv2.cvtColor(_read(folder / n), cv2.COLOR_BGR2RGB) for n in MOTO_FILES[:2])
+    with np.load(folder / MOTO_FILES[2]) as z:
+        disp = np.asarray(z[z.files[0]], dtype=np.float64)
+    if disp.shape != left.shape[:2] or left.shape != right.shape:
+        raise SystemExit(f"bench_real: motorcycle images {left.shape}, {right.shape} and disparity {disp.shape} "
+                         f"do not agree (expected scikit-image's quarter-size Middlebury pair)")
+    ok = np.isfinite(disp) & (disp > 0)
+    depth = np.full(disp.shape, np.nan)
+    depth[ok] = MOTO_F * MOTO_B / (disp[ok] + MOTO_DOFFS)
+    K1 = np.array([[MOTO_F, 0, MOTO_C[0]], [0, MOTO_F, MOTO_C[1]], [0, 0, 1]])
+    K2 = K1.copy()
+    K2[0, 2] += MOTO_DOFFS
+    gt = np.eye(4)
+    gt[0, 3] = MOTO_B  # rectified: the right camera is the left one moved along +x
+    return left, right, depth, K1, K2, gt
+
+
+def median_abs_rel(pred_z: np.ndarray, true_z: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
+    """(AbsRel after scaling the prediction by the median of true / predicted depth over ``valid`` (pixels with a
+    prediction in front and a true depth): the held-out sets' measure for a scale-free prediction; Pearson r of
+    the two depths, 0 for a constant prediction)."""
+    p, t = pred_z[valid].astype(np.float64), true_z[valid].astype(np.float64)
+    s = np.median(t / p)
+    r = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 else 0.0
+    return float(np.mean(np.abs(s * p - t) / t)), r
+
+
 def disparity_fit(pred_inv_depth: np.ndarray, gt: np.ndarray, valid: np.ndarray):
     """Least-squares scale + shift of a prediction (any map affine in disparity) to the true disparity on
     ``valid``: (mean abs residual in GT pixels, Pearson r). A constant prediction gives the prior's error."""
@@ -139,14 +195,22 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="small")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    p.add_argument("--middlebury", type=Path, default=None, metavar="DIR",
+                   help="folder with motorcycle_left.png, motorcycle_right.png, motorcycle_disp.npz (default: "
+                        "scikit-image's data folder when scikit-image is installed; else the set is skipped)")
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
-                   help="also save the model's per-pair errors on the rig (set real_rig) for benchmarks/paired.py")
+                   help="also save the model's per-pair errors on the rig (set real_rig) and on the rectified pairs "
+                        "(set real_rectified: 0 aloe, 1 motorcycle) for benchmarks/paired.py")
     a = p.parse_args(argv)
     if a.per_pair is not None:
         try:  # before the long run, not after it
             check_per_pair(a.per_pair, "real_rig")
         except (OSError, ValueError) as e:
             p.error(str(e))
+    moto_dir = a.middlebury or skimage_data_dir()
+    moto = None
+    if moto_dir is not None and (a.middlebury is not None or (moto_dir / MOTO_FILES[0]).is_file()):
+        moto = motorcycle(moto_dir)  # read (and checked) before the long run
     torch.set_num_threads(a.threads)
     model, size = model_at_size(a.model, a.size)
 
@@ -169,6 +233,7 @@ def main(argv=None) -> int:
     rows, _, (v1, v2, pred) = pose_rows(model, rgb[0], rgb[1], gt_rect, size)
     for name, e in rows:
         res.setdefault(("aloe (rectified)", name), []).append(e)
+    rectified = [PairResult(0, *rows[0][1], 0.0)]
 
     shape = tuple(pred.pts1_cam1.shape[1:3])
     gt_disp = _resample(disp, v1, shape)
@@ -187,8 +252,33 @@ def main(argv=None) -> int:
                   ("constant (prior)", *disparity_fit(np.zeros_like(z), gt_disp, valid), valid.mean()),
                   ("StereoSGBM (rectified pair, same size)", *disparity_fit(d_sgbm, gt_disp, ok_sgbm), ok_sgbm.mean())]
 
+    moto_rows = moto_focal = None
+    if moto is not None:
+        left, right, depth, mK1, mK2, mgt = moto
+        rows, moto_focal, (m1, m2, mpred) = pose_rows(model, left, right, mgt, size, mK1, mK2)
+        for name, e in rows:
+            res.setdefault(("motorcycle (rectified)", name), []).append(e)
+        rectified.append(PairResult(1, *rows[0][1], 0.0))
+        mshape = tuple(mpred.pts1_cam1.shape[1:3])
+        true_z = _resample(depth.astype(np.float32), m1, mshape)
+        mz = mpred.pts1_cam1[0, ..., 2].float().numpy()
+        mvalid = np.isfinite(true_z) & (mz > 0)
+        sx = m1.map_from_original[0]  # network pixels per original pixel: focal and disparities scale with it
+        g1, g2 = to_grey(m1), to_grey(m2)
+        n_moto = 16 * max(1, int(np.ceil((MOTO_F * MOTO_B / np.nanmin(depth) - MOTO_DOFFS) * sx / 16)))
+        sgbm_m = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_moto, blockSize=5, P1=8 * 25, P2=32 * 25,
+                                       uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
+        d_m = sgbm_m.compute(g1, g2).astype(np.float32) / 16.0  # d of Z = f B / (d + doffs), in network pixels
+        z_sgbm = np.where(d_m > 0, MOTO_F * sx * MOTO_B / (np.maximum(d_m, 1e-6) + MOTO_DOFFS * sx), np.nan)
+        ok_m = mvalid & np.isfinite(z_sgbm)
+        moto_rows = [("model (depth of view 1)", *median_abs_rel(mz, true_z, mvalid), mvalid.mean()),
+                     ("constant (prior)", *median_abs_rel(np.ones_like(mz), true_z, mvalid), mvalid.mean()),
+                     ("StereoSGBM (true calibration)", *median_abs_rel(z_sgbm, true_z, ok_m), ok_m.mean()),
+                     ("model on StereoSGBM's pixels", *median_abs_rel(mz, true_z, ok_m), ok_m.mean())]
+
     if a.per_pair is not None:
         write_per_pair(a.per_pair, "real_rig", per_pair)
+        write_per_pair(a.per_pair, "real_rectified", rectified)
     print(f"model {a.model!r} at {size} px; rig calibrated on {n_cal} of {len(pairs)} pairs, stereo RMS {rms:.3f} px; "
           f"true rig rotation {true_rot:.1f} deg\n")
     print_pose_table(res, "set")
@@ -198,6 +288,16 @@ def main(argv=None) -> int:
     print("|---|---|---|---|")
     for name, err, r, cover in depth_rows:
         print(f"| {name} | {err:.1f} | {r:.2f} | {cover:.0%} |")
+    if moto_rows is None:
+        print("\nmotorcycle (Middlebury 2014): skipped, its files were not found (pip install scikit-image, or "
+              "--middlebury DIR)")
+        return 0
+    print(f"\nmotorcycle, model focal (no K given) vs calibrated: relative error {moto_focal:.1%}")
+    print("\nmotorcycle depth, metric (Z = f B / (d + doffs)), AbsRel after the median scale:\n")
+    print("| method | AbsRel | Pearson r | pixels scored |")
+    print("|---|---|---|---|")
+    for name, err, r, cover in moto_rows:
+        print(f"| {name} | {err:.3f} | {r:.2f} | {cover:.0%} |")
     return 0
 
 

@@ -39,8 +39,9 @@ class CardError(ValueError):
 
 def parse_card(text: str) -> dict:
     """The figures of one ``model_card.sh`` output: {"eval": {set: {key: value}}, "bench": {category: (pairs,
-    RRA, RTA, med rot)}, "sift": (RRA, RTA) or None, "rig": (med rot, med dir) or None, "focal": %, "aloe_r": r}.
-    CardError when the text has none of the card's sections."""
+    RRA, RTA, med rot)}, "sift": (RRA, RTA) or None, "rig": (med rot, med dir) or None, "focal": %, "aloe_r": r,
+    "moto": (rot err, dir err) or None, "moto_focal": %, "moto_absrel": AbsRel, "moto_r": r} (the Middlebury motorcycle
+    rows, None on cards made without them). CardError when the text has none of the card's sections."""
     sections: dict[str, list[str]] = {}
     name = None
     for line in text.splitlines():
@@ -52,7 +53,8 @@ def parse_card(text: str) -> dict:
             sections[name].append(line)
     if not sections:
         raise CardError("expected the output of benchmarks/model_card.sh (sections starting with '== '), found none")
-    card: dict = {"eval": {}, "bench": {}, "sift": None, "rig": None, "focal": None, "aloe_r": None}
+    card: dict = {"eval": {}, "bench": {}, "sift": None, "rig": None, "focal": None, "aloe_r": None,
+                  "moto": None, "moto_focal": None, "moto_absrel": None, "moto_r": None}
     for s in EVAL_SETS:
         for line in sections.get(s, []):
             if line.startswith("{"):
@@ -74,6 +76,13 @@ def parse_card(text: str) -> dict:
             card["rig"] = (float(cells[5]), float(cells[6]))
         if len(cells) == 4 and cells[0].startswith("model (1 / depth"):
             card["aloe_r"] = float(cells[2])
+        if len(cells) == 7 and cells[0] == "motorcycle (rectified)" and cells[2].startswith("model (own pointmaps"):
+            card["moto"] = (float(cells[5]), float(cells[6]))
+        if len(cells) == 4 and cells[0] == "model (depth of view 1)":
+            card["moto_absrel"], card["moto_r"] = float(cells[1]), float(cells[2])
+        m = re.search(r"motorcycle, model focal .* relative error ([\d.]+)%", line)
+        if m:
+            card["moto_focal"] = float(m.group(1))
         m = re.search(r"model focal .* median relative error ([\d.]+)%", line)
         if m:
             card["focal"] = float(m.group(1))
@@ -110,6 +119,12 @@ def compare(cards: list[dict], names: list[str]) -> str:
     row("real rig: median dir err", [_at(c["rig"], 1) for c in cards], "{:.1f}")
     row("real rig: focal error %", [c["focal"] for c in cards], "{:.1f}")
     row("Aloe: Pearson r", [c["aloe_r"] for c in cards], "{:.2f}")
+    if any(c["moto"] is not None for c in cards):
+        row("motorcycle: rot err", [_at(c["moto"], 0) for c in cards], "{:.1f}")
+        row("motorcycle: dir err", [_at(c["moto"], 1) for c in cards], "{:.1f}")
+        row("motorcycle: focal error %", [c["moto_focal"] for c in cards], "{:.1f}")
+        row("motorcycle: depth AbsRel", [c["moto_absrel"] for c in cards], "{:.3f}")
+        row("motorcycle: depth Pearson r", [c["moto_r"] for c in cards], "{:.2f}")
     for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
         for sets in (EVAL_SETS[:2], EVAL_SETS):
             totals = []

@@ -5,7 +5,7 @@ import pytest
 from benchmarks.compare_cards import CardError, compare, main, parse_card
 
 
-def _card(rra_s42, rra_p4, rra_all, cam=None, fwd=None):
+def _card(rra_s42, rra_p4, rra_all, cam=None, fwd=None, moto=False):
     ev = {"size": 224, "RTA15": 10.0, "rot_err_med": 14.0, "trans_err_med": 50.0, "AbsRel": 0.3,
           "depth_ratio_err": 0.2, "match_prec": 0.12, "RRA15_matches": 44.0, "pairs": 100.0}
     if fwd is not None:
@@ -28,6 +28,13 @@ def _card(rra_s42, rra_p4, rra_all, cam=None, fwd=None):
               "| stereo rig | 13 | SIFT+E (known K) | 100% | 77% | 1.5 | 4.5 |",
               "stereo rig, model focal (no K given) vs calibrated: median relative error 3.8%",
               "| model (1 / depth of view 1) | 22.5 | 0.43 | 96% |"]
+    if moto:  # bench_real.py with scikit-image's Middlebury pair
+        lines += ["| motorcycle (rectified) | 1 | model (own pointmaps, no K) | 100% | 0% | 1.8 | 36.8 |",
+                  "| motorcycle (rectified) | 1 | SIFT+E (known K) | 100% | 100% | 0.5 | 3.2 |",
+                  "motorcycle, model focal (no K given) vs calibrated: relative error 50.2%",
+                  "| method | AbsRel | Pearson r | pixels scored |",
+                  "| model (depth of view 1) | 0.187 | 0.31 | 93% |",
+                  "| StereoSGBM (true calibration) | 0.028 | 0.97 | 77% |"]
     return "\n".join(lines)
 
 
@@ -36,6 +43,17 @@ def test_a_card_is_read_back_into_the_figures_the_card_script_printed():
     assert c["eval"]["eval_s424242"]["RRA15"] == 54.0 and c["eval"]["eval_cam_s464646"]["fwd_corr"] == 0.17
     assert c["bench"]["all"] == (200, 52.0, 8.0, 14.3) and c["bench"]["low-texture"][1] == 53.0
     assert c["sift"] == (22.0, 9.0) and c["rig"] == (9.3, 39.4) and c["focal"] == 3.8 and c["aloe_r"] == 0.43
+    assert c["moto"] is None and c["moto_absrel"] is None
+
+
+def test_the_middlebury_motorcycle_rows_are_read_apart_from_the_rig_and_shown_only_when_a_card_has_them():
+    c = parse_card(_card(54.0, 73.0, 52, moto=True))
+    assert c["moto"] == (1.8, 36.8) and c["moto_focal"] == 50.2 and c["moto_absrel"] == 0.187 and c["moto_r"] == 0.31
+    assert c["rig"] == (9.3, 39.4) and c["focal"] == 3.8 and c["aloe_r"] == 0.43  # the rig's figures untouched
+    without = parse_card(_card(54.0, 73.0, 52))
+    assert "motorcycle" not in compare([without, without], ["a", "b"])
+    table = compare([without, c], ["old", "new"])
+    assert "| motorcycle: depth AbsRel | - | 0.187 |" in table and "| motorcycle: focal error % | - | 50.2 |" in table
 
 
 def test_the_comparison_counts_pairs_within_15_degrees_over_the_card_sets_and_marks_what_a_card_lacks():
