@@ -179,6 +179,15 @@ def median_abs_rel(pred_z: np.ndarray, true_z: np.ndarray, valid: np.ndarray) ->
     return float(np.mean(np.abs(s * p - t) / t)), r
 
 
+def sgbm_disparity(grey1: np.ndarray, grey2: np.ndarray, max_disp: float) -> np.ndarray:
+    """OpenCV's semi-global block matching on a rectified grey pair: disparity in pixels (<= 0 where none), searched
+    up to ``max_disp`` rounded up to a multiple of 16."""
+    n_disp = 16 * max(1, int(np.ceil(max_disp / 16)))
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_disp, blockSize=5, P1=8 * 25, P2=32 * 25,
+                                 uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
+    return sgbm.compute(grey1, grey2).astype(np.float32) / 16.0
+
+
 def disparity_fit(pred_inv_depth: np.ndarray, gt: np.ndarray, valid: np.ndarray):
     """Least-squares scale + shift of a prediction (any map affine in disparity) to the true disparity on
     ``valid``: (mean abs residual in GT pixels, Pearson r). A constant prediction gives the prior's error."""
@@ -241,11 +250,8 @@ def main(argv=None) -> int:
     valid = (gt_disp > 0) & (z > 0)
     to_grey = lambda v: cv2.cvtColor((v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8),  # noqa: E731
                                      cv2.COLOR_RGB2GRAY)
-    # disparity search range: the true disparities at this size (Aloe's reach ~85 px at 512), in steps of 16
-    n_disp = 16 * max(1, int(np.ceil(float(gt_disp.max()) * v1.map_from_original[0] / 16)))
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_disp, blockSize=5, P1=8 * 25, P2=32 * 25,
-                                 uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
-    d_sgbm = sgbm.compute(to_grey(v1), to_grey(v2)).astype(np.float32) / 16.0
+    # disparity search range: the true disparities at this size (Aloe's reach ~85 px at 512)
+    d_sgbm = sgbm_disparity(to_grey(v1), to_grey(v2), float(gt_disp.max()) * v1.map_from_original[0])
     ok_sgbm = valid & (d_sgbm > 0)
     depth_rows = [("model (1 / depth of view 1)", *disparity_fit(1.0 / np.where(z > 0, z, 1.0), gt_disp, valid),
                    valid.mean()),
@@ -264,11 +270,8 @@ def main(argv=None) -> int:
         mz = mpred.pts1_cam1[0, ..., 2].float().numpy()
         mvalid = np.isfinite(true_z) & (mz > 0)
         sx = m1.map_from_original[0]  # network pixels per original pixel: focal and disparities scale with it
-        g1, g2 = to_grey(m1), to_grey(m2)
-        n_moto = 16 * max(1, int(np.ceil((MOTO_F * MOTO_B / np.nanmin(depth) - MOTO_DOFFS) * sx / 16)))
-        sgbm_m = cv2.StereoSGBM_create(minDisparity=0, numDisparities=n_moto, blockSize=5, P1=8 * 25, P2=32 * 25,
-                                       uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_HH)
-        d_m = sgbm_m.compute(g1, g2).astype(np.float32) / 16.0  # d of Z = f B / (d + doffs), in network pixels
+        # d of Z = f B / (d + doffs), in network pixels, searched up to the nearest point's
+        d_m = sgbm_disparity(to_grey(m1), to_grey(m2), (MOTO_F * MOTO_B / np.nanmin(depth) - MOTO_DOFFS) * sx)
         z_sgbm = np.where(d_m > 0, MOTO_F * sx * MOTO_B / (np.maximum(d_m, 1e-6) + MOTO_DOFFS * sx), np.nan)
         ok_m = mvalid & np.isfinite(z_sgbm)
         moto_rows = [("model (depth of view 1)", *median_abs_rel(mz, true_z, mvalid), mvalid.mean()),
