@@ -46,7 +46,7 @@ import pointmap as pm  # noqa: E402
 from benchmarks.bench_pose import errors, model_at_size, print_pose_table, sift_pose  # noqa: E402
 from pointmap.pose import focal_from_prediction  # noqa: E402
 from pointmap.reconstruction import K_to_map  # noqa: E402
-from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
+from training.evaluate import PairResult, abs_rel, check_per_pair, write_per_pair  # noqa: E402
 
 BOARD = (9, 6)  # inner corners of the chessboard in OpenCV's stereo sample
 RIG_IDS = [1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14]
@@ -170,13 +170,11 @@ def motorcycle(folder: Path):
 
 
 def median_abs_rel(pred_z: np.ndarray, true_z: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
-    """(AbsRel after scaling the prediction by the median of true / predicted depth over ``valid`` (pixels with a
-    prediction in front and a true depth): the held-out sets' measure for a scale-free prediction; Pearson r of
-    the two depths, 0 for a constant prediction)."""
+    """(AbsRel after the median scale alignment over ``valid``, the held-out sets' measure for a scale-free
+    prediction: ``training.evaluate.abs_rel`` itself; Pearson r of the two depths, 0 for a constant prediction)."""
     p, t = pred_z[valid].astype(np.float64), true_z[valid].astype(np.float64)
-    s = np.median(t / p)
     r = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 else 0.0
-    return float(np.mean(np.abs(s * p - t) / t)), r
+    return abs_rel(torch.from_numpy(pred_z), torch.from_numpy(true_z), torch.from_numpy(valid)), r
 
 
 def sgbm_disparity(grey1: np.ndarray, grey2: np.ndarray, max_disp: float) -> np.ndarray:
