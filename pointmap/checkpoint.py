@@ -232,7 +232,18 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
     load_state_strict(model, state, allow_missing_heads=allow_missing_heads or "CroCoNet" in ctor,
                       source=str(path))
     model.provenance = {"source": "official", "path": str(path), "ctor": ctor}
+    img_size = parse_ctor(ctor)[1].get("img_size")
+    if isinstance(img_size, int) or (isinstance(img_size, tuple) and img_size and
+                                     all(isinstance(x, int) for x in img_size)):
+        model.provenance["image_size"] = max(img_size) if isinstance(img_size, tuple) else img_size
     return model
+
+
+def model_input_size(model, default: int = 512) -> int:
+    """The input size a model was trained at (its provenance's ``image_size``: our checkpoints record it, an
+    official one's ``img_size`` gives it), else ``default``."""
+    size = (getattr(model, "provenance", None) or {}).get("image_size")
+    return int(size) if size else default
 
 
 # --------------------------------------------------------------------------------------------------

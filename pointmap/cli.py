@@ -18,12 +18,10 @@ DEFAULT_MODEL = "small"
 
 
 def _model_and_size(name: str, size: int | None):
-    from pointmap.checkpoint import load_model
+    from pointmap.checkpoint import load_model, model_input_size
 
     model = load_model(name)
-    if size is None:
-        size = int(getattr(model, "provenance", {}).get("image_size", 512))
-    return model, size
+    return model, size if size is not None else model_input_size(model)
 
 
 def parse_focals(text: str, n: int) -> list[float]:
@@ -72,9 +70,47 @@ def pair_summary(npz: Path) -> str:
             f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''})")
 
 
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def expand_images(items: list[str]) -> list[str]:
+    """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
+    ``IMAGE_SUFFIXES``, any case); files are kept as given. PointmapError for a folder without images."""
+    out = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise PointmapError(f"folder {p} holds no images (expected files ending in "
+                                    f"{', '.join(IMAGE_SUFFIXES)})")
+            out += found
+        else:
+            out.append(item)
+    return out
+
+
+def parse_export(text: str) -> tuple[str, ...]:
+    """``--export``: comma-separated formats of ``pointmap.io.FORMATS`` ("colmap-txt" is read as "colmap_txt")."""
+    from pointmap.io import FORMATS
+
+    formats = tuple(f.strip().replace("-", "_") for f in text.split(",") if f.strip())
+    bad = [f for f in formats if f not in FORMATS]
+    if not formats or bad:
+        raise PointmapError(f"--export expected comma-separated formats from {', '.join(FORMATS)}, got {text!r}")
+    return formats
+
+
 def cmd_reconstruct(args) -> int:
     from pointmap.pipeline import reconstruct
 
+    # every argument is checked before the model runs: nothing fails after minutes of inference
+    args.images = expand_images(args.images)
+    formats = parse_export(args.export)
+    if args.conf_percentile is not None and not 0 <= args.conf_percentile < 100:
+        raise PointmapError(f"--conf-percentile expected a percentile in [0, 100), got {args.conf_percentile}")
+    if args.min_conf is not None and not math.isfinite(args.min_conf):
+        raise PointmapError(f"--min-conf expected a finite confidence, got {args.min_conf}")
     K = None
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         import torch
@@ -94,7 +130,6 @@ def cmd_reconstruct(args) -> int:
     model, size = _model_and_size(args.model, args.size)
     recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
-    formats = tuple(f.strip() for f in args.export.split(",") if f.strip())
     out = Path(args.out)
     written = recon.save(out, formats=formats)
     if args.splat:
@@ -116,7 +151,7 @@ def cmd_splat(args) -> int:
     if not npz.exists():
         raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
     recon = load_npz(npz)
-    run_splat(recon, Path(args.out or Path(args.recon) / "splat"), quiet=args.quiet, time_budget=args.splat_budget or None)
+    run_splat(recon, Path(args.out or npz.parent / "splat"), quiet=args.quiet, time_budget=args.splat_budget or None)
     return 0
 
 
@@ -130,9 +165,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pointmap", description="Feed-forward 3D reconstruction from photos.")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("-v", "--verbose", action="store_true", help="log details")
+    # the same flags after the command (pointmap reconstruct ... --quiet); SUPPRESS keeps the top-level value
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
+    common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="log details")
     sub = p.add_subparsers(dest="cmd", required=True)
 
-    a = sub.add_parser("pair", help="pointmaps, matches and relative pose of two images")
+    a = sub.add_parser("pair", parents=[common], help="pointmaps, matches and relative pose of two images")
     a.add_argument("images", nargs=2, metavar="IMG")
     a.add_argument("-o", "--out", required=True)
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
@@ -142,13 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "of the estimate, and the model's pose is refined on its matches")
     a.set_defaults(fn=cmd_pair)
 
-    r = sub.add_parser("reconstruct", help="many images to poses, intrinsics and a dense cloud")
-    r.add_argument("images", nargs="+", metavar="IMG")
+    r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")
+    r.add_argument("images", nargs="+", metavar="IMG", help="image files, or folders of them (sorted by name)")
     r.add_argument("-o", "--out", required=True)
     r.add_argument("--model", default=DEFAULT_MODEL)
     r.add_argument("--size", type=int, default=None)
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
-    r.add_argument("--export", default="ply,glb,colmap,npz")
+    r.add_argument("--export", default="ply,glb,colmap,npz",
+                   help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
+                        "(sparse/0/*.txt), npz (reconstruction.npz, which 'pointmap splat' reads)")
     r.add_argument("--focal", default=None, metavar="F[,F2,...]",
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
@@ -165,14 +206,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="wall-clock seconds the splat fit may take (0: no limit)")
     r.set_defaults(fn=cmd_reconstruct)
 
-    s = sub.add_parser("splat", help="fit Gaussian splats to a saved reconstruction")
-    s.add_argument("recon", help="directory written by 'pointmap reconstruct'")
-    s.add_argument("-o", "--out", default=None)
+    s = sub.add_parser("splat", parents=[common], help="fit Gaussian splats to a saved reconstruction")
+    s.add_argument("recon", help="directory written by 'pointmap reconstruct', or its reconstruction.npz")
+    s.add_argument("-o", "--out", default=None, help="output folder (default: splat/ beside the reconstruction.npz)")
     s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
                    help="wall-clock seconds the fit may take (0: no limit)")
     s.set_defaults(fn=cmd_splat)
 
-    d = sub.add_parser("demo", help="reconstruct the demo scenes shipped with the package")
+    d = sub.add_parser("demo", parents=[common], help="reconstruct the demo scenes shipped with the package")
     d.add_argument("-o", "--out", default="demo_out")
     d.add_argument("--model", default=DEFAULT_MODEL)
     d.set_defaults(fn=cmd_demo)

@@ -83,13 +83,13 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
 
 
 def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
-    from pointmap.checkpoint import load_model
+    from pointmap.checkpoint import load_model, model_input_size
 
     scenes = demo_scenes()
     if not scenes:
         raise PointmapError(f"no demo scenes found in {SCENES_DIR} (render them: python -m data.demo_scenes)")
     model = load_model(model_name)
-    size = int(getattr(model, "provenance", {}).get("image_size", 224))
+    size = model_input_size(model, default=224)
     all_rows, aligned, depth_ranges = [], {}, {}
     for scene in scenes:
         res = evaluate_scene(model, scene, out / scene.name, size, quiet)

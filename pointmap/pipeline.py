@@ -75,13 +75,16 @@ def masks_to_maps(masks, views) -> torch.Tensor:
     return torch.stack(out)
 
 
-def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512, batch_size: int = 8,
+def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None = None, batch_size: int = 8,
                 K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
                 conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
                 quiet: bool = False, device: str = "cpu"):
     """Photos to a Reconstruction.
 
     graph: "auto" (see ``auto_graph``) or any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...)
+    size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
+        Images of different sizes or orientations are centre-cropped to the largest shape they all contain
+        (``crop_to_common``; reported unless ``quiet``)
     K / cam2world / pose_mask: known intrinsics (ORIGINAL pixels) / poses, as ``global_align`` takes them
     masks: optional per-image bool masks (True = keep), original or map size; masked pixels are left
         out of the alignment and of the exports
@@ -90,12 +93,19 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512,
     refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
         or pointmaps; uses ``pm.match``)
     """
-    from pointmap.images import load_images
+    from pointmap.checkpoint import model_input_size
+    from pointmap.images import crop_to_common, load_images
     from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs
 
     cfg = align or AlignConfig(quiet=quiet)
-    views = load_images(paths_or_arrays, size=size)
+    views = load_images(paths_or_arrays, size=model_input_size(model) if size is None else size)
+    shapes = sorted({v.shape for v in views})
+    if len(shapes) > 1:
+        views, hw = crop_to_common(views)
+        if not quiet:
+            print(f"pointmap: the images have {len(shapes)} network shapes (h, w) {shapes}; each is centre-cropped "
+                  f"to {hw}, the largest all contain", file=sys.stderr)
     if cfg.shared_focal:  # refuse now, not after the inference of every pair
         check_one_camera([v.original_size for v in views], [v.map_from_original for v in views])
     n = len(views)
@@ -108,7 +118,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512,
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
-    preds = predict_pairs(model, views, pairs, batch_size=batch_size)
+    preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet)
     user_masks = masks_to_maps(masks, views) if masks is not None else None
     if user_masks is not None:
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}
@@ -140,8 +150,11 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int = 512,
 def _mask_pred(pred, m1, m2):
     from dataclasses import replace
 
-    return replace(pred, conf1=pred.conf1 * m1[None].to(pred.conf1.dtype),
-                   conf2=pred.conf2 * m2[None].to(pred.conf2.dtype))
+    masked = dict(conf1=pred.conf1 * m1[None].to(pred.conf1.dtype), conf2=pred.conf2 * m2[None].to(pred.conf2.dtype))
+    if pred.desc_conf1 is not None:  # matching (``refine``) weighs by the descriptor confidence
+        masked.update(desc_conf1=pred.desc_conf1 * m1[None].to(pred.desc_conf1.dtype),
+                      desc_conf2=pred.desc_conf2 * m2[None].to(pred.desc_conf2.dtype))
+    return replace(pred, **masked)
 
 
 def _fmt_s(s: float) -> str:

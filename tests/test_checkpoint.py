@@ -26,13 +26,13 @@ def official_style_state(model):
     return sd
 
 
-def tiny_official(tmp_path):
-    cfg = config_from_ctor(TINY_CTOR)
+def tiny_official(tmp_path, ctor=TINY_CTOR):
+    cfg = config_from_ctor(ctor)
     cfg = cfg.replace(dpt_layer_dims=(96, 192, 384, 768))
     torch.manual_seed(0)
     model = pm.PointmapNet(cfg).eval()
     path = tmp_path / "official.pth"
-    torch.save({"model": official_style_state(model), "args": argparse.Namespace(model=TINY_CTOR, lr=1e-4), "epoch": 3},
+    torch.save({"model": official_style_state(model), "args": argparse.Namespace(model=ctor, lr=1e-4), "epoch": 3},
                path)
     return model, path
 
@@ -59,6 +59,18 @@ def test_an_official_checkpoint_with_alias_keys_and_a_namespace_loads_into_ident
     for name, t in ref.as_dict().items():
         assert torch.equal(t, getattr(got, name)), name
     assert loaded.cfg.desc_dim == 8 and loaded.cfg.two_confs
+
+
+def test_an_official_checkpoint_runs_at_the_size_its_constructor_names(tmp_path):
+    from pointmap.checkpoint import model_input_size
+
+    _, path = tiny_official(tmp_path)
+    assert model_input_size(pm.load_model(path)) == 512  # img_size=(512, 512)
+    for ctor, size in ((TINY_CTOR.replace("img_size=(512, 512)", "img_size=(224, 224)"), 224),
+                       (TINY_CTOR.replace("img_size=(512, 512), ", ""), 512)):  # no img_size: the default
+        (tmp_path / str(size)).mkdir()
+        assert model_input_size(pm.load_model(tiny_official(tmp_path / str(size), ctor)[1])) == size
+    assert model_input_size(object(), default=7) == 7
 
 
 def test_a_croco_checkpoint_without_second_decoder_gets_a_copy_of_the_first(tmp_path):

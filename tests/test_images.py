@@ -18,6 +18,14 @@ def test_size_512_matches_the_official_crops(wh, expected):
     assert v.original_size == wh
 
 
+@pytest.mark.parametrize("size", [256, 336, 352, 384, 448, 512, 640])
+def test_a_square_image_becomes_a_4_3_landscape_of_whole_patches_at_every_size(size):
+    v = pm.load_images([np.zeros((700, 700, 3), np.uint8)], size=size)[0]
+    h, w = v.img.shape[1:]
+    assert w == size and h % 16 == 0 and w % 16 == 0
+    assert abs(h / w - 0.75) < 16 / w  # the nearest 4:3 crop in whole patches, never taller
+
+
 def test_size_224_resizes_the_short_side_and_crops_a_centred_square():
     v = pm.load_images([np.zeros((480, 640, 3), np.uint8)], size=224)[0]
     assert v.img.shape == (3, 224, 224)
@@ -74,3 +82,20 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
         pm.load_images([np.zeros((8, 8, 3, 2), np.uint8)])
     with pytest.raises(pm.ImageError, match="size"):
         pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=500)
+
+
+def test_crop_to_common_cuts_portrait_and_landscape_to_one_shape_and_keeps_the_transform_exact():
+    from pointmap.images import crop_to_common
+
+    land, port = np.zeros((480, 640, 3), np.uint8), np.zeros((640, 480, 3), np.uint8)
+    land[300:304, 400:404] = 255
+    port[200:204, 100:104] = 255
+    views, hw = crop_to_common(pm.load_images([land, port], size=512))
+    assert hw == (384, 384) and [v.shape for v in views] == [(384, 384)] * 2
+    for v, (x, y) in zip(views, [(401.5, 301.5), (101.5, 201.5)]):  # each dot lands where the transform says
+        sx, sy, left, top = v.map_from_original
+        ys, xs = np.nonzero(v.img[0].numpy() > 0.5)
+        assert abs(xs.mean() - ((x + 0.5) * sx - 0.5 - left)) < 0.5
+        assert abs(ys.mean() - ((y + 0.5) * sy - 0.5 - top)) < 0.5
+    same = pm.load_images([land, land], size=512)
+    assert crop_to_common(same)[0][0] is same[0]

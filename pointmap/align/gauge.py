@@ -1,9 +1,11 @@
-"""The gauge of alignment (world frame and scale): fitting the initialisation to known poses."""
+"""The gauge of alignment (world frame and scale): fitting the initialisation to known poses, or putting the
+world at the first camera."""
 
 from __future__ import annotations
 
 import torch
 
+from pointmap.geometry.cameras import invert_rigid
 from pointmap.geometry.rotations import project_to_rotation
 
 
@@ -41,3 +43,14 @@ def apply_similarity(a: float, Ra, ta, cam2world, depth, pw_s, pw_R, pw_t):
     c2w[:, :3, :3] = Ra @ cam2world[:, :3, :3]
     c2w[:, :3, 3] = a * cam2world[:, :3, 3] @ Ra.T + ta
     return c2w, depth * a, pw_s * a, Ra @ pw_R, a * pw_t @ Ra.T + ta
+
+
+def anchor_to_first(cam2world: torch.Tensor, first: torch.Tensor | None = None) -> torch.Tensor:
+    """The same cameras [N, 4, 4] (float64) in the world where camera 0's cam2world is ``first`` (default: the
+    identity, i.e. seen from camera 0's frame): a rigid change of world frame that leaves relative poses,
+    depths and scale untouched. Without known poses a Reconstruction's world is camera 0's frame
+    (docs/conventions.md)."""
+    move = invert_rigid(cam2world[0].double())
+    if first is not None:
+        move = first.double() @ move
+    return move[None] @ cam2world.double()

@@ -3,7 +3,8 @@
 Steps: validate the graph; stack the edges at the optimisation resolution (stride-subsampled); intrinsics
 (known, or Weiszfeld); maximum-spanning-tree initialisation; gauge (known poses, or unit mean edge scale);
 Adam or LBFGS on the chunked DUSt3R objective with early stopping (the best iterate is kept); full-
-resolution depth by fusing every edge with the final poses; a Reconstruction with a convergence report
+resolution depth by fusing every edge with the final poses; without known poses, the world moved to image 0's
+camera frame; a Reconstruction with a convergence report
 in ``recon.info["align"]``.
 """
 
@@ -25,7 +26,7 @@ from pointmap.align.edges import (
     resolve_conf_transform,
 )
 from pointmap.align.fuse import fuse_depth
-from pointmap.align.gauge import apply_similarity, similarity_to_known
+from pointmap.align.gauge import anchor_to_first, apply_similarity, similarity_to_known
 from pointmap.align.init import init_mst, own_maps
 from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
 from pointmap.align.loop import run
@@ -176,6 +177,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         s_o, R_o, t_o = (x.double() for x in params.pw())
     depths, confs = fuse_depth(preds, stack.keys, info.shapes, c2w_out, fxo, fyo, cxo, cyo, s_o, R_o, t_o,
                                conf_transform, cfg.fuse_iters)
+    if not known_poses:  # the world is image 0's camera frame (fused depths are per camera: unaffected)
+        c2w_out = anchor_to_first(c2w_out)
     return _build(info, c2w_out, (fxo, fyo, cxo, cyo), depths, confs, unit, known_poses, K_given, K_known,
                   report={**report, "init_seconds": seconds_init, "total_seconds": time.perf_counter() - t_start,
                           "num_images": n, "num_edges": stack.num_edges, "stride": stride,

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, replace
 
 import torch
 
+from pointmap.align.gauge import anchor_to_first
 from pointmap.errors import ShapeError
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import K_to_original, Reconstruction
@@ -88,13 +89,15 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     matches: {(i, j): (xy_i [M, 2], xy_j [M, 2], score [M])} in MAP pixels (the network input, as
         ``pm.match`` returns), or objects with ``xy1``, ``xy2``, ``score``.
     fixed_poses: indices whose cam2world stays bit-identical (if empty, the image with the most matches
-        is held fixed to pin the frame); fixed_intrinsics: indices (or True for all) with K kept as is.
+        is held fixed to pin the frame, and the result then moved rigidly so that image 0's pose is the one given:
+        the world stays where it was); fixed_intrinsics: indices (or True for all) with K kept as is.
     """
     cfg = config or SparseConfig()
     t0 = time.perf_counter()
     n = len(recon)
     I, J, xy_i, xy_j, score = gather_matches(recon, matches, cfg)
     fixed_poses = sorted(int(i) for i in fixed_poses)
+    anchor = not fixed_poses  # then image 0 is put back where it was given (global_align's world: its frame)
     if not fixed_poses:
         fixed_poses = [int(torch.bincount(torch.cat([I, J]), minlength=n).argmax())]
     fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in (fixed_intrinsics or ())}
@@ -166,6 +169,8 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     cam2world = cam2world.float()
     for k in fixed_poses:
         cam2world[k] = recon.cam2world[k]
+    if anchor:
+        cam2world = anchor_to_first(cam2world, recon.cam2world[0]).float()
     K_map = K0.clone()
     K_map[:, 0, 0], K_map[:, 1, 1], K_map[:, :2, 2] = fx, fy, pp
     K = K_to_original(K_map, recon.map_from_original.double()).float()

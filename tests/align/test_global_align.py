@@ -35,6 +35,15 @@ def test_noise_free_recovers_everything(scene, optimizer):
     assert rep["num_edges"] == 30 and rep["iterations"] >= 1 and rep["final_loss"] <= rep["init_loss"]
 
 
+def test_without_known_poses_the_world_is_the_first_cameras_frame(scene):
+    preds = gt_preds(scene, chain_pairs(6, 2), seed=3)
+    recon = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=30))
+    assert torch.allclose(recon.cam2world[0], torch.eye(4), atol=1e-5)
+    # the relative poses are the truth's: camera 0 is not the truth's world, so compare in its frame
+    rot, centre, _ = pose_errors(recon.cam2world.numpy(), np.linalg.inv(scene["cam2world"][0]) @ scene["cam2world"])
+    assert rot < 0.5 and centre < 0.02, (rot, centre)
+
+
 def test_sparse_graph_and_original_pixels(scene):
     """Chain graph (each image paired with its next two) and maps that are a 2x downscale + crop of the
     original: K comes back in ORIGINAL pixels."""

@@ -21,8 +21,10 @@ def fake_stack(monkeypatch):
         calls["graph"] = graph
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
 
-    def predict_pairs(model, views, pairs, batch_size=8):
-        calls["pairs"] = list(pairs)
+    def predict_pairs(model, views, pairs, batch_size=8, **kw):
+        calls["pairs"], calls["kw"], calls["shapes"] = list(pairs), kw, [v.shape for v in views]
+        if calls.get("stop"):
+            raise StopIteration("stand-in stops after recording its inputs")
         return gt_preds(sc, pairs, seed=1)
 
     def match(pred):
@@ -87,3 +89,48 @@ def test_single_image_is_a_clear_error(fake_stack):
     _, images, _ = fake_stack
     with pytest.raises(GraphError, match="at least 2 images"):
         reconstruct(None, images[:1], size=48, quiet=True)
+
+
+def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack):
+    _, images, calls = fake_stack
+    calls["stop"] = True
+    with pytest.raises(StopIteration):
+        reconstruct(None, images, size=48, quiet=True, device="meta")
+    assert calls["kw"]["device"] == "meta" and calls["kw"]["quiet"] is True
+
+
+def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
+    _, images, calls = fake_stack
+    calls["stop"] = True
+    model = types.SimpleNamespace(provenance={"image_size": 32}, cfg=None)
+    with pytest.raises(StopIteration):
+        reconstruct(model, images, quiet=True)
+    assert calls["shapes"][0] == (16, 32)  # 48x32 by the long side to 32 -> 32x21, cropped to whole patches
+
+
+def test_portrait_and_landscape_images_are_cropped_to_one_shape_before_the_inference(fake_stack, capsys):
+    _, images, calls = fake_stack
+    calls["stop"] = True
+    mixed = images[:2] + [np.ascontiguousarray(images[2].transpose(1, 0, 2))]  # a portrait 32x48 among 48x32
+    with pytest.raises(StopIteration):
+        reconstruct(None, mixed, size=48, align=AlignConfig(quiet=True))
+    assert calls["shapes"] == [(32, 32)] * 3
+    assert "centre-cropped to (32, 32)" in capsys.readouterr().err
+
+
+def test_masks_reach_the_descriptor_confidence_that_matching_weighs():
+    import torch
+
+    from pointmap.pipeline import _mask_pred
+    from pointmap.prediction import PairPrediction
+
+    ones = torch.ones(1, 4, 6)
+    pred = PairPrediction(torch.zeros(1, 4, 6, 3), torch.zeros(1, 4, 6, 3), ones, ones,
+                          desc1=torch.zeros(1, 4, 6, 8), desc2=torch.zeros(1, 4, 6, 8), desc_conf1=ones,
+                          desc_conf2=ones)
+    m1, m2 = torch.ones(4, 6, dtype=torch.bool), torch.ones(4, 6, dtype=torch.bool)
+    m1[:, :2] = False
+    m2[0] = False
+    out = _mask_pred(pred, m1, m2)
+    for conf, m in ((out.conf1, m1), (out.desc_conf1, m1), (out.conf2, m2), (out.desc_conf2, m2)):
+        assert torch.equal(conf[0] > 0, m)

@@ -97,6 +97,14 @@ def test_fixed_poses_and_intrinsics_stay_identical(scene):
     assert not torch.equal(out.K[3], start.K[3])
 
 
+def test_without_fixed_poses_image_0_keeps_the_pose_it_was_given(scene):
+    start = perturbed_recon(scene, seed=3)
+    out = refine_matches(start, _matches(scene), config=CFG)
+    assert out.info["sparse"]["applied"]
+    assert torch.allclose(out.cam2world[0], start.cam2world[0], atol=1e-5)
+    assert not torch.allclose(out.cam2world[1:], start.cam2world[1:], atol=1e-4)  # the others did move
+
+
 def test_match_objects_and_no_usable_matches(scene):
     start = perturbed_recon(scene, seed=3)
 

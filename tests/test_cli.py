@@ -1,0 +1,67 @@
+"""The command line's argument handling: folders of images, the export list, flags after the command, and
+refusals that come before any model runs."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.cli import main
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for name in ("b.PNG", "a.jpg", "c.png"):
+        cv2.imwrite(str(folder / name), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    (folder / "notes.txt").write_text("not an image")
+    return weights, folder
+
+
+def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_command(tiny, tmp_path, capsys):
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--export", "npz,colmap-txt", "--quiet"]) == 0
+    recon = load_npz(out / "reconstruction.npz")
+    assert list(recon.names) == ["a.jpg", "b.PNG", "c.png"]
+    assert (out / "sparse/0/images.txt").exists() and not (out / "sparse/0/images.bin").exists()
+    assert "inference" not in capsys.readouterr().err  # --quiet after the command silenced the progress bar
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, npz"),
+    (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),
+    (["--min-conf", "nan"], "--min-conf expected a finite confidence, got nan"),
+])
+def test_bad_options_are_refused_before_the_model_is_even_loaded(tiny, tmp_path, capsys, extra, message):
+    _, folder = tiny
+    # the model named does not exist: the option's own error shows it was checked first
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", "no_such_model", *extra]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["reconstruct", str(tmp_path / "empty"), "-o", str(tmp_path / "o")]) == 2
+    assert f"folder {tmp_path / 'empty'} holds no images" in capsys.readouterr().err
+
+
+def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
+    import pointmap.splat
+
+    weights, folder = tiny
+    out = tmp_path / "out"
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--export", "npz"]) == 0
+    seen = {}
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: seen.update(out=out_dir, n=len(recon)))
+    assert main(["splat", str(out / "reconstruction.npz"), "--quiet"]) == 0
+    assert seen == {"out": out / "splat", "n": 3}
