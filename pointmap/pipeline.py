@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -142,6 +143,9 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     if user_masks is not None:
         keep &= user_masks
     recon.masks = keep
+    # the photographs' files (None for arrays): the COLMAP export copies them beside its model
+    recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None
+                             for src in paths_or_arrays]
     recon.info["pipeline"] = {"graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine)}
     return recon

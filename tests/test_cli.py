@@ -33,6 +33,7 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
     recon = load_npz(out / "reconstruction.npz")
     assert list(recon.names) == ["a.jpg", "b.PNG", "c.png"]
     assert (out / "sparse/0/images.txt").exists() and not (out / "sparse/0/images.bin").exists()
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["a.jpg", "b.PNG", "c.png"]  # a scene folder
     assert "inference" not in capsys.readouterr().err  # --quiet after the command silenced the progress bar
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pointmap.io.colmap import write_colmap
+from pointmap.io.colmap import write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
 from pointmap.io.npz import load_npz, write_npz
 from pointmap.io.ply import read_ply, write_ply
@@ -20,7 +20,9 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     """Write ``recon`` under ``out_dir``; returns {format: path or [paths]}.
 
     formats: any of "ply" (points.ply), "glb" (scene.glb), "colmap" (sparse/0/*.bin),
-        "colmap_txt" (sparse/0/*.txt), "npz" (reconstruction.npz).
+        "colmap_txt" (sparse/0/*.txt), "npz" (reconstruction.npz). With either COLMAP format, the photographs
+        named in ``recon.info["sources"]`` (file paths, as ``pm.reconstruct`` records them) are copied to
+        ``images/`` (``write_colmap_images``): ``out_dir`` is then a scene folder 3DGS trainers read as is.
     Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
     ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
     ``colmap_max_points`` the COLMAP points3D (dense clouds slow 3DGS trainers down; None = all).
@@ -45,6 +47,9 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         pts = select_points(recon, min_conf, conf_percentile, colmap_max_points, seed)
         written["colmap"] = write_colmap(recon, out / "sparse" / "0", pts, binary="colmap" in formats,
                                          text=colmap_text or "colmap_txt" in formats, shared_camera=shared_camera)
+        sources = recon.info.get("sources")
+        if sources and any(s is not None for s in sources):
+            written["colmap_images"] = write_colmap_images(sources, recon.names, out / "images")
     if "npz" in formats:
         write_npz(out / "reconstruction.npz", recon)
         written["npz"] = out / "reconstruction.npz"
@@ -52,4 +57,4 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
 
 
 __all__ = ["confidence_mask", "load_npz", "read_ply", "save_reconstruction", "select_points", "write_colmap",
-           "write_glb", "write_npz", "write_ply"]
+           "write_colmap_images", "write_glb", "write_npz", "write_ply"]

@@ -5,6 +5,7 @@ intrinsics and size), image names as given (the input file names), world-to-came
 expects. COLMAP puts the centre of the top-left pixel at (0.5, 0.5) while pointmap puts it at (0, 0):
 principal points and 2D observations are shifted by +0.5 on the way out.
 Each exported 3D point is observed once, at the original-resolution pixel it was unprojected from.
+``write_colmap_images`` puts the photographs beside the model (``images/``, the layout 3DGS trainers read).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pointmap.io.atomic import atomic_open
+from pointmap.io.atomic import atomic_open, atomic_path
 from pointmap.io.points import PointSet
 
 PINHOLE = 1
@@ -136,3 +137,37 @@ def _write_text(out_dir: Path, cams, images, tracks, points) -> list[Path]:
                  for pid, ((x, y, z), (r, g, b)) in enumerate(zip(points.xyz.tolist(), points.rgb.tolist()))]
         f.writelines(lines)
     return [out_dir / "cameras.txt", out_dir / "images.txt", out_dir / "points3D.txt"]
+
+
+def write_colmap_images(sources, names, out_dir) -> list[Path]:
+    """Copy the photographs a COLMAP model refers to into ``out_dir`` (COLMAP's ``images/``) under the model's
+    image ``names``: a file whose pixels need no EXIF rotation and whose suffix is the name's is copied byte for
+    byte; any other (a rotated JPEG, a renamed duplicate with another suffix) is written as ``load_images`` reads
+    it (EXIF orientation applied: the pixels the poses and intrinsics refer to), in the format of the name's
+    suffix. ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk).
+    Returns the paths written; every file is written atomically."""
+    import shutil
+
+    from PIL import Image, ImageOps
+
+    if len(sources) != len(names):
+        raise ValueError(f"write_colmap_images expected one source per name, got {len(sources)} and {len(names)}")
+    out_dir = Path(out_dir)
+    written = []
+    for src, name in zip(sources, names):
+        if src is None:
+            continue
+        src, dst = Path(src), out_dir / name
+        with Image.open(src) as im:
+            upright = im.getexif().get(0x0112, 1) in (None, 1)
+            with atomic_path(dst) as tmp:
+                if upright and src.suffix.lower() == dst.suffix.lower():
+                    shutil.copyfile(src, tmp)
+                else:
+                    im = ImageOps.exif_transpose(im)
+                    if dst.suffix.lower() in (".jpg", ".jpeg"):
+                        im.convert("RGB").save(tmp, quality=95)
+                    else:
+                        im.save(tmp)
+        written.append(dst)
+    return written

@@ -198,3 +198,38 @@ def test_io_tests_run_single_threaded():
     import torch
 
     assert torch.get_num_threads() == 1
+
+
+def test_colmap_export_puts_the_photographs_beside_the_model_upright_and_under_the_models_names(tmp_path):
+    from PIL import Image
+
+    recon = make_recon(n=3)
+    rng = np.random.default_rng(0)
+    src = tmp_path / "src"
+    src.mkdir()
+    pixels = rng.integers(0, 255, (75, 100, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(src / "plain.JPG", quality=90)
+    portrait = Image.fromarray(rng.integers(0, 255, (100, 75, 3), dtype=np.uint8))  # stored sideways + EXIF 6
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise to view
+    portrait.transpose(Image.Transpose.ROTATE_90).save(src / "rotated.jpg", exif=exif, quality=90)
+    Image.fromarray(pixels).save(src / "dup.png")
+    recon.names = ["plain.JPG", "rotated.jpg", "dup_1.png"]
+    recon.info["sources"] = [str(src / "plain.JPG"), str(src / "rotated.jpg"), str(src / "dup.png")]
+    written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
+    images = tmp_path / "out" / "images"
+    assert sorted(p.name for p in written["colmap_images"]) == sorted(recon.names)
+    assert (images / "plain.JPG").read_bytes() == (src / "plain.JPG").read_bytes()  # upright: copied as is
+    assert (images / "dup_1.png").read_bytes() == (src / "dup.png").read_bytes()
+    with Image.open(images / "rotated.jpg") as im:  # rotated: written upright, the pixels load_images saw
+        assert im.size == (75, 100) and im.getexif().get(0x0112, 1) == 1
+    assert not list(images.glob(".*"))  # no temporary files left
+    rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
+    assert all((images / im.name).exists() for im in rec.images.values())
+
+
+def test_images_given_as_arrays_are_not_written(tmp_path):
+    recon = make_recon(n=2)
+    recon.info["sources"] = [None, None]
+    written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
+    assert "colmap_images" not in written and not (tmp_path / "out" / "images").exists()
