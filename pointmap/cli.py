@@ -189,7 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
     r.add_argument("--export", default="ply,glb,colmap,npz",
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
-                        "(sparse/0/*.txt), npz (reconstruction.npz, which 'pointmap splat' reads)")
+                        "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), npz (reconstruction.npz, which "
+                        "'pointmap splat' reads); the COLMAP and nerfstudio formats copy the photographs to images/")
     r.add_argument("--focal", default=None, metavar="F[,F2,...]",
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "

@@ -6,11 +6,12 @@ from pathlib import Path
 
 from pointmap.io.colmap import write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
+from pointmap.io.nerfstudio import write_transforms
 from pointmap.io.npz import load_npz, write_npz
 from pointmap.io.ply import read_ply, write_ply
 from pointmap.io.points import confidence_mask, select_points
 
-FORMATS = ("ply", "glb", "colmap", "colmap_txt", "npz")
+FORMATS = ("ply", "glb", "colmap", "colmap_txt", "nerfstudio", "npz")
 
 
 def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"), *, min_conf: float | None = None,
@@ -20,12 +21,14 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     """Write ``recon`` under ``out_dir``; returns {format: path or [paths]}.
 
     formats: any of "ply" (points.ply), "glb" (scene.glb), "colmap" (sparse/0/*.bin),
-        "colmap_txt" (sparse/0/*.txt), "npz" (reconstruction.npz). With either COLMAP format, the photographs
+        "colmap_txt" (sparse/0/*.txt), "nerfstudio" (transforms.json + sparse_pc.ply), "npz"
+        (reconstruction.npz). With a COLMAP or the nerfstudio format, the photographs
         named in ``recon.info["sources"]`` (file paths, as ``pm.reconstruct`` records them) are copied to
         ``images/`` (``write_colmap_images``): ``out_dir`` is then a scene folder 3DGS trainers read as is.
     Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
     ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
-    ``colmap_max_points`` the COLMAP points3D (dense clouds slow 3DGS trainers down; None = all).
+    ``colmap_max_points`` the COLMAP points3D and nerfstudio's sparse_pc.ply (dense clouds slow 3DGS trainers
+    down; None = all).
     """
     if isinstance(formats, str):
         formats = tuple(f.strip() for f in formats.split(",") if f.strip())
@@ -43,10 +46,14 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         if "glb" in formats:
             write_glb(out / "scene.glb", recon, pts)
             written["glb"] = out / "scene.glb"
-    if "colmap" in formats or "colmap_txt" in formats:
+    if {"colmap", "colmap_txt", "nerfstudio"} & set(formats):
         pts = select_points(recon, min_conf, conf_percentile, colmap_max_points, seed)
-        written["colmap"] = write_colmap(recon, out / "sparse" / "0", pts, binary="colmap" in formats,
-                                         text=colmap_text or "colmap_txt" in formats, shared_camera=shared_camera)
+        if "colmap" in formats or "colmap_txt" in formats:
+            written["colmap"] = write_colmap(recon, out / "sparse" / "0", pts, binary="colmap" in formats,
+                                             text=colmap_text or "colmap_txt" in formats,
+                                             shared_camera=shared_camera)
+        if "nerfstudio" in formats:
+            written["nerfstudio"] = write_transforms(recon, out, pts)
         sources = recon.info.get("sources")
         if sources and any(s is not None for s in sources):
             written["colmap_images"] = write_colmap_images(sources, recon.names, out / "images")
@@ -57,4 +64,4 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
 
 
 __all__ = ["confidence_mask", "load_npz", "read_ply", "save_reconstruction", "select_points", "write_colmap",
-           "write_colmap_images", "write_glb", "write_npz", "write_ply"]
+           "write_colmap_images", "write_glb", "write_npz", "write_ply", "write_transforms"]

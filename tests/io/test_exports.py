@@ -233,3 +233,29 @@ def test_images_given_as_arrays_are_not_written(tmp_path):
     recon.info["sources"] = [None, None]
     written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
     assert "colmap_images" not in written and not (tmp_path / "out" / "images").exists()
+
+
+def test_nerfstudio_transforms_reproject_every_point_onto_its_original_pixel_in_nerfstudios_convention(tmp_path):
+    import json
+
+    recon = make_recon(n=3)
+    written = save_reconstruction(recon, tmp_path, formats=("nerfstudio",), colmap_max_points=500)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    assert written["nerfstudio"] == [tmp_path / "transforms.json", tmp_path / "sparse_pc.ply"]
+    assert meta["ply_file_path"] == "sparse_pc.ply" and len(read_ply(tmp_path / "sparse_pc.ply")["x"]) == 500
+    pts = select_points(recon)
+    sx, sy, left, top = recon.map_from_original[0].double().numpy()  # the same transform for every image
+    worst = 0.0
+    for k, frame in enumerate(meta["frames"]):
+        assert frame["file_path"] == f"images/{recon.names[k]}" and (frame["w"], frame["h"]) == (100, 75)
+        # nerfstudio's camera: ray through pixel coordinate (i + 0.5, j + 0.5) has direction
+        # ((u - cx) / fx, -(v - cy) / fy, -1) in OpenGL camera axes, rotated by transform_matrix
+        T = np.asarray(frame["transform_matrix"])
+        sel = pts.image == k
+        cam = (pts.xyz[sel] - T[:3, 3]) @ T[:3, :3]  # world -> OpenGL camera
+        u = frame["fl_x"] * cam[:, 0] / -cam[:, 2] + frame["cx"]
+        v = -frame["fl_y"] * cam[:, 1] / -cam[:, 2] + frame["cy"]
+        u_orig = (pts.uv_map[sel, 0] + 0.5 + left) / sx - 0.5  # our convention: pixel centres at integers
+        v_orig = (pts.uv_map[sel, 1] + 0.5 + top) / sy - 0.5
+        worst = max(worst, float(np.abs(u - (u_orig + 0.5)).max()), float(np.abs(v - (v_orig + 0.5)).max()))
+    assert worst < 1e-3, worst
