@@ -73,13 +73,23 @@ def pair_summary(npz: Path) -> str:
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
 
-def expand_images(items: list[str]) -> list[str]:
+def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
+                  max_frames: int = 30) -> list[str]:
     """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
-    ``IMAGE_SUFFIXES``, any case); files are kept as given. PointmapError for a folder without images."""
+    ``IMAGE_SUFFIXES``, any case); a video (``pointmap.video.VIDEO_SUFFIXES``) for frames extracted into
+    ``frames_dir`` (``pointmap.video.extract_frames``: one per ``stride`` frames, the sharpest of each window,
+    at most ``max_frames`` when no stride is given); files are kept as given. PointmapError for a folder
+    without images."""
+    from pointmap.video import extract_frames, is_video
+
     out = []
     for item in items:
         p = Path(item)
-        if p.is_dir():
+        if is_video(p) and not p.is_dir():
+            if frames_dir is None:
+                raise PointmapError(f"{p} is a video: frames need a folder to go to")
+            out += [str(f) for f in extract_frames(p, frames_dir, stride=stride, max_frames=max_frames)]
+        elif p.is_dir():
             found = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
             if not found:
                 raise PointmapError(f"folder {p} holds no images (expected files ending in "
@@ -102,15 +112,21 @@ def parse_export(text: str) -> tuple[str, ...]:
 
 
 def cmd_reconstruct(args) -> int:
-    from pointmap.pipeline import reconstruct
+    from pointmap.pipeline import auto_graph, reconstruct
+    from pointmap.video import is_video
 
     # every argument is checked before the model runs: nothing fails after minutes of inference
-    args.images = expand_images(args.images)
     formats = parse_export(args.export)
     if args.conf_percentile is not None and not 0 <= args.conf_percentile < 100:
         raise PointmapError(f"--conf-percentile expected a percentile in [0, 100), got {args.conf_percentile}")
     if args.min_conf is not None and not math.isfinite(args.min_conf):
         raise PointmapError(f"--min-conf expected a finite confidence, got {args.min_conf}")
+    if (args.stride is not None and args.stride < 1) or args.max_frames < 2:
+        raise PointmapError(f"--stride expected >= 1 and --max-frames >= 2, got {args.stride} and {args.max_frames}")
+    video = any(is_video(i) and not Path(i).is_dir() for i in args.images)
+    args.images = expand_images(args.images, Path(args.out) / "frames", args.stride, args.max_frames)
+    if video and args.graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
+        args.graph = auto_graph(len(args.images), sequential=True)
     K = None
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         import torch
@@ -182,7 +198,13 @@ def build_parser() -> argparse.ArgumentParser:
     a.set_defaults(fn=cmd_pair)
 
     r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")
-    r.add_argument("images", nargs="+", metavar="IMG", help="image files, or folders of them (sorted by name)")
+    r.add_argument("images", nargs="+", metavar="IMG",
+                   help="image files, folders of them (sorted by name), or a video (frames go to OUT/frames/)")
+    r.add_argument("--stride", type=int, default=None,
+                   help="video: keep one frame per STRIDE frames, the sharpest of each window (default: the "
+                        "smallest stride giving at most --max-frames)")
+    r.add_argument("--max-frames", dest="max_frames", type=int, default=30,
+                   help="video: at most this many frames when --stride is not given (default 30)")
     r.add_argument("-o", "--out", required=True)
     r.add_argument("--model", default=DEFAULT_MODEL)
     r.add_argument("--size", type=int, default=None)

@@ -21,12 +21,14 @@ INFER_SECONDS_PER_PAIR_512_LARGE = 66.0   # official-size DUSt3R 512 DPT on this
 LARGE_MODEL_PARAMS = 571e6
 
 
-def auto_graph(n_images: int) -> str:
+def auto_graph(n_images: int, sequential: bool = False) -> str:
     """complete up to 12 images (<= 66 pairs); logwin-3 up to 40 (offsets 1, 2, 4: short and long
-    range, ~3N pairs); logwin-4 beyond (offsets up to 8, ~4N pairs)."""
+    range, ~3N pairs); logwin-4 beyond (offsets up to 8, ~4N pairs). ``sequential`` (frames of a video, in
+    time order): the same windows without the wrap-around pairs of the last frames with the first."""
     if n_images <= 12:
         return "complete"
-    return "logwin-3" if n_images <= 40 else "logwin-4"
+    graph = "logwin-3" if n_images <= 40 else "logwin-4"
+    return f"{graph}-noncyclic" if sequential else graph
 
 
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,

@@ -1,0 +1,67 @@
+"""Frames from a video: the window stride, the sharpest frame of each window, refusals; and the command line."""
+
+import cv2
+import numpy as np
+import pytest
+
+from pointmap.errors import ImageError
+from pointmap.video import extract_frames, sharpness
+
+
+def _video(path, n=30, sharp=(), size=(96, 64), seed=0):
+    """An MJPG video of ``n`` frames of one random texture: blurred, except the indices in ``sharp``."""
+    rng = np.random.default_rng(seed)
+    texture = rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, size)
+    assert writer.isOpened()
+    for i in range(n):
+        frame = np.roll(texture, i, axis=1)
+        writer.write(frame if i in sharp else cv2.GaussianBlur(frame, (9, 9), 3))
+    writer.release()
+    return path
+
+
+def test_one_frame_per_window_and_the_sharpest_of_each(tmp_path):
+    video = _video(tmp_path / "walk.avi", n=30, sharp=(3, 13, 27))
+    frames = extract_frames(video, tmp_path / "frames", stride=10)
+    assert [f.name for f in frames] == ["walk_000003.png", "walk_000013.png", "walk_000027.png"]
+    first = extract_frames(video, tmp_path / "first", stride=10, pick_sharpest=False)
+    assert [f.name for f in first] == ["walk_000000.png", "walk_000010.png", "walk_000020.png"]
+    assert sharpness(cv2.imread(str(frames[1]))) > 2 * sharpness(cv2.imread(str(first[1])))
+
+
+def test_without_a_stride_at_most_max_frames_are_kept_and_a_last_partial_window_counts(tmp_path):
+    video = _video(tmp_path / "v.avi", n=25)
+    assert len(extract_frames(video, tmp_path / "a", max_frames=10)) == 9  # stride 3: 8 full windows + 1 partial
+    assert len(extract_frames(video, tmp_path / "b", max_frames=30)) == 25
+
+
+def test_missing_and_undecodable_videos_and_bad_strides_are_refused(tmp_path):
+    with pytest.raises(ImageError, match="video not found"):
+        extract_frames(tmp_path / "none.mp4", tmp_path)
+    (tmp_path / "junk.mp4").write_bytes(b"not a video at all")
+    with pytest.raises(ImageError, match="junk.mp4"):
+        extract_frames(tmp_path / "junk.mp4", tmp_path / "f")
+    video = _video(tmp_path / "v.avi", n=3)
+    for bad in (0, -2, 1.5):
+        with pytest.raises(ImageError, match="stride expected a positive integer"):
+            extract_frames(video, tmp_path / "f", stride=bad)
+
+
+def test_the_reconstruct_command_takes_a_video_and_pairs_its_frames_in_time_order(tmp_path, capsys):
+    import torch
+
+    import pointmap as pm
+    from pointmap.cli import main
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    video = _video(tmp_path / "clip.avi", n=14)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(video), "-o", str(out), "--model", str(weights), "--size", "64", "--stride", "1",
+                 "--export", "npz"]) == 0
+    err = capsys.readouterr().err
+    assert "14 images, graph logwin-3-noncyclic" in err  # no pair of the last frame with the first
+    assert len(list((out / "frames").glob("clip_*.png"))) == 14
+    assert load_npz(out / "reconstruction.npz").names[:2] == ["clip_000000.png", "clip_000001.png"]
