@@ -111,6 +111,29 @@ def parse_export(text: str) -> tuple[str, ...]:
     return formats
 
 
+def cameras_from_file(path: str, images: list[str], poses: bool):
+    """``--cameras``: ({image index: K} and, with ``poses``, {image index: cam2world}) for the images named in a
+    nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``; matched by file name). PointmapError
+    when no image is named there, or a stated image size is not the image's."""
+    from pointmap.images import image_sizes
+    from pointmap.io.nerfstudio import read_transforms
+
+    cams = read_transforms(path)
+    names = [Path(p).name for p in images]
+    matched = {k: cams[nm] for k, nm in enumerate(names) if nm in cams}
+    if not matched:
+        raise PointmapError(f"--cameras {path} names none of the {len(names)} images (it has "
+                            f"{', '.join(sorted(cams)[:4])}{', ...' if len(cams) > 4 else ''}; the images are "
+                            f"{', '.join(names[:4])}{', ...' if len(names) > 4 else ''})")
+    sizes = image_sizes([images[k] for k in matched])
+    for (k, cam), wh in zip(matched.items(), sizes):
+        if cam["size"] is not None and tuple(cam["size"]) != tuple(wh):
+            raise PointmapError(f"--cameras {path} states {cam['size'][0]}x{cam['size'][1]} for {names[k]}, but the "
+                                f"image is {wh[0]}x{wh[1]} (EXIF orientation applied): the intrinsics would not fit")
+    K = {k: cam["K"] for k, cam in matched.items() if cam["K"] is not None} or None
+    return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None)
+
+
 def cmd_reconstruct(args) -> int:
     from pointmap.pipeline import auto_graph, reconstruct
     from pointmap.video import is_video
@@ -127,7 +150,13 @@ def cmd_reconstruct(args) -> int:
     args.images = expand_images(args.images, Path(args.out) / "frames", args.stride, args.max_frames)
     if video and args.graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
         args.graph = auto_graph(len(args.images), sequential=True)
-    K = None
+    if args.cameras is not None and args.focal is not None:
+        raise PointmapError("--cameras and --focal both give intrinsics: use one")
+    if args.known_poses and args.cameras is None:
+        raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
+    K, cam2world = None, None
+    if args.cameras is not None:
+        K, cam2world = cameras_from_file(args.cameras, args.images, args.known_poses)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         import torch
 
@@ -144,7 +173,8 @@ def cmd_reconstruct(args) -> int:
 
     align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
     model, size = _model_and_size(args.model, args.size)
-    recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, min_conf=args.min_conf,
+    recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, cam2world=cam2world,
+                        min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
     out = Path(args.out)
     written = recon.save(out, formats=formats)
@@ -217,6 +247,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
                         "the camera translations (docs/alignment.md)")
+    r.add_argument("--cameras", default=None, metavar="TRANSFORMS_JSON",
+                   help="known cameras from a nerfstudio transforms.json (ours, or a phone app's: Polycam, "
+                        "Record3D), matched to the images by file name: their intrinsics are held fixed")
+    r.add_argument("--known-poses", dest="known_poses", action="store_true",
+                   help="also hold the poses of --cameras fixed (two or more spread-out ones fix the scale too)")
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                    help="the images come from one camera (same size, same zoom): estimate one focal for all")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,

@@ -38,7 +38,7 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
 
 
 @pytest.mark.parametrize("extra,message", [
-    (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, npz"),
+    (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, nerfstudio, npz, got 'ply,obj'"),
     (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),
     (["--min-conf", "nan"], "--min-conf expected a finite confidence, got nan"),
 ])
@@ -66,3 +66,43 @@ def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
     monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: seen.update(out=out_dir, n=len(recon)))
     assert main(["splat", str(out / "reconstruction.npz"), "--quiet"]) == 0
     assert seen == {"out": out / "splat", "n": 3}
+
+
+def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_poses(tiny, tmp_path, capsys):
+    import json
+
+    from pointmap.geometry.rotations import axis_angle_to_matrix
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    first = tmp_path / "first"
+    base = ["--quiet", "reconstruct", str(folder), "--model", str(weights), "--size", "64"]
+    assert main([*base, "-o", str(first), "--export", "nerfstudio"]) == 0
+    meta = json.loads((first / "transforms.json").read_text())
+    given = []
+    for k, frame in enumerate(meta["frames"]):  # cameras of our choosing: a focal and a pose per image
+        frame["fl_x"] = frame["fl_y"] = 60.0 + 10 * k
+        T = np.eye(4)
+        T[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.2 * k, 0.05 * k], dtype=torch.float64)).numpy()
+        T[:3, 3] = [0.4 * k, 0.1 * k, 0.0]
+        frame["transform_matrix"] = (T @ np.diag([1.0, -1, -1, 1])).tolist()  # stored in OpenGL axes
+        given.append(T)
+    cams = tmp_path / "cams.json"
+    cams.write_text(json.dumps(meta))
+    out = tmp_path / "out"
+    assert main([*base, "-o", str(out), "--export", "npz", "--cameras", str(cams), "--known-poses"]) == 0
+    recon = load_npz(out / "reconstruction.npz")
+    assert np.allclose(recon.K[:, 0, 0].numpy(), [60.0, 70.0, 80.0], atol=1e-3)
+    assert np.allclose(recon.cam2world.numpy(), np.stack(given), atol=1e-5)
+    capsys.readouterr()
+    assert main([*base, "-o", str(out), "--known-poses"]) == 2
+    assert "--known-poses holds the poses of --cameras FILE fixed" in capsys.readouterr().err
+    meta["frames"][0]["w"] = 81
+    cams.write_text(json.dumps(meta))
+    assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
+    assert "states 81x60 for a.jpg, but the image is 80x60" in capsys.readouterr().err
+    for frame in meta["frames"]:
+        frame["file_path"] = "images/other.png"
+    cams.write_text(json.dumps(meta))
+    assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
+    assert "names none of the 3 images" in capsys.readouterr().err

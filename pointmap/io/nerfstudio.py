@@ -46,3 +46,61 @@ def write_transforms(recon, out_dir, points: PointSet | None = None) -> list[Pat
         json.dump(meta, f, indent=2)
     written.insert(0, out_dir / "transforms.json")
     return written
+
+
+_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def read_transforms(path) -> dict:
+    """Cameras of a nerfstudio / instant-ngp ``transforms.json`` (ours, or an app's: Polycam, Record3D, ...):
+    {file name: {"K": [3, 3] float64 in our pixel convention at the size (w, h) the file states (None when the
+    file gives no focal), "cam2world": [4, 4] float64 OpenCV axes, "size": (w, h) or None}}, keyed by the base name
+    of each frame's ``file_path``. Intrinsics may be per frame or global (frame keys win); ``camera_angle_x`` stands
+    for ``fl_x`` when ``w`` is known; a missing principal point is the image centre. PointmapError for a file that
+    is not such a JSON, a frame without a pose or with a non-rigid one, or a distorted camera model (undistort
+    the images first)."""
+    import math
+
+    from pointmap.errors import PointmapError
+
+    path = Path(path)
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise PointmapError(f"{path}: not a readable transforms.json ({e.__class__.__name__}: {e})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise PointmapError(f"{path}: expected a JSON object with a non-empty 'frames' list (nerfstudio format)")
+    out = {}
+    for i, frame in enumerate(meta["frames"]):
+        if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+            raise PointmapError(f"{path}: frame {i} lacks 'file_path' or 'transform_matrix'")
+        get = lambda key: frame.get(key, meta.get(key))  # noqa: E731
+        model = str(get("camera_model") or "OPENCV").upper()
+        if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE") or any(float(get(k) or 0) != 0 for k in _DISTORTION):
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a distorted camera ({model}, "
+                                f"{ {k: get(k) for k in _DISTORTION if get(k)} }): pointmap models pinhole cameras; "
+                                "undistort the images first")
+        T = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]) \
+                or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4) or np.linalg.det(T[:3, :3]) < 0:
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): transform_matrix must be a rigid "
+                                f"[4, 4] camera-to-world matrix, got {T.tolist() if T.size == 16 else list(T.shape)}")
+        w, h = get("w"), get("h")
+        size = (int(w), int(h)) if w is not None and h is not None else None
+        fx, fy = get("fl_x"), get("fl_y")
+        if fx is None and get("camera_angle_x") is not None and w is not None:
+            fx = 0.5 * float(w) / math.tan(0.5 * float(get("camera_angle_x")))
+        K = None
+        if fx is not None:
+            fy = fx if fy is None else fy
+            cx = get("cx") if get("cx") is not None else (float(w) / 2 if w is not None else None)
+            cy = get("cy") if get("cy") is not None else (float(h) / 2 if h is not None else None)
+            if cx is None or cy is None:
+                raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a focal but neither a principal "
+                                    "point (cx, cy) nor the image size (w, h)")
+            K = np.array([[float(fx), 0.0, float(cx) - 0.5], [0.0, float(fy), float(cy) - 0.5], [0.0, 0.0, 1.0]])
+            if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
+                raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): focal lengths must be positive, "
+                                    f"got {fx}, {fy}")
+        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": T @ OPENCV_TO_OPENGL, "size": size}
+    return out

@@ -259,3 +259,49 @@ def test_nerfstudio_transforms_reproject_every_point_onto_its_original_pixel_in_
         v_orig = (pts.uv_map[sel, 1] + 0.5 + top) / sy - 0.5
         worst = max(worst, float(np.abs(u - (u_orig + 0.5)).max()), float(np.abs(v - (v_orig + 0.5)).max()))
     assert worst < 1e-3, worst
+
+
+def test_read_transforms_inverts_the_export_and_reads_global_and_angle_intrinsics(tmp_path):
+    import json
+
+    from pointmap.io.nerfstudio import read_transforms
+
+    recon = make_recon(n=3)
+    save_reconstruction(recon, tmp_path, formats=("nerfstudio",))
+    cams = read_transforms(tmp_path / "transforms.json")
+    assert list(cams) == recon.names
+    for k, name in enumerate(recon.names):
+        assert np.allclose(cams[name]["K"], recon.K[k].double().numpy(), atol=1e-9)
+        assert np.allclose(cams[name]["cam2world"], recon.cam2world[k].double().numpy(), atol=1e-6)
+        assert cams[name]["size"] == (100, 75)
+    # instant-ngp style: one global camera given by its horizontal field of view, centred principal point
+    T = np.eye(4).tolist()
+    meta = {"camera_angle_x": 2 * np.arctan(0.5), "w": 80, "h": 60, "frames": [{"file_path": "./a/b.png",
+                                                                              "transform_matrix": T}]}
+    (tmp_path / "ngp.json").write_text(json.dumps(meta))
+    K = read_transforms(tmp_path / "ngp.json")["b.png"]["K"]
+    assert np.allclose(K, [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"k1": 0.1}, "distorted camera"),
+    ({"camera_model": "OPENCV_FISHEYE"}, "undistort the images first"),
+    ({"transform_matrix": (2 * np.eye(4)).tolist()}, "must be a rigid"),
+    ({"transform_matrix": None}, "lacks 'file_path' or 'transform_matrix'"),
+    ({"fl_x": -3.0}, "focal lengths must be positive"),
+])
+def test_read_transforms_refuses_what_pointmap_cannot_use_and_says_why(tmp_path, change, message):
+    import json
+
+    from pointmap.errors import PointmapError
+    from pointmap.io.nerfstudio import read_transforms
+
+    frame = {"file_path": "images/x.png", "transform_matrix": np.eye(4).tolist(), "fl_x": 50.0, "fl_y": 50.0,
+             "cx": 20.0, "cy": 15.0, "w": 40, "h": 30, **change}
+    frame = {k: v for k, v in frame.items() if v is not None}
+    (tmp_path / "t.json").write_text(json.dumps({"frames": [frame]}))
+    with pytest.raises(PointmapError, match=message):
+        read_transforms(tmp_path / "t.json")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(PointmapError, match="not a readable transforms.json"):
+        read_transforms(tmp_path / "bad.json")
