@@ -144,6 +144,9 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError(f"--conf-percentile expected a percentile in [0, 100), got {args.conf_percentile}")
     if args.min_conf is not None and not math.isfinite(args.min_conf):
         raise PointmapError(f"--min-conf expected a finite confidence, got {args.min_conf}")
+    if args.max_points < 0 or args.colmap_points < 0:
+        raise PointmapError(f"--max-points and --colmap-points expected >= 0 (0: all), got {args.max_points} and "
+                            f"{args.colmap_points}")
     if (args.stride is not None and args.stride < 1) or args.max_frames < 2:
         raise PointmapError(f"--stride expected >= 1 and --max-frames >= 2, got {args.stride} and {args.max_frames}")
     video = any(is_video(i) and not Path(i).is_dir() for i in args.images)
@@ -177,7 +180,8 @@ def cmd_reconstruct(args) -> int:
                         min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
     out = Path(args.out)
-    written = recon.save(out, formats=formats)
+    written = recon.save(out, formats=formats, max_points=args.max_points or None,
+                         colmap_max_points=args.colmap_points or None)
     if args.splat:
         from pointmap.splat import run as run_splat
 
@@ -243,6 +247,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
                         "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), npz (reconstruction.npz, which "
                         "'pointmap splat' reads); the COLMAP and nerfstudio formats copy the photographs to images/")
+    r.add_argument("--max-points", dest="max_points", type=int, default=0,
+                   help="cap on the points of the PLY / GLB cloud, drawn at random (default 0: all)")
+    r.add_argument("--colmap-points", dest="colmap_points", type=int, default=100_000,
+                   help="cap on COLMAP's points3D and nerfstudio's sparse_pc.ply, the 3DGS initial cloud "
+                        "(default 100000; 0: all)")
     r.add_argument("--focal", default=None, metavar="F[,F2,...]",
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "

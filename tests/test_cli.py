@@ -34,6 +34,12 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
     assert list(recon.names) == ["a.jpg", "b.PNG", "c.png"]
     assert (out / "sparse/0/images.txt").exists() and not (out / "sparse/0/images.bin").exists()
     assert sorted(p.name for p in (out / "images").iterdir()) == ["a.jpg", "b.PNG", "c.png"]  # a scene folder
+    assert main(["reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64", "--quiet",
+                 "--export", "ply,colmap-txt", "--max-points", "50", "--colmap-points", "20"]) == 0
+    from pointmap.io import read_ply
+
+    assert len(read_ply(out / "points.ply")["x"]) == 50
+    assert len([ln for ln in (out / "sparse/0/points3D.txt").read_text().splitlines() if not ln.startswith("#")]) == 20
     assert "inference" not in capsys.readouterr().err  # --quiet after the command silenced the progress bar
 
 
@@ -41,6 +47,7 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
     (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, nerfstudio, npz, got 'ply,obj'"),
     (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),
     (["--min-conf", "nan"], "--min-conf expected a finite confidence, got nan"),
+    (["--colmap-points", "-5"], "--max-points and --colmap-points expected >= 0 (0: all), got 0 and -5"),
 ])
 def test_bad_options_are_refused_before_the_model_is_even_loaded(tiny, tmp_path, capsys, extra, message):
     _, folder = tiny
