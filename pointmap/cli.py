@@ -134,6 +134,34 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
     return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None)
 
 
+def masks_from_folder(folder: str, images: list[str]) -> list:
+    """``--masks``: one mask per image from ``folder``, the file with the image's stem and an image suffix
+    (``IMAGE_SUFFIXES``), nonzero = keep, at the image's original size (EXIF orientation applied) or the network's;
+    an image without a mask file keeps every pixel. PointmapError for a folder that is missing or holds no mask of
+    any of the images."""
+    import numpy as np
+
+    from pointmap.images import image_sizes
+
+    root = Path(folder)
+    if not root.is_dir():
+        raise PointmapError(f"--masks expected a folder of mask images, got {folder!r}")
+    by_stem = {f.stem: f for f in sorted(root.iterdir()) if f.suffix.lower() in IMAGE_SUFFIXES}
+    found = [by_stem.get(Path(p).stem) for p in images]
+    if not any(found):
+        raise PointmapError(f"--masks {folder} holds no mask named like the images ({Path(images[0]).stem}.png, ...)")
+    masks = []
+    for (w, h), f in zip(image_sizes(images), found):
+        if f is None:
+            masks.append(np.ones((h, w), bool))
+            continue
+        from PIL import Image, ImageOps
+
+        with Image.open(f) as im:
+            masks.append(np.asarray(ImageOps.exif_transpose(im).convert("L")) > 0)
+    return masks
+
+
 def cmd_reconstruct(args) -> int:
     from pointmap.pipeline import auto_graph, reconstruct
     from pointmap.video import is_video
@@ -172,12 +200,13 @@ def cmd_reconstruct(args) -> int:
         K = torch.zeros(len(args.images), 3, 3, dtype=torch.float64)
         for k, ((w, h), f) in enumerate(zip(image_sizes(args.images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    masks = masks_from_folder(args.masks, args.images) if args.masks is not None else None
     from pointmap.align import AlignConfig
 
     align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
     model, size = _model_and_size(args.model, args.size)
     recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, cam2world=cam2world,
-                        min_conf=args.min_conf,
+                        masks=masks, min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
     out = Path(args.out)
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
@@ -267,6 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
                    help="keep pixels above this percentile of confidence per image (0-100)")
+    r.add_argument("--masks", default=None, metavar="DIR",
+                   help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
+                        "are left out of the alignment, the matches and the exports (sky, people, a turntable)")
     r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
     r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
     r.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,

@@ -121,8 +121,8 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
+    user_masks = masks_to_maps(masks, views) if masks is not None else None  # refused now, not after inference
     preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet)
-    user_masks = masks_to_maps(masks, views) if masks is not None else None
     if user_masks is not None:
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}
     recon = global_align(views, preds, K=K, cam2world=cam2world, config=cfg, pose_mask=pose_mask)

@@ -113,3 +113,26 @@ def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_pose
     cams.write_text(json.dumps(meta))
     assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
     assert "names none of the 3 images" in capsys.readouterr().err
+
+
+def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_model_when_wrong(tiny, tmp_path, capsys):
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    m = np.full((60, 80), 255, np.uint8)
+    m[:, :40] = 0  # the left half of a.jpg masked out
+    cv2.imwrite(str(masks / "a.png"), m)
+    out = tmp_path / "out"
+    base = ["--quiet", "reconstruct", str(folder), "-o", str(out), "--size", "64", "--export", "npz"]
+    assert main([*base, "--model", str(weights), "--masks", str(masks)]) == 0
+    kept = load_npz(out / "reconstruction.npz").masks
+    h, w = kept.shape[1:]
+    assert not kept[0, :, : w // 2 - 1].any() and kept[0, :, w // 2 + 1:].any() and kept[1].any()
+    cv2.imwrite(str(masks / "b.png"), np.zeros((5, 5), np.uint8))  # neither the original size nor the map's
+    capsys.readouterr()
+    assert main([*base, "--model", str(weights), "--masks", str(masks)]) == 2
+    assert "mask 1 expected the original size (60, 80)" in capsys.readouterr().err
+    assert main([*base, "--model", "no_such_model", "--masks", str(tmp_path / "nowhere")]) == 2
+    assert "--masks expected a folder of mask images" in capsys.readouterr().err
