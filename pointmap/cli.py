@@ -116,11 +116,13 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
     nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``; matched by file name). PointmapError
     when no image is named there, or a stated image size is not the image's."""
     from pointmap.images import image_sizes
-    from pointmap.io.nerfstudio import read_transforms
+    from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
 
     cams = read_transforms(path)
     names = [Path(p).name for p in images]
-    matched = {k: cams[nm] for k, nm in enumerate(names) if nm in cams}
+    # by file name; NeRF-synthetic files name frames without a suffix ("./train/r_0" for r_0.png)
+    matched = {k: cams[nm] if nm in cams else cams[Path(nm).stem] for k, nm in enumerate(names)
+               if nm in cams or Path(nm).stem in cams}
     if not matched:
         raise PointmapError(f"--cameras {path} names none of the {len(names)} images (it has "
                             f"{', '.join(sorted(cams)[:4])}{', ...' if len(cams) > 4 else ''}; the images are "
@@ -130,7 +132,8 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
         if cam["size"] is not None and tuple(cam["size"]) != tuple(wh):
             raise PointmapError(f"--cameras {path} states {cam['size'][0]}x{cam['size'][1]} for {names[k]}, but the "
                                 f"image is {wh[0]}x{wh[1]} (EXIF orientation applied): the intrinsics would not fit")
-    K = {k: cam["K"] for k, cam in matched.items() if cam["K"] is not None} or None
+    K = {k: cam["K"] if cam["K"] is not None else intrinsics_from_angle(cam["camera_angle_x"], *wh)
+         for (k, cam), wh in zip(matched.items(), sizes) if cam["K"] is not None or cam["camera_angle_x"]} or None
     return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None)
 
 
@@ -177,14 +180,18 @@ def cmd_reconstruct(args) -> int:
                             f"{args.colmap_points}")
     if (args.stride is not None and args.stride < 1) or args.max_frames < 2:
         raise PointmapError(f"--stride expected >= 1 and --max-frames >= 2, got {args.stride} and {args.max_frames}")
-    video = any(is_video(i) and not Path(i).is_dir() for i in args.images)
-    args.images = expand_images(args.images, Path(args.out) / "frames", args.stride, args.max_frames)
-    if video and args.graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
-        args.graph = auto_graph(len(args.images), sequential=True)
     if args.cameras is not None and args.focal is not None:
         raise PointmapError("--cameras and --focal both give intrinsics: use one")
     if args.known_poses and args.cameras is None:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
+    if args.cameras is not None and not Path(args.cameras).is_file():
+        raise PointmapError(f"--cameras expected a transforms.json file, got {args.cameras!r}")
+    if args.masks is not None and not Path(args.masks).is_dir():
+        raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
+    video = any(is_video(i) and not Path(i).is_dir() for i in args.images)
+    args.images = expand_images(args.images, Path(args.out) / "frames", args.stride, args.max_frames)
+    if video and args.graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
+        args.graph = auto_graph(len(args.images), sequential=True)
     K, cam2world = None, None
     if args.cameras is not None:
         K, cam2world = cameras_from_file(args.cameras, args.images, args.known_poses)

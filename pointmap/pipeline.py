@@ -78,6 +78,22 @@ def masks_to_maps(masks, views) -> torch.Tensor:
     return torch.stack(out)
 
 
+def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> None:
+    """What ``global_align`` would refuse about the known intrinsics and poses, and ``shared_focal``'s
+    preconditions, checked on the prepared views before any pair is inferred."""
+    import warnings
+
+    from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # duplicate names or images: global_align warns once, later
+        info = parse_views(views)
+    _, K_known, fx, *_ = parse_known_K(K, len(views), info)
+    parse_known_poses(cam2world, len(views), pose_mask)
+    if shared_focal:
+        check_one_camera(info.original_sizes, info.map_from_original, K_known, fx)
+
+
 def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None = None, batch_size: int = 8,
                 K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
                 conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
@@ -109,11 +125,10 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         if not quiet:
             print(f"pointmap: the images have {len(shapes)} network shapes (h, w) {shapes}; each is centre-cropped "
                   f"to {hw}, the largest all contain", file=sys.stderr)
-    if cfg.shared_focal:  # refuse now, not after the inference of every pair
-        check_one_camera([v.original_size for v in views], [v.map_from_original for v in views])
     n = len(views)
     if n < 2:
         raise GraphError(f"reconstruct needs at least 2 images, got {n}")
+    check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
     cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device)

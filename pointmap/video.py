@@ -31,9 +31,10 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     """Write frames of ``video`` to ``out_dir`` as ``<stem>_<frame index>.png`` and return their paths in time order.
 
     ``stride``: one frame per window of that many frames (default: the smallest stride giving at most
-    ``max_frames`` frames, from the frame count the container reports); the frame kept in each window is its
-    sharpest when ``pick_sharpest`` (else the first). ImageError when the file cannot be decoded or holds no
-    frame; every image is written atomically."""
+    ``max_frames`` frames, from ``count_frames``); the frame kept in each window is its sharpest when
+    ``pick_sharpest`` (else the first). Memory holds one window's best frame, whatever the video's length.
+    ImageError when the file cannot be decoded or holds no frame; every image is written atomically as soon as
+    its window closes."""
     import cv2
 
     video = Path(video)
@@ -43,15 +44,23 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         raise ImageError(f"stride expected a positive integer, got {stride!r}")
     if not isinstance(max_frames, int) or max_frames < 2:
         raise ImageError(f"max_frames expected an integer >= 2, got {max_frames!r}")
+    out_dir = Path(out_dir)
+    paths: list[Path] = []
+
+    def write(index: int, frame: np.ndarray) -> None:  # one window's frame, written as soon as it closes
+        path = out_dir / f"{video.stem}_{index:06d}.png"
+        with atomic_path(path) as tmp:
+            if not cv2.imwrite(str(tmp), frame):
+                raise ImageError(f"could not write frame {index} of {video} to {path}")
+        paths.append(path)
+
+    if stride is None:
+        stride = max(1, math.ceil(count_frames(video) / max_frames))
     cap = cv2.VideoCapture(str(video))
     try:
         if not cap.isOpened():
             raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
-        if stride is None:
-            total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-            stride = max(1, math.ceil(total / max_frames)) if total > 0 else 1
-        kept: list[tuple[int, np.ndarray]] = []
-        best: tuple[float, int, np.ndarray] | None = None
+        best: tuple[float, int, np.ndarray] | None = None  # only the current window's best frame is held
         index = 0
         while True:
             ok, frame = cap.read()
@@ -62,20 +71,32 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
                 best = (score, index, frame)
             index += 1
             if index % stride == 0:
-                kept.append(best[1:])
+                write(*best[1:])
                 best = None
         if best is not None:
-            kept.append(best[1:])
+            write(*best[1:])
     finally:
         cap.release()
-    if not kept:
+    if not paths:
         raise ImageError(f"no frame could be decoded from {video}")
-    out_dir = Path(out_dir)
-    paths = []
-    for i, frame in kept:
-        path = out_dir / f"{video.stem}_{i:06d}.png"
-        with atomic_path(path) as tmp:
-            if not cv2.imwrite(str(tmp), frame):
-                raise ImageError(f"could not write frame {i} of {video} to {path}")
-        paths.append(path)
     return paths
+
+
+def count_frames(video) -> int:
+    """Frames in ``video``: the container's count when it states one, else counted by grabbing every frame
+    without decoding it (browser-recorded .webm files often state none). ImageError when it cannot be opened."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    try:
+        if not cap.isOpened():
+            raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        if n > 0:
+            return n
+        n = 0
+        while cap.grab():
+            n += 1
+        return n
+    finally:
+        cap.release()

@@ -115,7 +115,8 @@ def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_pose
     assert "names none of the 3 images" in capsys.readouterr().err
 
 
-def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_model_when_wrong(tiny, tmp_path, capsys):
+def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_inference_when_wrong(tiny, tmp_path, capsys,
+                                                                                            monkeypatch):
     from pointmap.io import load_npz
 
     weights, folder = tiny
@@ -132,7 +133,27 @@ def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_model_wh
     assert not kept[0, :, : w // 2 - 1].any() and kept[0, :, w // 2 + 1:].any() and kept[1].any()
     cv2.imwrite(str(masks / "b.png"), np.zeros((5, 5), np.uint8))  # neither the original size nor the map's
     capsys.readouterr()
+    import pointmap.inference
+
+    def no_inference(*a, **k):
+        raise AssertionError("a wrong mask must be refused before the inference")
+
+    monkeypatch.setattr(pointmap.inference, "predict_pairs", no_inference)
     assert main([*base, "--model", str(weights), "--masks", str(masks)]) == 2
     assert "mask 1 expected the original size (60, 80)" in capsys.readouterr().err
     assert main([*base, "--model", "no_such_model", "--masks", str(tmp_path / "nowhere")]) == 2
     assert "--masks expected a folder of mask images" in capsys.readouterr().err
+
+
+def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_and_the_images_width(tiny, tmp_path):
+    import json
+
+    from pointmap.cli import cameras_from_file
+
+    _, folder = tiny
+    images = [str(folder / n) for n in ("a.jpg", "b.PNG", "c.png")]
+    frames = [{"file_path": f"./train/{stem}", "transform_matrix": np.eye(4).tolist()} for stem in ("a", "c")]
+    (tmp_path / "t.json").write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5), "frames": frames}))
+    K, poses = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
+    assert sorted(K) == [0, 2] and sorted(poses) == [0, 2]
+    assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, 90-degree field of view

@@ -65,3 +65,14 @@ def test_the_reconstruct_command_takes_a_video_and_pairs_its_frames_in_time_orde
     assert "14 images, graph logwin-3-noncyclic" in err  # no pair of the last frame with the first
     assert len(list((out / "frames").glob("clip_*.png"))) == 14
     assert load_npz(out / "reconstruction.npz").names[:2] == ["clip_000000.png", "clip_000001.png"]
+
+
+def test_a_video_that_states_no_frame_count_is_counted_frame_by_frame(tmp_path, monkeypatch):
+    from pointmap.video import count_frames
+
+    video = _video(tmp_path / "v.avi", n=17)
+    assert count_frames(video) == 17
+    monkeypatch.setattr(cv2, "CAP_PROP_FRAME_COUNT", cv2.CAP_PROP_GAMMA)  # a property this file does not state
+    assert cv2.VideoCapture(str(video)).get(cv2.CAP_PROP_FRAME_COUNT) <= 0
+    assert count_frames(video) == 17
+    assert len(extract_frames(video, tmp_path / "f", max_frames=5)) == 5  # stride 4 from the counted 17

@@ -98,7 +98,8 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     I, J, xy_i, xy_j, score = gather_matches(recon, matches, cfg)
     fixed_poses = sorted(int(i) for i in fixed_poses)
     anchor = not fixed_poses  # then image 0 is put back where it was given (global_align's world: its frame)
-    if not fixed_poses:
+    user_fixed = list(fixed_poses)
+    if not fixed_poses:  # the gauge: the most-matched image is held during the optimisation, then moved back
         fixed_poses = [int(torch.bincount(torch.cat([I, J]), minlength=n).argmax())]
     fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in (fixed_intrinsics or ())}
     K0 = recon.K_map.double()
@@ -184,6 +185,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
             depth[k] = depth[k] * float(ratio[sel].median())
     report = {"applied": True, "num_matches": int(len(I)), "evaluations": evals[0], "init_loss": loss0,
               "final_loss": final, "median_reproj_px_before": float(r0.median()),
-              "median_reproj_px_after": float(r1.median()), "fixed_poses": fixed_poses,
+              "median_reproj_px_after": float(r1.median()), "fixed_poses": user_fixed,
+              "held_during_optimisation": fixed_poses,
               "seconds": time.perf_counter() - t0, "config": asdict(cfg)}
     return replace(recon, cam2world=cam2world, K=K, depth_z=depth, info={**recon.info, "sparse": report})

@@ -11,6 +11,7 @@ Each exported 3D point is observed once, at the original-resolution pixel it was
 from __future__ import annotations
 
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -144,7 +145,8 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
     image ``names``: a file whose pixels need no EXIF rotation and whose suffix is the name's is copied byte for
     byte; any other (a rotated JPEG, a renamed duplicate with another suffix) is written as ``load_images`` reads
     it (EXIF orientation applied: the pixels the poses and intrinsics refer to), in the format of the name's
-    suffix. ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk).
+    suffix. ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk);
+    a source that no longer exists is skipped with a warning.
     Returns the paths written; every file is written atomically."""
     import shutil
 
@@ -158,6 +160,9 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
         if src is None:
             continue
         src, dst = Path(src), out_dir / name
+        if not src.is_file():  # e.g. a reconstruction.npz reloaded on another machine
+            warnings.warn(f"write_colmap_images: {src} no longer exists; {dst} not written", stacklevel=2)
+            continue
         with Image.open(src) as im:
             upright = im.getexif().get(0x0112, 1) in (None, 1)
             with atomic_path(dst) as tmp:

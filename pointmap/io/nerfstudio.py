@@ -54,9 +54,11 @@ _DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 def read_transforms(path) -> dict:
     """Cameras of a nerfstudio / instant-ngp ``transforms.json`` (ours, or an app's: Polycam, Record3D, ...):
     {file name: {"K": [3, 3] float64 in our pixel convention at the size (w, h) the file states (None when the
-    file gives no focal), "cam2world": [4, 4] float64 OpenCV axes, "size": (w, h) or None}}, keyed by the base name
-    of each frame's ``file_path``. Intrinsics may be per frame or global (frame keys win); ``camera_angle_x`` stands
-    for ``fl_x`` when ``w`` is known; a missing principal point is the image centre. PointmapError for a file that
+    file gives no focal), "cam2world": [4, 4] float64 OpenCV axes, "size": (w, h) or None, "camera_angle_x": the
+    horizontal field of view in radians when that is all the file gives (NeRF-synthetic files state no size: the
+    caller resolves it with the image's width), else None}}, keyed by the base name of each frame's ``file_path``
+    (which NeRF-synthetic files give without a suffix). Intrinsics may be per frame or global (frame keys win);
+    ``camera_angle_x`` stands for ``fl_x`` when ``w`` is known; a missing principal point is the image centre. PointmapError for a file that
     is not such a JSON, a frame without a pose or with a non-rigid one, or a distorted camera model (undistort
     the images first)."""
     import math
@@ -102,5 +104,14 @@ def read_transforms(path) -> dict:
             if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
                 raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): focal lengths must be positive, "
                                     f"got {fx}, {fy}")
-        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": T @ OPENCV_TO_OPENGL, "size": size}
+        angle = get("camera_angle_x") if K is None and get("camera_angle_x") is not None else None
+        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": T @ OPENCV_TO_OPENGL, "size": size,
+                                                   "camera_angle_x": None if angle is None else float(angle)}
     return out
+
+
+def intrinsics_from_angle(camera_angle_x: float, width: int, height: int) -> np.ndarray:
+    """K [3, 3] (our pixel convention) of a pinhole camera with horizontal field of view ``camera_angle_x``
+    (radians) and a centred principal point, for an image of ``width`` x ``height`` pixels."""
+    f = 0.5 * width / np.tan(0.5 * camera_angle_x)
+    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])

@@ -134,3 +134,19 @@ def test_masks_reach_the_descriptor_confidence_that_matching_weighs():
     out = _mask_pred(pred, m1, m2)
     for conf, m in ((out.conf1, m1), (out.desc_conf1, m1), (out.conf2, m2), (out.desc_conf2, m2)):
         assert torch.equal(conf[0] > 0, m)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"K": {5: np.eye(3)}}, "image index 5 outside"),
+    ({"cam2world": {0: 2 * np.eye(4)}}, "cam2world"),
+    ({"K": {0: np.diag([50.0, 50.0, 1.0])}, "align": AlignConfig(quiet=True, shared_focal=True)},
+     "K known for some images only"),
+])
+def test_known_cameras_that_alignment_would_refuse_are_refused_before_the_inference(fake_stack, kwargs, message):
+    from pointmap.errors import PointmapError
+
+    _, images, calls = fake_stack
+    calls["stop"] = True  # the stand-in inference would raise StopIteration: it must not be reached
+    with pytest.raises(PointmapError, match=message):
+        reconstruct(None, images, size=48, quiet=True, **kwargs)
+    assert "shapes" not in calls

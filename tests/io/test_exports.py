@@ -305,3 +305,16 @@ def test_read_transforms_refuses_what_pointmap_cannot_use_and_says_why(tmp_path,
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(PointmapError, match="not a readable transforms.json"):
         read_transforms(tmp_path / "bad.json")
+
+
+def test_a_photograph_that_no_longer_exists_is_skipped_with_a_warning(tmp_path):
+    from PIL import Image
+
+    recon = make_recon(n=2)
+    Image.fromarray(np.zeros((75, 100, 3), np.uint8)).save(tmp_path / "here.png")
+    recon.names = ["here.png", "gone.png"]
+    recon.info["sources"] = [str(tmp_path / "here.png"), str(tmp_path / "gone.png")]
+    with pytest.warns(UserWarning, match="gone.png no longer exists"):
+        written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
+    assert [p.name for p in written["colmap_images"]] == ["here.png"]
+    assert (tmp_path / "out" / "sparse" / "0" / "images.bin").exists()
