@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
     r.add_argument("--export", default="ply,glb,colmap,npz",
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
-                        "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), npz (reconstruction.npz, which "
+                        "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), tum (trajectory.txt), npz (reconstruction.npz, which "
                         "'pointmap splat' reads); the COLMAP and nerfstudio formats copy the photographs to images/")
     r.add_argument("--max-points", dest="max_points", type=int, default=0,
                    help="cap on the points of the PLY / GLB cloud, drawn at random (default 0: all)")

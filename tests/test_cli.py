@@ -44,7 +44,7 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
 
 
 @pytest.mark.parametrize("extra,message", [
-    (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, nerfstudio, npz, got 'ply,obj'"),
+    (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, nerfstudio, tum, npz, got 'ply,obj'"),
     (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),
     (["--min-conf", "nan"], "--min-conf expected a finite confidence, got nan"),
     (["--colmap-points", "-5"], "--max-points and --colmap-points expected >= 0 (0: all), got 0 and -5"),

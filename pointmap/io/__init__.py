@@ -10,8 +10,9 @@ from pointmap.io.nerfstudio import write_transforms
 from pointmap.io.npz import load_npz, write_npz
 from pointmap.io.ply import read_ply, write_ply
 from pointmap.io.points import confidence_mask, select_points
+from pointmap.io.tum import write_tum
 
-FORMATS = ("ply", "glb", "colmap", "colmap_txt", "nerfstudio", "npz")
+FORMATS = ("ply", "glb", "colmap", "colmap_txt", "nerfstudio", "tum", "npz")
 
 
 def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"), *, min_conf: float | None = None,
@@ -21,10 +22,11 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     """Write ``recon`` under ``out_dir``; returns {format: path or [paths]}.
 
     formats: any of "ply" (points.ply), "glb" (scene.glb), "colmap" (sparse/0/*.bin),
-        "colmap_txt" (sparse/0/*.txt), "nerfstudio" (transforms.json + sparse_pc.ply), "npz"
-        (reconstruction.npz). With a COLMAP or the nerfstudio format, the photographs
-        named in ``recon.info["sources"]`` (file paths, as ``pm.reconstruct`` records them) are copied to
-        ``images/`` (``write_colmap_images``): ``out_dir`` is then a scene folder 3DGS trainers read as is.
+        "colmap_txt" (sparse/0/*.txt), "nerfstudio" (transforms.json + sparse_pc.ply), "tum"
+        (trajectory.txt: one pose per image, for trajectory tools), "npz" (reconstruction.npz). With a COLMAP
+        or the nerfstudio format, the photographs named in ``recon.info["sources"]`` (file paths, as
+        ``pm.reconstruct`` records them) are copied to ``images/`` (``write_colmap_images``): ``out_dir`` is then
+        a scene folder 3DGS trainers read as is.
     Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
     ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
     ``colmap_max_points`` the COLMAP points3D and nerfstudio's sparse_pc.ply (dense clouds slow 3DGS trainers
@@ -57,6 +59,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         sources = recon.info.get("sources")
         if sources and any(s is not None for s in sources):
             written["colmap_images"] = write_colmap_images(sources, recon.names, out / "images")
+    if "tum" in formats:
+        written["tum"] = write_tum(recon, out / "trajectory.txt")
     if "npz" in formats:
         write_npz(out / "reconstruction.npz", recon)
         written["npz"] = out / "reconstruction.npz"
@@ -64,4 +68,4 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
 
 
 __all__ = ["confidence_mask", "load_npz", "read_ply", "save_reconstruction", "select_points", "write_colmap",
-           "write_colmap_images", "write_glb", "write_npz", "write_ply", "write_transforms"]
+           "write_colmap_images", "write_glb", "write_npz", "write_ply", "write_transforms", "write_tum"]

@@ -318,3 +318,18 @@ def test_a_photograph_that_no_longer_exists_is_skipped_with_a_warning(tmp_path):
         written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
     assert [p.name for p in written["colmap_images"]] == ["here.png"]
     assert (tmp_path / "out" / "sparse" / "0" / "images.bin").exists()
+
+
+def test_tum_trajectory_lines_give_back_each_camera_to_world_pose(tmp_path):
+    from scipy.spatial.transform import Rotation  # an independent reader of (x, y, z, w) quaternions
+
+    recon = make_recon(n=3)
+    path = save_reconstruction(recon, tmp_path, formats=("tum",))["tum"]
+    rows = [ln.split() for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 3
+    for k, row in enumerate(rows):
+        t, tx, ty, tz, qx, qy, qz, qw = map(float, row)
+        R = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        assert t == k
+        assert np.allclose([tx, ty, tz], recon.cam2world[k, :3, 3].numpy(), atol=1e-6)
+        assert np.allclose(R, recon.cam2world[k, :3, :3].double().numpy(), atol=1e-6)

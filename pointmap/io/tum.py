@@ -1,0 +1,28 @@
+"""TUM RGB-D trajectory export (``trajectory.txt``), the format trajectory tools (evo, the TUM scripts) read:
+one line per image, ``timestamp tx ty tz qx qy qz qw``, the camera-to-world pose (camera centre and orientation,
+OpenCV camera axes as everywhere in pointmap), the quaternion scalar last. The timestamp is the image's index
+unless ``timestamps`` are given (e.g. a video's frame times)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pointmap.io.atomic import atomic_open
+from pointmap.io.colmap import rotation_to_quaternion
+
+
+def write_tum(recon, path, timestamps=None) -> Path:
+    """Write ``recon``'s cam2world poses to ``path`` in TUM format; returns the path."""
+    n = len(recon)
+    ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
+    if ts.shape != (n,) or not np.isfinite(ts).all():
+        raise ValueError(f"timestamps expected {n} finite numbers, got {ts.shape}")
+    c2w = recon.cam2world.double().numpy()
+    with atomic_open(path, "w") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes) written by pointmap\n")
+        for t, T in zip(ts, c2w):
+            w, x, y, z = rotation_to_quaternion(T[:3, :3])
+            f.write(f"{t:.6f} {T[0, 3]:.9g} {T[1, 3]:.9g} {T[2, 3]:.9g} {x:.9g} {y:.9g} {z:.9g} {w:.9g}\n")
+    return Path(path)
