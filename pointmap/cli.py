@@ -166,9 +166,6 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
 
 
 def cmd_reconstruct(args) -> int:
-    from pointmap.pipeline import auto_graph, reconstruct
-    from pointmap.video import is_video
-
     # every argument is checked before the model runs: nothing fails after minutes of inference
     formats = parse_export(args.export)
     if args.conf_percentile is not None and not 0 <= args.conf_percentile < 100:
@@ -188,34 +185,59 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError(f"--cameras expected a transforms.json file, got {args.cameras!r}")
     if args.masks is not None and not Path(args.masks).is_dir():
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
-    video = any(is_video(i) and not Path(i).is_dir() for i in args.images)
-    args.images = expand_images(args.images, Path(args.out) / "frames", args.stride, args.max_frames)
-    if video and args.graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
-        args.graph = auto_graph(len(args.images), sequential=True)
+    if not args.each_folder:
+        model, size = _model_and_size(args.model, args.size)
+        return reconstruct_scene(model, size, args, args.images, Path(args.out), formats)
+    if len(args.images) != 1 or not Path(args.images[0]).is_dir():
+        raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
+    scenes = sorted(d for d in Path(args.images[0]).iterdir() if d.is_dir())
+    if not scenes:
+        raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
+    model, size = _model_and_size(args.model, args.size)  # loaded once for every scene
+    failed = []
+    for scene in scenes:
+        print(f"scene {scene.name}", file=sys.stderr)
+        try:
+            reconstruct_scene(model, size, args, [str(scene)], Path(args.out) / scene.name, formats)
+        except PointmapError as e:  # one bad scene does not stop the others
+            print(f"pointmap: scene {scene.name} skipped: {e}", file=sys.stderr)
+            failed.append(scene.name)
+    if failed:
+        print(f"pointmap: {len(failed)} of {len(scenes)} scenes failed: {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def reconstruct_scene(model, size: int, args, inputs: list[str], out: Path, formats) -> int:
+    """One scene of ``pointmap reconstruct``: its inputs (files, folders, a video) to the exports under ``out``."""
+    from pointmap.align import AlignConfig
+    from pointmap.pipeline import auto_graph, reconstruct
+    from pointmap.video import is_video
+
+    video = any(is_video(i) and not Path(i).is_dir() for i in inputs)
+    images = expand_images(inputs, out / "frames", args.stride, args.max_frames)
+    graph = args.graph
+    if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
+        graph = auto_graph(len(images), sequential=True)
     K, cam2world = None, None
     if args.cameras is not None:
-        K, cam2world = cameras_from_file(args.cameras, args.images, args.known_poses)
+        K, cam2world = cameras_from_file(args.cameras, images, args.known_poses)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         import torch
 
         from pointmap.images import image_sizes
 
-        focal = parse_focals(args.focal, len(args.images))
+        focal = parse_focals(args.focal, len(images))
         if args.shared_focal and len(set(focal)) > 1:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
-        K = torch.zeros(len(args.images), 3, 3, dtype=torch.float64)
-        for k, ((w, h), f) in enumerate(zip(image_sizes(args.images), focal)):
+        K = torch.zeros(len(images), 3, 3, dtype=torch.float64)
+        for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    masks = masks_from_folder(args.masks, args.images) if args.masks is not None else None
-    from pointmap.align import AlignConfig
-
+    masks = masks_from_folder(args.masks, images) if args.masks is not None else None
     align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
-    model, size = _model_and_size(args.model, args.size)
-    recon = reconstruct(model, args.images, graph=args.graph, size=size, K=K, cam2world=cam2world,
-                        masks=masks, min_conf=args.min_conf,
-                        conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
-    out = Path(args.out)
+    recon = reconstruct(model, images, graph=graph, size=size, K=K, cam2world=cam2world, masks=masks,
+                        min_conf=args.min_conf, conf_percentile=args.conf_percentile, align=align,
+                        refine=args.refine, quiet=args.quiet)
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
     if args.splat:
@@ -270,6 +292,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")
     r.add_argument("images", nargs="+", metavar="IMG",
                    help="image files, folders of them (sorted by name), or a video (frames go to OUT/frames/)")
+    r.add_argument("--each-folder", dest="each_folder", action="store_true",
+                   help="batch: IMG is one folder whose sub-folders are scenes, reconstructed in turn with the model "
+                        "loaded once, written to OUT/<sub-folder>; a failing scene is reported and skipped (exit 1)")
     r.add_argument("--stride", type=int, default=None,
                    help="video: keep one frame per STRIDE frames, the sharpest of each window (default: the "
                         "smallest stride giving at most --max-frames)")

@@ -157,3 +157,27 @@ def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_
     K, poses = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
     assert sorted(K) == [0, 2] and sorted(poses) == [0, 2]
     assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, 90-degree field of view
+
+
+def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):
+    import shutil
+
+    import pointmap.checkpoint
+
+    weights, folder = tiny
+    scenes = tmp_path / "scenes"
+    shutil.copytree(folder, scenes / "one")
+    shutil.copytree(folder, scenes / "two")
+    (scenes / "empty").mkdir()  # no images: reported, skipped, the others still run
+    loads = []
+    real_load = pointmap.checkpoint.load_model
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: loads.append(a) or real_load(*a, **k))
+    out = tmp_path / "out"
+    code = main(["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(out), "--model", str(weights),
+                 "--size", "64", "--export", "npz"])
+    err = capsys.readouterr().err
+    assert code == 1 and len(loads) == 1
+    assert (out / "one" / "reconstruction.npz").exists() and (out / "two" / "reconstruction.npz").exists()
+    assert "scene empty skipped: folder" in err and "1 of 3 scenes failed: empty" in err
+    assert main(["reconstruct", str(folder / "a.jpg"), "--each-folder", "-o", str(out)]) == 2
+    assert "--each-folder expected one folder whose sub-folders are scenes" in capsys.readouterr().err
