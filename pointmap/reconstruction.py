@@ -89,6 +89,27 @@ class Reconstruction:
             ok = ok & self.masks
         return ok
 
+    def transformed(self, scale: float, R, t) -> Reconstruction:
+        """The same reconstruction in another world: x -> scale * R x + t (R a rotation [3, 3], t [3], scale > 0).
+        Camera centres and orientations move with the world, depths scale by ``scale``; intrinsics, images and
+        confidences are unchanged. ``info["transformed"]`` records the similarity applied."""
+        from dataclasses import replace
+
+        R = torch.as_tensor(R, dtype=torch.float64)
+        t = torch.as_tensor(t, dtype=torch.float64)
+        scale = float(scale)
+        if tuple(R.shape) != (3, 3) or tuple(t.shape) != (3,) or not (scale > 0 and torch.isfinite(R).all()
+                                                                         and torch.isfinite(t).all()):
+            raise ShapeError(f"transformed expected scale > 0, R [3, 3] and t [3], finite; got {scale}, "
+                             f"{list(R.shape)}, {list(t.shape)}")
+        if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-5) or float(torch.det(R)) < 0:
+            raise ShapeError(f"transformed expected R to be a rotation, got {R.tolist()}")
+        c2w = self.cam2world.double().clone()
+        c2w[:, :3, :3] = R @ c2w[:, :3, :3]
+        c2w[:, :3, 3] = scale * c2w[:, :3, 3] @ R.T + t
+        return replace(self, cam2world=c2w.to(self.cam2world.dtype), depth_z=self.depth_z * scale,
+                       info={**self.info, "transformed": {"scale": scale, "R": R.tolist(), "t": t.tolist()}})
+
     def save(self, out_dir, formats=("ply", "glb", "colmap", "npz"), **kwargs):
         """Write the reconstruction in the given formats under ``out_dir``; returns the paths written."""
         from pointmap.io import save_reconstruction

@@ -54,3 +54,38 @@ def anchor_to_first(cam2world: torch.Tensor, first: torch.Tensor | None = None) 
     if first is not None:
         move = first.double() @ move
     return move[None] @ cam2world.double()
+
+
+def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
+    """Move ``recon`` into the world of reference cameras (e.g. ground truth, a phone's metric poses) by the
+    similarity ``similarity_to_known`` fits: rotation from the chordal mean of the per-camera rotation offsets,
+    scale (when ``with_scale`` and two or more reference centres are spread out) and translation by least squares
+    on the camera centres. ``cam2world``: [N, 4, 4] reference poses (OpenCV axes), all used unless ``mask`` [N]
+    bool picks some. Returns (the moved Reconstruction, report): ``scale``, ``R``, ``t`` of the similarity,
+    ``scale_fixed`` (False: one reference camera or coincident centres, so the scale was left as it was), and the
+    residual after the move over the reference cameras: ``ate_rmse`` (camera centres, the reference's units),
+    ``rot_err_deg_median`` / ``_max``."""
+    from pointmap.errors import ShapeError
+    from pointmap.geometry.rotations import rotation_angle
+
+    n = len(recon)
+    ref = torch.as_tensor(cam2world, dtype=torch.float64)
+    if tuple(ref.shape) != (n, 4, 4) or not bool(torch.isfinite(ref).all()):
+        raise ShapeError(f"cam2world expected [{n}, 4, 4] finite reference poses, got {list(ref.shape)}")
+    keep = torch.ones(n, dtype=torch.bool) if mask is None else torch.as_tensor(mask).bool()
+    if tuple(keep.shape) != (n,) or not bool(keep.any()):
+        raise ShapeError(f"mask expected [{n}] bool with at least one True, got {list(keep.shape)}")
+    known = {i: ref[i] for i in range(n) if keep[i]}
+    a, Ra, ta, scale_fixed = similarity_to_known(recon.cam2world.double(), known)
+    if not with_scale and scale_fixed:  # rotation as fitted; translation by the centres at scale 1
+        idx = sorted(known)
+        a, scale_fixed = 1.0, False
+        ta = ref[idx, :3, 3].mean(0) - recon.cam2world.double()[idx, :3, 3].mean(0) @ Ra.T
+    moved = recon.transformed(a, Ra, ta)
+    est = moved.cam2world.double()[keep]
+    centre_err = (est[:, :3, 3] - ref[keep, :3, 3]).norm(dim=-1)
+    rot_err = torch.rad2deg(rotation_angle(est[:, :3, :3].transpose(-1, -2) @ ref[keep, :3, :3]))
+    report = {"scale": float(a), "R": Ra.tolist(), "t": ta.tolist(), "scale_fixed": bool(scale_fixed),
+              "cameras": int(keep.sum()), "ate_rmse": float(centre_err.pow(2).mean().sqrt()),
+              "rot_err_deg_median": float(rot_err.median()), "rot_err_deg_max": float(rot_err.max())}
+    return moved, report
