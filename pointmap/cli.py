@@ -11,7 +11,7 @@ import math
 import sys
 from pathlib import Path
 
-from pointmap.errors import PointmapError
+from pointmap.errors import ImageError, PointmapError
 
 log = logging.getLogger("pointmap")
 DEFAULT_MODEL = "small"
@@ -160,8 +160,11 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
             continue
         from PIL import Image, ImageOps
 
-        with Image.open(f) as im:
-            masks.append(np.asarray(ImageOps.exif_transpose(im).convert("L")) > 0)
+        try:
+            with Image.open(f) as im:
+                masks.append(np.asarray(ImageOps.exif_transpose(im).convert("L")) > 0)
+        except (OSError, SyntaxError) as e:  # PIL's UnidentifiedImageError is an OSError
+            raise ImageError(f"--masks: {f} is not a readable image ({e.__class__.__name__})") from None
     return masks
 
 
@@ -186,11 +189,18 @@ def cmd_reconstruct(args) -> int:
     if args.masks is not None and not Path(args.masks).is_dir():
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     if not args.each_folder:
+        scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size)
-        return reconstruct_scene(model, size, args, args.images, Path(args.out), formats)
+        return reconstruct_scene(model, size, args, scene, formats)
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
-    scenes = sorted(d for d in Path(args.images[0]).iterdir() if d.is_dir())
+    if args.cameras is not None or args.masks is not None or (args.focal is not None and "," in args.focal):
+        raise PointmapError("--each-folder with --cameras, --masks or per-image --focal would apply one scene's "
+                            "cameras or masks to every scene (they are matched by file name): run those scenes "
+                            "one by one (a single --focal for all images is accepted)")
+    out_root = Path(args.out).resolve()
+    scenes = sorted(d for d in Path(args.images[0]).iterdir()  # hidden, __MACOSX-like and the output skipped
+                    if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
     model, size = _model_and_size(args.model, args.size)  # loaded once for every scene
@@ -198,19 +208,20 @@ def cmd_reconstruct(args) -> int:
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
         try:
-            reconstruct_scene(model, size, args, [str(scene)], Path(args.out) / scene.name, formats)
-        except PointmapError as e:  # one bad scene does not stop the others
-            print(f"pointmap: scene {scene.name} skipped: {e}", file=sys.stderr)
+            reconstruct_scene(model, size, args, prepare_scene(args, [str(scene)], Path(args.out) / scene.name),
+                              formats)
+        except Exception as e:  # one bad scene does not stop the others (KeyboardInterrupt still does)
+            print(f"pointmap: scene {scene.name} skipped: {e.__class__.__name__}: {e}", file=sys.stderr)
             failed.append(scene.name)
     if failed:
         print(f"pointmap: {len(failed)} of {len(scenes)} scenes failed: {', '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0
 
 
-def reconstruct_scene(model, size: int, args, inputs: list[str], out: Path, formats) -> int:
-    """One scene of ``pointmap reconstruct``: its inputs (files, folders, a video) to the exports under ``out``."""
-    from pointmap.align import AlignConfig
-    from pointmap.pipeline import auto_graph, reconstruct
+def prepare_scene(args, inputs: list[str], out: Path) -> dict:
+    """A scene's inputs (files, folders, a video) read and checked without the model: the image paths, the pair
+    graph, known K / poses (``--cameras``, ``--focal``) and masks, for ``reconstruct_scene``."""
+    from pointmap.pipeline import auto_graph
     from pointmap.video import is_video
 
     video = any(is_video(i) and not Path(i).is_dir() for i in inputs)
@@ -234,10 +245,19 @@ def reconstruct_scene(model, size: int, args, inputs: list[str], out: Path, form
         for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
     masks = masks_from_folder(args.masks, images) if args.masks is not None else None
+    return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out}
+
+
+def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
+    """One prepared scene (``prepare_scene``) through ``pm.reconstruct`` to its exports (and splats)."""
+    from pointmap.align import AlignConfig
+    from pointmap.pipeline import reconstruct
+
     align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
-    recon = reconstruct(model, images, graph=graph, size=size, K=K, cam2world=cam2world, masks=masks,
-                        min_conf=args.min_conf, conf_percentile=args.conf_percentile, align=align,
-                        refine=args.refine, quiet=args.quiet)
+    recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
+                        cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
+                        conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
+    out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
     if args.splat:

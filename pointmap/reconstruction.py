@@ -92,7 +92,8 @@ class Reconstruction:
     def transformed(self, scale: float, R, t) -> Reconstruction:
         """The same reconstruction in another world: x -> scale * R x + t (R a rotation [3, 3], t [3], scale > 0).
         Camera centres and orientations move with the world, depths scale by ``scale``; intrinsics, images and
-        confidences are unchanged. ``info["transformed"]`` records the similarity applied."""
+        confidences are unchanged. ``info["transformed"]`` records the similarity from the original world (this
+        one composed with any recorded before)."""
         from dataclasses import replace
 
         R = torch.as_tensor(R, dtype=torch.float64)
@@ -107,8 +108,14 @@ class Reconstruction:
         c2w = self.cam2world.double().clone()
         c2w[:, :3, :3] = R @ c2w[:, :3, :3]
         c2w[:, :3, 3] = scale * c2w[:, :3, 3] @ R.T + t
+        total_s, total_R, total_t = scale, R, t
+        if "transformed" in self.info:  # x -> s2 R2 (s1 R1 x + t1) + t2
+            prev = self.info["transformed"]
+            R1, t1 = torch.tensor(prev["R"], dtype=torch.float64), torch.tensor(prev["t"], dtype=torch.float64)
+            total_s, total_R, total_t = scale * float(prev["scale"]), R @ R1, scale * R @ t1 + t
         return replace(self, cam2world=c2w.to(self.cam2world.dtype), depth_z=self.depth_z * scale,
-                       info={**self.info, "transformed": {"scale": scale, "R": R.tolist(), "t": t.tolist()}})
+                       info={**self.info, "transformed": {"scale": total_s, "R": total_R.tolist(),
+                                                          "t": total_t.tolist()}})
 
     def save(self, out_dir, formats=("ply", "glb", "colmap", "npz"), **kwargs):
         """Write the reconstruction in the given formats under ``out_dir``; returns the paths written."""

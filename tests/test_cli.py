@@ -58,7 +58,8 @@ def test_bad_options_are_refused_before_the_model_is_even_loaded(tiny, tmp_path,
 
 def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
-    assert main(["reconstruct", str(tmp_path / "empty"), "-o", str(tmp_path / "o")]) == 2
+    # the model named does not exist: the folder's own error shows the inputs were read before the model
+    assert main(["reconstruct", str(tmp_path / "empty"), "-o", str(tmp_path / "o"), "--model", "no_such_model"]) == 2
     assert f"folder {tmp_path / 'empty'} holds no images" in capsys.readouterr().err
 
 
@@ -156,7 +157,7 @@ def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_
     (tmp_path / "t.json").write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5), "frames": frames}))
     K, poses = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
     assert sorted(K) == [0, 2] and sorted(poses) == [0, 2]
-    assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, 90-degree field of view
+    assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, a 53-degree field of view: f = 40 / tan(26.6 deg)
 
 
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):
@@ -178,6 +179,27 @@ def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one
     err = capsys.readouterr().err
     assert code == 1 and len(loads) == 1
     assert (out / "one" / "reconstruction.npz").exists() and (out / "two" / "reconstruction.npz").exists()
-    assert "scene empty skipped: folder" in err and "1 of 3 scenes failed: empty" in err
+    assert "scene empty skipped: PointmapError: folder" in err and "1 of 3 scenes failed: empty" in err
     assert main(["reconstruct", str(folder / "a.jpg"), "--each-folder", "-o", str(out)]) == 2
     assert "--each-folder expected one folder whose sub-folders are scenes" in capsys.readouterr().err
+    assert main(["reconstruct", str(scenes), "--each-folder", "-o", str(out), "--masks", str(folder)]) == 2
+    assert "would apply one scene's cameras or masks to every scene" in capsys.readouterr().err
+
+
+def test_each_folder_skips_hidden_folders_and_its_own_output_and_survives_any_scene_error(tiny, tmp_path, capsys):
+    import shutil
+
+    weights, folder = tiny
+    scenes = tmp_path / "scenes"
+    shutil.copytree(folder, scenes / "good")
+    shutil.copytree(folder, scenes / ".ipynb_checkpoints")
+    shutil.copytree(folder, scenes / "__MACOSX")
+    (scenes / "broken").mkdir()
+    (scenes / "broken" / "x.png").write_bytes(b"not a png")  # fails inside the scene, not in the argument checks
+    args = ["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(scenes / "out"), "--model", str(weights),
+            "--size", "64", "--export", "npz"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "1 of 2 scenes failed: broken" in err and "scene broken skipped: ImageError" in err
+    assert main(args) == 1  # a re-run does not take its own output folder for a scene
+    assert "1 of 2 scenes failed" in capsys.readouterr().err

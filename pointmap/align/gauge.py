@@ -62,7 +62,8 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
     scale (when ``with_scale`` and two or more reference centres are spread out) and translation by least squares
     on the camera centres. ``cam2world``: [N, 4, 4] reference poses (OpenCV axes), all used unless ``mask`` [N]
     bool picks some. Returns (the moved Reconstruction, report): ``scale``, ``R``, ``t`` of the similarity,
-    ``scale_fixed`` (False: one reference camera or coincident centres, so the scale was left as it was), and the
+    ``scale_fixed`` (False: the scale was left as it was, because ``with_scale`` is False or the reference has one
+    camera or coincident centres), and the
     residual after the move over the reference cameras: ``ate_rmse`` (camera centres, the reference's units),
     ``rot_err_deg_median`` / ``_max``."""
     from pointmap.errors import ShapeError
@@ -87,5 +88,5 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
     rot_err = torch.rad2deg(rotation_angle(est[:, :3, :3].transpose(-1, -2) @ ref[keep, :3, :3]))
     report = {"scale": float(a), "R": Ra.tolist(), "t": ta.tolist(), "scale_fixed": bool(scale_fixed),
               "cameras": int(keep.sum()), "ate_rmse": float(centre_err.pow(2).mean().sqrt()),
-              "rot_err_deg_median": float(rot_err.median()), "rot_err_deg_max": float(rot_err.max())}
+              "rot_err_deg_median": float(torch.quantile(rot_err, 0.5)), "rot_err_deg_max": float(rot_err.max())}
     return moved, report

@@ -56,3 +56,12 @@ def test_bad_references_and_similarities_are_refused():
         recon.transformed(1.0, 2 * torch.eye(3), torch.zeros(3))
     with pytest.raises(pm.ShapeError, match="scale > 0"):
         recon.transformed(-1.0, torch.eye(3), torch.zeros(3))
+
+
+def test_two_moves_are_recorded_as_one_similarity_from_the_original_world():
+    recon = make_recon(n=3)
+    R2 = axis_angle_to_matrix(torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64))
+    twice = recon.transformed(S, R, T).transformed(0.5, R2, torch.tensor([0.0, 1.0, 0.0]))
+    rec = twice.info["transformed"]
+    once = recon.transformed(rec["scale"], torch.tensor(rec["R"]), torch.tensor(rec["t"]))
+    assert torch.allclose(once.cam2world, twice.cam2world, atol=1e-5) and rec["scale"] == pytest.approx(1.25)
