@@ -25,8 +25,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         "colmap_txt" (sparse/0/*.txt), "nerfstudio" (transforms.json + sparse_pc.ply), "tum"
         (trajectory.txt: one pose per image, for trajectory tools), "npz" (reconstruction.npz). With a COLMAP
         or the nerfstudio format, the photographs named in ``recon.info["sources"]`` (file paths, as
-        ``pm.reconstruct`` records them) are copied to ``images/`` (``write_colmap_images``): ``out_dir`` is then
-        a scene folder 3DGS trainers read as is.
+        ``pm.reconstruct`` records them) are copied to ``images/`` (``write_colmap_images``): ``out_dir`` then has
+        the scene layout 3DGS trainers expect.
     Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
     ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
     ``colmap_max_points`` the COLMAP points3D and nerfstudio's sparse_pc.ply (dense clouds slow 3DGS trainers

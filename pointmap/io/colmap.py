@@ -5,7 +5,7 @@ intrinsics and size), image names as given (the input file names), world-to-came
 expects. COLMAP puts the centre of the top-left pixel at (0.5, 0.5) while pointmap puts it at (0, 0):
 principal points and 2D observations are shifted by +0.5 on the way out.
 Each exported 3D point is observed once, at the original-resolution pixel it was unprojected from.
-``write_colmap_images`` puts the photographs beside the model (``images/``, the layout 3DGS trainers read).
+``write_colmap_images`` puts the photographs beside the model (``images/``, the layout 3DGS trainers expect).
 """
 
 from __future__ import annotations
