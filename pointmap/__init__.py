@@ -34,8 +34,8 @@ from pointmap.reconstruction import Reconstruction
 __version__ = "0.1.0"
 
 # heavier parts load on first use
-_LAZY = {"global_align": "pointmap.align", "align_to_cameras": "pointmap.align", "refine_matches": "pointmap.align", "AlignConfig": "pointmap.align",
-         "SparseConfig": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat",
+_LAZY = {"global_align": "pointmap.align", "align_to_cameras": "pointmap.align", "refine_matches": "pointmap.align",
+         "AlignConfig": "pointmap.align", "SparseConfig": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat",
          "io": "pointmap.io"}
 
 

@@ -85,7 +85,7 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
     out = []
     for item in items:
         p = Path(item)
-        if is_video(p) and not p.is_dir():
+        if is_video(p):
             if frames_dir is None:
                 raise PointmapError(f"{p} is a video: frames need a folder to go to")
             out += [str(f) for f in extract_frames(p, frames_dir, stride=stride, max_frames=max_frames)]
@@ -224,7 +224,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     from pointmap.pipeline import auto_graph
     from pointmap.video import is_video
 
-    video = any(is_video(i) and not Path(i).is_dir() for i in inputs)
+    video = any(is_video(i) for i in inputs)
     images = expand_images(inputs, out / "frames", args.stride, args.max_frames)
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs

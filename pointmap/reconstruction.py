@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import torch
 
 from pointmap.errors import ShapeError
-from pointmap.geometry.cameras import depth_to_points_world
+from pointmap.geometry.cameras import depth_to_points_world, similarity_on_cam2world
 
 
 @dataclass
@@ -105,9 +105,7 @@ class Reconstruction:
                              f"{list(R.shape)}, {list(t.shape)}")
         if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-5) or float(torch.det(R)) < 0:
             raise ShapeError(f"transformed expected R to be a rotation, got {R.tolist()}")
-        c2w = self.cam2world.double().clone()
-        c2w[:, :3, :3] = R @ c2w[:, :3, :3]
-        c2w[:, :3, 3] = scale * c2w[:, :3, 3] @ R.T + t
+        c2w = similarity_on_cam2world(self.cam2world.double(), scale, R, t)
         total_s, total_R, total_t = scale, R, t
         if "transformed" in self.info:  # x -> s2 R2 (s1 R1 x + t1) + t2
             prev = self.info["transformed"]

@@ -16,7 +16,8 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 
 
 def is_video(path) -> bool:
-    return Path(path).suffix.lower() in VIDEO_SUFFIXES
+    """A path with a video suffix (``VIDEO_SUFFIXES``, any case) that is not a directory."""
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES and not Path(path).is_dir()
 
 
 def sharpness(frame_bgr: np.ndarray) -> float:
@@ -56,10 +57,8 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
 
     if stride is None:
         stride = max(1, math.ceil(count_frames(video) / max_frames))
-    cap = cv2.VideoCapture(str(video))
+    cap = _open(video)
     try:
-        if not cap.isOpened():
-            raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
         best: tuple[float, int, np.ndarray] | None = None  # only the current window's best frame is held
         index = 0
         while True:
@@ -87,10 +86,8 @@ def count_frames(video) -> int:
     without decoding it (browser-recorded .webm files often state none). ImageError when it cannot be opened."""
     import cv2
 
-    cap = cv2.VideoCapture(str(video))
+    cap = _open(video)
     try:
-        if not cap.isOpened():
-            raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         if n > 0:
             return n
@@ -100,3 +97,14 @@ def count_frames(video) -> int:
         return n
     finally:
         cap.release()
+
+
+def _open(video):
+    """An opened ``cv2.VideoCapture`` (the caller releases it); ImageError when OpenCV cannot open the file."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        cap.release()
+        raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
+    return cap

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from pointmap.geometry.cameras import invert_rigid
+from pointmap.geometry.cameras import invert_rigid, similarity_on_cam2world
 from pointmap.geometry.rotations import project_to_rotation
 
 
@@ -39,10 +39,7 @@ def similarity_to_known(cam2world: torch.Tensor, known: dict, min_spread: float 
 
 def apply_similarity(a: float, Ra, ta, cam2world, depth, pw_s, pw_R, pw_t):
     """Move an initialisation by x -> a Ra x + ta (depths and edge scales scale by a)."""
-    c2w = cam2world.clone()
-    c2w[:, :3, :3] = Ra @ cam2world[:, :3, :3]
-    c2w[:, :3, 3] = a * cam2world[:, :3, 3] @ Ra.T + ta
-    return c2w, depth * a, pw_s * a, Ra @ pw_R, a * pw_t @ Ra.T + ta
+    return similarity_on_cam2world(cam2world, a, Ra, ta), depth * a, pw_s * a, Ra @ pw_R, a * pw_t @ Ra.T + ta
 
 
 def anchor_to_first(cam2world: torch.Tensor, first: torch.Tensor | None = None) -> torch.Tensor:

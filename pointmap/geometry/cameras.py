@@ -87,6 +87,15 @@ def invert_rigid(T: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def similarity_on_cam2world(cam2world: torch.Tensor, scale: float, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Cameras [..., 4, 4] (cam2world) after the world moves by x -> scale * R x + t: orientations R @ R_c,
+    centres scale * R c + t (the camera frames themselves are not scaled)."""
+    out = cam2world.clone()
+    out[..., :3, :3] = R @ cam2world[..., :3, :3]
+    out[..., :3, 3] = scale * cam2world[..., :3, 3] @ R.T + t
+    return out
+
+
 def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
     """K of an image resized by (sx, sy), pixel centres at integers (u' + 0.5 = sx (u + 0.5))."""
     K = K.clone()

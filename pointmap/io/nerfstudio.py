@@ -58,11 +58,9 @@ def read_transforms(path) -> dict:
     horizontal field of view in radians when that is all the file gives (NeRF-synthetic files state no size: the
     caller resolves it with the image's width), else None}}, keyed by the base name of each frame's ``file_path``
     (which NeRF-synthetic files give without a suffix). Intrinsics may be per frame or global (frame keys win);
-    ``camera_angle_x`` stands for ``fl_x`` when ``w`` is known; a missing principal point is the image centre. PointmapError for a file that
-    is not such a JSON, a frame without a pose or with a non-rigid one, or a distorted camera model (undistort
-    the images first)."""
-    import math
-
+    ``camera_angle_x`` stands for ``fl_x`` when ``w`` is known; a missing principal point is the image centre.
+    PointmapError for a file that is not such a JSON, a frame without a pose or with a non-rigid one, or a
+    distorted camera model (undistort the images first)."""
     from pointmap.errors import PointmapError
 
     path = Path(path)
@@ -91,7 +89,7 @@ def read_transforms(path) -> dict:
         size = (int(w), int(h)) if w is not None and h is not None else None
         fx, fy = get("fl_x"), get("fl_y")
         if fx is None and get("camera_angle_x") is not None and w is not None:
-            fx = 0.5 * float(w) / math.tan(0.5 * float(get("camera_angle_x")))
+            fx = focal_from_angle(float(get("camera_angle_x")), float(w))
         K = None
         if fx is not None:
             fy = fx if fy is None else fy
@@ -110,8 +108,14 @@ def read_transforms(path) -> dict:
     return out
 
 
+def focal_from_angle(camera_angle_x: float, width: float) -> float:
+    """Focal length in pixels of a pinhole camera ``width`` pixels wide with horizontal field of view
+    ``camera_angle_x`` (radians)."""
+    return 0.5 * width / float(np.tan(0.5 * camera_angle_x))
+
+
 def intrinsics_from_angle(camera_angle_x: float, width: int, height: int) -> np.ndarray:
     """K [3, 3] (our pixel convention) of a pinhole camera with horizontal field of view ``camera_angle_x``
     (radians) and a centred principal point, for an image of ``width`` x ``height`` pixels."""
-    f = 0.5 * width / np.tan(0.5 * camera_angle_x)
+    f = focal_from_angle(camera_angle_x, width)
     return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
