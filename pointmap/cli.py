@@ -112,9 +112,9 @@ def parse_export(text: str) -> tuple[str, ...]:
 
 
 def cameras_from_file(path: str, images: list[str], poses: bool):
-    """``--cameras``: ({image index: K} and, with ``poses``, {image index: cam2world}) for the images named in a
-    nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``; matched by file name). PointmapError
-    when no image is named there, or a stated image size is not the image's."""
+    """``--cameras``: ({image index: K}, with ``poses`` {image index: cam2world} else None, {image index: lens
+    Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``;
+    matched by file name). PointmapError when no image is named there, or a stated image size is not the image's."""
     from pointmap.images import image_sizes
     from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
 
@@ -134,7 +134,8 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
                                 f"image is {wh[0]}x{wh[1]} (EXIF orientation applied): the intrinsics would not fit")
     K = {k: cam["K"] if cam["K"] is not None else intrinsics_from_angle(cam["camera_angle_x"], *wh)
          for (k, cam), wh in zip(matched.items(), sizes) if cam["K"] is not None or cam["camera_angle_x"]} or None
-    return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None)
+    distortions = {k: cam["distortion"] for k, cam in matched.items() if cam.get("distortion") is not None}
+    return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None), distortions
 
 
 def masks_from_folder(folder: str, images: list[str]) -> list:
@@ -229,9 +230,9 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
         graph = auto_graph(len(images), sequential=True)
-    K, cam2world = None, None
+    K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
-        K, cam2world = cameras_from_file(args.cameras, images, args.known_poses)
+        K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         import torch
 
@@ -245,6 +246,13 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
             K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
     masks = masks_from_folder(args.masks, images) if args.masks is not None else None
+    if distortions:  # lens distortion undone first: the model, the aligner and every export take pinhole cameras
+        from pointmap.undistort import undistort_photos
+
+        images, K, masks = undistort_photos(images, K, distortions, out / "undistorted", masks)
+        if not args.quiet:
+            print(f"pointmap: {len(distortions)} photograph(s) with lens distortion resampled onto pinhole cameras in "
+                  f"{out / 'undistorted'}", file=sys.stderr)
     return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out}
 
 
@@ -339,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the camera translations (docs/alignment.md)")
     r.add_argument("--cameras", default=None, metavar="TRANSFORMS_JSON",
                    help="known cameras from a nerfstudio transforms.json (ours, or a phone app's: Polycam, "
-                        "Record3D), matched to the images by file name: their intrinsics are held fixed")
+                        "Record3D), matched to the images by file name: their intrinsics are held fixed; photographs with "
+                        "OPENCV or OPENCV_FISHEYE lens distortion are undistorted first (into OUT/undistorted)")
     r.add_argument("--known-poses", dest="known_poses", action="store_true",
                    help="also hold the poses of --cameras fixed (two or more spread-out ones fix the scale too)")
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",

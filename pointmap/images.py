@@ -87,6 +87,12 @@ def _read(src, index: int):
     return im, path.name
 
 
+def read_rgb(src) -> np.ndarray:
+    """One image (a path or an array, as ``load_images`` takes) as the [H, W, 3] uint8 RGB array the loader
+    starts from: EXIF orientation applied, 16-bit scaled, alpha composited on white. ImageError when unreadable."""
+    return np.asarray(_read(src, 0)[0])
+
+
 def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
     """(width, height) of each image as ``load_images`` reads it (EXIF orientation applied): the "original
     pixels" that known intrinsics refer to."""

@@ -155,9 +155,39 @@ def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_
     images = [str(folder / n) for n in ("a.jpg", "b.PNG", "c.png")]
     frames = [{"file_path": f"./train/{stem}", "transform_matrix": np.eye(4).tolist()} for stem in ("a", "c")]
     (tmp_path / "t.json").write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5), "frames": frames}))
-    K, poses = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
-    assert sorted(K) == [0, 2] and sorted(poses) == [0, 2]
+    K, poses, distortions = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
+    assert sorted(K) == [0, 2] and sorted(poses) == [0, 2] and distortions == {}
     assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, a 53-degree field of view: f = 40 / tan(26.6 deg)
+
+
+def test_a_transforms_json_lens_is_undone_before_the_model_and_the_exports_carry_the_undistorted_photographs(
+        tiny, tmp_path):
+    import json
+
+    from pointmap.images import read_rgb
+    from pointmap.io import load_npz
+    from pointmap.undistort import Distortion, pinhole_for, undistort
+
+    weights, folder = tiny
+    frames = [{"file_path": f"images/{name}", "transform_matrix": np.eye(4).tolist(), "fl_x": 70.0, "fl_y": 70.0,
+               "cx": 40.0, "cy": 30.0, "w": 80, "h": 60, **({"k1": -0.2, "k2": 0.05} if name != "a.jpg" else {})}
+              for name in ("a.jpg", "b.PNG", "c.png")]  # a.jpg: a pinhole camera
+    cams = tmp_path / "transforms.json"
+    cams.write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    out = tmp_path / "out"
+    assert main(["--quiet", "reconstruct", str(folder), "--model", str(weights), "--size", "64", "-o", str(out),
+                 "--cameras", str(cams), "--export", "npz,colmap"]) == 0
+    K_in = np.array([[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]])
+    lens = Distortion("OPENCV", (-0.2, 0.05))
+    K_pin = pinhole_for(K_in, lens, (80, 60))
+    recon = load_npz(out / "reconstruction.npz")
+    assert recon.names == ["a.jpg", "b.PNG", "c.png"]
+    assert np.allclose(recon.K[0].double().numpy(), K_in, atol=1e-4)  # the pinhole camera as given
+    assert np.allclose(recon.K[1].double().numpy(), K_pin, atol=1e-4)  # the pinhole camera the photo was moved to
+    undistorted = undistort(read_rgb(folder / "b.PNG"), K_in, lens, K_pin)
+    assert np.array_equal(read_rgb(out / "undistorted" / "b.PNG"), undistorted)
+    assert sorted(p.name for p in (out / "undistorted").iterdir()) == ["b.PNG", "c.png"]
+    assert np.array_equal(read_rgb(out / "images" / "b.PNG"), undistorted)  # the COLMAP scene's photograph
 
 
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):

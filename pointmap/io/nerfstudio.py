@@ -1,4 +1,4 @@
-"""nerfstudio / instant-ngp ``transforms.json`` export.
+"""nerfstudio / instant-ngp ``transforms.json`` export, and the reader of such files (``read_transforms``).
 
 One frame per image: ``file_path`` ``images/<name>`` (the photographs ``write_colmap_images`` puts there), the
 image's own intrinsics at its ORIGINAL size (``fl_x, fl_y, cx, cy, w, h``, camera model OPENCV with zero
@@ -59,9 +59,11 @@ def read_transforms(path) -> dict:
     caller resolves it with the image's width), else None}}, keyed by the base name of each frame's ``file_path``
     (which NeRF-synthetic files give without a suffix). Intrinsics may be per frame or global (frame keys win);
     ``camera_angle_x`` stands for ``fl_x`` when ``w`` is known; a missing principal point is the image centre.
-    PointmapError for a file that is not such a JSON, a frame without a pose or with a non-rigid one, or a
-    distorted camera model (undistort the images first)."""
+    "distortion": a ``pointmap.undistort.Distortion`` for frames whose lens distortion coefficients are not all
+    zero (OPENCV: k1, k2, k3, p1, p2; OPENCV_FISHEYE: k1-k4), else None. PointmapError for a file that is not such
+    a JSON, a frame without a pose or with a non-rigid one, or a camera model pointmap cannot undistort."""
     from pointmap.errors import PointmapError
+    from pointmap.undistort import Distortion
 
     path = Path(path)
     try:
@@ -76,10 +78,14 @@ def read_transforms(path) -> dict:
             raise PointmapError(f"{path}: frame {i} lacks 'file_path' or 'transform_matrix'")
         get = lambda key: frame.get(key, meta.get(key))  # noqa: E731
         model = str(get("camera_model") or "OPENCV").upper()
-        if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE") or any(float(get(k) or 0) != 0 for k in _DISTORTION):
-            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a distorted camera ({model}, "
-                                f"{ {k: get(k) for k in _DISTORTION if get(k)} }): pointmap models pinhole cameras; "
-                                "undistort the images first")
+        if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE"):
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a {model} camera: pointmap reads "
+                                "pinhole cameras, with or without OPENCV / OPENCV_FISHEYE lens distortion")
+        try:
+            dist = Distortion.from_named("OPENCV_FISHEYE" if model == "OPENCV_FISHEYE" else "OPENCV",
+                                         {k: float(get(k) or 0) for k in _DISTORTION})
+        except (PointmapError, TypeError, ValueError) as e:
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): {e}") from None
         T = np.asarray(frame["transform_matrix"], dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]) \
                 or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4) or np.linalg.det(T[:3, :3]) < 0:
@@ -103,8 +109,12 @@ def read_transforms(path) -> dict:
                 raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): focal lengths must be positive, "
                                     f"got {fx}, {fy}")
         angle = get("camera_angle_x") if K is None and get("camera_angle_x") is not None else None
+        if not dist.is_identity and K is None:
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) states lens distortion but no focal length "
+                                "(fl_x) and image size (w, h): the distortion cannot be undone without them")
         out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": T @ OPENCV_TO_OPENGL, "size": size,
-                                                   "camera_angle_x": None if angle is None else float(angle)}
+                                                   "camera_angle_x": None if angle is None else float(angle),
+                                                   "distortion": None if dist.is_identity else dist}
     return out
 
 

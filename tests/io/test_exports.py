@@ -283,9 +283,31 @@ def test_read_transforms_inverts_the_export_and_reads_global_and_angle_intrinsic
     assert np.allclose(K, [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])
 
 
+def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_global(tmp_path):
+    import json
+
+    from pointmap.io.nerfstudio import read_transforms
+    from pointmap.undistort import Distortion
+
+    T = np.eye(4).tolist()
+    cam = {"fl_x": 50.0, "fl_y": 50.0, "cx": 20.0, "cy": 15.0, "w": 40, "h": 30}
+    meta = {"camera_model": "OPENCV", "k1": -0.1, "p2": 0.002, **cam, "frames": [
+        {"file_path": "a.png", "transform_matrix": T},
+        {"file_path": "b.png", "transform_matrix": T, "camera_model": "OPENCV_FISHEYE", "k1": 0.03, "k4": 0.001,
+         "p2": 0},
+        {"file_path": "c.png", "transform_matrix": T, "k1": 0, "p2": 0}]}
+    (tmp_path / "t.json").write_text(json.dumps(meta))
+    cams = read_transforms(tmp_path / "t.json")
+    assert cams["a.png"]["distortion"] == Distortion("OPENCV", (-0.1, 0, 0, 0.002, 0))
+    assert cams["b.png"]["distortion"] == Distortion("OPENCV_FISHEYE", (0.03, 0, 0, 0.001))
+    assert cams["c.png"]["distortion"] is None  # all zero: a pinhole camera
+
+
 @pytest.mark.parametrize("change,message", [
-    ({"k1": 0.1}, "distorted camera"),
-    ({"camera_model": "OPENCV_FISHEYE"}, "undistort the images first"),
+    ({"camera_model": "EQUIRECTANGULAR"}, "has a EQUIRECTANGULAR camera"),
+    ({"k4": 0.1}, "OPENCV has no coefficient k4"),
+    ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "OPENCV_FISHEYE has no coefficient p1"),
+    ({"k1": 0.1, "fl_x": None, "fl_y": None}, "states lens distortion but no focal length"),
     ({"transform_matrix": (2 * np.eye(4)).tolist()}, "must be a rigid"),
     ({"transform_matrix": None}, "lacks 'file_path' or 'transform_matrix'"),
     ({"fl_x": -3.0}, "focal lengths must be positive"),

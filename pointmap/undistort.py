@@ -1,0 +1,209 @@
+"""Photographs taken through distorting lenses, made pinhole: the models (and every writer of this library) take
+pinhole cameras, so images whose calibration states lens distortion (a phone app's or COLMAP's OPENCV camera, a
+fisheye) are resampled onto a pinhole camera first, with OpenCV's distortion models.
+
+The pinhole camera chosen (``pinhole_for``) keeps the image size, the principal point and the aspect of the
+focal lengths, and takes the widest field of view whose every pixel comes from inside the photograph: no
+invented black borders (the model never saw any), at the cost of a thin margin of the photograph's edge.
+Pixel convention as everywhere in pointmap (and in OpenCV): pixel centres at integer coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pointmap.errors import PointmapError
+
+# camera model -> its coefficients in order (COLMAP's and nerfstudio's names)
+MODELS = {
+    "SIMPLE_RADIAL": ("k1",),
+    "RADIAL": ("k1", "k2"),
+    "OPENCV": ("k1", "k2", "p1", "p2", "k3"),
+    "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"),
+}
+
+
+@dataclass(frozen=True)
+class Distortion:
+    """A lens distortion: ``model`` from ``MODELS`` and its coefficients by name (missing ones are 0)."""
+    model: str
+    coeffs: tuple = ()
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise PointmapError(f"distortion model expected one of {', '.join(MODELS)}, got {self.model!r}")
+        names = MODELS[self.model]
+        c = tuple(float(x) for x in self.coeffs)
+        if len(c) > len(names) or not all(np.isfinite(c)):
+            raise PointmapError(f"{self.model} expected up to {len(names)} finite coefficients ({', '.join(names)}), "
+                                f"got {list(self.coeffs)}")
+        object.__setattr__(self, "coeffs", c + (0.0,) * (len(names) - len(c)))
+
+    @classmethod
+    def from_named(cls, model: str, values: dict) -> Distortion:
+        """From named coefficients (``{"k1": .., "p1": ..}``); a nonzero one the model does not have is refused."""
+        model = str(model).upper()
+        if model not in MODELS:
+            raise PointmapError(f"distortion model expected one of {', '.join(MODELS)}, got {model!r}")
+        extra = {k: v for k, v in values.items() if k not in MODELS[model] and v not in (None, 0, 0.0)}
+        if extra:
+            raise PointmapError(f"{model} has no coefficient{'s' if len(extra) > 1 else ''} {', '.join(extra)} "
+                                f"(it has {', '.join(MODELS[model])}), got {extra}")
+        return cls(model, tuple(float(values.get(k) or 0.0) for k in MODELS[model]))
+
+    @property
+    def fisheye(self) -> bool:
+        return self.model == "OPENCV_FISHEYE"
+
+    @property
+    def is_identity(self) -> bool:
+        return not any(self.coeffs)
+
+    def opencv(self) -> np.ndarray:
+        """The coefficient vector OpenCV's functions take: (k1, k2, p1, p2, k3), or (k1..k4) for the fisheye."""
+        if self.fisheye:
+            return np.asarray(self.coeffs, np.float64)
+        d = dict(zip(MODELS[self.model], self.coeffs))
+        return np.array([d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0), d.get("k3", 0.0)])
+
+
+def _check_K(K, size) -> np.ndarray:
+    K = np.asarray(K, np.float64)
+    w, h = size
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise PointmapError(f"K expected a finite [3, 3] matrix with positive focal lengths, got {K.tolist()}")
+    if not (isinstance(w, (int, np.integer)) and isinstance(h, (int, np.integer)) and w > 1 and h > 1):
+        raise PointmapError(f"size expected (width, height) in pixels, got {size}")
+    return K
+
+
+def distort(xy: np.ndarray, K, distortion: Distortion) -> np.ndarray:
+    """Pixels [N, 2] of the photograph (with ``K`` and ``distortion``) where the rays of normalised pinhole
+    coordinates ``xy`` [N, 2] land (OpenCV's projection)."""
+    import cv2
+
+    pts = np.concatenate([np.asarray(xy, np.float64), np.ones((len(xy), 1))], 1)[:, None]
+    zero = np.zeros(3)
+    if distortion.fisheye:
+        out = cv2.fisheye.projectPoints(pts, zero, zero, np.asarray(K, np.float64), distortion.opencv())[0]
+    else:
+        out = cv2.projectPoints(pts, zero, zero, np.asarray(K, np.float64), distortion.opencv())[0]
+    return out[:, 0]
+
+
+def _border(w: int, h: int, step: int = 1) -> np.ndarray:
+    xs = np.r_[np.arange(0, w, step), w - 1].astype(np.float64)
+    ys = np.r_[np.arange(0, h, step), h - 1].astype(np.float64)
+    return np.concatenate([np.c_[xs, np.zeros_like(xs)], np.c_[xs, np.full_like(xs, h - 1)],
+                           np.c_[np.zeros_like(ys), ys], np.c_[np.full_like(ys, w - 1), ys]])
+
+
+def _inside(K_new, K, distortion, w, h) -> bool:
+    """Every border pixel of the pinhole view ``K_new`` comes from inside the photograph, and the lens model is
+    still unfolded there (the distorted radius grows along the rays to the view's corners: a polynomial model
+    of strong barrel distortion turns back beyond some radius, where it would mirror the image)."""
+    b = _border(w, h)
+    xy = (b - K_new[:2, 2]) / np.diag(K_new)[:2]
+    src = distort(xy, K, distortion)
+    if not (np.isfinite(src).all() and (src[:, 0] >= -0.5).all() and (src[:, 0] <= w - 0.5).all()
+            and (src[:, 1] >= -0.5).all() and (src[:, 1] <= h - 0.5).all()):
+        return False
+    corners = (np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], np.float64) - K_new[:2, 2]) / np.diag(K_new)[:2]
+    t = np.linspace(0, 1.02, 256)[:, None, None]  # a little past the corners: a margin for the sampling
+    rays = distort((t * corners[None]).reshape(-1, 2), K, distortion).reshape(len(t), 4, 2)
+    radius = np.linalg.norm(rays - K[:2, 2], axis=-1)
+    return bool((np.diff(radius, axis=0) > 0).all())
+
+
+def pinhole_for(K, distortion: Distortion, size) -> np.ndarray:
+    """The pinhole K [3, 3] the photograph of ``size`` (w, h) is undistorted onto: ``K``'s principal point and
+    focal aspect, the smallest focal scale (widest view) for which every border pixel of the output comes from
+    inside the photograph and the lens model has not folded back (bisection on the scale)."""
+    K = _check_K(K, size)
+    w, h = size
+    if distortion.is_identity:
+        return K.copy()
+
+    def scaled(a):
+        Kn = K.copy()
+        Kn[0, 0] *= a
+        Kn[1, 1] *= a
+        Kn[0, 1] = 0.0
+        return Kn
+
+    lo, hi = 0.05, 1.0
+    while not _inside(scaled(hi), K, distortion, w, h):
+        hi *= 1.5
+        if hi > 50:
+            raise PointmapError(f"no pinhole view lies inside the photograph for {distortion} (K {K.tolist()}): "
+                                "the distortion coefficients look wrong")
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if _inside(scaled(mid), K, distortion, w, h):
+            hi = mid
+        else:
+            lo = mid
+    return scaled(hi)
+
+
+def undistort(image: np.ndarray, K, distortion: Distortion, K_new=None, *, nearest: bool = False) -> np.ndarray:
+    """``image`` [H, W] or [H, W, C] resampled onto the pinhole camera ``K_new`` (default ``pinhole_for``) of
+    the same size: bilinear, or ``nearest`` for masks and labels. Returns an array of ``image``'s dtype."""
+    import cv2
+
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or image.shape[0] < 2 or image.shape[1] < 2:
+        raise PointmapError(f"undistort expected an [H, W] or [H, W, C] image, got shape {list(image.shape)}")
+    h, w = image.shape[:2]
+    K = _check_K(K, (w, h))
+    K_new = pinhole_for(K, distortion, (w, h)) if K_new is None else _check_K(K_new, (w, h))
+    if distortion.is_identity and np.allclose(K_new, K):
+        return image.copy()
+    if distortion.fisheye:
+        mx, my = cv2.fisheye.initUndistortRectifyMap(K, distortion.opencv(), np.eye(3), K_new, (w, h), cv2.CV_32FC1)
+    else:
+        mx, my = cv2.initUndistortRectifyMap(K, distortion.opencv(), None, K_new, (w, h), cv2.CV_32FC1)
+    src = image.astype(np.uint8) if image.dtype == bool else image
+    out = cv2.remap(src, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.astype(bool) if image.dtype == bool else out
+
+
+def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: list | None = None):
+    """The photographs ``paths[k]`` for k in ``distortions`` (each with its ``K[k]`` [3, 3], original pixels)
+    resampled onto their pinhole cameras (``pinhole_for``) and written atomically to ``out_dir`` under their
+    own names (the format their suffix names; JPEG at quality 95). Returns (paths, K, masks): the paths with
+    those entries replaced, K with their pinhole intrinsics, and ``masks`` (one [H, W] array per photograph at
+    its original size, or None) with theirs resampled alike (nearest); everything else as given."""
+    import cv2
+
+    from pointmap.atomic import atomic_path
+    from pointmap.images import read_rgb
+
+    paths, K = list(paths), dict(K)
+    masks = None if masks is None else list(masks)
+    names = [Path(paths[k]).name for k in distortions]
+    if len(set(names)) != len(names):
+        raise PointmapError(f"undistorted photographs would share a file name in {out_dir}: {sorted(names)}")
+    out_dir = Path(out_dir)
+    for k, dist in sorted(distortions.items()):
+        if k not in K or K[k] is None:
+            raise PointmapError(f"photograph {k} ({paths[k]}) has lens distortion but no intrinsics to undo it with")
+        rgb = read_rgb(paths[k])
+        h, w = rgb.shape[:2]
+        K_new = pinhole_for(K[k], dist, (w, h))
+        out = undistort(rgb, K[k], dist, K_new)
+        target = out_dir / Path(paths[k]).name
+        with atomic_path(target) as tmp:
+            params = [cv2.IMWRITE_JPEG_QUALITY, 95] if tmp.suffix.lower() in (".jpg", ".jpeg") else []
+            if not cv2.imwrite(str(tmp), np.ascontiguousarray(out[..., ::-1]), params):
+                raise PointmapError(f"could not write the undistorted photograph {target}")
+        if masks is not None and masks[k] is not None:
+            if tuple(np.shape(masks[k])) != (h, w):
+                raise PointmapError(f"the mask of {Path(paths[k]).name} is {list(np.shape(masks[k]))[:2]}, but a "
+                                    f"photograph with lens distortion needs its mask at its own size [{h}, {w}]")
+            masks[k] = undistort(np.asarray(masks[k]), K[k], dist, K_new, nearest=True)
+        paths[k], K[k] = str(target), K_new
+    return paths, K, masks
