@@ -113,12 +113,15 @@ def parse_export(text: str) -> tuple[str, ...]:
 
 def cameras_from_file(path: str, images: list[str], poses: bool):
     """``--cameras``: ({image index: K}, with ``poses`` {image index: cam2world} else None, {image index: lens
-    Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``;
-    matched by file name). PointmapError when no image is named there, or a stated image size is not the image's."""
+    Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``)
+    or a COLMAP sparse model (a folder, or its cameras file: ``pointmap.io.colmap.read_colmap``), matched by file
+    name. PointmapError when no image is named there, or a stated image size is not the image's."""
     from pointmap.images import image_sizes
+    from pointmap.io.colmap import read_colmap
     from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
 
-    cams = read_transforms(path)
+    colmap = Path(path).is_dir() or Path(path).name in ("cameras.bin", "cameras.txt")
+    cams = read_colmap(path) if colmap else read_transforms(path)
     names = [Path(p).name for p in images]
     # by file name; NeRF-synthetic files name frames without a suffix ("./train/r_0" for r_0.png)
     matched = {k: cams[nm] if nm in cams else cams[Path(nm).stem] for k, nm in enumerate(names)
@@ -185,8 +188,8 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--cameras and --focal both give intrinsics: use one")
     if args.known_poses and args.cameras is None:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
-    if args.cameras is not None and not Path(args.cameras).is_file():
-        raise PointmapError(f"--cameras expected a transforms.json file, got {args.cameras!r}")
+    if args.cameras is not None and not Path(args.cameras).exists():
+        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {args.cameras!r}")
     if args.masks is not None and not Path(args.masks).is_dir():
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     if not args.each_folder:
@@ -345,10 +348,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
                         "the camera translations (docs/alignment.md)")
-    r.add_argument("--cameras", default=None, metavar="TRANSFORMS_JSON",
+    r.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
                    help="known cameras from a nerfstudio transforms.json (ours, or a phone app's: Polycam, "
-                        "Record3D), matched to the images by file name: their intrinsics are held fixed; photographs with "
-                        "OPENCV or OPENCV_FISHEYE lens distortion are undistorted first (into OUT/undistorted)")
+                        "Record3D) or a COLMAP sparse model folder, matched to the images by file name: their "
+                        "intrinsics are held fixed; photographs with lens distortion (OPENCV, RADIAL, fisheye) are "
+                        "undistorted first (into OUT/undistorted)")
     r.add_argument("--known-poses", dest="known_poses", action="store_true",
                    help="also hold the poses of --cameras fixed (two or more spread-out ones fix the scale too)")
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",

@@ -23,6 +23,7 @@ MODELS = {
     "RADIAL": ("k1", "k2"),
     "OPENCV": ("k1", "k2", "p1", "p2", "k3"),
     "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"),
+    "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),  # OpenCV's rational model
 }
 
 
@@ -63,8 +64,9 @@ class Distortion:
         return not any(self.coeffs)
 
     def opencv(self) -> np.ndarray:
-        """The coefficient vector OpenCV's functions take: (k1, k2, p1, p2, k3), or (k1..k4) for the fisheye."""
-        if self.fisheye:
+        """The coefficient vector OpenCV's functions take: (k1, k2, p1, p2, k3[, k4, k5, k6]), or (k1..k4) for the
+        fisheye."""
+        if self.fisheye or self.model == "FULL_OPENCV":
             return np.asarray(self.coeffs, np.float64)
         d = dict(zip(MODELS[self.model], self.coeffs))
         return np.array([d.get("k1", 0.0), d.get("k2", 0.0), d.get("p1", 0.0), d.get("p2", 0.0), d.get("k3", 0.0)])

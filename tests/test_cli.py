@@ -190,6 +190,28 @@ def test_a_transforms_json_lens_is_undone_before_the_model_and_the_exports_carry
     assert np.array_equal(read_rgb(out / "images" / "b.PNG"), undistorted)  # the COLMAP scene's photograph
 
 
+def test_a_colmap_models_cameras_and_lens_serve_as_known_cameras_like_a_transforms_json(tiny, tmp_path):
+    from pointmap.io import load_npz
+    from pointmap.undistort import Distortion, pinhole_for
+
+    weights, folder = tiny
+    model = tmp_path / "scene" / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("# a COLMAP text model\n1 OPENCV 80 60 70 70 40 30 -0.2 0.05 0 0\n"
+                                       "2 SIMPLE_PINHOLE 80 60 65 40 30\n")
+    poses = "0.9238795 0 0.3826834 0 0.1 0 0"  # 45 degrees about y
+    (model / "images.txt").write_text(f"1 {poses} 1 photos/b.PNG\n\n2 1 0 0 0 0 0 0 2 c.png\n\n")
+    out = tmp_path / "out"
+    assert main(["--quiet", "reconstruct", str(folder), "--model", str(weights), "--size", "64", "-o", str(out),
+                 "--cameras", str(tmp_path / "scene"), "--export", "npz"]) == 0
+    recon = load_npz(out / "reconstruction.npz")
+    K_in = np.array([[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]])
+    assert np.allclose(recon.K[1].double().numpy(), pinhole_for(K_in, Distortion("OPENCV", (-0.2, 0.05)), (80, 60)),
+                       atol=1e-4)
+    assert np.allclose(recon.K[2].double().numpy(), [[65.0, 0, 39.5], [0, 65.0, 29.5], [0, 0, 1]], atol=1e-4)
+    assert sorted(p.name for p in (out / "undistorted").iterdir()) == ["b.PNG"]
+
+
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):
     import shutil
 

@@ -1,4 +1,5 @@
-"""COLMAP sparse model export (cameras, images, points3D; .bin, and .txt on request).
+"""COLMAP sparse model export (cameras, images, points3D; .bin, and .txt on request), and the reader of a
+model's cameras (``read_colmap``, for known cameras and lens distortion).
 
 One PINHOLE camera per image at its ORIGINAL size (or one shared camera when every image has the same
 intrinsics and size), image names as given (the input file names), world-to-camera poses as COLMAP
@@ -176,3 +177,128 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
                         im.save(tmp)
         written.append(dst)
     return written
+
+
+# COLMAP's camera models: id -> (name, number of parameters)
+CAMERA_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
+                 4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
+                 8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+                 11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16)}
+# name -> (focal params, lens model of pointmap.undistort, its coefficients' positions in the parameters)
+_LENSES = {"SIMPLE_PINHOLE": (1, None, ()), "PINHOLE": (2, None, ()), "SIMPLE_RADIAL": (1, "SIMPLE_RADIAL", (3,)),
+           "RADIAL": (1, "RADIAL", (3, 4)), "OPENCV": (2, "OPENCV", (4, 5, 6, 7)),
+           "OPENCV_FISHEYE": (2, "OPENCV_FISHEYE", (4, 5, 6, 7)),
+           "FULL_OPENCV": (2, "FULL_OPENCV", tuple(range(4, 12))),
+           "SIMPLE_RADIAL_FISHEYE": (1, "OPENCV_FISHEYE", (3,)), "RADIAL_FISHEYE": (1, "OPENCV_FISHEYE", (3, 4))}
+
+
+def quaternion_to_rotation(q) -> np.ndarray:
+    """(w, x, y, z) quaternion (normalised here) -> [3, 3] rotation."""
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _camera(model: str, params, where: str):
+    """K [3, 3] (pointmap's pixel convention) and a ``pointmap.undistort.Distortion`` (None when all zero)."""
+    from pointmap.errors import PointmapError
+    from pointmap.undistort import Distortion
+
+    if model not in _LENSES:
+        raise PointmapError(f"{where}: COLMAP camera model {model} is not one pointmap can undistort (it reads "
+                            f"{', '.join(_LENSES)})")
+    p = [float(v) for v in params]
+    n_focal, lens, at = _LENSES[model]
+    fx, fy = (p[0], p[0]) if n_focal == 1 else (p[0], p[1])
+    cx, cy = p[n_focal], p[n_focal + 1]
+    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])  # COLMAP: pixel centres at +0.5
+    if not (np.isfinite(K).all() and fx > 0 and fy > 0):
+        raise PointmapError(f"{where}: focal lengths must be positive and finite, got {fx}, {fy}")
+    dist = None if lens is None else Distortion(lens, tuple(p[i] for i in at))
+    return K, (None if dist is None or dist.is_identity else dist)
+
+
+def _read_binary(folder: Path):
+    cams, images = {}, []
+    with open(folder / "cameras.bin", "rb") as f:
+        for _ in range(struct.unpack("<Q", f.read(8))[0]):
+            cid, mid, w, h = struct.unpack("<iiQQ", f.read(24))
+            if mid not in CAMERA_MODELS:
+                raise ValueError(f"unknown camera model id {mid}")
+            name, n = CAMERA_MODELS[mid]
+            cams[cid] = (name, int(w), int(h), struct.unpack(f"<{n}d", f.read(8 * n)))
+    with open(folder / "images.bin", "rb") as f:
+        for _ in range(struct.unpack("<Q", f.read(8))[0]):
+            _, *qt, cid = struct.unpack("<I7dI", f.read(64))
+            name = b""
+            while (c := f.read(1)) != b"\x00":
+                if not c:
+                    raise ValueError("truncated image name")
+                name += c
+            n_obs = struct.unpack("<Q", f.read(8))[0]
+            f.seek(24 * n_obs, 1)
+            images.append((name.decode("utf-8"), qt[:4], qt[4:], cid))
+    return cams, images
+
+
+def _read_text(folder: Path):
+    cams, images = {}, []
+    for line in (folder / "cameras.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            tok = line.split()
+            cams[int(tok[0])] = (tok[1], int(tok[2]), int(tok[3]), tuple(float(v) for v in tok[4:]))
+    lines = [ln for ln in (folder / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    for line in lines[0::2]:  # two lines per image, the second (its 2D points) possibly empty
+        tok = line.split(maxsplit=9)
+        images.append((tok[9], [float(v) for v in tok[1:5]], [float(v) for v in tok[5:8]], int(tok[8])))
+    return cams, images
+
+
+def read_colmap(path) -> dict:
+    """Cameras of a COLMAP sparse model (``cameras`` + ``images``, .bin or .txt; ``path`` is the model folder,
+    e.g. ``sparse/0``, a scene folder holding ``sparse/0``, or its cameras file), in ``read_transforms``'s
+    form: {image base name: {"K": [3, 3] in pointmap's pixel convention at the camera's size, "cam2world":
+    [4, 4] OpenCV axes, "size": (w, h), "camera_angle_x": None, "distortion": a ``pointmap.undistort.Distortion``
+    or None}}. Every camera model with a radial / tangential or fisheye lens OpenCV models is read (SIMPLE_RADIAL,
+    RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE); others are refused, as are
+    files that are not such a model and two images with one base name."""
+    from pointmap.errors import PointmapError
+
+    path = Path(path)
+    folder = path.parent if path.is_file() else path
+    for candidate in (folder, folder / "sparse" / "0", folder / "0"):
+        if all((candidate / f"{n}.bin").is_file() for n in ("cameras", "images")) or \
+                all((candidate / f"{n}.txt").is_file() for n in ("cameras", "images")):
+            folder = candidate
+            break
+    else:
+        raise PointmapError(f"{path}: expected a COLMAP sparse model folder with cameras.bin and images.bin (or "
+                            "cameras.txt and images.txt)")
+    binary = (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file()
+    try:
+        cams, images = _read_binary(folder) if binary else _read_text(folder)
+    except (OSError, ValueError, IndexError, struct.error, UnicodeDecodeError) as e:
+        raise PointmapError(f"{folder}: not a readable COLMAP model ({e.__class__.__name__}: {e})") from None
+    out = {}
+    for name, q, t, cid in images:
+        where = f"{folder}: image {name}"
+        if cid not in cams:
+            raise PointmapError(f"{where} refers to camera {cid}, which cameras.{'bin' if binary else 'txt'} lacks")
+        model, w, h, params = cams[cid]
+        if len(params) != dict(CAMERA_MODELS.values()).get(model, len(params)):
+            raise PointmapError(f"{where}: camera {cid} ({model}) has {len(params)} parameters")
+        K, dist = _camera(model, params, where)
+        if not (np.isfinite(q).all() and np.isfinite(t).all() and np.linalg.norm(q) > 0):
+            raise PointmapError(f"{where}: its pose is not finite")
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = quaternion_to_rotation(q), t
+        key = Path(name).name
+        if key in out:
+            raise PointmapError(f"{folder}: two images are named {key} (in different folders): the photographs "
+                                "could not be told apart by file name")
+        out[key] = {"K": K, "cam2world": np.linalg.inv(w2c), "size": (w, h), "camera_angle_x": None,
+                    "distortion": dist}
+    if not out:
+        raise PointmapError(f"{folder}: the COLMAP model has no images")
+    return out

@@ -283,6 +283,83 @@ def test_read_transforms_inverts_the_export_and_reads_global_and_angle_intrinsic
     assert np.allclose(K, [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])
 
 
+def test_read_colmap_inverts_our_binary_and_text_export(tmp_path):
+    from pointmap.io.colmap import read_colmap
+
+    recon = make_recon(n=3)
+    save_reconstruction(recon, tmp_path, formats=("colmap", "colmap_txt"))
+    from_bin = read_colmap(tmp_path)  # the scene folder: its sparse/0 is found
+    for f in ("cameras.bin", "images.bin"):
+        (tmp_path / "sparse" / "0" / f).unlink()
+    from_txt = read_colmap(tmp_path / "sparse" / "0" / "cameras.txt")
+    for cams in (from_bin, from_txt):
+        assert list(cams) == recon.names
+        for k, name in enumerate(recon.names):
+            assert np.allclose(cams[name]["K"], recon.K[k].double().numpy(), atol=1e-9)
+            assert np.allclose(cams[name]["cam2world"], recon.cam2world[k].double().numpy(), atol=1e-6)
+            assert cams[name]["size"] == (100, 75) and cams[name]["distortion"] is None
+
+
+@pytest.mark.parametrize("model,params,lens", [
+    ("OPENCV", [70, 71, 40, 30, -0.1, 0.02, 0.001, -0.002], ("OPENCV", (-0.1, 0.02, 0.001, -0.002))),
+    ("SIMPLE_RADIAL", [70, 40, 30, -0.05], ("SIMPLE_RADIAL", (-0.05,))),
+    ("FULL_OPENCV", [70, 71, 40, 30, -0.1, 0.02, 0.001, -0.002, 0.01, 0.1, 0, 0.02],
+     ("FULL_OPENCV", (-0.1, 0.02, 0.001, -0.002, 0.01, 0.1, 0, 0.02))),
+    ("OPENCV_FISHEYE", [70, 71, 40, 30, 0.03, -0.01, 0.002, 0.0], ("OPENCV_FISHEYE", (0.03, -0.01, 0.002, 0.0))),
+    ("RADIAL_FISHEYE", [70, 40, 30, 0.03, -0.01], ("OPENCV_FISHEYE", (0.03, -0.01))),
+    ("PINHOLE", [70, 71, 40, 30], None),
+])
+def test_read_colmap_reads_the_cameras_and_lenses_pycolmap_writes(tmp_path, model, params, lens):
+    from pointmap.io.colmap import read_colmap
+    from pointmap.undistort import Distortion
+
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=80, height=60, params=params, camera_id=1))
+    q = np.array([0.1, 0.2, 0.3, 0.9]) / np.linalg.norm([0.1, 0.2, 0.3, 0.9])  # x, y, z, w (Eigen's order)
+    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(q), np.array([0.5, -0.2, 1.0]))
+    rec.add_image_with_trivial_frame(pycolmap.Image(name="sub/a.png", camera_id=1, image_id=1), pose)
+    w2c = np.vstack([rec.image(1).cam_from_world().matrix(), [0, 0, 0, 1]])
+    f = params[0]
+    fy, cx, cy = (params[1], params[2], params[3]) if model in ("OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE",
+                                                                "PINHOLE") else (f, params[1], params[2])
+    for kind in ("bin", "txt"):
+        (tmp_path / kind).mkdir()
+        getattr(rec, "write_binary" if kind == "bin" else "write_text")(str(tmp_path / kind))
+        cam = read_colmap(tmp_path / kind)["a.png"]
+        assert np.allclose(cam["K"], [[f, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])  # COLMAP: centres at +0.5
+        assert np.allclose(cam["cam2world"], np.linalg.inv(w2c), atol=1e-9) and cam["size"] == (80, 60)
+        assert cam["distortion"] == (None if lens is None else Distortion(*lens))
+
+
+def test_read_colmap_refuses_what_it_cannot_use_and_says_why(tmp_path):
+    from pointmap.errors import PointmapError
+    from pointmap.io.colmap import read_colmap
+
+    with pytest.raises(PointmapError, match="expected a COLMAP sparse model folder"):
+        read_colmap(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 FOV 80 60 70 70 40 30 0.5\n")
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    with pytest.raises(PointmapError, match="COLMAP camera model FOV is not one pointmap can undistort"):
+        read_colmap(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 80 60 70 70 40\n")
+    with pytest.raises(PointmapError, match=r"camera 1 \(PINHOLE\) has 3 parameters"):
+        read_colmap(tmp_path)
+    (tmp_path / "cameras.txt").write_text("2 PINHOLE 80 60 70 70 40 30\n")
+    with pytest.raises(PointmapError, match="refers to camera 1, which cameras.txt lacks"):
+        read_colmap(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 80 60 70 70 40 30\n")
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 x/a.png\n\n2 1 0 0 0 0 0 0 1 y/a.png\n\n")
+    with pytest.raises(PointmapError, match="two images are named a.png"):
+        read_colmap(tmp_path)
+    (tmp_path / "images.txt").write_text("1 one 0 0 0\n")
+    with pytest.raises(PointmapError, match="not a readable COLMAP model"):
+        read_colmap(tmp_path)
+    (tmp_path / "cameras.bin").write_bytes(b"\x05")
+    (tmp_path / "images.bin").write_bytes(b"")
+    with pytest.raises(PointmapError, match="not a readable COLMAP model"):
+        read_colmap(tmp_path)
+
+
 def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_global(tmp_path):
     import json
 
