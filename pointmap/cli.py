@@ -76,7 +76,8 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
                   max_frames: int = 30) -> list[str]:
     """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
-    ``IMAGE_SUFFIXES``, any case); a video (``pointmap.video.VIDEO_SUFFIXES``) for frames extracted into
+    ``IMAGE_SUFFIXES``, any case), or when it has none for those of its ``images/`` folder (the layout of a
+    COLMAP or nerfstudio scene); a video (``pointmap.video.VIDEO_SUFFIXES``) for frames extracted into
     ``frames_dir`` (``pointmap.video.extract_frames``: one per ``stride`` frames, the sharpest of each window,
     at most ``max_frames`` when no stride is given); files are kept as given. PointmapError for a folder
     without images."""
@@ -91,6 +92,9 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
             out += [str(f) for f in extract_frames(p, frames_dir, stride=stride, max_frames=max_frames)]
         elif p.is_dir():
             found = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+            if not found and (p / "images").is_dir():  # a COLMAP / nerfstudio scene: its photographs in images/
+                found = sorted(str(f) for f in (p / "images").iterdir()
+                               if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
             if not found:
                 raise PointmapError(f"folder {p} holds no images (expected files ending in "
                                     f"{', '.join(IMAGE_SUFFIXES)})")
@@ -188,20 +192,17 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--cameras and --focal both give intrinsics: use one")
     if args.known_poses and args.cameras is None:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
-    if args.cameras is not None and not Path(args.cameras).exists():
-        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {args.cameras!r}")
-    if args.masks is not None and not Path(args.masks).is_dir():
-        raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size)
         return reconstruct_scene(model, size, args, scene, formats)
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
-    if args.cameras is not None or args.masks is not None or (args.focal is not None and "," in args.focal):
-        raise PointmapError("--each-folder with --cameras, --masks or per-image --focal would apply one scene's "
-                            "cameras or masks to every scene (they are matched by file name): run those scenes "
-                            "one by one (a single --focal for all images is accepted)")
+    if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks)) or \
+            (args.focal is not None and "," in args.focal):
+        raise PointmapError("--each-folder takes --cameras and --masks relative to each scene folder (e.g. "
+                            "--cameras sparse/0, --masks masks): an absolute path or per-image --focal would apply "
+                            "one scene's cameras or masks to every scene (a single --focal for all is accepted)")
     out_root = Path(args.out).resolve()
     scenes = sorted(d for d in Path(args.images[0]).iterdir()  # hidden, __MACOSX-like and the output skipped
                     if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
@@ -211,8 +212,10 @@ def cmd_reconstruct(args) -> int:
     failed = []
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
+        own = argparse.Namespace(**{**vars(args), **{k: str(scene / getattr(args, k)) for k in ("cameras", "masks")
+                                                      if getattr(args, k) is not None}})  # the scene's own files
         try:
-            reconstruct_scene(model, size, args, prepare_scene(args, [str(scene)], Path(args.out) / scene.name),
+            reconstruct_scene(model, size, own, prepare_scene(own, [str(scene)], Path(args.out) / scene.name),
                               formats)
         except Exception as e:  # one bad scene does not stop the others (KeyboardInterrupt still does)
             print(f"pointmap: scene {scene.name} skipped: {e.__class__.__name__}: {e}", file=sys.stderr)
@@ -228,6 +231,10 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     from pointmap.pipeline import auto_graph
     from pointmap.video import is_video
 
+    if args.cameras is not None and not Path(args.cameras).exists():
+        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {args.cameras!r}")
+    if args.masks is not None and not Path(args.masks).is_dir():
+        raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
     images = expand_images(inputs, out / "frames", args.stride, args.max_frames)
     graph = args.graph
@@ -322,10 +329,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")
     r.add_argument("images", nargs="+", metavar="IMG",
-                   help="image files, folders of them (sorted by name), or a video (frames go to OUT/frames/)")
+                   help="image files, folders of them (sorted by name; a folder without images stands for its "
+                        "images/), or a video (frames go to OUT/frames/)")
     r.add_argument("--each-folder", dest="each_folder", action="store_true",
                    help="batch: IMG is one folder whose sub-folders are scenes, reconstructed in turn with the model "
-                        "loaded once, written to OUT/<sub-folder>; a failing scene is reported and skipped (exit 1)")
+                        "loaded once, written to OUT/<sub-folder>; a failing scene is reported and skipped (exit 1). "
+                        "--cameras and --masks are then paths inside each scene folder (e.g. sparse/0, masks)")
     r.add_argument("--stride", type=int, default=None,
                    help="video: keep one frame per STRIDE frames, the sharpest of each window (default: the "
                         "smallest stride giving at most --max-frames)")

@@ -235,7 +235,45 @@ def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one
     assert main(["reconstruct", str(folder / "a.jpg"), "--each-folder", "-o", str(out)]) == 2
     assert "--each-folder expected one folder whose sub-folders are scenes" in capsys.readouterr().err
     assert main(["reconstruct", str(scenes), "--each-folder", "-o", str(out), "--masks", str(folder)]) == 2
-    assert "would apply one scene's cameras or masks to every scene" in capsys.readouterr().err
+    assert "takes --cameras and --masks relative to each scene folder" in capsys.readouterr().err
+
+
+def test_each_folder_reads_every_scenes_own_cameras_and_masks_and_its_images_folder(tiny, tmp_path, capsys):
+    import shutil
+
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    scenes = tmp_path / "scenes"
+    for k, name in enumerate(("one", "two", "three")):  # COLMAP-style scenes: images/ and sparse/0
+        shutil.copytree(folder, scenes / name / "images")
+        model = scenes / name / "sparse" / "0"
+        model.mkdir(parents=True)
+        (model / "cameras.txt").write_text(f"1 SIMPLE_PINHOLE 80 60 {50 + 10 * k} 40 30\n")
+        (model / "images.txt").write_text("".join(f"{i + 1} 1 0 0 0 0 0 0 1 {n}\n\n"
+                                                  for i, n in enumerate(("a.jpg", "b.PNG", "c.png"))))
+    shutil.rmtree(scenes / "three" / "sparse")  # no model: this scene fails, the others still run
+    (scenes / "two" / "masks").mkdir()
+    half = np.full((60, 80), 255, np.uint8)
+    half[:, :40] = 0  # the left half of a.jpg masked out
+    cv2.imwrite(str(scenes / "two" / "masks" / "a.png"), half)
+    out = tmp_path / "out"
+    code = main(["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(out), "--model", str(weights),
+                 "--size", "64", "--export", "npz", "--cameras", "sparse/0"])
+    err = capsys.readouterr().err
+    assert code == 1 and "scene three skipped: PointmapError: --cameras expected a transforms.json" in err
+    for k, name in enumerate(("one", "two")):
+        recon = load_npz(out / name / "reconstruction.npz")
+        assert recon.names == ["a.jpg", "b.PNG", "c.png"]
+        assert np.allclose(recon.K[:, 0, 0].numpy(), 50 + 10 * k)  # each scene's own focal
+    shutil.rmtree(out)
+    code = main(["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(out), "--model", str(weights),
+                 "--size", "64", "--export", "npz", "--masks", "masks"])
+    err = capsys.readouterr().err
+    assert code == 1 and "scene one skipped: PointmapError: --masks expected a folder" in err, err
+    kept = load_npz(out / "two" / "reconstruction.npz").masks
+    w = kept.shape[2]
+    assert not kept[0, :, : w // 2 - 1].any() and kept[0, :, w // 2 + 1:].all() and kept[1].all()  # scene two's own
 
 
 def test_each_folder_skips_hidden_folders_and_its_own_output_and_survives_any_scene_error(tiny, tmp_path, capsys):
