@@ -35,6 +35,19 @@ def parse_focals(text: str, n: int) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
+def K_from_focals(images: list, focal: list[float]):
+    """[N, 3, 3] float64 K of each image: the given focal, the principal point at the centre of the image as read
+    (EXIF orientation applied): ((w - 1) / 2, (h - 1) / 2) in pointmap's pixel convention."""
+    import torch
+
+    from pointmap.images import image_sizes
+
+    K = torch.zeros(len(images), 3, 3, dtype=torch.float64)
+    for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
+        K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return K
+
+
 def cmd_pair(args) -> int:
     from pointmap.io_pair import write_pair_outputs
 
@@ -244,17 +257,11 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
-        import torch
-
-        from pointmap.images import image_sizes
-
         focal = parse_focals(args.focal, len(images))
         if args.shared_focal and len(set(focal)) > 1:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
-        K = torch.zeros(len(images), 3, 3, dtype=torch.float64)
-        for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
-            K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        K = K_from_focals(images, focal)
     masks = masks_from_folder(args.masks, images) if args.masks is not None else None
     if distortions:  # lens distortion undone first: the model, the aligner and every export take pinhole cameras
         from pointmap.undistort import undistort_photos
@@ -298,6 +305,40 @@ def cmd_splat(args) -> int:
         raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
     recon = load_npz(npz)
     run_splat(recon, Path(args.out or npz.parent / "splat"), quiet=args.quiet, time_budget=args.splat_budget or None)
+    return 0
+
+
+def cmd_localize(args) -> int:
+    import json
+
+    from pointmap.atomic import atomic_open
+    from pointmap.checkpoint import load_model
+    from pointmap.io import load_npz
+    from pointmap.io.tum import write_tum
+    from pointmap.localize import localize
+
+    src = Path(args.recon)
+    npz = src / "reconstruction.npz" if src.is_dir() else src
+    if not npz.is_file():
+        raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    if args.n_refs < 1:
+        raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
+    out = Path(args.out)
+    images = expand_images(args.images, out / "frames", args.stride, args.max_frames)
+    K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
+    recon = load_npz(npz)
+    loc = localize(load_model(args.model), recon, images, K=K, n_refs=args.n_refs, quiet=args.quiet)
+    rows = [{"name": name, "cam2world": loc.cam2world[k].tolist(), "K": loc.K[k].tolist(),
+             "reference": None if loc.ref[k] < 0 else recon.names[loc.ref[k]], "confidence": loc.conf[k],
+             "scale": loc.scale[k]} for k, name in enumerate(loc.names)]
+    with atomic_open(out / "localization.json", "w") as f:
+        json.dump({"reconstruction": str(npz), "queries": rows}, f, indent=1)
+    posed = [k for k, r in enumerate(loc.ref) if r >= 0]
+    write_tum(loc.subset(posed), out / "trajectory.txt", timestamps=posed)
+    for row in rows:
+        print(f"{row['name']}: " + (f"posed against {row['reference']} (confidence {row['confidence']:.2f})"
+                                    if row["reference"] else "not posed"))
+    print(f"localization: {out / 'localization.json'}\ntum: {out / 'trajectory.txt'}")
     return 0
 
 
@@ -385,6 +426,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
                    help="wall-clock seconds the fit may take (0: no limit)")
     s.set_defaults(fn=cmd_splat)
+
+    loc = sub.add_parser("localize", parents=[common],
+                         help="pose new photographs (or a video's frames) in a saved reconstruction's world")
+    loc.add_argument("recon", help="directory written by 'pointmap reconstruct', or its reconstruction.npz")
+    loc.add_argument("images", nargs="+", metavar="IMG", help="image files, folders of them, or a video")
+    loc.add_argument("-o", "--out", required=True, help="folder for localization.json and trajectory.txt (TUM)")
+    loc.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors or official .pth")
+    loc.add_argument("--focal", default=None, metavar="F[,F...]",
+                     help="known focal length(s) in original pixels (principal point at the centre); default: "
+                          "estimated from each pair")
+    loc.add_argument("--n-refs", dest="n_refs", type=int, default=2,
+                     help="reconstruction views each photograph is paired with, the most similar by their encoder "
+                          "tokens; the most confident pair's pose is kept (default 2)")
+    loc.add_argument("--stride", type=int, default=None, help="video: one frame per STRIDE frames")
+    loc.add_argument("--max-frames", dest="max_frames", type=int, default=30,
+                     help="video: at most this many frames when --stride is not given (default 30)")
+    loc.set_defaults(fn=cmd_localize)
 
     d = sub.add_parser("demo", parents=[common], help="reconstruct the demo scenes shipped with the package")
     d.add_argument("-o", "--out", default="demo_out")

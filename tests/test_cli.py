@@ -212,6 +212,44 @@ def test_a_colmap_models_cameras_and_lens_serve_as_known_cameras_like_a_transfor
     assert sorted(p.name for p in (out / "undistorted").iterdir()) == ["b.PNG"]
 
 
+def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_trajectory(tiny, tmp_path, capsys,
+                                                                                          monkeypatch):
+    import json
+
+    import pointmap.localize
+
+    weights, folder = tiny
+    rec = tmp_path / "rec"
+    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "--model", str(weights),
+                 "--size", "64", "-o", str(rec), "--export", "npz"]) == 0
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    calls = []
+
+    def pose_against(recon, ref, pred, rev, K_map=None):  # the geometry is tested in tests/align/test_localize.py
+        calls.append(ref)
+        pose = T if len(calls) == 1 else torch.full((4, 4), float("nan"), dtype=torch.float64)
+        return pose, K_map, 2.0
+
+    monkeypatch.setattr(pointmap.localize, "pose_against", pose_against)
+    out = tmp_path / "loc"
+    assert main(["--quiet", "localize", str(rec), str(folder / "c.png"), str(folder / "a.jpg"), "--model",
+                 str(weights), "-o", str(out), "--focal", "70", "--n-refs", "1"]) == 0
+    rows = json.loads((out / "localization.json").read_text())["queries"]
+    assert [r["name"] for r in rows] == ["c.png", "a.jpg"] and len(calls) == 2
+    assert rows[0]["reference"] in ("a.jpg", "b.PNG") and np.allclose(rows[0]["cam2world"], T.numpy())
+    assert np.allclose(rows[0]["K"], [[70, 0, 39.5], [0, 70, 29.5], [0, 0, 1]]) and rows[0]["scale"] == 2.0
+    assert rows[1]["reference"] is None  # its pose could not be found: reported, left out of the trajectory
+    lines = [ln.split() for ln in (out / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(lines) == 1 and np.allclose([float(x) for x in lines[0]], [0, 1, 2, 3, 0, 0, 0, 1])
+    printed = capsys.readouterr().out
+    assert "c.png: posed against" in printed and "a.jpg: not posed" in printed
+    assert main(["localize", str(tmp_path / "nowhere"), str(folder / "c.png"), "-o", str(out)]) == 2
+    assert "no reconstruction.npz in" in capsys.readouterr().err
+    assert main(["localize", str(rec), str(folder / "c.png"), "-o", str(out), "--n-refs", "0"]) == 2
+    assert "--n-refs expected >= 1" in capsys.readouterr().err
+
+
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):
     import shutil
 

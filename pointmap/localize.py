@@ -1,0 +1,161 @@
+"""New photographs posed in an existing reconstruction's world (relocalisation): the frames of a video between
+its keyframes, a photograph taken later, a test view to evaluate novel-view synthesis on.
+
+Each query is paired with reference views of the reconstruction (given, or the most similar by their encoder
+tokens); for each pair the network's pointmaps give the query's pose in the reference camera's frame (PnP with
+a known K, else Procrustes both ways and the focal from the query's own pointmap), and the reference's depth
+in the reconstruction gives the scale: the pair's view-1 depth is matched to it (median ratio), so the pose
+lands in the reconstruction's world and units. The pose from the reference whose pair is most confident about
+the query is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.images import View, load_images
+from pointmap.reconstruction import K_to_map, K_to_original, Reconstruction
+
+
+@dataclass
+class Localization:
+    """Poses of M query photographs in a reconstruction's world.
+
+    cam2world: [M, 4, 4] OpenCV camera-to-world in the reconstruction's world and units
+    K:         [M, 3, 3] intrinsics in the queries' ORIGINAL pixels (given, or estimated)
+    ref:       [M] index of the reconstruction view each pose was found against
+    conf:      [M] median confidence of the query's pixels in that pair (low: little shared content)
+    scale:     [M] reconstruction units per unit of that pair's prediction (from the reference's depth)
+    names:     the queries' names
+    """
+    cam2world: torch.Tensor
+    K: torch.Tensor
+    ref: list
+    conf: list
+    scale: list
+    names: list
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def subset(self, keep: list) -> Localization:
+        """The queries at indices ``keep``, in that order."""
+        return Localization(self.cam2world[keep], self.K[keep], [self.ref[k] for k in keep],
+                            [self.conf[k] for k in keep], [self.scale[k] for k in keep], [self.names[k] for k in keep])
+
+
+def reference_views(recon: Reconstruction) -> list[View]:
+    """The reconstruction's own network inputs as Views (the pixel grid its depth maps live on)."""
+    return [View(img=recon.images[k].permute(2, 0, 1).float().contiguous(), original_size=tuple(recon.original_sizes[k]),
+                 map_from_original=tuple(float(x) for x in recon.map_from_original[k]), name=recon.names[k], index=k)
+            for k in range(len(recon))]
+
+
+@torch.inference_mode()
+def rank_references(model, refs: list[View], queries: list[View], n_refs: int, *, device="cpu") -> list[list[int]]:
+    """For each query, the ``n_refs`` reference indices whose mean encoder token is most similar (cosine)."""
+    from pointmap.inference import encode_views
+
+    def pooled(views):
+        enc = encode_views(model, [v.img for v in views], device=device)
+        return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1) for e in enc]), dim=-1)
+
+    sim = pooled(queries) @ pooled(refs).T
+    return sim.topk(min(n_refs, len(refs)), dim=1).indices.tolist()
+
+
+def depth_scale(recon: Reconstruction, ref: int, pred, min_conf: float = 0.0) -> float:
+    """Reconstruction units per prediction unit: the median over the reference's valid pixels of its depth in the
+    reconstruction over the pair's view-1 depth (same pixel grid). NaN when fewer than 16 pixels agree."""
+    z_pred = pred.pts1_cam1[0, ..., 2].double()
+    z_rec = recon.depth_z[ref].double()
+    if z_pred.shape != z_rec.shape:
+        raise ShapeError(f"the pair's view-1 map is {list(z_pred.shape)} but reference {ref}'s depth is "
+                         f"{list(z_rec.shape)}: the reference must be paired at its own network size")
+    ok = recon.valid(min_conf)[ref] & (z_pred > 0) & torch.isfinite(z_pred)
+    if int(ok.sum()) < 16:
+        return float("nan")
+    return float((z_rec[ok] / z_pred[ok]).median())
+
+
+def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """(cam2world [4, 4] float64 in the reconstruction's world, K [3, 3] at the query's map resolution, scale) of
+    the query seen as view 2 of ``pred`` (reference ``ref`` as view 1) and view 1 of ``pred_reverse``. A pose
+    that cannot be found is NaN."""
+    from pointmap.pose import focal_from_prediction, relative_pose
+
+    s = depth_scale(recon, ref, pred)
+    h, w = pred.pts2_cam1.shape[1:3]
+    if K_map is None:
+        rel = relative_pose(pred, pred_reverse=pred_reverse)[0].double()
+        f = float(focal_from_prediction(pred_reverse)[0])
+        K_map = torch.tensor([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    else:
+        rel = relative_pose(pred, K2=K_map)[0].double()
+    rel[:3, 3] *= s
+    return recon.cam2world[ref].double() @ rel, K_map.double(), s
+
+
+def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs: int = 2, device="cpu",
+             batch_size: int = 8, quiet: bool = False) -> Localization:
+    """Pose the photographs ``images`` (paths or HxWx3 uint8 arrays) in ``recon``'s world.
+
+    refs: per query, the reconstruction views to pair it with (e.g. the neighbouring keyframes of a video
+        frame); default: the ``n_refs`` most similar views by their encoder tokens.
+    K: the queries' intrinsics in their ORIGINAL pixels, [3, 3] for all or [M, 3, 3]; default: estimated.
+    The queries are prepared at the reconstruction's network size. Raises PointmapError for an empty
+    reconstruction or query list, references out of range, wrong K, and when no query can be posed.
+    """
+    from pointmap.inference import predict_pairs
+
+    if not isinstance(recon, Reconstruction) or len(recon) == 0:
+        raise PointmapError(f"localize expected a Reconstruction with at least one view, got {type(recon).__name__}")
+    if isinstance(images, (str, bytes)) or not hasattr(images, "__len__") or len(images) == 0:
+        raise PointmapError("localize expected a non-empty list of images (paths or arrays)")
+    h, w = recon.images.shape[1:3]
+    queries = load_images(list(images), size=max(h, w), square_ok=h == w)
+    m, n = len(queries), len(recon)
+    if K is not None:
+        K = torch.as_tensor(K, dtype=torch.float64)
+        K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
+        if tuple(K.shape) != (m, 3, 3) or not torch.isfinite(K).all() or (K[:, 0, 0] <= 0).any():
+            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] finite with positive focals, got {list(K.shape)}")
+    refs_views = reference_views(recon)
+    if refs is None:
+        if not isinstance(n_refs, int) or n_refs < 1:
+            raise PointmapError(f"n_refs expected an int >= 1, got {n_refs!r}")
+        refs = rank_references(model, refs_views, queries, n_refs, device=device)
+    refs = [[r] if isinstance(r, int) else list(r) for r in refs]
+    if len(refs) != m or any(not r or any(not isinstance(k, int) or not 0 <= k < n for k in r) for r in refs):
+        raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
+                         f"got {refs}")
+    views = refs_views + [View(q.img, q.original_size, q.map_from_original, q.name, n + k)
+                          for k, q in enumerate(queries)]
+    pairs = sorted({(r, n + k) for k, rs in enumerate(refs) for r in rs})
+    preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=False, quiet=quiet)
+    out = torch.full((m, 4, 4), float("nan"), dtype=torch.float64)
+    K_orig = torch.full((m, 3, 3), float("nan"), dtype=torch.float64)
+    used, confs, scales = [-1] * m, [float("nan")] * m, [float("nan")] * m
+    for k, q in enumerate(queries):
+        mfo = torch.tensor([q.map_from_original], dtype=torch.float64)
+        K_map = None if K is None else K_to_map(K[k:k + 1], mfo)[0]
+        best = -1.0
+        for r in refs[k]:
+            pred, rev = preds[(r, n + k)], preds[(n + k, r)]
+            conf = float(pred.conf2[0].float().median())
+            if conf <= best:
+                continue
+            T, Km, s = pose_against(recon, r, pred, rev, K_map)
+            if not (torch.isfinite(T).all() and torch.isfinite(Km).all()):
+                continue
+            best, out[k], used[k], confs[k], scales[k] = conf, T, r, conf, s
+            K_orig[k] = Km if K is not None else K_to_original(Km[None], mfo)[0]
+        if K is not None:
+            K_orig[k] = K[k]
+    if all(u < 0 for u in used):
+        raise PointmapError(f"none of the {m} queries could be posed: their pairs with the references share too "
+                            "little (no valid depth or pose); give references that see the same scene")
+    return Localization(out, K_orig, used, confs, scales, [q.name for q in queries])

@@ -1,0 +1,97 @@
+"""Relocalisation (pointmap.localize): new views of the analytic scene posed in a reconstruction built from its
+other views, with a stand-in network that returns ground-truth pointmaps at an unknown per-pair scale."""
+
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+from align_scene import gt_preds, make_scene
+
+from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.localize import localize
+from pointmap.reconstruction import Reconstruction
+
+N_REC = 4  # views 0..3 make the reconstruction, 4 and 5 are the queries
+
+
+def rotation_error_deg(A, B):
+    R = A[:3, :3].T @ B[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+@pytest.fixture
+def scene(monkeypatch):
+    sc = make_scene(6, 32, 48, seed=7)
+    world_scale = 2.5  # the reconstruction's units are not the scene's: the queries must land in the former
+    recon = Reconstruction(
+        images=torch.from_numpy(sc["images"][:N_REC]).float(),
+        cam2world=torch.from_numpy(sc["cam2world"][:N_REC]).clone(), K=torch.from_numpy(sc["K"][:N_REC]),
+        depth_z=torch.from_numpy(sc["depth"][:N_REC]).float() * world_scale,
+        conf=torch.full((N_REC, 32, 48), 3.0))
+    recon.cam2world[:, :3, 3] *= world_scale
+    calls = {}
+
+    def predict_pairs(model, views, pairs, batch_size=8, **kw):  # indices are the scene's (queries follow)
+        calls["pairs"] = list(pairs)
+        return gt_preds(sc, pairs, seed=3)
+
+    monkeypatch.setitem(sys.modules, "pointmap.inference",
+                        types.SimpleNamespace(predict_pairs=predict_pairs, encode_views=None))
+    queries = [(sc["images"][k] * 255).round().astype(np.uint8) for k in (4, 5)]
+    return sc, recon, queries, world_scale, calls
+
+
+def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units(scene):
+    sc, recon, queries, world_scale, calls = scene
+    loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    assert sorted(calls["pairs"]) == [(0, 5), (2, 4), (3, 4)]
+    for k, q in enumerate((4, 5)):
+        truth = sc["cam2world"][q].copy()
+        truth[:3, 3] *= world_scale
+        est = loc.cam2world[k].numpy()
+        assert rotation_error_deg(est, truth) < 0.5
+        assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.02 * world_scale  # the scene is ~8 units across
+        assert abs(loc.K[k, 0, 0].item() - sc["K"][q, 0, 0]) / sc["K"][q, 0, 0] < 0.03  # focal estimated
+    assert loc.ref[1] == 0 and loc.ref[0] in (2, 3) and loc.names == ["image_000.png", "image_001.png"]
+
+
+def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
+    sc, recon, queries, world_scale, _ = scene
+    K = torch.from_numpy(sc["K"][4:6])
+    loc = localize(None, recon, queries, refs=[[3], [0]], K=K, quiet=True)
+    assert torch.equal(loc.K, K.double())
+    for k, q in enumerate((4, 5)):
+        truth = sc["cam2world"][q].copy()
+        truth[:3, 3] *= world_scale
+        assert rotation_error_deg(loc.cam2world[k].numpy(), truth) < 0.5
+        assert np.linalg.norm(loc.cam2world[k, :3, 3].numpy() - truth[:3, 3]) < 0.02 * world_scale
+
+
+def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
+    _, recon, queries, _, _ = scene
+    with pytest.raises(GraphError, match=r"view indices in 0..3"):
+        localize(None, recon, queries, refs=[[4], [0]], quiet=True)
+    with pytest.raises(GraphError, match="for each of the 2 queries"):
+        localize(None, recon, queries, refs=[[1]], quiet=True)
+    with pytest.raises(ShapeError, match=r"K expected \[3, 3\] or \[2, 3, 3\]"):
+        localize(None, recon, queries, refs=[[1], [2]], K=torch.eye(4), quiet=True)
+    with pytest.raises(PointmapError, match="non-empty list of images"):
+        localize(None, recon, [], quiet=True)
+    with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
+        localize(None, recon, queries, n_refs=0, quiet=True)
+
+
+def test_references_are_ranked_by_encoder_similarity_so_a_copy_of_a_view_finds_that_view():
+    import pointmap as pm
+    from pointmap.images import View
+    from pointmap.localize import rank_references
+
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"]).eval()
+    rng = np.random.default_rng(0)
+    imgs = [torch.from_numpy(rng.random((3, 32, 48))).float() for _ in range(4)]
+    views = [View(im, (48, 32), (1.0, 1.0, 0.0, 0.0), f"v{k}", k) for k, im in enumerate(imgs)]
+    ranked = rank_references(model, views, [views[2], views[0]], n_refs=2)
+    assert [r[0] for r in ranked] == [2, 0] and all(len(r) == 2 for r in ranked)
