@@ -303,8 +303,33 @@ def cmd_splat(args) -> int:
     npz = src / "reconstruction.npz" if src.is_dir() else src
     if not npz.exists():
         raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    if args.test_align_steps < 0:
+        raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
+    tests = expand_images(args.test) if args.test else []
     recon = load_npz(npz)
-    run_splat(recon, Path(args.out or npz.parent / "splat"), quiet=args.quiet, time_budget=args.splat_budget or None)
+    out = Path(args.out or npz.parent / "splat")
+    result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
+    if tests:  # held-out views: localized in the reconstruction, pose-aligned on the splats, then scored
+        import torch
+
+        from pointmap.checkpoint import load_model
+        from pointmap.localize import localize, query_views
+        from pointmap.reconstruction import K_to_map
+        from pointmap.splat.outputs import evaluate_views
+
+        loc = localize(load_model(args.model), recon, tests, quiet=args.quiet)
+        posed = [k for k, r in enumerate(loc.ref) if r >= 0]
+        if len(posed) < len(tests):
+            print(f"pointmap: {len(tests) - len(posed)} test view(s) could not be localized and are left out: "
+                  f"{', '.join(loc.names[k] for k in range(len(tests)) if k not in posed)}", file=sys.stderr)
+        every = query_views(recon, tests)
+        views = [every[k] for k in posed]
+        K_map = torch.stack([K_to_map(loc.K[k:k + 1], torch.tensor([v.map_from_original], dtype=torch.float64))[0]
+                             for k, v in zip(posed, views)])
+        evaluate_views(result["fit"], [v.img.permute(1, 2, 0) for v in views], loc.cam2world[posed], K_map,
+                       out / "renders", align_steps=args.test_align_steps, names=[v.name for v in views],
+                       quiet=args.quiet)
+        print(f"test views: {out / 'renders' / 'test_views.json'}")
     return 0
 
 
@@ -425,6 +450,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", default=None, help="output folder (default: splat/ beside the reconstruction.npz)")
     s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
                    help="wall-clock seconds the fit may take (0: no limit)")
+    s.add_argument("--test", nargs="+", default=None, metavar="IMG",
+                   help="held-out photographs to score novel views on: each is localized in the reconstruction "
+                        "(pointmap localize), its pose aligned on the splats, and its PSNR / SSIM reported "
+                        "(renders/test_views.json)")
+    s.add_argument("--test-align-steps", dest="test_align_steps", type=int, default=100,
+                   help="photometric pose-alignment steps per test view, Gaussians frozen (0: the localized pose)")
+    s.add_argument("--model", default=DEFAULT_MODEL, help="the network that localizes --test views")
     s.set_defaults(fn=cmd_splat)
 
     loc = sub.add_parser("localize", parents=[common],

@@ -54,6 +54,12 @@ def reference_views(recon: Reconstruction) -> list[View]:
             for k in range(len(recon))]
 
 
+def query_views(recon: Reconstruction, images) -> list[View]:
+    """``images`` prepared for the network as ``recon``'s own were (its maps' size)."""
+    h, w = recon.images.shape[1:3]
+    return load_images(list(images), size=max(h, w), square_ok=h == w)
+
+
 @torch.inference_mode()
 def rank_references(model, refs: list[View], queries: list[View], n_refs: int, *, device="cpu") -> list[list[int]]:
     """For each query, the ``n_refs`` reference indices whose mean encoder token is most similar (cosine)."""
@@ -115,8 +121,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         raise PointmapError(f"localize expected a Reconstruction with at least one view, got {type(recon).__name__}")
     if isinstance(images, (str, bytes)) or not hasattr(images, "__len__") or len(images) == 0:
         raise PointmapError("localize expected a non-empty list of images (paths or arrays)")
-    h, w = recon.images.shape[1:3]
-    queries = load_images(list(images), size=max(h, w), square_ok=h == w)
+    queries = query_views(recon, images)
     m, n = len(queries), len(recon)
     if K is not None:
         K = torch.as_tensor(K, dtype=torch.float64)

@@ -76,6 +76,33 @@ def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
     assert seen == {"out": out / "splat", "n": 3}
 
 
+def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(tiny, tmp_path, monkeypatch, capsys):
+    import pointmap.localize
+    import pointmap.splat
+    import pointmap.splat.outputs
+
+    weights, folder = tiny
+    out = tmp_path / "out"
+    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "-o", str(out), "--model",
+                 str(weights), "--size", "64", "--export", "npz"]) == 0
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": "the fit"})
+    K = torch.tensor([[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]], dtype=torch.float64)
+    monkeypatch.setattr(pointmap.localize, "localize", lambda model, recon, images, **kw: pointmap.localize.Localization(
+        torch.eye(4, dtype=torch.float64).repeat(2, 1, 1), K.repeat(2, 1, 1), [1, -1], [2.0, float("nan")],
+        [1.0, float("nan")], ["c.png", "a.jpg"]))
+    seen = {}
+    monkeypatch.setattr(pointmap.splat.outputs, "evaluate_views",
+                        lambda res, images, c2w, K_map, out_dir, **kw: seen.update(res=res, n=len(images),
+                                                                                   shape=images[0].shape, K=K_map, **kw))
+    assert main(["splat", str(out), "--quiet", "--test", str(folder / "c.png"), str(folder / "a.jpg"), "--model",
+                 str(weights), "--test-align-steps", "7"]) == 0
+    assert seen["res"] == "the fit" and seen["n"] == 1 and seen["names"] == ["c.png"] and seen["align_steps"] == 7
+    h, w = seen["shape"][:2]  # the test photograph at the maps' size, K mapped onto it
+    assert (h, w) == (48, 64) and np.allclose(seen["K"][0, 0, 0].item(), 70 * 64 / 80)
+    assert "1 test view(s) could not be localized and are left out: a.jpg" in capsys.readouterr().err
+    assert main(["splat", str(out), "--test", str(folder / "c.png"), "--test-align-steps", "-1"]) == 2
+
+
 def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_poses(tiny, tmp_path, capsys):
     import json
 

@@ -172,3 +172,45 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
               f"{sum(train_psnr) / len(train_psnr):.2f} dB, {metrics['total_seconds']:.0f} s "
               f"-> {paths['ply']}")
     return {"paths": paths, "fit": res, "recon_refined": refined, "metrics": metrics}
+
+
+def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int = 100, names=None,
+                   quiet: bool = False) -> dict:
+    """Novel-view evaluation of a fit (InstantSplat's protocol): each held-out ``images[k]`` ([H, W, 3] in
+    [0, 1] or uint8, e.g. a View's image at the maps' resolution) is rendered from ``cam2world[k]`` (e.g. from
+    ``pointmap.localize``) with ``K[k]`` (that image's pixels), its pose aligned photometrically with the
+    Gaussians frozen (``SplatFit.align_view``, ``align_steps``; 0 keeps the given pose), and rendered again.
+    Returns {"views": [{name, psnr_init, psnr, ssim, cam2world}], "psnr", "ssim"} (means after alignment);
+    with ``out_dir``, writes ``test_XXX.png`` (render | photograph) and ``test_views.json`` there."""
+    from pointmap.splat.fit import _check_image, _ssim, psnr
+
+    cam2world = torch.as_tensor(cam2world, dtype=torch.float32)
+    K = torch.as_tensor(K, dtype=torch.float32)
+    m = len(images)
+    if m == 0 or tuple(cam2world.shape) != (m, 4, 4) or tuple(K.shape) != (m, 3, 3):
+        raise ShapeError(f"evaluate_views expected M >= 1 images with cam2world [M, 4, 4] and K [M, 3, 3], got "
+                         f"{m} images, {list(cam2world.shape)} and {list(K.shape)}")
+    if not (torch.isfinite(cam2world).all() and torch.isfinite(K).all()):
+        raise ShapeError("evaluate_views: every test view needs a finite pose and K (drop the ones localize "
+                         "could not pose)")
+    names = names or [f"test_{k:03d}" for k in range(m)]
+    rows = []
+    for k in range(m):
+        img = _check_image(images[k], f"test image {k}")
+        h, w = img.shape[:2]
+        before = res.render(cam2world[k], K[k], w, h)
+        T = res.align_view(img, cam2world[k], K[k], steps=align_steps) if align_steps > 0 else cam2world[k]
+        after = res.render(T, K[k], w, h)
+        rows.append({"name": names[k], "psnr_init": psnr(before, img), "psnr": psnr(after, img),
+                     "ssim": float(_ssim(after, img)), "cam2world": T.tolist()})
+        if out_dir is not None:
+            save_png(torch.cat([after, img], dim=1), Path(out_dir) / f"test_{k:03d}.png")
+    result = {"views": rows, "psnr": sum(r["psnr"] for r in rows) / m, "ssim": sum(r["ssim"] for r in rows) / m,
+              "align_steps": align_steps}
+    if out_dir is not None:
+        write_bytes(Path(out_dir) / "test_views.json", json.dumps(result, indent=1).encode())
+    if not quiet:
+        print(f"splat: {m} test views, PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} after "
+              f"{align_steps} steps of pose alignment (before: "
+              f"{sum(r['psnr_init'] for r in rows) / m:.2f} dB)")
+    return result

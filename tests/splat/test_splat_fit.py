@@ -60,6 +60,27 @@ def test_align_view_improves_held_out_pose(tiny):
         res.align_view(img[..., :2], init, K)
 
 
+def test_evaluate_views_scores_held_out_views_after_aligning_their_poses_and_writes_renders(tiny, tmp_path):
+    from pointmap.splat import evaluate_views
+
+    d, _, res = tiny
+    img, init, K = d["test_images"][0], d["test_c2w_init"][0], d["K"]
+    out = evaluate_views(res, [img, img], torch.stack([init, d["test_c2w_gt"][0]]), torch.stack([K, K]), tmp_path,
+                         align_steps=40, names=["perturbed", "true"], quiet=True)
+    perturbed, true = out["views"]
+    assert perturbed["psnr"] > perturbed["psnr_init"] + 2 and 0 < perturbed["ssim"] <= 1
+    assert abs(out["psnr"] - (perturbed["psnr"] + true["psnr"]) / 2) < 1e-9
+    assert true["psnr_init"] > perturbed["psnr_init"]  # the true pose renders the photograph better
+    assert json.loads((tmp_path / "test_views.json").read_text())["views"][0]["name"] == "perturbed"
+    assert (tmp_path / "test_000.png").exists() and (tmp_path / "test_001.png").exists()
+    kept = evaluate_views(res, [img], init[None], K[None], align_steps=0, quiet=True)["views"][0]
+    assert kept["psnr"] == kept["psnr_init"] and np.allclose(kept["cam2world"], init.numpy())
+    with pytest.raises(ShapeError, match="finite pose"):
+        evaluate_views(res, [img], torch.full((1, 4, 4), float("nan")), K[None], quiet=True)
+    with pytest.raises(ShapeError, match=r"cam2world \[M, 4, 4\]"):
+        evaluate_views(res, [img, img], init[None], K[None], quiet=True)
+
+
 def test_refined_reconstruction(tiny):
     d, _, res = tiny
     r2 = res.to_reconstruction(d["recon"])
