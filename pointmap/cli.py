@@ -470,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "estimated from each pair")
     loc.add_argument("--n-refs", dest="n_refs", type=int, default=2,
                      help="reconstruction views each photograph is paired with, the most similar by their encoder "
-                          "tokens; the most confident pair's pose is kept (default 2)")
+                          "tokens; the most similar pair that gives a pose is kept, the others are fallbacks (default 2)")
     loc.add_argument("--stride", type=int, default=None, help="video: one frame per STRIDE frames")
     loc.add_argument("--max-frames", dest="max_frames", type=int, default=30,
                      help="video: at most this many frames when --stride is not given (default 30)")

@@ -5,8 +5,9 @@ Each query is paired with reference views of the reconstruction (given, or the m
 tokens); for each pair the network's pointmaps give the query's pose in the reference camera's frame (PnP with
 a known K, else Procrustes both ways and the focal from the query's own pointmap), and the reference's depth
 in the reconstruction gives the scale: the pair's view-1 depth is matched to it (median ratio), so the pose
-lands in the reconstruction's world and units. The pose from the reference whose pair is most confident about
-the query is kept.
+lands in the reconstruction's world and units. The references are tried in order (the most similar first) and
+the first that gives a pose is kept: the others are fallbacks. (Confidences are not comparable across pairs:
+a view paired with its own reference frame scored lower than with a neighbour on the demo room.)
 """
 
 from __future__ import annotations
@@ -109,8 +110,9 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
              batch_size: int = 8, quiet: bool = False) -> Localization:
     """Pose the photographs ``images`` (paths or HxWx3 uint8 arrays) in ``recon``'s world.
 
-    refs: per query, the reconstruction views to pair it with (e.g. the neighbouring keyframes of a video
-        frame); default: the ``n_refs`` most similar views by their encoder tokens.
+    refs: per query, the reconstruction views to pair it with, in order of preference (e.g. the nearest keyframe
+        of a video frame, then the next); default: the ``n_refs`` most similar views by their encoder tokens, the
+        most similar first. The first reference whose pair gives a pose is used.
     K: the queries' intrinsics in their ORIGINAL pixels, [3, 3] for all or [M, 3, 3]; default: estimated.
     The queries are prepared at the reconstruction's network size. Raises PointmapError for an empty
     reconstruction or query list, references out of range, wrong K, and when no query can be posed.
@@ -147,17 +149,14 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     for k, q in enumerate(queries):
         mfo = torch.tensor([q.map_from_original], dtype=torch.float64)
         K_map = None if K is None else K_to_map(K[k:k + 1], mfo)[0]
-        best = -1.0
         for r in refs[k]:
             pred, rev = preds[(r, n + k)], preds[(n + k, r)]
-            conf = float(pred.conf2[0].float().median())
-            if conf <= best:
-                continue
             T, Km, s = pose_against(recon, r, pred, rev, K_map)
-            if not (torch.isfinite(T).all() and torch.isfinite(Km).all()):
-                continue
-            best, out[k], used[k], confs[k], scales[k] = conf, T, r, conf, s
-            K_orig[k] = Km if K is not None else K_to_original(Km[None], mfo)[0]
+            if torch.isfinite(T).all() and torch.isfinite(Km).all():
+                out[k], used[k], scales[k] = T, r, s
+                confs[k] = float(pred.conf2[0].float().median())
+                K_orig[k] = Km if K is not None else K_to_original(Km[None], mfo)[0]
+                break
         if K is not None:
             K_orig[k] = K[k]
     if all(u < 0 for u in used):

@@ -35,7 +35,10 @@ def scene(monkeypatch):
 
     def predict_pairs(model, views, pairs, batch_size=8, **kw):  # indices are the scene's (queries follow)
         calls["pairs"] = list(pairs)
-        return gt_preds(sc, pairs, seed=3)
+        preds = gt_preds(sc, pairs, seed=3)
+        for e in calls.get("broken", ()):  # a pair whose view-1 depth is all behind the camera: no scale
+            preds[e].pts1_cam1[..., 2] *= -1
+        return preds
 
     monkeypatch.setitem(sys.modules, "pointmap.inference",
                         types.SimpleNamespace(predict_pairs=predict_pairs, encode_views=None))
@@ -54,7 +57,23 @@ def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units
         assert rotation_error_deg(est, truth) < 0.5
         assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.02 * world_scale  # the scene is ~8 units across
         assert abs(loc.K[k, 0, 0].item() - sc["K"][q, 0, 0]) / sc["K"][q, 0, 0] < 0.03  # focal estimated
-    assert loc.ref[1] == 0 and loc.ref[0] in (2, 3) and loc.names == ["image_000.png", "image_001.png"]
+    assert loc.ref == [3, 0] and loc.names == ["image_000.png", "image_001.png"]  # the first reference given
+
+
+def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
+    sc, recon, queries, world_scale, calls = scene
+    calls["broken"] = [(3, 4)]
+    loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    assert loc.ref == [2, 0]
+    truth = sc["cam2world"][4].copy()
+    truth[:3, 3] *= world_scale
+    assert rotation_error_deg(loc.cam2world[0].numpy(), truth) < 0.5
+    loc = localize(None, recon, queries, refs=[[3], [0]], quiet=True)  # no fallback: that query is not posed
+    assert loc.ref == [-1, 0] and torch.isnan(loc.cam2world[0]).all() and torch.isfinite(loc.cam2world[1]).all()
+    calls["broken"] = [(3, 4), (0, 5)]
+    with pytest.raises(PointmapError, match="none of the 2 queries could be posed"):
+        localize(None, recon, queries, refs=[[3], [0]], quiet=True)
+
 
 
 def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
