@@ -305,24 +305,28 @@ def cmd_splat(args) -> int:
         raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
     if args.test_align_steps < 0:
         raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
-    tests = expand_images(args.test) if args.test else []
     recon = load_npz(npz)
     out = Path(args.out or npz.parent / "splat")
+    if args.test:  # the test views and the model are read before the fit, which takes minutes
+        from pointmap.checkpoint import load_model
+        from pointmap.localize import query_views
+
+        every = query_views(recon, expand_images(args.test))
+        model = load_model(args.model)
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
-    if tests:  # held-out views: localized in the reconstruction, pose-aligned on the splats, then scored
+    if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch
 
-        from pointmap.checkpoint import load_model
-        from pointmap.localize import localize, query_views
+        from pointmap.localize import localize
         from pointmap.reconstruction import K_to_map
         from pointmap.splat.outputs import evaluate_views
 
-        loc = localize(load_model(args.model), recon, tests, quiet=args.quiet)
+        refined = result.get("recon_refined")
+        loc = localize(model, recon if refined is None else refined, every, quiet=args.quiet)
         posed = [k for k, r in enumerate(loc.ref) if r >= 0]
-        if len(posed) < len(tests):
-            print(f"pointmap: {len(tests) - len(posed)} test view(s) could not be localized and are left out: "
-                  f"{', '.join(loc.names[k] for k in range(len(tests)) if k not in posed)}", file=sys.stderr)
-        every = query_views(recon, tests)
+        if len(posed) < len(every):
+            print(f"pointmap: {len(every) - len(posed)} test view(s) could not be localized and are left out: "
+                  f"{', '.join(loc.names[k] for k in range(len(every)) if k not in posed)}", file=sys.stderr)
         views = [every[k] for k in posed]
         K_map = torch.stack([K_to_map(loc.K[k:k + 1], torch.tensor([v.map_from_original], dtype=torch.float64))[0]
                              for k, v in zip(posed, views)])
@@ -353,11 +357,13 @@ def cmd_localize(args) -> int:
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     recon = load_npz(npz)
     loc = localize(load_model(args.model), recon, images, K=K, n_refs=args.n_refs, quiet=args.quiet)
-    rows = [{"name": name, "cam2world": loc.cam2world[k].tolist(), "K": loc.K[k].tolist(),
-             "reference": None if loc.ref[k] < 0 else recon.names[loc.ref[k]], "confidence": loc.conf[k],
-             "scale": loc.scale[k]} for k, name in enumerate(loc.names)]
+    rows = [{"name": name, "reference": None, "cam2world": None, "K": None, "confidence": None, "scale": None}
+            if loc.ref[k] < 0 else  # not posed: null, not NaN (strict JSON)
+            {"name": name, "reference": recon.names[loc.ref[k]], "cam2world": loc.cam2world[k].tolist(),
+             "K": loc.K[k].tolist(), "confidence": loc.conf[k], "scale": loc.scale[k]}
+            for k, name in enumerate(loc.names)]
     with atomic_open(out / "localization.json", "w") as f:
-        json.dump({"reconstruction": str(npz), "queries": rows}, f, indent=1)
+        json.dump({"reconstruction": str(npz), "queries": rows}, f, indent=1, allow_nan=False)
     posed = [k for k, r in enumerate(loc.ref) if r >= 0]
     write_tum(loc.subset(posed), out / "trajectory.txt", timestamps=posed)
     for row in rows:

@@ -56,9 +56,15 @@ def reference_views(recon: Reconstruction) -> list[View]:
 
 
 def query_views(recon: Reconstruction, images) -> list[View]:
-    """``images`` prepared for the network as ``recon``'s own were (its maps' size)."""
+    """``images`` prepared for the network as ``recon``'s own were: at the size ``reconstruct`` recorded
+    (``info["pipeline"]["size"]``; for a hand-made reconstruction, the long side of its maps). Views (from an
+    earlier call) are returned as they are."""
+    images = list(images)
+    if images and all(isinstance(v, View) for v in images):
+        return images
     h, w = recon.images.shape[1:3]
-    return load_images(list(images), size=max(h, w), square_ok=h == w)
+    size = (recon.info.get("pipeline") or {}).get("size") or max(h, w)
+    return load_images(images, size=int(size), square_ok=h == w)
 
 
 @torch.inference_mode()
@@ -108,7 +114,8 @@ def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None
 
 def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs: int = 2, device="cpu",
              batch_size: int = 8, quiet: bool = False) -> Localization:
-    """Pose the photographs ``images`` (paths or HxWx3 uint8 arrays) in ``recon``'s world.
+    """Pose the photographs ``images`` (paths or HxWx3 uint8 arrays, or the Views ``query_views`` made of them) in
+    ``recon``'s world.
 
     refs: per query, the reconstruction views to pair it with, in order of preference (e.g. the nearest keyframe
         of a video frame, then the next); default: the ``n_refs`` most similar views by their encoder tokens, the

@@ -118,7 +118,8 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     from pointmap.pairs import make_pairs
 
     cfg = align or AlignConfig(quiet=quiet)
-    views = load_images(paths_or_arrays, size=model_input_size(model) if size is None else size)
+    size = model_input_size(model) if size is None else size
+    views = load_images(paths_or_arrays, size=size)
     shapes = sorted({v.shape for v in views})
     if len(shapes) > 1:
         views, hw = crop_to_common(views)
@@ -163,7 +164,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None
                              for src in paths_or_arrays]
-    recon.info["pipeline"] = {"graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
+    recon.info["pipeline"] = {"size": size, "graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine)}
     return recon
 

@@ -61,7 +61,9 @@ class Distortion:
 
     @property
     def is_identity(self) -> bool:
-        return not any(self.coeffs)
+        """A pinhole camera: no coefficient set, and not a fisheye (whose zero coefficients still mean the
+        equidistant projection, theta_d = theta)."""
+        return not self.fisheye and not any(self.coeffs)
 
     def opencv(self) -> np.ndarray:
         """The coefficient vector OpenCV's functions take: (k1, k2, p1, p2, k3[, k4, k5, k6]), or (k1..k4) for the
@@ -195,6 +197,11 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
             raise PointmapError(f"photograph {k} ({paths[k]}) has lens distortion but no intrinsics to undo it with")
         rgb = read_rgb(paths[k])
         h, w = rgb.shape[:2]
+        cx, cy = float(np.asarray(K[k])[0, 2]), float(np.asarray(K[k])[1, 2])
+        if not (0 <= cx <= w - 1 and 0 <= cy <= h - 1):
+            raise PointmapError(f"photograph {Path(paths[k]).name} is {w}x{h} as read (EXIF orientation applied), but "
+                                f"its K puts the principal point at ({cx:.1f}, {cy:.1f}), outside it: the intrinsics "
+                                "are not this image's (rotated, or for another size)")
         K_new = pinhole_for(K[k], dist, (w, h))
         out = undistort(rgb, K[k], dist, K_new)
         target = out_dir / Path(paths[k]).name

@@ -18,6 +18,7 @@ LENSES = [
     Distortion("SIMPLE_RADIAL", (-0.1,)),
     Distortion("RADIAL", (-0.1, 0.02)),
     Distortion("OPENCV_FISHEYE", (0.05, -0.02, 0.01, 0.0)),
+    Distortion("OPENCV_FISHEYE"),  # zero coefficients: still the equidistant projection, not a pinhole
 ]
 
 
@@ -39,7 +40,7 @@ def photograph(dist: Distortion) -> np.ndarray:
     return pattern(n[:, 0], n[:, 1]).reshape(H, W).astype(np.float32)
 
 
-@pytest.mark.parametrize("dist", LENSES, ids=lambda d: f"{d.model}{d.coeffs[0]:+}")
+@pytest.mark.parametrize("dist", LENSES, ids=lambda d: f"{d.model}{d.coeffs[0]:+}".replace("+0.0", "-zero"))
 def test_an_undistorted_photograph_is_the_pinhole_view_of_the_same_scene(dist):
     K_new = pinhole_for(K, dist, (W, H))
     out = undistort(photograph(dist), K, dist, K_new)
@@ -51,7 +52,7 @@ def test_an_undistorted_photograph_is_the_pinhole_view_of_the_same_scene(dist):
     assert np.allclose(K_new[:2, 2], K[:2, 2]) and np.isclose(K_new[0, 0] / K_new[1, 1], 1.0)
 
 
-@pytest.mark.parametrize("dist", LENSES, ids=lambda d: f"{d.model}{d.coeffs[0]:+}")
+@pytest.mark.parametrize("dist", LENSES, ids=lambda d: f"{d.model}{d.coeffs[0]:+}".replace("+0.0", "-zero"))
 def test_the_pinhole_view_is_the_widest_whose_every_pixel_comes_from_the_photograph(dist):
     K_new = pinhole_for(K, dist, (W, H))
     u, v = np.meshgrid(np.arange(W), np.arange(H))
@@ -85,6 +86,12 @@ def test_a_strong_barrel_lens_is_cut_before_its_model_folds_back_instead_of_mirr
     wider[0, 0] *= 0.95
     wider[1, 1] *= 0.95
     assert not (np.diff(diagonal_radius(wider)) > 0).all()
+
+
+def test_a_fisheye_with_zero_coefficients_is_not_taken_for_a_pinhole():
+    lens = Distortion("OPENCV_FISHEYE")
+    assert not lens.is_identity
+    assert pinhole_for(K, lens, (W, H))[0, 0] < 0.97 * K[0, 0]  # the equidistant image is wider than a pinhole's
 
 
 def test_no_distortion_leaves_the_image_and_intrinsics_as_they_are():
@@ -143,3 +150,7 @@ def test_undistort_photos_writes_the_distorted_ones_with_their_masks_and_leaves_
         undistort_photos(paths, {0: K}, {0: LENSES[0]}, tmp_path / "out", [np.ones((10, 10), bool), None])
     with pytest.raises(PointmapError, match="no intrinsics"):
         undistort_photos(paths, {}, {0: LENSES[0]}, tmp_path / "out")
+    rotated = K.copy()
+    rotated[0, 2], rotated[1, 2] = 119.5, 300.0  # a portrait camera's K for this landscape photograph
+    with pytest.raises(PointmapError, match=r"principal point at \(119.5, 300.0\), outside it"):
+        undistort_photos(paths, {0: rotated}, {0: LENSES[0]}, tmp_path / "out")

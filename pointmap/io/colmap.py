@@ -225,7 +225,10 @@ def _read_binary(folder: Path):
         for _ in range(struct.unpack("<Q", f.read(8))[0]):
             cid, mid, w, h = struct.unpack("<iiQQ", f.read(24))
             if mid not in CAMERA_MODELS:
-                raise ValueError(f"unknown camera model id {mid}")
+                from pointmap.errors import PointmapError
+
+                raise PointmapError(f"{folder}: COLMAP camera model id {mid} is not one pointmap can undistort (it "
+                                    f"reads {', '.join(_LENSES)})")
             name, n = CAMERA_MODELS[mid]
             cams[cid] = (name, int(w), int(h), struct.unpack(f"<{n}d", f.read(8 * n)))
     with open(folder / "images.bin", "rb") as f:
@@ -245,13 +248,20 @@ def _read_binary(folder: Path):
 def _read_text(folder: Path):
     cams, images = {}, []
     for line in (folder / "cameras.txt").read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
+        line = line.strip()
+        if line and not line.startswith("#"):
             tok = line.split()
             cams[int(tok[0])] = (tok[1], int(tok[2]), int(tok[3]), tuple(float(v) for v in tok[4:]))
-    lines = [ln for ln in (folder / "images.txt").read_text().splitlines() if not ln.startswith("#")]
-    for line in lines[0::2]:  # two lines per image, the second (its 2D points) possibly empty
+    lines = (folder / "images.txt").read_text().splitlines()
+    i = 0
+    while i < len(lines):  # as COLMAP reads it: an image line, then always its 2D points' line (possibly empty)
+        line = lines[i].strip()
+        i += 1
+        if not line or line.startswith("#"):
+            continue
         tok = line.split(maxsplit=9)
-        images.append((tok[9], [float(v) for v in tok[1:5]], [float(v) for v in tok[5:8]], int(tok[8])))
+        images.append((tok[9].strip(), [float(v) for v in tok[1:5]], [float(v) for v in tok[5:8]], int(tok[8])))
+        i += 1
     return cams, images
 
 
@@ -275,7 +285,8 @@ def read_colmap(path) -> dict:
     else:
         raise PointmapError(f"{path}: expected a COLMAP sparse model folder with cameras.bin and images.bin (or "
                             "cameras.txt and images.txt)")
-    binary = (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file()
+    binary = (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file() and \
+        not (path.is_file() and path.suffix == ".txt")  # a cameras.txt named: the text model
     try:
         cams, images = _read_binary(folder) if binary else _read_text(folder)
     except (OSError, ValueError, IndexError, struct.error, UnicodeDecodeError) as e:

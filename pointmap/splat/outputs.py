@@ -207,8 +207,9 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
             save_png(torch.cat([after, img], dim=1), Path(out_dir) / f"test_{k:03d}.png")
     result = {"views": rows, "psnr": sum(r["psnr"] for r in rows) / m, "ssim": sum(r["ssim"] for r in rows) / m,
               "align_steps": align_steps}
-    if out_dir is not None:
-        write_bytes(Path(out_dir) / "test_views.json", json.dumps(result, indent=1).encode())
+    if out_dir is not None:  # strict JSON: an exact render's infinite PSNR is written as null
+        clean = json.loads(json.dumps(result), parse_constant=lambda c: None)
+        write_bytes(Path(out_dir) / "test_views.json", json.dumps(clean, indent=1, allow_nan=False).encode())
     if not quiet:
         print(f"splat: {m} test views, PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} after "
               f"{align_steps} steps of pose alignment (before: "

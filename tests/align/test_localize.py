@@ -88,6 +88,25 @@ def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
         assert np.linalg.norm(loc.cam2world[k, :3, 3].numpy() - truth[:3, 3]) < 0.02 * world_scale
 
 
+def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene):
+    import cv2
+
+    sc, recon, queries, world_scale, _ = scene
+    big = [cv2.resize(q, (96, 64), interpolation=cv2.INTER_NEAREST) for q in queries]  # twice the maps' size
+    K_big = torch.from_numpy(sc["K"][4:6]).clone()
+    K_big[:, :2, :2] *= 2
+    K_big[:, :2, 2] = (K_big[:, :2, 2] + 0.5) * 2 - 0.5  # pixel centres at integers: u_big = (u + 0.5) * 2 - 0.5
+    loc = localize(None, recon, big, refs=[[3], [0]], quiet=True)
+    assert torch.allclose(loc.K[:, 0, 0], K_big[:, 0, 0], rtol=0.03)  # estimated on the maps, reported here
+    assert torch.allclose(loc.K[:, :2, 2], K_big[:, :2, 2], atol=1e-6)
+    known = localize(None, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for PnP
+    for k, q in enumerate((4, 5)):
+        truth = sc["cam2world"][q].copy()
+        truth[:3, 3] *= world_scale
+        assert rotation_error_deg(known.cam2world[k].numpy(), truth) < 0.5
+        assert np.linalg.norm(known.cam2world[k, :3, 3].numpy() - truth[:3, 3]) < 0.02 * world_scale
+
+
 def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
     _, recon, queries, _, _ = scene
     with pytest.raises(GraphError, match=r"view indices in 0..3"):

@@ -331,6 +331,32 @@ def test_read_colmap_reads_the_cameras_and_lenses_pycolmap_writes(tmp_path, mode
         assert cam["distortion"] == (None if lens is None else Distortion(*lens))
 
 
+def test_read_colmap_text_parses_as_colmap_does_blank_lines_comments_and_names_with_spaces(tmp_path):
+    from pointmap.io.colmap import read_colmap
+
+    (tmp_path / "cameras.txt").write_text("  # indented comment\n\n1 SIMPLE_RADIAL_FISHEYE 80 60 70 40 30 0\n\n")
+    (tmp_path / "images.txt").write_text(
+        "# header\n\n1 1 0 0 0 0 0 0 1 my photo.png  \n10 20 -1\n  # between images\n"
+        "2 1 0 0 0 1 2 3 1 sub/b.png\n\n\n\n")
+    cams = read_colmap(tmp_path / "cameras.txt")
+    assert sorted(cams) == ["b.png", "my photo.png"]
+    assert np.allclose(cams["b.png"]["cam2world"][:3, 3], [-1, -2, -3])
+    assert cams["b.png"]["distortion"] is not None  # a fisheye with k = 0 is still a fisheye
+
+
+def test_read_colmap_reads_the_text_model_when_its_cameras_txt_is_named_beside_a_binary_one(tmp_path):
+    from pointmap.io.colmap import read_colmap
+
+    recon = make_recon(n=2)
+    save_reconstruction(recon, tmp_path, formats=("colmap", "colmap_txt"))
+    model = tmp_path / "sparse" / "0"
+    text = (model / "cameras.txt").read_text().splitlines()
+    (model / "cameras.txt").write_text("\n".join(
+        " ".join(t.split()[:4] + ["123.0"] + t.split()[5:]) if t and not t.startswith("#") else t for t in text))
+    assert read_colmap(model / "cameras.txt")[recon.names[0]]["K"][0, 0] == 123.0
+    assert read_colmap(model)[recon.names[0]]["K"][0, 0] != 123.0  # the folder: the binary model
+
+
 def test_read_colmap_refuses_what_it_cannot_use_and_says_why(tmp_path):
     from pointmap.errors import PointmapError
     from pointmap.io.colmap import read_colmap
@@ -358,6 +384,11 @@ def test_read_colmap_refuses_what_it_cannot_use_and_says_why(tmp_path):
     (tmp_path / "images.bin").write_bytes(b"")
     with pytest.raises(PointmapError, match="not a readable COLMAP model"):
         read_colmap(tmp_path)
+    import struct
+
+    (tmp_path / "cameras.bin").write_bytes(struct.pack("<QiiQQ", 1, 1, 42, 80, 60))
+    with pytest.raises(PointmapError, match="COLMAP camera model id 42 is not one pointmap can undistort"):
+        read_colmap(tmp_path)
 
 
 def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_global(tmp_path):
@@ -372,12 +403,14 @@ def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_g
         {"file_path": "a.png", "transform_matrix": T},
         {"file_path": "b.png", "transform_matrix": T, "camera_model": "OPENCV_FISHEYE", "k1": 0.03, "k4": 0.001,
          "p2": 0},
-        {"file_path": "c.png", "transform_matrix": T, "k1": 0, "p2": 0}]}
+        {"file_path": "c.png", "transform_matrix": T, "k1": 0, "p2": 0},
+        {"file_path": "d.png", "transform_matrix": T, "camera_model": "OPENCV_FISHEYE", "k1": 0, "p2": 0}]}
     (tmp_path / "t.json").write_text(json.dumps(meta))
     cams = read_transforms(tmp_path / "t.json")
     assert cams["a.png"]["distortion"] == Distortion("OPENCV", (-0.1, 0, 0, 0.002, 0))
     assert cams["b.png"]["distortion"] == Distortion("OPENCV_FISHEYE", (0.03, 0, 0, 0.001))
     assert cams["c.png"]["distortion"] is None  # all zero: a pinhole camera
+    assert cams["d.png"]["distortion"] == Distortion("OPENCV_FISHEYE")  # all zero, yet a fisheye
 
 
 @pytest.mark.parametrize("change,message", [
