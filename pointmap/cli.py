@@ -40,12 +40,11 @@ def K_from_focals(images: list, focal: list[float]):
     (EXIF orientation applied): ((w - 1) / 2, (h - 1) / 2) in pointmap's pixel convention."""
     import torch
 
+    from pointmap.geometry.cameras import intrinsics
     from pointmap.images import image_sizes
 
-    K = torch.zeros(len(images), 3, 3, dtype=torch.float64)
-    for k, ((w, h), f) in enumerate(zip(image_sizes(images), focal)):
-        K[k] = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    return K
+    return torch.stack([intrinsics(f, (w - 1) / 2, (h - 1) / 2, dtype=torch.float64)
+                        for (w, h), f in zip(image_sizes(images), focal)])
 
 
 def cmd_pair(args) -> int:
@@ -86,6 +85,10 @@ def pair_summary(npz: Path) -> str:
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
 
+def _image_files(folder: Path) -> list[str]:
+    return sorted(str(f) for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
                   max_frames: int = 30) -> list[str]:
     """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
@@ -104,10 +107,9 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
                 raise PointmapError(f"{p} is a video: frames need a folder to go to")
             out += [str(f) for f in extract_frames(p, frames_dir, stride=stride, max_frames=max_frames)]
         elif p.is_dir():
-            found = sorted(str(f) for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+            found = _image_files(p)
             if not found and (p / "images").is_dir():  # a COLMAP / nerfstudio scene: its photographs in images/
-                found = sorted(str(f) for f in (p / "images").iterdir()
-                               if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+                found = _image_files(p / "images")
             if not found:
                 raise PointmapError(f"folder {p} holds no images (expected files ending in "
                                     f"{', '.join(IMAGE_SUFFIXES)})")
@@ -295,14 +297,21 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
     return 0
 
 
+def reconstruction_npz(recon: str) -> Path:
+    """The reconstruction.npz a command reads: the file itself, or the one in a folder ``pointmap reconstruct``
+    wrote. PointmapError when there is none."""
+    src = Path(recon)
+    npz = src / "reconstruction.npz" if src.is_dir() else src
+    if not npz.is_file():
+        raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    return npz
+
+
 def cmd_splat(args) -> int:
     from pointmap.io import load_npz
     from pointmap.splat import run as run_splat
 
-    src = Path(args.recon)
-    npz = src / "reconstruction.npz" if src.is_dir() else src
-    if not npz.exists():
-        raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    npz = reconstruction_npz(args.recon)
     if args.test_align_steps < 0:
         raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
     recon = load_npz(npz)
@@ -328,8 +337,7 @@ def cmd_splat(args) -> int:
             print(f"pointmap: {len(every) - len(posed)} test view(s) could not be localized and are left out: "
                   f"{', '.join(loc.names[k] for k in range(len(every)) if k not in posed)}", file=sys.stderr)
         views = [every[k] for k in posed]
-        K_map = torch.stack([K_to_map(loc.K[k:k + 1], torch.tensor([v.map_from_original], dtype=torch.float64))[0]
-                             for k, v in zip(posed, views)])
+        K_map = K_to_map(loc.K[posed], torch.tensor([v.map_from_original for v in views], dtype=torch.float64))
         evaluate_views(result["fit"], [v.img.permute(1, 2, 0) for v in views], loc.cam2world[posed], K_map,
                        out / "renders", align_steps=args.test_align_steps, names=[v.name for v in views],
                        quiet=args.quiet)
@@ -346,10 +354,7 @@ def cmd_localize(args) -> int:
     from pointmap.io.tum import write_tum
     from pointmap.localize import localize
 
-    src = Path(args.recon)
-    npz = src / "reconstruction.npz" if src.is_dir() else src
-    if not npz.is_file():
-        raise PointmapError(f"no reconstruction.npz in {src} (write one with: pointmap reconstruct ... --export npz)")
+    npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
     out = Path(args.out)

@@ -12,7 +12,7 @@ a view paired with its own reference frame scored lower than with a neighbour on
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -98,14 +98,14 @@ def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None
     """(cam2world [4, 4] float64 in the reconstruction's world, K [3, 3] at the query's map resolution, scale) of
     the query seen as view 2 of ``pred`` (reference ``ref`` as view 1) and view 1 of ``pred_reverse``. A pose
     that cannot be found is NaN."""
+    from pointmap.geometry.cameras import intrinsics
     from pointmap.pose import focal_from_prediction, relative_pose
 
     s = depth_scale(recon, ref, pred)
     h, w = pred.pts2_cam1.shape[1:3]
     if K_map is None:
         rel = relative_pose(pred, pred_reverse=pred_reverse)[0].double()
-        f = float(focal_from_prediction(pred_reverse)[0])
-        K_map = torch.tensor([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+        K_map = intrinsics(float(focal_from_prediction(pred_reverse)[0]), (w - 1) / 2, (h - 1) / 2, dtype=torch.float64)
     else:
         rel = relative_pose(pred, K2=K_map)[0].double()
     rel[:3, 3] *= s
@@ -146,12 +146,11 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     if len(refs) != m or any(not r or any(not isinstance(k, int) or not 0 <= k < n for k in r) for r in refs):
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
                          f"got {refs}")
-    views = refs_views + [View(q.img, q.original_size, q.map_from_original, q.name, n + k)
-                          for k, q in enumerate(queries)]
+    views = refs_views + [replace(q, index=n + k) for k, q in enumerate(queries)]
     pairs = sorted({(r, n + k) for k, rs in enumerate(refs) for r in rs})
     preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=False, quiet=quiet)
     out = torch.full((m, 4, 4), float("nan"), dtype=torch.float64)
-    K_orig = torch.full((m, 3, 3), float("nan"), dtype=torch.float64)
+    K_orig = K.clone() if K is not None else torch.full((m, 3, 3), float("nan"), dtype=torch.float64)
     used, confs, scales = [-1] * m, [float("nan")] * m, [float("nan")] * m
     for k, q in enumerate(queries):
         mfo = torch.tensor([q.map_from_original], dtype=torch.float64)
@@ -162,10 +161,9 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
             if torch.isfinite(T).all() and torch.isfinite(Km).all():
                 out[k], used[k], scales[k] = T, r, s
                 confs[k] = float(pred.conf2[0].float().median())
-                K_orig[k] = Km if K is not None else K_to_original(Km[None], mfo)[0]
+                if K is None:  # estimated on the maps: reported in the query's own pixels
+                    K_orig[k] = K_to_original(Km[None], mfo)[0]
                 break
-        if K is not None:
-            K_orig[k] = K[k]
     if all(u < 0 for u in used):
         raise PointmapError(f"none of the {m} queries could be posed: their pairs with the references share too "
                             "little (no valid depth or pose); give references that see the same scene")

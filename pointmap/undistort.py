@@ -202,6 +202,9 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
             raise PointmapError(f"photograph {Path(paths[k]).name} is {w}x{h} as read (EXIF orientation applied), but "
                                 f"its K puts the principal point at ({cx:.1f}, {cy:.1f}), outside it: the intrinsics "
                                 "are not this image's (rotated, or for another size)")
+        if masks is not None and masks[k] is not None and tuple(np.shape(masks[k])) != (h, w):
+            raise PointmapError(f"the mask of {Path(paths[k]).name} is {list(np.shape(masks[k]))[:2]}, but a "
+                                f"photograph with lens distortion needs its mask at its own size [{h}, {w}]")
         K_new = pinhole_for(K[k], dist, (w, h))
         out = undistort(rgb, K[k], dist, K_new)
         target = out_dir / Path(paths[k]).name
@@ -210,9 +213,6 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
             if not cv2.imwrite(str(tmp), np.ascontiguousarray(out[..., ::-1]), params):
                 raise PointmapError(f"could not write the undistorted photograph {target}")
         if masks is not None and masks[k] is not None:
-            if tuple(np.shape(masks[k])) != (h, w):
-                raise PointmapError(f"the mask of {Path(paths[k]).name} is {list(np.shape(masks[k]))[:2]}, but a "
-                                    f"photograph with lens distortion needs its mask at its own size [{h}, {w}]")
             masks[k] = undistort(np.asarray(masks[k]), K[k], dist, K_new, nearest=True)
         paths[k], K[k] = str(target), K_new
     return paths, K, masks

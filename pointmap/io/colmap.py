@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pointmap.errors import PointmapError
 from pointmap.io.atomic import atomic_open, atomic_path
 from pointmap.io.points import PointSet
 
@@ -202,7 +203,6 @@ def quaternion_to_rotation(q) -> np.ndarray:
 
 def _camera(model: str, params, where: str):
     """K [3, 3] (pointmap's pixel convention) and a ``pointmap.undistort.Distortion`` (None when all zero)."""
-    from pointmap.errors import PointmapError
     from pointmap.undistort import Distortion
 
     if model not in _LENSES:
@@ -225,8 +225,6 @@ def _read_binary(folder: Path):
         for _ in range(struct.unpack("<Q", f.read(8))[0]):
             cid, mid, w, h = struct.unpack("<iiQQ", f.read(24))
             if mid not in CAMERA_MODELS:
-                from pointmap.errors import PointmapError
-
                 raise PointmapError(f"{folder}: COLMAP camera model id {mid} is not one pointmap can undistort (it "
                                     f"reads {', '.join(_LENSES)})")
             name, n = CAMERA_MODELS[mid]

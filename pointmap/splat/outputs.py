@@ -199,8 +199,11 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
         img = _check_image(images[k], f"test image {k}")
         h, w = img.shape[:2]
         before = res.render(cam2world[k], K[k], w, h)
-        T = res.align_view(img, cam2world[k], K[k], steps=align_steps) if align_steps > 0 else cam2world[k]
-        after = res.render(T, K[k], w, h)
+        if align_steps > 0:
+            T = res.align_view(img, cam2world[k], K[k], steps=align_steps)
+            after = res.render(T, K[k], w, h)
+        else:  # the given pose is scored as it is: its render is the one above
+            T, after = cam2world[k], before
         rows.append({"name": names[k], "psnr_init": psnr(before, img), "psnr": psnr(after, img),
                      "ssim": float(_ssim(after, img)), "cam2world": T.tolist()})
         if out_dir is not None:

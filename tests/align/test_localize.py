@@ -21,6 +21,16 @@ def rotation_error_deg(A, B):
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
 
+def assert_at_true_pose(cam2world, sc, view, world_scale):
+    """``cam2world`` [4, 4] is scene view ``view``'s true pose in the reconstruction's units (the scene is ~8 units
+    across): rotation within 0.5 degrees, centre within 2% of the scale."""
+    truth = sc["cam2world"][view].copy()
+    truth[:3, 3] *= world_scale
+    est = np.asarray(cam2world)
+    assert rotation_error_deg(est, truth) < 0.5
+    assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.02 * world_scale
+
+
 @pytest.fixture
 def scene(monkeypatch):
     sc = make_scene(6, 32, 48, seed=7)
@@ -51,11 +61,7 @@ def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units
     loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert sorted(calls["pairs"]) == [(0, 5), (2, 4), (3, 4)]
     for k, q in enumerate((4, 5)):
-        truth = sc["cam2world"][q].copy()
-        truth[:3, 3] *= world_scale
-        est = loc.cam2world[k].numpy()
-        assert rotation_error_deg(est, truth) < 0.5
-        assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.02 * world_scale  # the scene is ~8 units across
+        assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
         assert abs(loc.K[k, 0, 0].item() - sc["K"][q, 0, 0]) / sc["K"][q, 0, 0] < 0.03  # focal estimated
     assert loc.ref == [3, 0] and loc.names == ["image_000.png", "image_001.png"]  # the first reference given
 
@@ -65,15 +71,12 @@ def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
     calls["broken"] = [(3, 4)]
     loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert loc.ref == [2, 0]
-    truth = sc["cam2world"][4].copy()
-    truth[:3, 3] *= world_scale
-    assert rotation_error_deg(loc.cam2world[0].numpy(), truth) < 0.5
+    assert_at_true_pose(loc.cam2world[0], sc, 4, world_scale)
     loc = localize(None, recon, queries, refs=[[3], [0]], quiet=True)  # no fallback: that query is not posed
     assert loc.ref == [-1, 0] and torch.isnan(loc.cam2world[0]).all() and torch.isfinite(loc.cam2world[1]).all()
     calls["broken"] = [(3, 4), (0, 5)]
     with pytest.raises(PointmapError, match="none of the 2 queries could be posed"):
         localize(None, recon, queries, refs=[[3], [0]], quiet=True)
-
 
 
 def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
@@ -82,10 +85,7 @@ def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
     loc = localize(None, recon, queries, refs=[[3], [0]], K=K, quiet=True)
     assert torch.equal(loc.K, K.double())
     for k, q in enumerate((4, 5)):
-        truth = sc["cam2world"][q].copy()
-        truth[:3, 3] *= world_scale
-        assert rotation_error_deg(loc.cam2world[k].numpy(), truth) < 0.5
-        assert np.linalg.norm(loc.cam2world[k, :3, 3].numpy() - truth[:3, 3]) < 0.02 * world_scale
+        assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
 
 
 def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene):
@@ -101,10 +101,7 @@ def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene)
     assert torch.allclose(loc.K[:, :2, 2], K_big[:, :2, 2], atol=1e-6)
     known = localize(None, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for PnP
     for k, q in enumerate((4, 5)):
-        truth = sc["cam2world"][q].copy()
-        truth[:3, 3] *= world_scale
-        assert rotation_error_deg(known.cam2world[k].numpy(), truth) < 0.5
-        assert np.linalg.norm(known.cam2world[k, :3, 3].numpy() - truth[:3, 3]) < 0.02 * world_scale
+        assert_at_true_pose(known.cam2world[k], sc, q, world_scale)
 
 
 def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
