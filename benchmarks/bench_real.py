@@ -24,7 +24,8 @@ Two sets:
   (Z = f B / (d + 31.086)): AbsRel after the median scale (the held-out sets' ``abs_rel``), next to StereoSGBM's
   depth on the same images through the true calibration. Skipped with a note when the files are not found.
 
-Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the model's coarse matches +
+Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the same refined on its own
+matches with its own focals (``pm.pair_pose``, what the pipeline reports), the model's coarse matches +
 PnP with the true K, the model's pose refined on those matches with the
 true K (``pm.refine_pose_with_matches``), SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
 (``pointmap.pose.focal_from_prediction``, no intrinsics given) is compared with the calibrated one.
@@ -118,6 +119,8 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
         rev = model(v2.img[None], v1.img[None])
     ours = pm.relative_pose(pred, pred_reverse=rev)[0]
     rows = [("model (own pointmaps, no K)", errors(ours.numpy(), gt))]
+    if pred.has_desc:  # what the pipeline reports: refined on its own matches with its own focals (pm.pair_pose)
+        rows.append(("model + own matches (no K)", errors(pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0].numpy(), gt)))
     focal_err = float("nan")
     if K1 is not None:
         k1, k2 = _k_on_map(K1, v1), _k_on_map(K2, v2)

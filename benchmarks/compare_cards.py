@@ -27,10 +27,13 @@ EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), (
              ("median dir err", "trans_err_med", "{:.1f}"), ("AbsRel", "AbsRel", "{:.3f}"),
              ("depth_ratio_err", "depth_ratio_err", "{:.3f}"),
              ("focal error (median, relative)", "focal_err", "{:.3f}"), ("fwd_corr", "fwd_corr", "{:.2f}"),
+             ("RRA@15 % of the pipeline's pose (+ own matches)", "RRA15_pair", "{:.1f}"),
+             ("RTA@15 % of the pipeline's pose (+ own matches)", "RTA15_pair", "{:.1f}"),
              ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"),
              ("confidence >= 1.1, share of pixels", "conf_spread", "{:.3f}"),
              ("AbsRel of the confident half / all", "conf_order", "{:.3f}"))
 BENCH_CATEGORIES = ("all", "low-texture", "wide (>30 deg)", "short baseline (<0.1 depth)")
+PIPELINE = "model + own matches (no K)"  # the pose the pipeline reports (pm.pair_pose), a row of bench_pose / bench_real
 
 
 class CardError(ValueError):
@@ -41,7 +44,9 @@ def parse_card(text: str) -> dict:
     """The figures of one ``model_card.sh`` output: {"eval": {set: {key: value}}, "bench": {category: (pairs,
     RRA, RTA, med rot)}, "sift": (RRA, RTA) or None, "rig": (med rot, med dir) or None, "focal": %, "aloe_r": r,
     "moto": (rot err, dir err) or None, "moto_focal": %, "moto_absrel": AbsRel, "moto_r": r} (the Middlebury motorcycle
-    rows, None on cards made without them). CardError when the text has none of the card's sections."""
+    rows, None on cards made without them); "bench_pair", "rig_pair", "aloe_pair", "moto_pair": the same for the
+    pipeline's pose ("model + own matches (no K)", ``pm.pair_pose``; empty / None on cards made before it).
+    CardError when the text has none of the card's sections."""
     sections: dict[str, list[str]] = {}
     name = None
     for line in text.splitlines():
@@ -54,7 +59,8 @@ def parse_card(text: str) -> dict:
     if not sections:
         raise CardError("expected the output of benchmarks/model_card.sh (sections starting with '== '), found none")
     card: dict = {"eval": {}, "bench": {}, "sift": None, "rig": None, "focal": None, "aloe_r": None,
-                  "moto": None, "moto_focal": None, "moto_absrel": None, "moto_r": None}
+                  "moto": None, "moto_focal": None, "moto_absrel": None, "moto_r": None,
+                  "bench_pair": {}, "rig_pair": None, "aloe_pair": None, "moto_pair": None}
     for s in EVAL_SETS:
         for line in sections.get(s, []):
             if line.startswith("{"):
@@ -64,16 +70,21 @@ def parse_card(text: str) -> dict:
                     raise CardError(f"{s}: a JSON line that does not parse ({e})") from None
     for line in sections.get("bench_s525252", []):
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 7 and cells[2] in ("model", "sift+E (known K)") and cells[1].isdigit():
+        if len(cells) == 7 and cells[2] in ("model", PIPELINE, "sift+E (known K)") and cells[1].isdigit():
             rra, rta = (float(c.rstrip("%")) if c != "-" else float("nan") for c in cells[3:5])
-            if cells[2] == "model":
-                card["bench"][cells[0]] = (int(cells[1]), rra, rta, float(cells[5]))
+            if cells[2] in ("model", PIPELINE):
+                card["bench" if cells[2] == "model" else "bench_pair"][cells[0]] = (int(cells[1]), rra, rta,
+                                                                                     float(cells[5]))
             elif cells[0] == "all":
                 card["sift"] = (rra, rta)
     for line in sections.get("real", []):
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) == 7 and cells[0] == "stereo rig" and cells[2].startswith("model (own pointmaps"):
             card["rig"] = (float(cells[5]), float(cells[6]))
+        for where, key in (("stereo rig", "rig_pair"), ("aloe (rectified)", "aloe_pair"),
+                           ("motorcycle (rectified)", "moto_pair")):
+            if len(cells) == 7 and cells[0] == where and cells[2] == PIPELINE:
+                card[key] = (float(cells[5]), float(cells[6]))
         if len(cells) == 4 and cells[0].startswith("model (1 / depth"):
             card["aloe_r"] = float(cells[2])
         if len(cells) == 7 and cells[0] == "motorcycle (rectified)" and cells[2].startswith("model (own pointmaps"):
@@ -114,10 +125,19 @@ def compare(cards: list[dict], names: list[str]) -> str:
         row(f"`bench_s525252` {cat}: RRA@15 %", [_at(c["bench"].get(cat), 1) for c in cards], "{:.0f}")
     row("`bench_s525252` all: RTA@15 %", [_at(c["bench"].get("all"), 2) for c in cards], "{:.0f}")
     row("`bench_s525252` all: median rot err", [_at(c["bench"].get("all"), 3) for c in cards], "{:.1f}")
+    if any(c["bench_pair"] for c in cards):
+        row("`bench_s525252` all, the pipeline's pose: RRA@15 %", [_at(c["bench_pair"].get("all"), 1) for c in cards],
+            "{:.0f}")
+        row("`bench_s525252` all, the pipeline's pose: RTA@15 %", [_at(c["bench_pair"].get("all"), 2) for c in cards],
+            "{:.0f}")
     row("SIFT + E (true K), all: RRA@15 %", [_at(c["sift"], 0) for c in cards], "{:.0f}")
     row("real rig: median rot err", [_at(c["rig"], 0) for c in cards], "{:.1f}")
     row("real rig: median dir err", [_at(c["rig"], 1) for c in cards], "{:.1f}")
     row("real rig: focal error %", [c["focal"] for c in cards], "{:.1f}")
+    for label, key in (("real rig", "rig_pair"), ("Aloe", "aloe_pair"), ("motorcycle", "moto_pair")):
+        if any(c[key] is not None for c in cards):
+            row(f"{label}, the pipeline's pose: rot err", [_at(c[key], 0) for c in cards], "{:.1f}")
+            row(f"{label}, the pipeline's pose: dir err", [_at(c[key], 1) for c in cards], "{:.1f}")
     row("Aloe: Pearson r", [c["aloe_r"] for c in cards], "{:.2f}")
     if any(c["moto"] is not None for c in cards):
         row("motorcycle: rot err", [_at(c["moto"], 0) for c in cards], "{:.1f}")
@@ -125,21 +145,22 @@ def compare(cards: list[dict], names: list[str]) -> str:
         row("motorcycle: focal error %", [c["moto_focal"] for c in cards], "{:.1f}")
         row("motorcycle: depth AbsRel", [c["moto_absrel"] for c in cards], "{:.3f}")
         row("motorcycle: depth Pearson r", [c["moto_r"] for c in cards], "{:.2f}")
-    for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
-        for sets in (EVAL_SETS[:2], EVAL_SETS):
-            totals = []
-            for c in cards:
-                if not all(s in c["eval"] for s in sets) or "all" not in c["bench"]:
-                    totals.append(None)
+    for pose, bench, suffix in (("", "bench", ""), (", the pipeline's pose", "bench_pair", "_pair")):
+        for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
+            for sets in (EVAL_SETS[:2], EVAL_SETS):
+                totals = []
+                for c in cards:
+                    if not all(key + suffix in c["eval"].get(s, {}) for s in sets) or "all" not in c[bench]:
+                        totals.append(None)
+                        continue
+                    pairs = c[bench]["all"][0] + sum(int(c["eval"][s]["pairs"]) for s in sets)
+                    good = c[bench]["all"][0] * c[bench]["all"][i] / 100
+                    good += sum(c["eval"][s]["pairs"] * c["eval"][s][key + suffix] / 100 for s in sets)
+                    totals.append((round(good), pairs))
+                if all(t is None for t in totals):
                     continue
-                pairs = c["bench"]["all"][0] + sum(int(c["eval"][s]["pairs"]) for s in sets)
-                good = c["bench"]["all"][0] * c["bench"]["all"][i] / 100
-                good += sum(c["eval"][s]["pairs"] * c["eval"][s][key] / 100 for s in sets)
-                totals.append((round(good), pairs))
-            if all(t is None for t in totals):
-                continue
-            label = f"{metric} within 15 deg, pairs over {' + '.join(sets)} + bench_s525252"
-            rows.append(f"| {label} | {' | '.join('-' if t is None else f'{t[0]} / {t[1]}' for t in totals)} |")
+                label = f"{metric} within 15 deg{pose}, pairs over {' + '.join(sets)} + bench_s525252"
+                rows.append(f"| {label} | {' | '.join('-' if t is None else f'{t[0]} / {t[1]}' for t in totals)} |")
     return "\n".join(rows)
 
 

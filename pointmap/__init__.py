@@ -23,6 +23,7 @@ from pointmap.matching import Matches, match, match_coarse
 from pointmap.model import PRESETS, ModelConfig, PointmapNet
 from pointmap.pairs import check_connected, make_pairs
 from pointmap.pose import (
+    pair_pose,
     pose_from_essential,
     refine_pose_with_matches,
     relative_pose,
@@ -50,6 +51,6 @@ __all__ = [
     "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "match_coarse", "ModelConfig", "PRESETS",
     "PairPrediction", "PointmapError", "PointmapNet", "Reconstruction", "ShapeError", "View", "__version__",
     "check_connected", "global_align", "load_images", "load_model", "make_pairs", "match", "predict_pairs",
-    "reconstruct", "align_to_cameras", "relative_pose", "pose_from_essential", "translation_from_matches", "refine_pose_with_matches", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
+    "reconstruct", "align_to_cameras", "relative_pose", "pair_pose", "pose_from_essential", "translation_from_matches", "refine_pose_with_matches", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
     "localize", "Localization",
 ]

@@ -401,7 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--size", type=int, default=None, help="network input size (224 or 512; default: the model's)")
     a.add_argument("--focal", default=None, metavar="F[,F2]",
                    help="known focal length(s) in original pixels (principal point at the centre): stored instead "
-                        "of the estimate, and the model's pose is refined on its matches")
+                        "of the estimate, and the pose is refined on the model's matches with them (without it: "
+                        "with the focals estimated from the pointmaps)")
     a.set_defaults(fn=cmd_pair)
 
     r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")

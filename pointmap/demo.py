@@ -42,7 +42,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
     from pointmap.io_pair import color_range, colorize, draw_matches, write_png
     from pointmap.matching import match
     from pointmap.pairs import make_pairs
-    from pointmap.pose import relative_pose
+    from pointmap.pose import pair_pose
 
     gt = np.load(scene / "gt.npz")
     paths = sorted(scene.glob("view-*.png"))
@@ -56,7 +56,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
     depth_range = color_range(*[(d, d > 0) for d in d_gts])  # one colour range for every preview of the scene
     for i, j in pairs:
         pred, rev = preds[(i, j)], preds[(j, i)]
-        est = relative_pose(pred, pred_reverse=rev)[0].double()
+        est = pair_pose(pred, rev, patch=model.cfg.patch_size)[0].double()
         c2w = torch.from_numpy(gt["cam2world"])
         gt_rel = torch.linalg.inv(c2w[i]) @ c2w[j]
         rot = float(relative_rotation_error_deg(est[:3, :3], gt_rel[:3, :3]))

@@ -66,14 +66,15 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
                        focal: tuple | None = None) -> list[Path]:
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
 
-    ``focal``: the known focal lengths (f1, f2) in ORIGINAL pixels (principal points at the image centres): they
-    are stored instead of the estimated ones, and the model's pose is refined on its own matches (rotation and
-    translation direction, ``pointmap.pose.refine_pose_with_matches``; needs a model with descriptors)."""
+    The pose is ``pointmap.pose.pair_pose``: the pointmaps' pose refined on the model's own matches (rotation and
+    translation direction; models with descriptors) with each view's focal from its own pointmap, or with
+    ``focal``: the known focal lengths (f1, f2) in ORIGINAL pixels (principal points at the image centres), which
+    are then stored instead of the estimated ones."""
     import trimesh
 
     from pointmap.images import load_images
-    from pointmap.matching import match, match_coarse
-    from pointmap.pose import focal_from_prediction, refine_pose_with_matches, relative_pose
+    from pointmap.matching import match
+    from pointmap.pose import focal_from_prediction, pair_pose, relative_pose
     from pointmap.reconstruction import K_to_map
 
     if focal is not None:
@@ -87,11 +88,11 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
         pred_rev = model(img2, img1)
     pred, pred_rev = pred.map(lambda t: t.float()), pred_rev.map(lambda t: t.float())
     m = match(pred)
-    cam2world_2 = relative_pose(pred, pred_reverse=pred_rev)[0]
-    refined_on_matches = False
+    patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
     if focal is None:
         focal1 = focal_from_prediction(pred)[0]
         focal2 = focal_from_prediction(pred_rev)[0]
+        K = None
     else:
         K = []
         for f, v in zip(focal, views):
@@ -99,11 +100,9 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
             K_orig = torch.tensor([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
             K.append(K_to_map(K_orig, torch.tensor(v.map_from_original, dtype=torch.float64)))
         focal1, focal2 = K[0][0, 0].float(), K[1][0, 0].float()
-        if pred.has_desc:
-            patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
-            refined = refine_pose_with_matches(cam2world_2, match_coarse(pred, patch), K[0].numpy(), K[1].numpy())
-            refined_on_matches = not torch.equal(refined, cam2world_2)
-            cam2world_2 = refined
+    pointmap_pose = relative_pose(pred, pred_reverse=pred_rev)[0]
+    cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch)[0]
+    refined_on_matches = not torch.equal(cam2world_2, pointmap_pose)
     out.mkdir(parents=True, exist_ok=True)
     rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
     rgb2 = (views[1].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)

@@ -428,3 +428,52 @@ def test_the_refined_pose_is_a_minimum_of_the_robust_objective_it_states():
         dR = Rotation.from_rotvec(rng.normal(0, math.radians(0.3), 3)).as_matrix()
         dt = t / np.linalg.norm(t) + rng.normal(0, 0.005, 3)
         assert cost(dR @ R, dt) >= best - 1e-9
+
+
+def _described(p1_own, p2_in1, p2_own, p1_in2, gt, seed=0):
+    """Forward and reverse PairPredictions of the plane scene whose descriptors encode the world point (random
+    Fourier features of its position in camera 1's frame), so descriptor matching finds the true pixels."""
+    g = torch.Generator().manual_seed(seed)
+    B = torch.randn(3, 24, generator=g, dtype=torch.float64) * 4.0
+
+    def desc(X):  # [H, W, 3] in camera 1's frame
+        f = X @ B
+        return torch.nn.functional.normalize(torch.cat([f.sin(), f.cos()], -1), dim=-1)[None].float()
+
+    world1, world2 = p1_own, transform_points(gt, p2_own)  # camera 1's frame: the world
+    ones = torch.ones(1, H, W)
+    fwd = pm.PairPrediction(p1_own[None].float(), p2_in1[None].float(), ones * 2, ones * 2, desc1=desc(world1),
+                            desc2=desc(world2), desc_conf1=ones, desc_conf2=ones)
+    rev = pm.PairPrediction(p2_own[None].float(), p1_in2[None].float(), ones * 2, ones * 2, desc1=desc(world2),
+                            desc2=desc(world1), desc_conf1=ones, desc_conf2=ones)
+    return fwd, rev
+
+
+def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_from_the_pointmaps():
+    p1, p2, d1, d2, gt = two_views(angle_deg=10.0, t=(0.6, 0.1, 0.05))
+    p2_own = depth_to_points_cam(d2, K)
+    p1_in2 = transform_points(invert_rigid(gt), p1)
+    shift = torch.tensor([0.0, 0.25, 0.4], dtype=torch.float64)  # the cross-view pointmaps misplaced: a wrong
+    fwd, rev = _described(p1, p2 + shift, p2_own, p1_in2 - shift, gt)  # baseline, the rotation untouched
+    plain = pm.relative_pose(fwd, pred_reverse=rev)[0]
+    r0, t0 = pose_errors(plain, gt)
+    assert r0 < 0.5 and t0 > 20  # what the pointmaps alone give
+    est = pm.pair_pose(fwd, rev, patch=8)[0]  # focals from the (exact) own-frame pointmaps: 60 px
+    r, t = pose_errors(est, gt)
+    # the matches are whole pixels (+-0.5 px, +-0.5 degree of ray at 60 px) over ~9 degrees of parallax, and a
+    # plane lets a little rotation trade for direction: a few degrees is what 32 matches can tell
+    assert r < 0.5 and t < 3.0
+    held = pm.pair_pose(fwd, rev, patch=8, rotation_prior_deg=0)[0]  # the pointmaps' (exact) rotation kept
+    assert torch.equal(held[:3, :3], plain[:3, :3]) and pose_errors(held, gt)[1] < 1.0
+    assert abs(float(est[:3, 3].norm()) - float(plain[:3, 3].norm())) < 1e-4  # the pointmaps' baseline length kept
+    known = pm.pair_pose(fwd, rev, K, K, patch=8, rotation_prior_deg=3.0)[0]  # exact pointmaps: the same focals
+    assert torch.allclose(known, est, atol=1e-3)
+    assert max(pose_errors(pm.pair_pose(fwd, rev, K, K, patch=8)[0], gt)) < 3.0  # known K: a 10-degree prior
+    bare = [pm.PairPrediction(p.pts1_cam1, p.pts2_cam1, p.conf1, p.conf2) for p in (fwd, rev)]
+    assert torch.equal(pm.pair_pose(*bare)[0], pm.relative_pose(bare[0], pred_reverse=bare[1])[0])  # no descriptors
+    with pytest.raises(pm.ShapeError, match="both given"):
+        pm.pair_pose(fwd, rev, K)
+    with pytest.raises(pm.ShapeError, match="pred_reverse"):
+        pm.pair_pose(fwd, None)
+    with pytest.raises(pm.ShapeError, match=r"K2 expected \[3, 3\] or \[1, 3, 3\]"):
+        pm.pair_pose(fwd, rev, K, K[:2])

@@ -78,3 +78,26 @@ def test_the_comparison_refuses_text_that_is_not_a_card(tmp_path, capsys):
     assert err.startswith("error:") and len(err.strip().splitlines()) == 1
     with pytest.raises(SystemExit):
         main([str(tmp_path / "junk.txt"), "--names", "a", "b"])
+
+
+def test_the_pipelines_pose_rows_are_read_and_totalled_apart_and_missing_on_older_cards():
+    older = parse_card(_card(50.0, 70.0, 50))
+    text = _card(50.0, 70.0, 50)
+    text = text.replace('"pairs": 100.0,', '"pairs": 100.0, "RRA15_pair": 52.0, "RTA15_pair": 20.0,')
+    text = text.replace("| all | 200 | sift+E", "| all | 200 | model + own matches (no K) | 51% | 12% | 14.0 | 40.0 |\n"
+                                                "| all | 200 | sift+E")
+    text = text.replace("| stereo rig | 13 | SIFT+E", "| stereo rig | 13 | model + own matches (no K) | 85% | 0% | 9.4 | 43.4 |"
+                                                      "\n| stereo rig | 13 | SIFT+E")
+    newer = parse_card(text)
+    assert newer["bench"] == older["bench"] and newer["rig"] == older["rig"]  # the pointmap pose's rows untouched
+    assert newer["bench_pair"]["all"] == (200, 51.0, 12.0, 14.0) and newer["rig_pair"] == (9.4, 43.4)
+    assert older["bench_pair"] == {} and older["rig_pair"] is None
+    table = compare([older, newer], ["old", "new"])
+    # 52 + 52 + 102 rotations and 20 + 20 + 24 directions of 400; the older card has no such pose
+    assert "| rotation within 15 deg, the pipeline's pose, pairs over eval_s424242 + eval_p4_s434343 + " \
+           "bench_s525252 | - | 206 / 400 |" in table
+    assert "| translation within 15 deg, the pipeline's pose, pairs over eval_s424242 + eval_p4_s434343 + " \
+           "bench_s525252 | - | 64 / 400 |" in table
+    assert "| real rig, the pipeline's pose: dir err | - | 43.4 |" in table
+    assert "| rotation within 15 deg, pairs over eval_s424242 + eval_p4_s434343 + bench_s525252 | 220 / 400 | " \
+           "220 / 400 |" in table

@@ -30,6 +30,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     # PlanePairs only translate: every pair is in the under-30-degree group, none in the over-45 one
     assert ev["RRA15_under30"] == ev["RRA15"] and math.isnan(ev["RRA15_over45"])
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
+    assert 0 <= ev["RRA15_pair"] <= 100 and 0 <= ev["RTA15_pair"] <= 100  # pm.pair_pose: what the pipeline reports
 
 
 class _MixedShapes(torch.utils.data.Dataset):
