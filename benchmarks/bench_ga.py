@@ -4,7 +4,9 @@ alignment makes of all of a scene's views at once, for several alignment setting
 Each scene of the given held-out sets (the card's have 4 views each) is predicted once on its complete pair graph (both
 orders); then for every camera pair (i < j):
 
-- "pairwise": ``pm.relative_pose(pred, pred_reverse)`` of that pair alone (what the model card measures);
+- "pairwise": ``pm.relative_pose(pred, pred_reverse)`` of that pair alone (the pointmaps' pose the model card measures);
+- "pairwise + matches": ``pm.pair_pose(pred, pred_reverse)``, that pose refined on the pair's own matches (what
+  ``pointmap pair`` reports);
 - "GA <setting>": the relative pose of cameras i and j after ``global_align`` of all the scene's views.
 
 A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
@@ -34,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.align import AlignConfig, global_align  # noqa: E402
 from pointmap.align.edges import CONF_TRANSFORMS  # noqa: E402
+from pointmap.align.sparse import SparseConfig, refine_matches  # noqa: E402
 from pointmap.errors import PointmapError  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,19 +50,20 @@ def per_pair_path(prefix: str, method: str) -> Path:
     return Path(f"{prefix}-{method.replace(' ', '_').replace(':', '_')}.csv")
 
 
-def parse_setting(s: str) -> tuple[AlignConfig, bool]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F' ... -> (AlignConfig (quiet), whether the true intrinsics
-    are given)."""
+def parse_setting(s: str) -> tuple[AlignConfig, bool, bool]:
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S' ... -> (AlignConfig (quiet), whether the true
+    intrinsics are given, whether the sparse refinement on matches follows)."""
     body, *flags = s.split("+")
-    if any(f not in ("K", "F") for f in flags) or len(set(flags)) < len(flags):
-        raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics) and/or '+F' (shared focal)")
+    if any(f not in ("K", "F", "S") for f in flags) or len(set(flags)) < len(flags):
+        raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal) "
+                                         "and/or '+S' (sparse refinement on matches)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags, quiet=True)
-    return cfg, "K" in flags
+    return cfg, "K" in flags, "S" in flags
 
 
 def setting_name(s: str) -> str:
@@ -84,11 +88,18 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
     for i, j in pairs:
         est = pm.relative_pose(preds[(i, j)], pred_reverse=preds[(j, i)])[0].double().numpy()
         out["pairwise"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
+        est = pm.pair_pose(preds[(i, j)], preds[(j, i)], patch=model.cfg.patch_size)[0].double().numpy()
+        out["pairwise + matches"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
     f_gt = scene["K"][:, 0, 0].double()
     failed = []
-    for name, (cfg, known_K) in settings.items():
+    matches = None
+    for name, (cfg, known_K, sparse) in settings.items():
         try:
             recon = global_align(views, preds, config=cfg, K=scene["K"].double() if known_K else None)
+            if sparse:  # as reconstruct(refine=True): the focals stay as aligned when known or shared
+                matches = matches or {k: pm.match(p) for k, p in preds.items()}
+                recon = refine_matches(recon, matches, config=SparseConfig(quiet=True),
+                                       fixed_intrinsics=True if known_K or cfg.shared_focal else ())
         except PointmapError as e:  # e.g. every weight zero under 'log': the scene counts as failed (180 deg)
             failed.append(f"GA {name}: {e}")
             out[f"GA {name}"] += [(180.0, 180.0, true_rot[k]) for k in pairs]
@@ -125,7 +136,7 @@ def main(argv=None) -> int:
     if twice:
         ap.error(f"--data: set name(s) {twice} given twice (a set is named by its folder)")
     if args.per_pair:
-        for m in ["pairwise"] + [f"GA {nm}" for nm in names]:
+        for m in ["pairwise", "pairwise + matches"] + [f"GA {nm}" for nm in names]:
             for nm in set_names:
                 try:
                     check_per_pair(per_pair_path(args.per_pair, m), nm)

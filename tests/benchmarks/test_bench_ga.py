@@ -34,8 +34,9 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     data, model_path = scenes_and_model
     prefix = tmp_path / "pp"
     assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1",
-                 "--settings", "log", "id", "id+K", "--per-pair", str(prefix)]) == 0
-    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "GA_log", "GA_id", "GA_id+K")}
+                 "--settings", "log", "id", "id+K", "id+S", "--per-pair", str(prefix)]) == 0
+    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "pairwise_+_matches", "GA_log", "GA_id", "GA_id+K",
+                                                     "GA_id+S")}
     assert all(len(r) == 2 * 3 for r in rows.values())  # 2 scenes x 3 camera pairs
     # the first scene's pair (0, 1) aligned with conf itself, recomputed here
     scene = MultiViewDataset(data)[0]
@@ -49,6 +50,19 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     assert float(rows["GA_id"][0]["rot_err"]) == pytest.approx(float(relative_rotation_error_deg(est[:3, :3], true[:3, :3])), abs=1e-3)
     angle = np.degrees(np.arccos(np.clip((np.trace(true[:3, :3].numpy()) - 1) / 2, -1, 1)))
     assert float(rows["pairwise"][0]["true_rot"]) == pytest.approx(angle, abs=1e-4)
+    # the pair's own pose refined on its matches, recomputed here
+    own = pm.pair_pose(preds[(0, 1)], preds[(1, 0)], patch=model.cfg.patch_size)[0].double()
+    assert float(rows["pairwise_+_matches"][0]["rot_err"]) == pytest.approx(
+        float(relative_rotation_error_deg(own[:3, :3], true[:3, :3])), abs=1e-3)
+    # '+S': the same alignment, then the sparse refinement on every pair's matches
+    from pointmap.align.sparse import SparseConfig, refine_matches
+
+    recon = global_align(views, preds, config=AlignConfig(conf_transform="id", quiet=True))
+    refined = refine_matches(recon, {k: pm.match(p) for k, p in preds.items()}, config=SparseConfig(quiet=True))
+    c2w_S = refined.cam2world.double()
+    est_S = torch.linalg.inv(c2w_S[0]) @ c2w_S[1]
+    assert float(rows["GA_id+S"][0]["rot_err"]) == pytest.approx(
+        float(relative_rotation_error_deg(est_S[:3, :3], true[:3, :3])), abs=1e-3)
     # '+K' hands the alignment the scene's true intrinsics (and that changes the result)
     assert rows["GA_id+K"][0]["rot_err"] != rows["GA_id"][0]["rot_err"]
     c2w_K = global_align(views, preds, K=scene["K"].double(),
@@ -72,15 +86,16 @@ def test_the_ga_benchmark_refuses_a_foreign_per_pair_file_before_running(scenes_
     assert e.value.code == 2 and "twice" in capsys.readouterr().err
 
 
-def test_a_setting_names_the_weighting_the_optimizer_and_the_known_intrinsics_or_shared_focal():
+def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared_focal_and_sparse_refinement():
     import argparse
 
     from benchmarks.bench_ga import parse_setting
 
-    cfg, known_K = parse_setting("id:lbfgs+F+K")
-    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K) == ("id", "lbfgs", True, True)
-    cfg, known_K = parse_setting("auto")
-    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K) == ("auto", "adam", False, False)
-    for bad in ("auto+X", "auto+K+K", "rank", "log:sgd"):
+    cfg, known_K, sparse = parse_setting("id:lbfgs+F+K")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse) == ("id", "lbfgs", True, True, False)
+    cfg, known_K, sparse = parse_setting("auto")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse) == ("auto", "adam", False, False, False)
+    assert parse_setting("log+S")[2] and not parse_setting("log+S")[1]
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
