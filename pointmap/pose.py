@@ -392,11 +392,11 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
 
     ``relative_pose(pred, pred_reverse=pred_reverse)`` (Procrustes of the pointmaps both ways), then, for a model
     with descriptors, ``refine_pose_with_matches`` on its own coarse matches (``match_coarse(pred[b], patch)``)
-    with each view's intrinsics: ``K1``, ``K2`` [3, 3] or [B, 3, 3] when known (pixels of the prediction), else a
-    focal from each view's own-frame pointmap (``focal_from_prediction`` of each pass) and the image centre.
+    with each view's intrinsics: ``K1`` / ``K2`` [3, 3] or [B, 3, 3] when known (pixels of the prediction), else
+    a focal from that view's own-frame pointmap (``focal_from_prediction`` of its pass) and the image centre.
     The pointmaps' rotation is the better estimate and the matches' epipolar geometry the better translation
     direction (docs/models.md), so ``rotation_prior_deg`` keeps the rotation near the pointmaps': default 3
-    degrees with estimated focals (whose errors would otherwise pull the rotation), 10 with known intrinsics.
+    degrees when a focal is estimated (its error would otherwise pull the rotation), 10 with both intrinsics known.
     A pair whose matches give no direction keeps its pointmap pose; a pose that cannot be found is NaN. Models
     without descriptors get ``relative_pose`` alone. ShapeError for wrong inputs."""
     from pointmap.matching import match_coarse
@@ -404,31 +404,27 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
     if not isinstance(pred_reverse, PairPrediction):
         raise ShapeError(f"pred_reverse expected the PairPrediction of (view 2, view 1), got "
                          f"{type(pred_reverse).__name__}")
-    if (K1 is None) != (K2 is None):
-        raise ShapeError("K1 and K2 expected both given (known intrinsics) or both None (focals estimated)")
     out = relative_pose(pred, pred_reverse=pred_reverse)
     if not pred.has_desc:
         return out
     B = pred.batch_size
-    known = K1 is not None
-    if known:
-        Ks = []
-        for name, K in (("K1", K1), ("K2", K2)):
+    Ks = []
+    for name, K, own in (("K1", K1, pred), ("K2", K2, pred_reverse)):
+        if K is None:  # the view's focal from its own-frame pointmap, the principal point at the centre
+            H, W = own.pts1_cam1.shape[1:3]
+            K = torch.stack([torch.tensor([[float(f), 0.0, (W - 1) / 2], [0.0, float(f), (H - 1) / 2],
+                                           [0.0, 0.0, 1.0]], dtype=torch.float64) for f in focal_from_prediction(own)])
+        else:
             K = torch.as_tensor(K, dtype=torch.float64)
             K = K.expand(B, 3, 3) if K.shape == (3, 3) else K
             if tuple(K.shape) != (B, 3, 3):
                 raise ShapeError(f"{name} expected [3, 3] or [{B}, 3, 3], got {list(K.shape)}")
-            Ks.append(K)
-    else:
-        f1, f2 = focal_from_prediction(pred), focal_from_prediction(pred_reverse)
-        (H1, W1), (H2, W2) = pred.pts1_cam1.shape[1:3], pred_reverse.pts1_cam1.shape[1:3]
-        Ks = [torch.stack([torch.tensor([[float(f), 0.0, (W - 1) / 2], [0.0, float(f), (H - 1) / 2], [0.0, 0.0, 1.0]],
-                                        dtype=torch.float64) for f in fs]) for fs, H, W in ((f1, H1, W1), (f2, H2, W2))]
-    prior = (10.0 if known else 3.0) if rotation_prior_deg is None else rotation_prior_deg
+        Ks.append(K)
+    prior = (10.0 if K1 is not None and K2 is not None else 3.0) if rotation_prior_deg is None else rotation_prior_deg
     for b in range(B):
-        if not bool(torch.isfinite(out[b]).all()) or not bool(torch.isfinite(Ks[0][b]).all() & torch.isfinite(Ks[1][b]).all()) \
-                or Ks[0][b, 0, 0] <= 0 or Ks[1][b, 0, 0] <= 0:
-            continue  # no pointmap pose, or no usable focal (degenerate pointmap): nothing to refine
+        usable = all(bool(torch.isfinite(K[b]).all()) and float(K[b, 0, 0]) > 0 for K in Ks)
+        if not usable or not bool(torch.isfinite(out[b]).all()):
+            continue  # no pointmap pose, or no usable focal (a degenerate pointmap): nothing to refine
         out[b] = refine_pose_with_matches(out[b], match_coarse(pred[b], patch), Ks[0][b].numpy(), Ks[1][b].numpy(),
                                           threshold_px=threshold_px, rotation_prior_deg=prior)
     return out
