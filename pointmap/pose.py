@@ -397,7 +397,10 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
     The pointmaps' rotation is the better estimate and the matches' epipolar geometry the better translation
     direction (docs/models.md), so ``rotation_prior_deg`` keeps the rotation near the pointmaps': default 3
     degrees when a focal is estimated (its error would otherwise pull the rotation), 10 with both intrinsics known.
-    A pair whose matches give no direction keeps its pointmap pose; a pose that cannot be found is NaN. Models
+    The direction keeps the side of camera 1 the pointmaps put camera 2 on (the epipolar residuals are blind to
+    its sign; a wrong rotation or focal can fool the matches' cheirality test: on 556 held-out pairs of v26a, 97
+    directions within 15 degrees against 92 without this, 18 flipped against 26). A pair whose matches give no
+    direction keeps its pointmap pose; a pose that cannot be found is NaN. Models
     without descriptors get ``relative_pose`` alone. ShapeError for wrong inputs."""
     from pointmap.matching import match_coarse
 
@@ -425,6 +428,9 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
         usable = all(bool(torch.isfinite(K[b]).all()) and float(K[b, 0, 0]) > 0 for K in Ks)
         if not usable or not bool(torch.isfinite(out[b]).all()):
             continue  # no pointmap pose, or no usable focal (a degenerate pointmap): nothing to refine
-        out[b] = refine_pose_with_matches(out[b], match_coarse(pred[b], patch), Ks[0][b].numpy(), Ks[1][b].numpy(),
-                                          threshold_px=threshold_px, rotation_prior_deg=prior)
+        refined = refine_pose_with_matches(out[b], match_coarse(pred[b], patch), Ks[0][b].numpy(), Ks[1][b].numpy(),
+                                           threshold_px=threshold_px, rotation_prior_deg=prior)
+        if float(refined[:3, 3] @ out[b, :3, 3]) < 0:  # the side the pointmaps put camera 2 on: a sign the
+            refined[:3, 3] = -refined[:3, 3]  # epipolar fit does not see (its cheirality test can be fooled)
+        out[b] = refined
     return out

@@ -469,6 +469,12 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
     known = pm.pair_pose(fwd, rev, K, K, patch=8, rotation_prior_deg=3.0)[0]  # exact pointmaps: the same focals
     assert torch.allclose(known, est, atol=1e-3)
     assert max(pose_errors(pm.pair_pose(fwd, rev, K, K, patch=8)[0], gt)) < 3.0  # known K: a 10-degree prior
+    # pointmaps that put camera 2 on the wrong side: the matches give the line, the pointmaps its sign
+    back = gt[:3, 3] * 2
+    fwd_b, rev_b = _described(p1, p2 - back, p2_own, p1_in2 + gt[:3, :3].T @ back, gt)
+    flipped = pm.pair_pose(fwd_b, rev_b, patch=8)[0]
+    assert float(flipped[:3, 3] @ pm.relative_pose(fwd_b, pred_reverse=rev_b)[0, :3, 3]) > 0
+    assert pose_errors(flipped, gt)[1] > 177
     bare = [pm.PairPrediction(p.pts1_cam1, p.pts2_cam1, p.conf1, p.conf2) for p in (fwd, rev)]
     assert torch.equal(pm.pair_pose(*bare)[0], pm.relative_pose(bare[0], pred_reverse=bare[1])[0])  # no descriptors
     one = pm.pair_pose(fwd, rev, K, patch=8)[0]  # view 1 known, view 2's focal estimated (the same here)
