@@ -94,17 +94,18 @@ def depth_scale(recon: Reconstruction, ref: int, pred, min_conf: float = 0.0) ->
     return float((z_rec[ok] / z_pred[ok]).median())
 
 
-def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None) -> tuple[torch.Tensor, torch.Tensor, float]:
+def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None, *,
+                 patch: int = 16) -> tuple[torch.Tensor, torch.Tensor, float]:
     """(cam2world [4, 4] float64 in the reconstruction's world, K [3, 3] at the query's map resolution, scale) of
     the query seen as view 2 of ``pred`` (reference ``ref`` as view 1) and view 1 of ``pred_reverse``. A pose
     that cannot be found is NaN."""
     from pointmap.geometry.cameras import intrinsics
-    from pointmap.pose import focal_from_prediction, relative_pose
+    from pointmap.pose import focal_from_prediction, pair_pose, relative_pose
 
     s = depth_scale(recon, ref, pred)
     h, w = pred.pts2_cam1.shape[1:3]
-    if K_map is None:
-        rel = relative_pose(pred, pred_reverse=pred_reverse)[0].double()
+    if K_map is None:  # the pair's pose as `pointmap pair` gives it, with the reference's known intrinsics
+        rel = pair_pose(pred, pred_reverse, recon.K_map[ref].double(), None, patch=patch)[0].double()
         K_map = intrinsics(float(focal_from_prediction(pred_reverse)[0]), (w - 1) / 2, (h - 1) / 2, dtype=torch.float64)
     else:
         rel = relative_pose(pred, K2=K_map)[0].double()
@@ -157,7 +158,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         K_map = None if K is None else K_to_map(K[k:k + 1], mfo)[0]
         for r in refs[k]:
             pred, rev = preds[(r, n + k)], preds[(n + k, r)]
-            T, Km, s = pose_against(recon, r, pred, rev, K_map)
+            T, Km, s = pose_against(recon, r, pred, rev, K_map, patch=getattr(getattr(model, "cfg", None), "patch_size", 16))
             if torch.isfinite(T).all() and torch.isfinite(Km).all():
                 out[k], used[k], scales[k] = T, r, s
                 confs[k] = float(pred.conf2[0].float().median())

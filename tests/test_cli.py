@@ -256,7 +256,7 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
     T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
     calls = []
 
-    def pose_against(recon, ref, pred, rev, K_map=None):  # the geometry is tested in tests/align/test_localize.py
+    def pose_against(recon, ref, pred, rev, K_map=None, patch=16):  # the geometry is tested in tests/align/test_localize.py
         calls.append(ref)
         pose = T if len(calls) == 1 else torch.full((4, 4), float("nan"), dtype=torch.float64)
         return pose, K_map, 2.0
