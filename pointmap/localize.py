@@ -48,6 +48,8 @@ class Localization:
                             [self.conf[k] for k in keep], [self.scale[k] for k in keep], [self.names[k] for k in keep])
 
 
+QUERY_CHUNK = 8  # queries predicted together by localize (their pairs' descriptors held in memory)
+
 def reference_views(recon: Reconstruction) -> list[View]:
     """The reconstruction's own network inputs as Views (the pixel grid its depth maps live on)."""
     return [View(img=recon.images[k].permute(2, 0, 1).float().contiguous(), original_size=tuple(recon.original_sizes[k]),
@@ -125,6 +127,8 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     The queries are prepared at the reconstruction's network size. Raises PointmapError for an empty
     reconstruction or query list, references out of range, wrong K, and when no query can be posed.
     """
+    from tqdm import tqdm
+
     from pointmap.inference import predict_pairs
 
     if not isinstance(recon, Reconstruction) or len(recon) == 0:
@@ -148,23 +152,28 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
                          f"got {refs}")
     views = refs_views + [replace(q, index=n + k) for k, q in enumerate(queries)]
-    pairs = sorted({(r, n + k) for k, rs in enumerate(refs) for r in rs})
-    preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=False, quiet=quiet)
+    patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
     out = torch.full((m, 4, 4), float("nan"), dtype=torch.float64)
     K_orig = K.clone() if K is not None else torch.full((m, 3, 3), float("nan"), dtype=torch.float64)
     used, confs, scales = [-1] * m, [float("nan")] * m, [float("nan")] * m
-    for k, q in enumerate(queries):
-        mfo = torch.tensor([q.map_from_original], dtype=torch.float64)
-        K_map = None if K is None else K_to_map(K[k:k + 1], mfo)[0]
-        for r in refs[k]:
-            pred, rev = preds[(r, n + k)], preds[(n + k, r)]
-            T, Km, s = pose_against(recon, r, pred, rev, K_map, patch=getattr(getattr(model, "cfg", None), "patch_size", 16))
-            if torch.isfinite(T).all() and torch.isfinite(Km).all():
-                out[k], used[k], scales[k] = T, r, s
-                confs[k] = float(pred.conf2[0].float().median())
-                if K is None:  # estimated on the maps: reported in the query's own pixels
-                    K_orig[k] = K_to_original(Km[None], mfo)[0]
-                break
+    chunks = range(0, m, QUERY_CHUNK)  # the descriptors pair_pose matches on are kept for a chunk of queries at a time
+    for start in tqdm(chunks, desc="localize", unit=f"{QUERY_CHUNK} queries", disable=quiet or len(chunks) == 1 or None):
+        chunk = range(start, min(m, start + QUERY_CHUNK))
+        pairs = sorted({(r, n + k) for k in chunk for r in refs[k]})
+        preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=K is None,
+                              quiet=quiet or m > QUERY_CHUNK)
+        for k in chunk:
+            mfo = torch.tensor([queries[k].map_from_original], dtype=torch.float64)
+            K_map = None if K is None else K_to_map(K[k:k + 1], mfo)[0]
+            for r in refs[k]:
+                pred, rev = preds[(r, n + k)], preds[(n + k, r)]
+                T, Km, s = pose_against(recon, r, pred, rev, K_map, patch=patch)
+                if torch.isfinite(T).all() and torch.isfinite(Km).all():
+                    out[k], used[k], scales[k] = T, r, s
+                    confs[k] = float(pred.conf2[0].float().median())
+                    if K is None:  # estimated on the maps: reported in the query's own pixels
+                        K_orig[k] = K_to_original(Km[None], mfo)[0]
+                    break
     if all(u < 0 for u in used):
         raise PointmapError(f"none of the {m} queries could be posed: their pairs with the references share too "
                             "little (no valid depth or pose); give references that see the same scene")

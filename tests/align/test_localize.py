@@ -66,6 +66,19 @@ def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units
     assert loc.ref == [3, 0] and loc.names == ["image_000.png", "image_001.png"]  # the first reference given
 
 
+def test_queries_predicted_a_chunk_at_a_time_get_the_poses_they_get_together(scene, monkeypatch):
+    import pointmap.localize
+
+    sc, recon, queries, world_scale, calls = scene
+    together = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    monkeypatch.setattr(pointmap.localize, "QUERY_CHUNK", 1)
+    apart = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    assert calls["pairs"] == [(0, 5)]  # the last chunk: the second query's pairs alone
+    # the stand-in draws each call's pair scales afresh: the scales differ, the poses in the world do not
+    assert torch.allclose(apart.cam2world, together.cam2world, atol=1e-5) and torch.allclose(apart.K, together.K)
+    assert apart.ref == together.ref
+
+
 def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
     sc, recon, queries, world_scale, calls = scene
     calls["broken"] = [(3, 4)]
