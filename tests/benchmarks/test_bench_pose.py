@@ -1,0 +1,44 @@
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+import pointmap as pm  # noqa: E402
+from benchmarks.bench_pose import errors, main  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def pairs_and_model(tmp_path_factory, test_model):
+    from data.generate import GenConfig, generate
+
+    root = tmp_path_factory.mktemp("bench_pose")
+    generate(root / "heldout", GenConfig(kind="pairs", scenes=1, views=2, size=64, shard_size=1, seed=13),
+             workers=1, progress=False, log=None)
+    return root / "heldout", pm.save_model(test_model, root / "m.safetensors")
+
+
+def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_the_same_pair(pairs_and_model,
+                                                                                                capsys):
+    from data.datasets import PairDataset
+
+    data, model_path = pairs_and_model
+    assert main(["--data", str(data), "--model", str(model_path), "--pairs", "1", "--size", "64", "--threads", "1"]) == 0
+    rows = {}
+    for line in capsys.readouterr().out.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 7 and cells[0] == "all":
+            rows[cells[2]] = cells
+    assert {"model", "model + own matches (no K)", "sift+E (known K)", "no rotation"} <= set(rows)
+    # one pair: the medians are that pair's errors, recomputed here with pm.relative_pose and pm.pair_pose
+    v1, v2 = PairDataset(data, size=64, augment=False, split="all")[0]
+    model = pm.load_model(model_path)
+    with torch.inference_mode():
+        pred, rev = model(v1["img"][None], v2["img"][None]), model(v2["img"][None], v1["img"][None])
+    gt = (torch.linalg.inv(v1["cam2world"].double()) @ v2["cam2world"].double()).numpy()
+    for name, est in (("model", pm.relative_pose(pred, pred_reverse=rev)[0]),
+                      ("model + own matches (no K)", pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0])):
+        rot, direction = errors(est.numpy(), gt)
+        assert float(rows[name][5]) == pytest.approx(rot, abs=0.051)
+        assert float(rows[name][6]) == pytest.approx(direction, abs=0.051)
