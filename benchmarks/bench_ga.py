@@ -86,9 +86,9 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
     out = defaultdict(list)
     focal = defaultdict(list)
     for i, j in pairs:
-        est = pm.relative_pose(preds[(i, j)], pred_reverse=preds[(j, i)])[0].double().numpy()
-        out["pairwise"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
-        est = pm.pair_pose(preds[(i, j)], preds[(j, i)], patch=model.cfg.patch_size)[0].double().numpy()
+        est = pm.relative_pose(preds[(i, j)], pred_reverse=preds[(j, i)])
+        out["pairwise"].append((*errors(est[0].double().numpy(), rel_gt[(i, j)]), true_rot[(i, j)]))
+        est = pm.pair_pose(preds[(i, j)], preds[(j, i)], patch=model.cfg.patch_size, pose=est)[0].double().numpy()
         out["pairwise + matches"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
     f_gt = scene["K"][:, 0, 0].double()
     failed = []

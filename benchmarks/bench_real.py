@@ -119,13 +119,14 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
         rev = model(v2.img[None], v1.img[None])
     ours = pm.relative_pose(pred, pred_reverse=rev)[0]
     rows = [("model (own pointmaps, no K)", errors(ours.numpy(), gt))]
-    if pred.has_desc:  # what the pipeline reports: refined on its own matches with its own focals (pm.pair_pose)
-        rows.append(("model + own matches (no K)", errors(pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0].numpy(), gt)))
+    m = pm.match_coarse(pred, model.cfg.patch_size) if pred.has_desc else None
+    if m is not None:  # what the pipeline reports: refined on its own matches with its own focals (pm.pair_pose)
+        own = pm.pair_pose(pred, rev, patch=model.cfg.patch_size, pose=ours[None], matches=[m])[0]
+        rows.append(("model + own matches (no K)", errors(own.numpy(), gt)))
     focal_err = float("nan")
     if K1 is not None:
         k1, k2 = _k_on_map(K1, v1), _k_on_map(K2, v2)
-        if pred.has_desc:
-            m = pm.match_coarse(pred, model.cfg.patch_size)
+        if m is not None:
             rows.append(("model matches+PnP (known K)",
                          errors(pm.relative_pose(pred, K2=torch.from_numpy(k2), matches=[m])[0].numpy(), gt)))
             rows.append(("model refined on matches (known K)",

@@ -101,7 +101,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
             K.append(K_to_map(K_orig, torch.tensor(v.map_from_original, dtype=torch.float64)))
         focal1, focal2 = K[0][0, 0].float(), K[1][0, 0].float()
     pointmap_pose = relative_pose(pred, pred_reverse=pred_rev)[0]
-    cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch)[0]
+    cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch, pose=pointmap_pose[None])[0]
     refined_on_matches = not torch.equal(cam2world_2, pointmap_pose)
     out.mkdir(parents=True, exist_ok=True)
     rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)

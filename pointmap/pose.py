@@ -386,7 +386,8 @@ def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:
 
 
 def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=None, *, patch: int = 16,
-              rotation_prior_deg: float | None = None, threshold_px: float = 8.0) -> torch.Tensor:
+              rotation_prior_deg: float | None = None, threshold_px: float = 8.0, pose: torch.Tensor | None = None,
+              matches: list | None = None) -> torch.Tensor:
     """The model's two-view pose, [B, 4, 4] (view 2's cam2world in view 1's frame, translation in the forward
     pass's units): what ``pointmap pair``, ``pointmap demo`` and the model card report.
 
@@ -401,22 +402,28 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
     its sign; a wrong rotation or focal can fool the matches' cheirality test: on 556 held-out pairs of v26a, 97
     directions within 15 degrees against 92 without this, 18 flipped against 26). A pair whose matches give no
     direction keeps its pointmap pose; a pose that cannot be found is NaN. Models
-    without descriptors get ``relative_pose`` alone. ShapeError for wrong inputs."""
+    without descriptors get ``relative_pose`` alone. ``pose`` ([B, 4, 4], that ``relative_pose``) and ``matches``
+    (B ``Matches``, those ``match_coarse``) reuse what a caller already computed. ShapeError for wrong inputs."""
+    from pointmap.geometry.cameras import intrinsics
     from pointmap.matching import match_coarse
 
     if not isinstance(pred_reverse, PairPrediction):
         raise ShapeError(f"pred_reverse expected the PairPrediction of (view 2, view 1), got "
                          f"{type(pred_reverse).__name__}")
-    out = relative_pose(pred, pred_reverse=pred_reverse)
+    B = pred.batch_size
+    if pose is not None and tuple(pose.shape) != (B, 4, 4):
+        raise ShapeError(f"pose expected relative_pose's [{B}, 4, 4], got {list(pose.shape)}")
+    if matches is not None and (not isinstance(matches, (list, tuple)) or len(matches) != B):
+        raise ShapeError(f"matches expected a list of {B} Matches, got {type(matches).__name__}")
+    out = relative_pose(pred, pred_reverse=pred_reverse) if pose is None else pose.float().clone()
     if not pred.has_desc:
         return out
-    B = pred.batch_size
     Ks = []
     for name, K, own in (("K1", K1, pred), ("K2", K2, pred_reverse)):
         if K is None:  # the view's focal from its own-frame pointmap, the principal point at the centre
             H, W = own.pts1_cam1.shape[1:3]
-            K = torch.stack([torch.tensor([[float(f), 0.0, (W - 1) / 2], [0.0, float(f), (H - 1) / 2],
-                                           [0.0, 0.0, 1.0]], dtype=torch.float64) for f in focal_from_prediction(own)])
+            K = torch.stack([intrinsics(float(f), (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
+                             for f in focal_from_prediction(own)])
         else:
             K = torch.as_tensor(K, dtype=torch.float64)
             K = K.expand(B, 3, 3) if K.shape == (3, 3) else K
@@ -428,7 +435,8 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
         usable = all(bool(torch.isfinite(K[b]).all()) and float(K[b, 0, 0]) > 0 for K in Ks)
         if not usable or not bool(torch.isfinite(out[b]).all()):
             continue  # no pointmap pose, or no usable focal (a degenerate pointmap): nothing to refine
-        refined = refine_pose_with_matches(out[b], match_coarse(pred[b], patch), Ks[0][b].numpy(), Ks[1][b].numpy(),
+        m = match_coarse(pred[b], patch) if matches is None else matches[b]
+        refined = refine_pose_with_matches(out[b], m, Ks[0][b].numpy(), Ks[1][b].numpy(),
                                            threshold_px=threshold_px, rotation_prior_deg=prior)
         if float(refined[:3, 3] @ out[b, :3, 3]) < 0:  # the side the pointmaps put camera 2 on: a sign the
             refined[:3, 3] = -refined[:3, 3]  # epipolar fit does not see (its cheirality test can be fooled)

@@ -466,6 +466,10 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
     held = pm.pair_pose(fwd, rev, patch=8, rotation_prior_deg=0)[0]  # the pointmaps' (exact) rotation kept
     assert torch.equal(held[:3, :3], plain[:3, :3]) and pose_errors(held, gt)[1] < 1.0
     assert abs(float(est[:3, 3].norm()) - float(plain[:3, 3].norm())) < 1e-4  # the pointmaps' baseline length kept
+    from pointmap.matching import match_coarse
+
+    reused = pm.pair_pose(fwd, rev, patch=8, pose=plain[None], matches=[match_coarse(fwd[0], 8)])[0]
+    assert torch.equal(reused, est) and torch.equal(plain, pm.relative_pose(fwd, pred_reverse=rev)[0])  # not modified
     known = pm.pair_pose(fwd, rev, K, K, patch=8, rotation_prior_deg=3.0)[0]  # exact pointmaps: the same focals
     assert torch.allclose(known, est, atol=1e-3)
     assert max(pose_errors(pm.pair_pose(fwd, rev, K, K, patch=8)[0], gt)) < 3.0  # known K: a 10-degree prior
@@ -481,5 +485,9 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
     assert torch.allclose(one, est, atol=1e-3)
     with pytest.raises(pm.ShapeError, match="pred_reverse"):
         pm.pair_pose(fwd, None)
+    with pytest.raises(pm.ShapeError, match=r"pose expected relative_pose's \[1, 4, 4\]"):
+        pm.pair_pose(fwd, rev, pose=plain)
+    with pytest.raises(pm.ShapeError, match="matches expected a list of 1 Matches"):
+        pm.pair_pose(fwd, rev, matches=[])
     with pytest.raises(pm.ShapeError, match=r"K2 expected \[3, 3\] or \[1, 3, 3\]"):
         pm.pair_pose(fwd, rev, K, K[:2])

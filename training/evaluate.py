@@ -311,7 +311,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
                     r, t = _pose_errors(refined, cam2world_gt[b])
                     rot_r.append(r)
                     tr_r.append(t)
-                    r, t = _pose_errors(pair_pose(pred[b], pred_rev[b], patch=patch)[0], cam2world_gt[b])
+                    r, t = _pose_errors(pair_pose(pred[b], pred_rev[b], patch=patch, pose=cam2world_pred[b:b + 1], matches=[m])[0], cam2world_gt[b])
                     rot_p.append(r)
                     tr_p.append(t)
     if per_pair is not None:

@@ -1,24 +1,11 @@
 import csv
-import os
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+import numpy as np
+import pytest
+import torch
 
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-import torch  # noqa: E402
-
-import pointmap as pm  # noqa: E402
-from benchmarks.bench_ga import main  # noqa: E402
-
-
-@pytest.fixture(scope="module")
-def scenes_and_model(tmp_path_factory, test_model):
-    from data.generate import GenConfig, generate
-
-    root = tmp_path_factory.mktemp("bench_ga")
-    generate(root / "heldout", GenConfig(kind="pairs", scenes=2, views=3, size=64, shard_size=2, seed=11),
-             workers=1, progress=False, log=None)
-    return root / "heldout", pm.save_model(test_model, root / "m.safetensors")
+import pointmap as pm
+from benchmarks.bench_ga import main
 
 
 def _rows(path):

@@ -1,29 +1,15 @@
-import os
+import pytest
+import torch
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-
-import pytest  # noqa: E402
-import torch  # noqa: E402
-
-import pointmap as pm  # noqa: E402
-from benchmarks.bench_pose import errors, main  # noqa: E402
+import pointmap as pm
+from benchmarks.bench_pose import errors, main
 
 
-@pytest.fixture(scope="module")
-def pairs_and_model(tmp_path_factory, test_model):
-    from data.generate import GenConfig, generate
-
-    root = tmp_path_factory.mktemp("bench_pose")
-    generate(root / "heldout", GenConfig(kind="pairs", scenes=1, views=2, size=64, shard_size=1, seed=13),
-             workers=1, progress=False, log=None)
-    return root / "heldout", pm.save_model(test_model, root / "m.safetensors")
-
-
-def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_the_same_pair(pairs_and_model,
+def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_the_same_pair(scenes_and_model,
                                                                                                 capsys):
     from data.datasets import PairDataset
 
-    data, model_path = pairs_and_model
+    data, model_path = scenes_and_model
     assert main(["--data", str(data), "--model", str(model_path), "--pairs", "1", "--size", "64", "--threads", "1"]) == 0
     rows = {}
     for line in capsys.readouterr().out.splitlines():
