@@ -12,7 +12,9 @@ orders); then for every camera pair (i < j):
 A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
 ':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), then '+K' to give the alignment the scenes'
 true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep) and/or '+F' for
-one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646). The table gives RRA@15 / RTA@15 / median
+one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
+'+S' for the sparse refinement on matches (``refine_matches``) and '+E' for the epipolar pose refinement on the
+model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default). The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
@@ -36,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.align import AlignConfig, global_align  # noqa: E402
 from pointmap.align.edges import CONF_TRANSFORMS  # noqa: E402
+from pointmap.align.epipolar import EpipolarConfig, refine_epipolar  # noqa: E402
 from pointmap.align.sparse import SparseConfig, refine_matches  # noqa: E402
 from pointmap.errors import PointmapError  # noqa: E402
 
@@ -50,20 +53,22 @@ def per_pair_path(prefix: str, method: str) -> Path:
     return Path(f"{prefix}-{method.replace(' ', '_').replace(':', '_')}.csv")
 
 
-def parse_setting(s: str) -> tuple[AlignConfig, bool, bool]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S' ... -> (AlignConfig (quiet), whether the true
-    intrinsics are given, whether the sparse refinement on matches follows)."""
+def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, bool]:
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E' ... -> (AlignConfig (quiet), whether
+    the true intrinsics are given, whether the sparse refinement on matches follows, whether the epipolar pose
+    refinement follows)."""
     body, *flags = s.split("+")
-    if any(f not in ("K", "F", "S") for f in flags) or len(set(flags)) < len(flags):
-        raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal) "
-                                         "and/or '+S' (sparse refinement on matches)")
+    if any(f not in ("K", "F", "S", "E") for f in flags) or len(set(flags)) < len(flags):
+        raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
+                                         "'+S' (sparse refinement on matches) and/or '+E' (epipolar pose refinement "
+                                         "on matches, as reconstruct)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags, quiet=True)
-    return cfg, "K" in flags, "S" in flags
+    return cfg, "K" in flags, "S" in flags, "E" in flags
 
 
 def setting_name(s: str) -> str:
@@ -93,9 +98,11 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
     f_gt = scene["K"][:, 0, 0].double()
     failed = []
     matches = None
-    for name, (cfg, known_K, sparse) in settings.items():
+    for name, (cfg, known_K, sparse, epipolar) in settings.items():
         try:
             recon = global_align(views, preds, config=cfg, K=scene["K"].double() if known_K else None)
+            if epipolar:
+                recon = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=model.cfg.patch_size))
             if sparse:  # as reconstruct(refine=True): the focals stay as aligned when known or shared
                 matches = matches or {k: pm.match(p) for k, p in preds.items()}
                 recon = refine_matches(recon, matches, config=SparseConfig(quiet=True),

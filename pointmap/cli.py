@@ -283,7 +283,8 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
     align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
-                        conf_percentile=args.conf_percentile, align=align, refine=args.refine, quiet=args.quiet)
+                        conf_percentile=args.conf_percentile, align=align, refine=args.refine,
+                        epipolar=not args.no_epipolar, quiet=args.quiet)
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
@@ -452,6 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
                         "are left out of the alignment, the matches and the exports (sky, people, a turntable)")
     r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
+    r.add_argument("--no-epipolar", dest="no_epipolar", action="store_true",
+                   help="skip the pose refinement on the model's coarse matches that follows alignment (the poses "
+                        "then come from the dense pointmaps alone)")
     r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
     r.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
                    help="wall-clock seconds the splat fit may take (0: no limit)")

@@ -79,7 +79,8 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
         z_aligned = z * scale if np.isfinite(scale) else z
         write_png(out / f"pair{i}{j}_depth", np.concatenate(
             [rgb_i, colorize(z_aligned, z > 0, depth_range), colorize(d_gt, d_gt > 0, depth_range)], axis=1))
-    return {"rows": rows, "views": views, "preds": preds, "gt": gt, "depth_range": depth_range}
+    return {"rows": rows, "views": views, "preds": preds, "gt": gt, "depth_range": depth_range,
+            "patch": model.cfg.patch_size}
 
 
 def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
@@ -120,10 +121,11 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
 def align_scene(res: dict, out: Path, quiet: bool) -> dict:
     """Global alignment of the scene, its exports, and its errors against the ground truth: pairwise
     relative rotation / direction errors of the aligned cameras, focal error in original pixels."""
-    from pointmap.align import global_align
+    from pointmap.align import EpipolarConfig, global_align, refine_epipolar
     from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
 
-    recon = global_align(res["views"], res["preds"], quiet=quiet)
+    recon = global_align(res["views"], res["preds"], quiet=quiet)  # then the poses on the matches, as reconstruct
+    recon = refine_epipolar(res["views"], res["preds"], recon, config=EpipolarConfig(patch=res["patch"]))
     recon.save(out / "recon", formats=("ply", "glb", "npz"))
     gt_c2w = torch.from_numpy(res["gt"]["cam2world"])
     est = recon.cam2world.double()

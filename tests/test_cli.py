@@ -364,3 +364,18 @@ def test_each_folder_skips_hidden_folders_and_its_own_output_and_survives_any_sc
     assert "1 of 2 scenes failed: broken" in err and "scene broken skipped: ImageError" in err
     assert main(args) == 1  # a re-run does not take its own output folder for a scene
     assert "1 of 2 scenes failed" in capsys.readouterr().err
+
+
+def test_no_epipolar_turns_the_pose_refinement_on_matches_off(tiny, tmp_path, monkeypatch):
+    import pointmap.pipeline
+
+    weights, folder = tiny
+    seen = []
+    real = pointmap.pipeline.reconstruct
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["epipolar"]) or real(*a, **k))
+    for extra in ([], ["--no-epipolar"]):
+        out = tmp_path / f"out{len(extra)}"
+        assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                     "--export", "npz", *extra]) == 0
+        assert (out / "reconstruction.npz").exists()
+    assert seen == [True, False]

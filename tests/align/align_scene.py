@@ -7,6 +7,7 @@ noise and outliers.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -168,3 +169,21 @@ def pose_errors(cam2world_est: np.ndarray, cam2world_gt: np.ndarray):
     rot = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
     centre = (c_al - cg).norm(dim=-1) / SCENE_SIZE
     return float(rot.max()), float(centre.max()), a
+
+
+def with_descriptors(preds, sc, dim=24, seed=0):
+    """Each pixel's descriptor: random Fourier features of its world point (what a perfect matcher would learn),
+    so that coarse matches land on true correspondences where the views overlap."""
+    rng = np.random.default_rng(seed)
+    B = rng.normal(scale=1.5, size=(3, dim // 2))
+    desc = []
+    for pw in sc["pts_world"]:
+        z = pw @ B
+        f = np.concatenate([np.sin(z), np.cos(z)], -1)
+        desc.append(torch.from_numpy(f / np.linalg.norm(f, axis=-1, keepdims=True)).float())
+    out = {}
+    for (i, j), p in preds.items():
+        ones = torch.ones_like(p.conf1)
+        out[(i, j)] = dataclasses.replace(p, desc1=desc[i][None], desc2=desc[j][None], desc_conf1=ones,
+                                          desc_conf2=ones.clone())
+    return out

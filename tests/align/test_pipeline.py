@@ -6,16 +6,18 @@ import types
 
 import numpy as np
 import pytest
-from align_scene import gt_preds, make_scene, pose_errors
+import torch
+from align_scene import gt_preds, make_scene, pose_errors, with_descriptors
 
-from pointmap.align import AlignConfig
+from pointmap.align import AlignConfig, EpipolarConfig
+from pointmap.matching import match_coarse
 from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
 
 
 @pytest.fixture
-def fake_stack(monkeypatch):
+def fake_stack(monkeypatch, request):
     sc = make_scene(5, 32, 48, seed=51)
-    calls = {}
+    calls = {"descriptors": "descriptors" in request.node.name}
 
     def make_pairs(n, graph):
         calls["graph"] = graph
@@ -27,11 +29,15 @@ def fake_stack(monkeypatch):
             raise StopIteration("stand-in stops after recording its inputs")
         return gt_preds(sc, pairs, seed=1)
 
+    def predict_pairs_with_descriptors(model, views, pairs, batch_size=8, **kw):
+        return with_descriptors(predict_pairs(model, views, pairs, batch_size, **kw), sc)
+
     def match(pred):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
 
-    for name, fns in (("pointmap.pairs", {"make_pairs": make_pairs}), ("pointmap.inference", {"predict_pairs": predict_pairs}),
-                      ("pointmap.matching", {"match": match})):
+    inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs}
+    for name, fns in (("pointmap.pairs", {"make_pairs": make_pairs}), ("pointmap.inference", inference),
+                      ("pointmap.matching", {"match": match, "match_coarse": match_coarse})):
         mod = types.ModuleType(name)
         mod.__dict__.update(fns)
         monkeypatch.setitem(sys.modules, name, mod)
@@ -51,8 +57,21 @@ def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
     assert rot < 0.1 and centre < 0.005
     assert recon.masks.all()  # conf 3 > 2 everywhere
     assert recon.info["pipeline"]["pairs"] == 10
+    # the stand-in predictions have no descriptors: the pose refinement on matches says it was skipped, and why
+    assert not recon.info["pipeline"]["epipolar"] and "descriptor" in recon.info["epipolar"]["reason"]
     written = recon.save(tmp_path, formats=("colmap", "ply"))
     assert (tmp_path / "sparse/0/images.bin").exists() and written["ply"].stat().st_size > 0
+
+
+def test_with_descriptors_the_poses_are_refined_on_matches_unless_turned_off(fake_stack):
+    sc, images, _ = fake_stack
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
+    rep = recon.info["epipolar"]
+    assert recon.info["pipeline"]["epipolar"] and rep["applied"] and rep["matches"] > 0
+    assert "align_refit" in recon.info  # the depths were re-fitted to the refined poses
+    plain = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=False)
+    assert not plain.info["pipeline"]["epipolar"] and "epipolar" not in plain.info
+    assert not torch.equal(plain.cam2world, recon.cam2world)
 
 
 def test_reconstruct_masks_and_percentile(fake_stack):

@@ -1,0 +1,287 @@
+"""Multi-view pose refinement on the model's matches (epipolar): the aligned scene's rotations and camera centres
+refined jointly on the coarse matches of every pair, then the dense depths re-fitted with those poses held.
+
+Why: dense alignment takes the camera centres from the pointmaps' geometry, whose depth and focal errors bend the
+baselines; the matches' epipolar geometry gives better directions (``pm.pair_pose`` on one pair). Translation
+averaging of pair_pose directions on the aligned rotations was measured too and is worse than this joint fit
+(docs/alignment.md, "Pose refinement on matches").
+
+The fit: for each match (ray r_i in image i, ray r_j in image j) the residual is the signed sine of the angle
+between r_i and the epipolar plane spanned by the direction of camera j's centre and the rotated ray
+R_i^T R_j r_j, both in camera i's frame (``pointmap.pose._epipolar_residuals``, here vectorised over all pairs).
+Robust least squares (Cauchy, scale ``threshold_px`` over the focal) over the matches within 3 scales of the
+current poses (the gate is re-drawn after each solve), plus a Cauchy prior of width ``rotation_prior_deg`` per
+rotation-vector component keeping each rotation near the aligned one. Rotations move as R_k = exp(w_k) R_k0 in
+the world frame. Gauge: known poses are held (else image 0's); without two known centres the mean distance of
+the free cameras from the held one keeps its aligned value. Intrinsics: known ones as given; otherwise each
+image's focal is the median of the Weiszfeld focals of its own-frame pointmaps (one per pass it is the first
+view of, and the second view's reverse pass), with the principal point as aligned; ``shared_focal``: the median
+over all images.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import torch
+
+from pointmap.errors import ShapeError
+from pointmap.pose import _bearings
+from pointmap.reconstruction import K_to_original
+
+
+@dataclass(frozen=True)
+class EpipolarConfig:
+    """rotation_prior_deg: Cauchy width of the prior keeping each rotation near the aligned one;
+    threshold_px: Cauchy scale of the epipolar residual in map pixels (None: max(h, w) / 56, 4 px at 224);
+    rounds: least-squares solves with a re-drawn inlier gate; anneal: the first solve's scale and gate this many
+    times wider, halved per solve down to 1 (``solve_poses``); max_evals: function evaluations per solve;
+    patch: cell size of the coarse matches (the model's patch size); refit_depth: re-run dense alignment with
+    the refined poses and intrinsics held, so the depths agree with them (else the depths stay as aligned)."""
+
+    rotation_prior_deg: float = 3.0
+    threshold_px: float | None = None
+    rounds: int = 3
+    anneal: float = 1.0
+    max_evals: int = 200
+    patch: int = 16
+    refit_depth: bool = True
+
+    def __post_init__(self):
+        if not self.rotation_prior_deg > 0 or not self.anneal >= 1 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
+                or (self.threshold_px is not None and not self.threshold_px > 0):
+            raise ValueError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, anneal >= 1, rounds, "
+                             f"max_evals and patch >= 1; got {self}")
+
+
+def epipolar_residuals(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray,
+                       r2: np.ndarray) -> np.ndarray:
+    """[M] signed sine between each ray r1 [M, 3] (camera I[m]'s frame) and the epipolar plane of camera J[m]'s
+    centre and ray r2 [M, 3] (camera J[m]'s frame), for cam2world rotations R [N, 3, 3] and centres C [N, 3]."""
+    Ri = R[I]
+    Rij = np.einsum("mba,mbc->mac", Ri, R[J])               # R_i^T R_j
+    t = np.einsum("mba,mb->ma", Ri, C[J] - C[I])            # camera j's centre in camera i's frame
+    t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    n = np.cross(t, np.einsum("mab,mb->ma", Rij, r2))
+    return (n * r1).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+
+
+def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(w).as_matrix()
+
+
+def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
+                scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
+                max_evals: int = 200, anneal: float = 1.0, sparse: bool | None = None):
+    """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
+    Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
+    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given; ``anneal``: the
+    first solve's Cauchy scale and gate are this many times wider, halved on each solve down to 1 (then up to
+    ``rounds`` solves while the gate moves), so that a start far off does not pick its inliers alone; ``sparse``:
+    finite differences by column groups of cameras that share no pair (scipy's ``jac_sparsity``, for many cameras)
+    or dense (few cameras); None: sparse beyond 8 free cameras. Returns (R, C, report)."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import coo_matrix
+
+    n = len(R0)
+    held = sorted(set(int(k) for k in held))
+    if not held:
+        raise ShapeError("solve_poses expected at least one held camera (the gauge)")
+    free = [k for k in range(n) if k not in held]
+    slot = {k: s for s, k in enumerate(free)}
+    nf = len(free)
+    anchor = held[0]
+    d0 = float(np.linalg.norm(C0[free] - C0[anchor], axis=1).mean()) if nf else 1.0
+    unit = d0 if d0 > 0 else 1.0
+    prior = math.radians(prior_deg)
+
+    def unpack(x):
+        R, C = R0.copy(), C0 / unit
+        if nf:
+            w = x[:3 * nf].reshape(nf, 3)
+            R[free] = _rotvec_to_matrix(w) @ R0[free]
+            C[free] = x[3 * nf:].reshape(nf, 3)
+        return R, C
+
+    def all_residuals(x):
+        R, C = unpack(x)
+        return epipolar_residuals(R, C, I, J, r1, r2) / scale
+
+    slots = np.array([slot.get(k, -1) for k in range(n)])
+
+    def sparsity(sel):
+        """Which parameters each residual depends on: a match on its two cameras' rotation and centre (held cameras
+        have none), a prior row on its camera's rotation, the scale row on every centre."""
+        m = int(sel.sum())
+        rows, cols = [], []
+        for cam in (I[sel], J[sel]):
+            s_ = slots[cam]
+            r = np.nonzero(s_ >= 0)[0]
+            for off in (0, 3 * nf):
+                for c in range(3):
+                    rows.append(r)
+                    cols.append(off + 3 * s_[r] + c)
+        for c in range(3):
+            rows.append(m + 3 * np.arange(nf) + c)
+            cols.append(3 * np.arange(nf) + c)
+        if keep_scale:
+            rows.append(np.full(3 * nf, m + 3 * nf))
+            cols.append(3 * nf + np.arange(3 * nf))
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
+                          shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
+
+    def sparse_opts(sel):  # lsmr's default tolerances stop its steps early: hundreds of slow iterations, off by 1 deg
+        return {"jac_sparsity": sparsity(sel), "tr_solver": "lsmr",
+                "tr_options": {"atol": 1e-12, "btol": 1e-12, "regularize": False}}
+
+    x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
+    e0 = all_residuals(x)
+    widths = [anneal / 2 ** k for k in range(32) if anneal / 2 ** k > 1] + [1.0] * rounds
+    gate = np.abs(e0) < 3 * widths[0]
+    solves = evals = 0
+    for k, width in enumerate(widths if nf else []):
+        if gate.sum() < 5:
+            break
+        sel = gate.copy()
+
+        def fun(x, sel=sel, width=width):
+            R, C = unpack(x)
+            e = epipolar_residuals(R, C, I[sel], J[sel], r1[sel], r2[sel]) / (scale[sel] * width)
+            out = [e, x[:3 * nf] / prior]
+            if keep_scale:
+                dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
+                out.append([10.0 * (dist - 1.0)])
+            return np.concatenate(out)
+
+        # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
+        sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6,
+                            **(sparse_opts(sel) if (nf > 8 if sparse is None else sparse) else {}))
+        x, evals = sol.x, evals + sol.nfev
+        solves += 1
+        nxt = widths[k + 1] if k + 1 < len(widths) else 1.0
+        new = np.abs(all_residuals(x)) < 3 * nxt
+        if width == 1.0 and np.array_equal(new, gate):
+            break
+        gate = new
+    R, C = unpack(x)
+    C = C * unit
+    C[held] = C0[held]
+    e1 = all_residuals(x)
+    report = {"matches": int(len(I)), "inliers_before": int((np.abs(e0) < 1).sum()),
+              "inliers_after": int((np.abs(e1) < 1).sum()), "median_residual_before": float(np.median(np.abs(e0))),
+              "median_residual_after": float(np.median(np.abs(e1))), "solves": solves, "evaluations": evals,
+              "held": held}
+    return R, C, report
+
+
+def _pair_list(preds: dict) -> list:
+    """One direction per unordered pair: (i, j) with i < j when present, else the order given."""
+    out = []
+    for i, j in preds:
+        if i == j:
+            continue
+        if (i, j) == (min(i, j), max(i, j)) or (min(i, j), max(i, j)) not in preds:
+            out.append((i, j))
+    return sorted(out)
+
+
+def own_focals(preds: dict, n: int) -> np.ndarray:
+    """[N] per image: the median of the Weiszfeld focals of its own-frame pointmaps (NaN when it has none)."""
+    from pointmap.pose import focal_from_prediction
+
+    per = [[] for _ in range(n)]
+    for (i, j), p in preds.items():
+        if i != j:
+            f = float(focal_from_prediction(p)[0])
+            if math.isfinite(f) and f > 0:
+                per[i].append(f)
+    return np.array([float(np.median(v)) if v else math.nan for v in per])
+
+
+def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None = None, align=None):
+    """The aligned ``recon`` (``global_align(views, preds, ...)``) with poses (and unknown focals) refined on the
+    model's coarse matches of every pair in ``preds``, then, with ``config.refit_depth``, its depths re-fitted by
+    ``global_align`` with those poses and intrinsics held (``align``: its AlignConfig; default the one recon was
+    aligned with). Known poses and intrinsics (recon.info["align"]) stay as given. Returns a new Reconstruction;
+    ``recon.info["epipolar"]`` reports the fit, or why it was skipped (a model without descriptors, every pose
+    known, too few matches)."""
+    cfg = config or EpipolarConfig()
+    t0 = time.perf_counter()
+    n = len(recon)
+    rep = recon.info.get("align", {})
+    known_poses = list(rep.get("known_pose_indices", []))
+    known_K = set(rep.get("known_K_indices", []))
+
+    def skipped(reason):
+        return _with_info(recon, {"applied": False, "reason": reason, "config": asdict(cfg)})
+
+    if any(not (0 <= i < n and 0 <= j < n) for i, j in preds):
+        raise ShapeError(f"preds expected pairs of indices below {n} (the reconstruction's images), got "
+                         f"{sorted(preds)[:5]}")
+    if not all(p.has_desc for p in preds.values()):
+        return skipped("the model has no descriptor head (no matches)")
+    if len(known_poses) == n:
+        return skipped("every pose is known")
+    from pointmap.align.optimize import AlignConfig, global_align
+    from pointmap.geometry.cameras import intrinsics
+    from pointmap.matching import match_coarse
+
+    h, w = recon.depth_z.shape[1:]
+    K_map = recon.K_map.double().clone()
+    if len(known_K) < n:
+        f_own = own_focals(preds, n)
+        shared = bool(rep.get("config", {}).get("shared_focal", False))
+        if shared and np.isfinite(f_own).any():
+            f_own[:] = float(np.nanmedian(f_own))
+        for k in range(n):
+            if k not in known_K and math.isfinite(f_own[k]):
+                K_map[k] = intrinsics(float(f_own[k]), float(K_map[k, 0, 2]), float(K_map[k, 1, 2]),
+                                      dtype=torch.float64)
+    thr = cfg.threshold_px if cfg.threshold_px is not None else max(h, w) / 56
+    I, J, r1, r2, s = [], [], [], [], []
+    Kn = K_map.numpy()
+    for i, j in _pair_list(preds):
+        m = match_coarse(preds[(i, j)], cfg.patch)
+        keep = (m.score > 0).numpy()  # cells of zero descriptor confidence (masked pixels) match nothing
+        if not keep.any():
+            continue
+        I.append(np.full(int(keep.sum()), i))
+        J.append(np.full(int(keep.sum()), j))
+        r1.append(_bearings(m.xy1.double().numpy()[keep], Kn[i]))
+        r2.append(_bearings(m.xy2.double().numpy()[keep], Kn[j]))
+        s.append(np.full(int(keep.sum()), thr / Kn[i, 0, 0]))
+    if sum(len(x) for x in I) < 5 * max(1, n - 1):
+        return skipped(f"too few matches ({sum(len(x) for x in I)}) for {n} images")
+    I, J, r1, r2, s = (np.concatenate(x) for x in (I, J, r1, r2, s))
+    c2w = recon.cam2world.double().numpy()
+    held = known_poses or [0]
+    R, C, fit = solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held,
+                            keep_scale=len(known_poses) < 2, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
+                            max_evals=cfg.max_evals, anneal=cfg.anneal)
+    new = recon.cam2world.double().clone()
+    new[:, :3, :3] = torch.from_numpy(R)
+    new[:, :3, 3] = torch.from_numpy(C)
+    new[held] = recon.cam2world[held].double()
+    if not bool(torch.isfinite(new).all()):
+        return skipped("the fit did not give finite poses")
+    K = K_to_original(K_map, recon.map_from_original.double()).float()
+    for k in known_K:
+        K[k] = recon.K[k]
+    report = {"applied": True, **fit, "threshold_px": thr, "config": asdict(cfg)}
+    if cfg.refit_depth:
+        acfg = align or AlignConfig(**{**rep.get("config", {}), "quiet": True})
+        out = global_align(views, preds, K=K, cam2world=new.float(), config=acfg)
+        report["seconds"] = time.perf_counter() - t0
+        return replace(out, info={**recon.info, "align_refit": out.info["align"], "epipolar": report})
+    report["seconds"] = time.perf_counter() - t0
+    return replace(recon, cam2world=new.float(), K=K, info={**recon.info, "epipolar": report})
+
+
+def _with_info(recon, report):
+    return replace(recon, info={**recon.info, "epipolar": report})

@@ -1,0 +1,217 @@
+"""Pose refinement on matches (pointmap.align.epipolar): the vectorised residuals against the two-view reference,
+the fit on exact and outlier-laden matches of the analytic scene, the gauge, the stage end to end on predictions
+with descriptors, and what it refuses or skips."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
+
+from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
+from pointmap.align.epipolar import epipolar_residuals, solve_poses
+from pointmap.errors import ShapeError
+from pointmap.geometry.rotations import axis_angle_to_matrix
+from pointmap.pose import _bearings, _epipolar_residuals
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(5, 32, 48, seed=61)
+
+
+def exact_rays(sc, i, j, step=3, outliers=0.0, seed=0):
+    """Rays (camera frames) of grid pixels of image i and of where their true points land in image j."""
+    rng = np.random.default_rng(seed)
+    h, w = sc["depth"].shape[1:]
+    v, u = np.mgrid[1:h:step, 1:w:step]
+    pw = sc["pts_world"][i][v, u].reshape(-1, 3)
+    w2c = np.linalg.inv(sc["cam2world"][j])
+    pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
+    K = sc["K"][j]
+    uv = pc[:, :2] / pc[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    xy1 = np.stack([u.reshape(-1), v.reshape(-1)], -1)[ok].astype(float)
+    xy2 = uv[ok]
+    if outliers:
+        m = rng.random(len(xy2)) < outliers
+        xy2[m] = rng.uniform([0, 0], [w - 1, h - 1], (int(m.sum()), 2))
+    return _bearings(xy1, sc["K"][i]), _bearings(xy2, K)
+
+
+def stacked(sc, outliers=0.0, step=3):
+    n = len(sc["cam2world"])
+    I, J, r1, r2 = [], [], [], []
+    for i in range(n):
+        for j in range(i + 1, n):
+            a, b = exact_rays(sc, i, j, step=step, outliers=outliers, seed=10 * i + j)
+            I.append(np.full(len(a), i))
+            J.append(np.full(len(a), j))
+            r1.append(a)
+            r2.append(b)
+    return np.concatenate(I), np.concatenate(J), np.concatenate(r1), np.concatenate(r2)
+
+
+def perturbed(c2w, rot_deg=3.0, centre=0.3, seed=0, held=(0,)):
+    rng = np.random.default_rng(seed)
+    out = c2w.copy()
+    for k in range(len(c2w)):
+        if k in held:
+            continue
+        axis = rng.normal(size=3)
+        axis *= np.radians(rot_deg) / np.linalg.norm(axis)
+        out[k, :3, :3] = axis_angle_to_matrix(torch.from_numpy(axis)).numpy() @ out[k, :3, :3]
+        out[k, :3, 3] += rng.normal(scale=centre, size=3)
+    return out
+
+
+def direction_errors(c2w, gt):
+    """Max rotation and direction errors (degrees) of every camera pair's relative pose."""
+    rot, dirs = [], []
+    for i in range(len(gt)):
+        for j in range(i + 1, len(gt)):
+            e, g = np.linalg.inv(c2w[i]) @ c2w[j], np.linalg.inv(gt[i]) @ gt[j]
+            rot.append(np.degrees(np.arccos(np.clip((np.trace(e[:3, :3].T @ g[:3, :3]) - 1) / 2, -1, 1))))
+            a, b = e[:3, 3] / np.linalg.norm(e[:3, 3]), g[:3, 3] / np.linalg.norm(g[:3, 3])
+            dirs.append(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
+    return max(rot), max(dirs)
+
+
+def test_vectorised_residuals_agree_with_the_two_view_reference(scene):
+    I, J, r1, r2 = stacked(scene)
+    c2w = perturbed(scene["cam2world"], seed=3)
+    R, C = c2w[:, :3, :3], c2w[:, :3, 3]
+    fast = epipolar_residuals(R, C, I, J, r1, r2)
+    ref = np.empty_like(fast)
+    for m in range(len(I)):  # one match at a time through the two-view function pair_pose refines with
+        rel = np.linalg.inv(c2w[I[m]]) @ c2w[J[m]]
+        t = rel[:3, 3] / np.linalg.norm(rel[:3, 3])
+        ref[m] = _epipolar_residuals(rel[:3, :3], t, r1[m:m + 1], r2[m:m + 1])[0]
+    assert np.abs(fast).max() > 1e-3  # the perturbed poses do not fit: the comparison is not of zeros
+    np.testing.assert_allclose(fast, ref, atol=1e-12)
+    exact = epipolar_residuals(scene["cam2world"][:, :3, :3], scene["cam2world"][:, :3, 3], I, J, r1, r2)
+    assert np.abs(exact).max() < 1e-9
+
+
+@pytest.fixture(scope="module")
+def wide_scene():
+    """The analytic scene at 144 x 96 px: random outliers then fall far from most epipolar lines, as in photographs."""
+    return make_scene(5, 96, 144, seed=61, focal_range=(114.0, 156.0))
+
+
+@pytest.mark.parametrize("outliers, rot_deg, px, bound", [(0.0, 3.0, 1.0, 0.01), (0.3, 3.0, 2.0, 0.3)])
+def test_the_fit_recovers_rotations_and_directions_from_perturbed_poses(wide_scene, outliers, rot_deg, px, bound):
+    """From a start degrees off, on exact matches and on matches of which 30% are random (those that fall inside
+    the gate by chance bias the Cauchy fit a little: the bound is a tenth of a degree or so there)."""
+    gt = wide_scene["cam2world"]
+    I, J, r1, r2 = stacked(wide_scene, outliers)
+    start = perturbed(gt, rot_deg=rot_deg, centre=0.1 * rot_deg, seed=5)
+    rot0, dir0 = direction_errors(start, gt)
+    scale = np.full(len(I), px / 135.0)  # px pixels at the scene's ~135 px focal
+    R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0], keep_scale=True,
+                            prior_deg=30.0)
+    out = start.copy()
+    out[:, :3, :3], out[:, :3, 3] = R, C
+    rot, dirs = direction_errors(out, gt)
+    assert rot0 > rot_deg and dir0 > 2 * rot_deg  # the start is well off
+    assert rot < bound and dirs < bound, (rot, dirs, rot0, dir0)
+    assert rep["median_residual_after"] < rep["median_residual_before"]
+    rot_s, centre_s, _ = pose_errors(out, gt)  # the whole rig up to a similarity
+    assert rot_s < bound and centre_s < bound / 50
+
+
+def test_held_cameras_stay_and_the_scale_is_kept(scene):
+    gt = scene["cam2world"]
+    I, J, r1, r2 = stacked(scene)
+    start = perturbed(gt, seed=7, held=(0, 2))
+    scale = np.full(len(I), 0.5 / 45.0)
+    R, C, _ = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0, 2], keep_scale=False)
+    assert np.array_equal(R[[0, 2]], start[[0, 2], :3, :3]) and np.array_equal(C[[0, 2]], start[[0, 2], :3, 3])
+    d0 = np.linalg.norm(start[[1, 3, 4], :3, 3] - start[0, :3, 3], axis=1).mean()
+    R, C, _ = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0], keep_scale=True)
+    assert np.array_equal(C[0], start[0, :3, 3])
+    assert np.linalg.norm(C[1:] - C[0], axis=1).mean() == pytest.approx(
+        np.linalg.norm(start[1:, :3, 3] - start[0, :3, 3], axis=1).mean(), rel=1e-3)
+    assert d0 > 0
+    with pytest.raises(ShapeError, match="at least one held camera"):
+        solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[], keep_scale=True)
+
+
+@pytest.fixture(scope="module")
+def mid_scene():
+    return make_scene(5, 64, 96, seed=61, focal_range=(76.0, 104.0))
+
+
+def test_the_stage_fits_the_matches_better_and_refits_the_depths_to_its_poses(mid_scene):
+    """The stage end to end on predictions with descriptors: coarse matches of every pair (some wrong where the views
+    do not overlap), focals from the own-frame pointmaps, the fit, the depths re-fitted with its poses held. How much
+    the poses improve on a trained model's predictions is measured by benchmarks/bench_ga.py ('+E'); on these
+    near-exact pointmaps dense alignment is already within a few degrees, close to what 8-px cells can tell."""
+    sc = mid_scene
+    n = len(sc["cam2world"])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    recon = global_align(views, preds, config=AlignConfig(quiet=True))
+    cfg = EpipolarConfig(patch=8)
+    out = refine_epipolar(views, preds, recon, config=cfg)
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["matches"] > 150 and rep["inliers_after"] > rep["inliers_before"]
+    assert rep["median_residual_after"] < 0.5 * rep["median_residual_before"]
+    rot, dirs = direction_errors(out.cam2world.double().numpy(), sc["cam2world"])
+    assert rot < 15 and dirs < 15  # stays near the truth
+    # the depths were re-fitted with the refined poses held: they come back as given, with the focals used
+    assert out.info["align_refit"]["known_pose_indices"] == list(range(n))
+    assert np.median(np.abs(out.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1)) < 0.02  # the own-frame maps' focals
+    assert torch.equal(out.cam2world[0], recon.cam2world[0])  # the world stays camera 0's frame
+    kept = refine_epipolar(views, preds, recon, config=dataclasses.replace(cfg, refit_depth=False))
+    assert torch.equal(kept.depth_z, recon.depth_z) and torch.allclose(kept.cam2world, out.cam2world, atol=1e-5)
+    pts_refit = out.pts_world[out.depth_z > 0]
+    assert torch.isfinite(pts_refit).all()
+
+
+def test_the_stage_skips_models_without_descriptors_and_scenes_with_every_pose_known(scene):
+    n = len(scene["cam2world"])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    views = views_of(scene)
+    preds = gt_preds(scene, pairs, seed=2)
+    recon = global_align(views, preds, config=AlignConfig(quiet=True))
+    out = refine_epipolar(views, preds, recon)
+    assert not out.info["epipolar"]["applied"] and "descriptor" in out.info["epipolar"]["reason"]
+    assert torch.equal(out.cam2world, recon.cam2world)
+    preds = with_descriptors(preds, scene)
+    known = global_align(views, preds, cam2world=torch.from_numpy(scene["cam2world"]).float(),
+                         config=AlignConfig(quiet=True))
+    out = refine_epipolar(views, preds, known, config=EpipolarConfig(patch=4))
+    assert not out.info["epipolar"]["applied"] and "every pose is known" in out.info["epipolar"]["reason"]
+    with pytest.raises(ShapeError, match="indices below 5"):
+        refine_epipolar(views, {(0, 7): preds[(0, 1)]}, recon)
+
+
+@pytest.mark.parametrize("kwargs", [dict(rotation_prior_deg=0.0), dict(threshold_px=-1.0), dict(rounds=0),
+                                    dict(patch=0), dict(rotation_prior_deg=float("nan"))])
+def test_bad_settings_are_refused_when_the_config_is_made(kwargs):
+    with pytest.raises(ValueError, match="EpipolarConfig expected"):
+        EpipolarConfig(**kwargs)
+
+
+def test_the_sparse_jacobian_path_agrees_with_the_dense_one():
+    sc = make_scene(10, 64, 96, seed=62, focal_range=(76.0, 104.0))
+    gt = sc["cam2world"]
+    I, J, r1, r2 = stacked(sc, 0.1, step=6)
+    start = perturbed(gt, rot_deg=1.0, centre=0.1, seed=9)
+    scale = np.full(len(I), 1.0 / 90.0)
+    args = (start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale)
+    Rd, Cd, rep_d = solve_poses(*args, held=[0], keep_scale=True, sparse=False)
+    Rs, Cs, rep_s = solve_poses(*args, held=[0], keep_scale=True, sparse=True)
+    assert rep_d["median_residual_after"] < 0.1 * rep_d["median_residual_before"]
+    assert rep_s["evaluations"] < 100  # lsmr at its default tolerances crawled (hundreds, 1 degree off)
+    # two solvers stopping at ftol 1e-6: the same poses to a few hundredths of a degree and 1% in the centres
+    # (the baselines' lengths are the weakly held part: matches fix directions only), both near the truth
+    np.testing.assert_allclose(Rs, Rd, atol=1e-3)
+    np.testing.assert_allclose(Cs, Cd, atol=1e-2 * np.abs(Cd).max())
+    for R, C in ((Rd, Cd), (Rs, Cs)):
+        c2w = np.tile(np.eye(4), (len(R), 1, 1))
+        c2w[:, :3, :3], c2w[:, :3, 3] = R, C
+        assert max(direction_errors(c2w, gt)) < 0.5
