@@ -154,10 +154,13 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         recon = refine_epipolar(views, preds, recon, config=ecfg, align=cfg)
         rep = recon.info["epipolar"]
         if not quiet:
-            print("pointmap: poses refined on the model's matches ("
-                  + (f"{rep['matches']} matches, {rep['inliers_before']} -> {rep['inliers_after']} within the threshold); "
-                     ("depths re-fitted to them" if "align_refit" in recon.info else "depths as aligned") if rep["applied"] else f"skipped: {rep['reason']}") + ")",
-                  file=sys.stderr)
+            if rep["applied"]:
+                refit = "depths re-fitted to them" if "align_refit" in recon.info else "depths as aligned"
+                note = f"{rep['matches']} matches, {rep['inliers_before']} -> {rep['inliers_after']} within the " \
+                       f"threshold; {refit}"
+            else:
+                note = f"skipped: {rep['reason']}"
+            print(f"pointmap: poses refined on the model's matches ({note})", file=sys.stderr)
     if refine:
         from pointmap.align.sparse import SparseConfig, refine_matches
         from pointmap.matching import match

@@ -21,9 +21,9 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     data, model_path = scenes_and_model
     prefix = tmp_path / "pp"
     assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1",
-                 "--settings", "log", "id", "id+K", "id+S", "--per-pair", str(prefix)]) == 0
+                 "--settings", "log", "id", "id+K", "id+S", "id+E", "--per-pair", str(prefix)]) == 0
     rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "pairwise_+_matches", "GA_log", "GA_id", "GA_id+K",
-                                                     "GA_id+S")}
+                                                     "GA_id+S", "GA_id+E")}
     assert all(len(r) == 2 * 3 for r in rows.values())  # 2 scenes x 3 camera pairs
     # the first scene's pair (0, 1) aligned with conf itself, recomputed here
     scene = MultiViewDataset(data)[0]
@@ -50,6 +50,17 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     est_S = torch.linalg.inv(c2w_S[0]) @ c2w_S[1]
     assert float(rows["GA_id+S"][0]["rot_err"]) == pytest.approx(
         float(relative_rotation_error_deg(est_S[:3, :3], true[:3, :3])), abs=1e-3)
+    # '+E': the same alignment, then the poses refined on the model's matches (what reconstruct runs)
+    from pointmap.align import EpipolarConfig, refine_epipolar
+
+    refined = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=model.cfg.patch_size))
+    # 64 px images hold 16 cells of 16 px: too few matches, so the stage says so and keeps the aligned poses (its
+    # fit is tested in tests/align/test_epipolar.py); the benchmark must report exactly what it returned
+    assert "too few matches" in refined.info["epipolar"]["reason"]
+    c2w_E = refined.cam2world.double()
+    est_E = torch.linalg.inv(c2w_E[0]) @ c2w_E[1]
+    assert float(rows["GA_id+E"][0]["rot_err"]) == pytest.approx(
+        float(relative_rotation_error_deg(est_E[:3, :3], true[:3, :3])), abs=1e-3)
     # '+K' hands the alignment the scene's true intrinsics (and that changes the result)
     assert rows["GA_id+K"][0]["rot_err"] != rows["GA_id"][0]["rot_err"]
     c2w_K = global_align(views, preds, K=scene["K"].double(),
@@ -73,16 +84,19 @@ def test_the_ga_benchmark_refuses_a_foreign_per_pair_file_before_running(scenes_
     assert e.value.code == 2 and "twice" in capsys.readouterr().err
 
 
-def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared_focal_and_sparse_refinement():
+def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared_focal_and_refinements():
     import argparse
 
     from benchmarks.bench_ga import parse_setting
 
-    cfg, known_K, sparse = parse_setting("id:lbfgs+F+K")
-    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse) == ("id", "lbfgs", True, True, False)
-    cfg, known_K, sparse = parse_setting("auto")
-    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse) == ("auto", "adam", False, False, False)
-    assert parse_setting("log+S")[2] and not parse_setting("log+S")[1]
-    for bad in ("auto+X", "auto+K+K", "auto+S+S", "rank", "log:sgd"):
+    cfg, known_K, sparse, epipolar = parse_setting("id:lbfgs+F+K")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse, epipolar) == \
+        ("id", "lbfgs", True, True, False, False)
+    cfg, known_K, sparse, epipolar = parse_setting("auto")
+    assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse, epipolar) == \
+        ("auto", "adam", False, False, False, False)
+    assert parse_setting("log+S")[2] and not parse_setting("log+S")[1] and not parse_setting("log+S")[3]
+    assert parse_setting("auto+E")[3] and not parse_setting("auto+E")[2]
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
