@@ -37,23 +37,21 @@ from pointmap.reconstruction import K_to_original
 class EpipolarConfig:
     """rotation_prior_deg: Cauchy width of the prior keeping each rotation near the aligned one;
     threshold_px: Cauchy scale of the epipolar residual in map pixels (None: max(h, w) / 56, 4 px at 224);
-    rounds: least-squares solves with a re-drawn inlier gate; anneal: the first solve's scale and gate this many
-    times wider, halved per solve down to 1 (``solve_poses``); max_evals: function evaluations per solve;
+    rounds: least-squares solves with a re-drawn inlier gate; max_evals: function evaluations per solve;
     patch: cell size of the coarse matches (the model's patch size); refit_depth: re-run dense alignment with
     the refined poses and intrinsics held, so the depths agree with them (else the depths stay as aligned)."""
 
     rotation_prior_deg: float = 3.0
     threshold_px: float | None = None
     rounds: int = 3
-    anneal: float = 1.0
     max_evals: int = 200
     patch: int = 16
     refit_depth: bool = True
 
     def __post_init__(self):
-        if not self.rotation_prior_deg > 0 or not self.anneal >= 1 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
+        if not self.rotation_prior_deg > 0 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
                 or (self.threshold_px is not None and not self.threshold_px > 0):
-            raise ValueError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, anneal >= 1, rounds, "
+            raise ValueError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, rounds, "
                              f"max_evals and patch >= 1; got {self}")
 
 
@@ -77,12 +75,10 @@ def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
 
 def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                 scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
-                max_evals: int = 200, anneal: float = 1.0, sparse: bool | None = None):
+                max_evals: int = 200, sparse: bool | None = None):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
-    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given; ``anneal``: the
-    first solve's Cauchy scale and gate are this many times wider, halved on each solve down to 1 (then up to
-    ``rounds`` solves while the gate moves), so that a start far off does not pick its inliers alone; ``sparse``:
+    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given; ``sparse``:
     finite differences by column groups of cameras that share no pair (scipy's ``jac_sparsity``, for many cameras)
     or dense (few cameras); None: sparse beyond 8 free cameras. Returns (R, C, report)."""
     from scipy.optimize import least_squares
@@ -142,17 +138,16 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
     e0 = all_residuals(x)
-    widths = [anneal / 2 ** k for k in range(32) if anneal / 2 ** k > 1] + [1.0] * rounds
-    gate = np.abs(e0) < 3 * widths[0]
+    gate = np.abs(e0) < 3
     solves = evals = 0
-    for k, width in enumerate(widths if nf else []):
+    for _ in range(rounds if nf else 0):
         if gate.sum() < 5:
             break
         sel = gate.copy()
 
-        def fun(x, sel=sel, width=width):
+        def fun(x, sel=sel):
             R, C = unpack(x)
-            e = epipolar_residuals(R, C, I[sel], J[sel], r1[sel], r2[sel]) / (scale[sel] * width)
+            e = epipolar_residuals(R, C, I[sel], J[sel], r1[sel], r2[sel]) / scale[sel]
             out = [e, x[:3 * nf] / prior]
             if keep_scale:
                 dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
@@ -164,9 +159,8 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
                             **(sparse_opts(sel) if (nf > 8 if sparse is None else sparse) else {}))
         x, evals = sol.x, evals + sol.nfev
         solves += 1
-        nxt = widths[k + 1] if k + 1 < len(widths) else 1.0
-        new = np.abs(all_residuals(x)) < 3 * nxt
-        if width == 1.0 and np.array_equal(new, gate):
+        new = np.abs(all_residuals(x)) < 3
+        if np.array_equal(new, gate):
             break
         gate = new
     R, C = unpack(x)
@@ -263,7 +257,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     held = known_poses or [0]
     R, C, fit = solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held,
                             keep_scale=len(known_poses) < 2, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
-                            max_evals=cfg.max_evals, anneal=cfg.anneal)
+                            max_evals=cfg.max_evals)
     new = recon.cam2world.double().clone()
     new[:, :3, :3] = torch.from_numpy(R)
     new[:, :3, 3] = torch.from_numpy(C)
