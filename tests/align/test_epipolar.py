@@ -215,3 +215,23 @@ def test_the_sparse_jacobian_path_agrees_with_the_dense_one():
         c2w = np.tile(np.eye(4), (len(R), 1, 1))
         c2w[:, :3, :3], c2w[:, :3, 3] = R, C
         assert max(direction_errors(c2w, gt)) < 0.5
+
+
+def test_known_poses_and_intrinsics_come_back_as_given(mid_scene):
+    sc = mid_scene
+    n = len(sc["cam2world"])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    known_c2w = {1: torch.from_numpy(sc["cam2world"][1]).float(), 3: torch.from_numpy(sc["cam2world"][3]).float()}
+    known_K = {0: torch.from_numpy(sc["K"][0]).float() * torch.tensor([[1.1, 1, 1], [1, 1.1, 1], [1, 1, 1]])}
+    recon = global_align(views, preds, K=known_K, cam2world=known_c2w, config=AlignConfig(quiet=True))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["held"] == [1, 3]
+    for k, T in known_c2w.items():
+        assert torch.equal(out.cam2world[k], T)
+    assert torch.equal(out.K[0], known_K[0])  # a known (here deliberately 10% off) focal is not replaced
+    assert not torch.equal(out.cam2world[2], recon.cam2world[2])  # the free cameras moved
+    # two known centres fix the scale: the free cameras stay at the scene's size
+    assert np.linalg.norm(out.cam2world[2, :3, 3].numpy() - sc["cam2world"][2, :3, 3]) < 0.5
