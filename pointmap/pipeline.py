@@ -32,8 +32,9 @@ def auto_graph(n_images: int, sequential: bool = False) -> str:
 
 
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
-                  device: str = "cpu") -> dict:
-    """Rough time (s) and peak memory (GB) of inference and alignment, before running them."""
+                  device: str = "cpu", align_runs: int = 1) -> dict:
+    """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``align_runs``: dense
+    alignments run (2 with the pose refinement on matches, whose depth re-fit is a second one)."""
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs
@@ -51,8 +52,8 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     stack_bytes = E * P_opt * 4 * 8
     chunk_bytes = min(cfg.max_chunk_pixels, E * P_opt) * 4 * 40
     return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": per_pair * n_pairs,
-            "align_seconds": ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
-            + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters),
+            "align_seconds": align_runs * (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
+                                           + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters)),
             "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}
 
 
@@ -136,7 +137,8 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
-    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device)
+    refit = bool(epipolar) and getattr(epipolar, "refit_depth", True)  # the pose refinement's depth re-fit
+    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, align_runs=2 if refit else 1)
     if not quiet:
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "

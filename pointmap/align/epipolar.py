@@ -4,7 +4,7 @@ refined jointly on the coarse matches of every pair, then the dense depths re-fi
 Why: dense alignment takes the camera centres from the pointmaps' geometry, whose depth and focal errors bend the
 baselines; the matches' epipolar geometry gives better directions (``pm.pair_pose`` on one pair). Translation
 averaging of pair_pose directions on the aligned rotations was measured too and is worse than this joint fit
-(docs/alignment.md, "Pose refinement on matches").
+(docs/alignment.md, "Pose refinement on the model's matches").
 
 The fit: for each match (ray r_i in image i, ray r_j in image j) the residual is the signed sine of the angle
 between r_i and the epipolar plane spanned by the direction of camera j's centre and the rotated ray
@@ -14,9 +14,8 @@ current poses (the gate is re-drawn after each solve), plus a Cauchy prior of wi
 rotation-vector component keeping each rotation near the aligned one. Rotations move as R_k = exp(w_k) R_k0 in
 the world frame. Gauge: known poses are held (else image 0's); without two known centres the mean distance of
 the free cameras from the held one keeps its aligned value. Intrinsics: known ones as given; otherwise each
-image's focal is the median of the Weiszfeld focals of its own-frame pointmaps (one per pass it is the first
-view of, and the second view's reverse pass), with the principal point as aligned; ``shared_focal``: the median
-over all images.
+image's focal is the median of the Weiszfeld focals of its own-frame pointmaps (one per pass in which it is the
+first view), with the principal point as aligned; ``shared_focal``: the median over all images.
 """
 
 from __future__ import annotations

@@ -101,6 +101,8 @@ def test_auto_graph_and_estimates():
     small = estimate_cost(10, 30, (384, 512))
     big = estimate_cost(100, 400, (384, 512))
     assert big["align_seconds"] > small["align_seconds"] > 0 and big["memory_gb"] > small["memory_gb"] > 0
+    twice = estimate_cost(10, 30, (384, 512), align_runs=2)  # the pose refinement's depth re-fit aligns again
+    assert twice["align_seconds"] == pytest.approx(2 * small["align_seconds"])
 
 
 def test_single_image_is_a_clear_error(fake_stack):
