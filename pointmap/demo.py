@@ -106,7 +106,7 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
     tr = np.array([r["trans_deg"] for r in all_rows])
     print(f"\nRRA@15 {100 * np.mean(rot < 15):.0f}%  RTA@15 {100 * np.mean(tr < 15):.0f}%  "
           f"median AbsRel {np.median([r['abs_rel'] for r in all_rows]):.3f}")
-    print("\nglobal alignment of all views (mean over view pairs):")
+    print("\nglobal alignment of all views, poses refined on the matches (mean over view pairs):")
     for name, a in aligned.items():
         print(f"  {name:<10} rot err {a['rot_deg']:5.1f}°  dir err {a['trans_deg']:5.1f}°  focal err {a['focal_err_pct']:5.1f}%")
     print(f"outputs and previews: {out}/  (recon/points.ply and recon/scene.glb open in any 3D viewer)")
