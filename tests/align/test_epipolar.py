@@ -235,3 +235,22 @@ def test_known_poses_and_intrinsics_come_back_as_given(mid_scene):
     assert not torch.equal(out.cam2world[2], recon.cam2world[2])  # the free cameras moved
     # two known centres fix the scale: the free cameras stay at the scene's size
     assert np.linalg.norm(out.cam2world[2, :3, 3].numpy() - sc["cam2world"][2, :3, 3]) < 0.5
+
+
+def test_masked_pixels_give_no_matches(mid_scene):
+    """Pixels masked out (descriptor confidence 0, as ``reconstruct``'s masks leave them) are left out of the fit."""
+    sc = mid_scene
+    n = len(sc["cam2world"])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    recon = global_align(views, preds, config=AlignConfig(quiet=True))
+    cfg = EpipolarConfig(patch=8, refit_depth=False)
+    full = refine_epipolar(views, preds, recon, config=cfg).info["epipolar"]["matches"]
+    masked = {}
+    for key, p in preds.items():
+        c1, c2 = p.desc_conf1.clone(), p.desc_conf2.clone()
+        c1[..., :48] = 0  # the left half of view 1 of every pass
+        masked[key] = dataclasses.replace(p, desc_conf1=c1, desc_conf2=c2)
+    half = refine_epipolar(views, masked, recon, config=cfg).info["epipolar"]["matches"]
+    assert 0 < half < 0.7 * full
