@@ -58,11 +58,19 @@ def epipolar_residuals(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarra
                        r2: np.ndarray) -> np.ndarray:
     """[M] signed sine between each ray r1 [M, 3] (camera I[m]'s frame) and the epipolar plane of camera J[m]'s
     centre and ray r2 [M, 3] (camera J[m]'s frame), for cam2world rotations R [N, 3, 3] and centres C [N, 3]."""
-    Ri = R[I]
-    Rij = np.einsum("mba,mbc->mac", Ri, R[J])               # R_i^T R_j
-    t = np.einsum("mba,mb->ma", Ri, C[J] - C[I])            # camera j's centre in camera i's frame
+    pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
+    return _residuals_by_pair(R, C, pairs[:, 0], pairs[:, 1], pid.reshape(-1), r1, r2)
+
+
+def _residuals_by_pair(R, C, PI, PJ, pid, r1, r2):
+    """``epipolar_residuals`` with the relative poses computed once per camera pair (PI[p], PJ[p]); ``pid`` [M]: each
+    match's pair. The fit evaluates this thousands of times: per match only a rotation, a cross and a dot remain."""
+    RiT = R[PI].transpose(0, 2, 1)
+    Rij = RiT @ R[PJ]                                        # R_i^T R_j per pair
+    t = (RiT @ (C[PJ] - C[PI])[..., None])[..., 0]           # camera j's centre in camera i's frame
     t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    n = np.cross(t, np.einsum("mab,mb->ma", Rij, r2))
+    v = np.einsum("mab,mb->ma", Rij[pid], r2)
+    n = np.cross(t[pid], v)
     return (n * r1).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
 
 
@@ -94,6 +102,8 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     d0 = float(np.linalg.norm(C0[free] - C0[anchor], axis=1).mean()) if nf else 1.0
     unit = d0 if d0 > 0 else 1.0
     prior = math.radians(prior_deg)
+    pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
+    PI, PJ, pid = pairs[:, 0], pairs[:, 1], pid.reshape(-1)
 
     def unpack(x):
         R, C = R0.copy(), C0 / unit
@@ -105,7 +115,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     def all_residuals(x):
         R, C = unpack(x)
-        return epipolar_residuals(R, C, I, J, r1, r2) / scale
+        return _residuals_by_pair(R, C, PI, PJ, pid, r1, r2) / scale
 
     slots = np.array([slot.get(k, -1) for k in range(n)])
 
@@ -146,7 +156,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
         def fun(x, sel=sel):
             R, C = unpack(x)
-            e = epipolar_residuals(R, C, I[sel], J[sel], r1[sel], r2[sel]) / scale[sel]
+            e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
             out = [e, x[:3 * nf] / prior]
             if keep_scale:
                 dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
