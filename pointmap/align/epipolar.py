@@ -85,9 +85,10 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
                 max_evals: int = 200, sparse: bool | None = None):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
-    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given (restored after
-    each solve: the residuals do not see the scale, and a residual holding it would touch every centre, joining all
-    cameras in one column group of the sparse differences: 100 views took 425 s that way, 32 s now); ``sparse``:
+    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given (a residual;
+    restoring it after each solve instead was 5 times faster on 100 views (32 s against 170), since this row touches every centre
+    and joins all cameras in one column group, but let the demo room's cameras pass through each other: its
+    directions came out mirrored, 159 degrees off); ``sparse``:
     finite differences by column groups of cameras that share no pair (scipy's ``jac_sparsity``, for many cameras)
     or dense (few cameras); None: sparse beyond 8 free cameras. Returns (R, C, report)."""
     from scipy.optimize import least_squares
@@ -136,8 +137,12 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
         for c in range(3):
             rows.append(m + 3 * np.arange(nf) + c)
             cols.append(3 * np.arange(nf) + c)
+        if keep_scale:
+            rows.append(np.full(3 * nf, m + 3 * nf))
+            cols.append(3 * nf + np.arange(3 * nf))
         rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(m + 3 * nf, 6 * nf)).tocsr()
+        return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
+                          shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
 
     def sparse_opts(sel):  # lsmr's default tolerances stop its steps early: hundreds of slow iterations, off by 1 deg
         return {"jac_sparsity": sparsity(sel), "tr_solver": "lsmr",
@@ -155,18 +160,17 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
         def fun(x, sel=sel):
             R, C = unpack(x)
             e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
-            return np.concatenate([e, x[:3 * nf] / prior])
+            out = [e, x[:3 * nf] / prior]
+            if keep_scale:
+                dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
+                out.append([10.0 * (dist - 1.0)])
+            return np.concatenate(out)
 
         # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
         sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6,
                             **(sparse_opts(sel) if (nf > 8 if sparse is None else sparse) else {}))
         x, evals = sol.x, evals + sol.nfev
         solves += 1
-        if keep_scale:  # the residuals do not see the scale: put it back (the mean distance from the anchor)
-            c = x[3 * nf:].reshape(nf, 3)
-            dist = np.linalg.norm(c - C0[anchor] / unit, axis=1).mean()
-            if dist > 0:
-                x = np.r_[x[:3 * nf], (C0[anchor] / unit + (c - C0[anchor] / unit) / dist).ravel()]
         new = np.abs(all_residuals(x)) < 3
         if np.array_equal(new, gate):
             break
