@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
+from align_scene import gt_matches, gt_preds, make_scene, pose_errors, views_of, with_descriptors
 
 from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
 from pointmap.align.epipolar import epipolar_residuals, solve_poses
@@ -22,22 +22,10 @@ def scene():
 
 
 def exact_rays(sc, i, j, step=3, outliers=0.0, seed=0):
-    """Rays (camera frames) of grid pixels of image i and of where their true points land in image j."""
-    rng = np.random.default_rng(seed)
-    h, w = sc["depth"].shape[1:]
-    v, u = np.mgrid[1:h:step, 1:w:step]
-    pw = sc["pts_world"][i][v, u].reshape(-1, 3)
-    w2c = np.linalg.inv(sc["cam2world"][j])
-    pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
-    K = sc["K"][j]
-    uv = pc[:, :2] / pc[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
-    ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-    xy1 = np.stack([u.reshape(-1), v.reshape(-1)], -1)[ok].astype(float)
-    xy2 = uv[ok]
-    if outliers:
-        m = rng.random(len(xy2)) < outliers
-        xy2[m] = rng.uniform([0, 0], [w - 1, h - 1], (int(m.sum()), 2))
-    return _bearings(xy1, sc["K"][i]), _bearings(xy2, K)
+    """Rays (camera frames) of grid pixels of image i and of where their true points land in image j (``gt_matches``,
+    hidden points included)."""
+    xy1, xy2, _ = gt_matches(sc, i, j, step=step, outliers=outliers, seed=seed, occluded=True)
+    return _bearings(xy1, sc["K"][i]), _bearings(xy2, sc["K"][j])
 
 
 def stacked(sc, outliers=0.0, step=3):
@@ -140,7 +128,14 @@ def test_held_cameras_stay_and_the_scale_is_kept(scene):
 
 @pytest.fixture(scope="module")
 def mid_scene():
-    return make_scene(5, 64, 96, seed=61, focal_range=(76.0, 104.0))
+    """The analytic scene at 96 x 64 px, its views, predictions with descriptors (8-degree pose noise per pass,
+    2% depth noise) over the complete graph, and their dense alignment."""
+    sc = make_scene(5, 64, 96, seed=61, focal_range=(76.0, 104.0))
+    n = len(sc["cam2world"])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    return sc, views, preds, global_align(views, preds, config=AlignConfig(quiet=True))
 
 
 def test_the_stage_fits_the_matches_better_and_refits_the_depths_to_its_poses(mid_scene):
@@ -148,12 +143,8 @@ def test_the_stage_fits_the_matches_better_and_refits_the_depths_to_its_poses(mi
     do not overlap), focals from the own-frame pointmaps, the fit, the depths re-fitted with its poses held. How much
     the poses improve on a trained model's predictions is measured by benchmarks/bench_ga.py ('+E'); on these
     near-exact pointmaps dense alignment is already within a few degrees, close to what 8-px cells can tell."""
-    sc = mid_scene
+    sc, views, preds, recon = mid_scene
     n = len(sc["cam2world"])
-    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-    views = views_of(sc)
-    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
-    recon = global_align(views, preds, config=AlignConfig(quiet=True))
     cfg = EpipolarConfig(patch=8)
     out = refine_epipolar(views, preds, recon, config=cfg)
     rep = out.info["epipolar"]
@@ -218,11 +209,7 @@ def test_the_sparse_jacobian_path_agrees_with_the_dense_one():
 
 
 def test_known_poses_and_intrinsics_come_back_as_given(mid_scene):
-    sc = mid_scene
-    n = len(sc["cam2world"])
-    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-    views = views_of(sc)
-    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    sc, views, preds, _ = mid_scene
     known_c2w = {1: torch.from_numpy(sc["cam2world"][1]).float(), 3: torch.from_numpy(sc["cam2world"][3]).float()}
     known_K = {0: torch.from_numpy(sc["K"][0]).float() * torch.tensor([[1.1, 1, 1], [1, 1.1, 1], [1, 1, 1]])}
     recon = global_align(views, preds, K=known_K, cam2world=known_c2w, config=AlignConfig(quiet=True))
@@ -239,12 +226,7 @@ def test_known_poses_and_intrinsics_come_back_as_given(mid_scene):
 
 def test_masked_pixels_give_no_matches(mid_scene):
     """Pixels masked out (descriptor confidence 0, as ``reconstruct``'s masks leave them) are left out of the fit."""
-    sc = mid_scene
-    n = len(sc["cam2world"])
-    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-    views = views_of(sc)
-    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
-    recon = global_align(views, preds, config=AlignConfig(quiet=True))
+    _, views, preds, recon = mid_scene
     cfg = EpipolarConfig(patch=8, refit_depth=False)
     full = refine_epipolar(views, preds, recon, config=cfg).info["epipolar"]["matches"]
     masked = {}

@@ -3,35 +3,13 @@
 import numpy as np
 import pytest
 import torch
-from align_scene import make_scene, pose_errors, ray_cast
+from align_scene import gt_matches, make_scene, pose_errors
 
 from pointmap.align.sparse import SparseConfig, refine_matches
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
 
 CFG = SparseConfig(quiet=True)
-
-
-def gt_matches(sc, i, j, step=3, outliers=0.0, seed=0):
-    """Pixels of image i on a grid and where their true 3D points land in image j (visible ones)."""
-    rng = np.random.default_rng(seed)
-    h, w = sc["depth"].shape[1:]
-    v, u = np.mgrid[1:h:step, 1:w:step]
-    pw = sc["pts_world"][i][v, u].reshape(-1, 3)
-    w2c = np.linalg.inv(sc["cam2world"][j])
-    pc = pw @ w2c[:3, :3].T + w2c[:3, 3]
-    K = sc["K"][j]
-    uv = pc[:, :2] / pc[:, 2:3] * [K[0, 0], K[1, 1]] + K[:2, 2]
-    inside = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-    d_j = ray_cast(sc["cam2world"][j], K, h, w)
-    ui, vi = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1), np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
-    visible = inside & (np.abs(d_j[vi, ui] - pc[:, 2]) < 0.05 * pc[:, 2])
-    xy1 = np.stack([u.reshape(-1), v.reshape(-1)], -1)[visible].astype(float)
-    xy2 = uv[visible]
-    if outliers:
-        m = rng.random(len(xy2)) < outliers
-        xy2[m] = rng.uniform([0, 0], [w - 1, h - 1], (int(m.sum()), 2))
-    return xy1, xy2, np.ones(len(xy1))
 
 
 def perturbed_recon(sc, seed=0, rot_deg=0.5, focal=0.02, depth_noise=0.01):
