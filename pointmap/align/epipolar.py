@@ -85,12 +85,12 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
                 max_evals: int = 200, sparse: bool | None = None):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
-    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given (a residual;
-    restoring it after each solve instead was 5 times faster on 100 views (32 s against 170), since this row touches every centre
-    and joins all cameras in one column group, but let the demo room's cameras pass through each other: its
-    directions came out mirrored, 159 degrees off); ``sparse``:
-    finite differences by column groups of cameras that share no pair (scipy's ``jac_sparsity``, for many cameras)
-    or dense (few cameras); None: sparse beyond 8 free cameras. Returns (R, C, report)."""
+    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given, by a residual
+    (restoring it after each solve instead was 5 times faster on 100 views, 32 s against 170, since this row touches
+    every centre and joins all cameras in one column group; but it let the demo room's cameras pass through each
+    other, their directions mirrored, 159 degrees off); ``sparse``: finite differences by column groups of cameras
+    that share no pair (scipy's ``jac_sparsity``, for many cameras) or dense (few cameras); None: sparse beyond 8
+    free cameras. Returns (R, C, report)."""
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
 
@@ -225,7 +225,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     known_K = set(rep.get("known_K_indices", []))
 
     def skipped(reason):
-        return _with_info(recon, {"applied": False, "reason": reason, "config": asdict(cfg)})
+        return replace(recon, info={**recon.info, "epipolar": {"applied": False, "reason": reason, "config": asdict(cfg)}})
 
     if any(not (0 <= i < n and 0 <= j < n) for i, j in preds):
         raise ShapeError(f"preds expected pairs of indices below {n} (the reconstruction's images), got "
@@ -287,7 +287,3 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
         return replace(out, info={**recon.info, "align_refit": out.info["align"], "epipolar": report})
     report["seconds"] = time.perf_counter() - t0
     return replace(recon, cam2world=new.float(), K=K, info={**recon.info, "epipolar": report})
-
-
-def _with_info(recon, report):
-    return replace(recon, info={**recon.info, "epipolar": report})
