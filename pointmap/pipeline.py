@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
-from pointmap.errors import GraphError, ShapeError
+from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.io.points import confidence_mask
 
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
@@ -135,6 +135,10 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     if n < 2:
         raise GraphError(f"reconstruct needs at least 2 images, got {n}")
     check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
+    from pointmap.align.epipolar import EpipolarConfig
+
+    if not isinstance(epipolar, (bool, EpipolarConfig)):
+        raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
     refit = bool(epipolar) and getattr(epipolar, "refit_depth", True)  # the pose refinement's depth re-fit
@@ -149,7 +153,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}
     recon = global_align(views, preds, K=K, cam2world=cam2world, config=cfg, pose_mask=pose_mask)
     if epipolar:
-        from pointmap.align.epipolar import EpipolarConfig, refine_epipolar
+        from pointmap.align.epipolar import refine_epipolar
 
         ecfg = epipolar if isinstance(epipolar, EpipolarConfig) else \
             EpipolarConfig(patch=int(getattr(getattr(model, "cfg", None), "patch_size", 16)))

@@ -10,6 +10,7 @@ import torch
 from align_scene import gt_preds, make_scene, pose_errors, with_descriptors
 
 from pointmap.align import AlignConfig, EpipolarConfig
+from pointmap.errors import PointmapError
 from pointmap.matching import match_coarse
 from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
 
@@ -72,6 +73,8 @@ def test_with_descriptors_the_poses_are_refined_on_matches_unless_turned_off(fak
     plain = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=False)
     assert not plain.info["pipeline"]["epipolar"] and "epipolar" not in plain.info
     assert not torch.equal(plain.cam2world, recon.cam2world)
+    with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
+        reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar="yes")
 
 
 def test_reconstruct_masks_and_percentile(fake_stack):
