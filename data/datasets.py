@@ -16,7 +16,9 @@ Augmentation (``augment=True``): random order swap, random resized crop (K, dept
 updated consistently; depth and masks resampled with nearest neighbour; by default both views cropped at the
 same scale, ``crop_link``, so a pair keeps its rendered focal ratio), colour jitter (brightness,
 contrast, saturation, hue), white balance, exposure/gamma, blur and sensor noise, and with probability
-``grey_p`` both views turned to grey (a monochrome camera: luma, repeated in the three channels).
+``grey_p`` both views turned to grey (a monochrome camera: luma, repeated in the three channels), and with
+probability ``flip_p`` the pair mirrored left-right (a mirrored world seen by mirrored cameras: images, depth and
+correspondences flipped, each camera's x axis and the world's x axis reversed, so every pose stays a rotation).
 """
 
 from __future__ import annotations
@@ -182,6 +184,20 @@ def _grey(x):
     return np.repeat(g[..., None], 3, axis=-1)
 
 
+_REFLECT_X = np.diag([-1.0, 1.0, 1.0, 1.0])
+
+
+def _mirror(rgb_f, depth, K, cam2world):
+    """One view of the left-right mirrored scene. Pixel u (centres at integers) goes to w - 1 - u, so the
+    principal point does too; the camera's x axis is reversed (x -> -x matches the flipped column) and so is the
+    world's: cam2world -> F @ cam2world @ F with F = diag(-1, 1, 1, 1), a rotation again (two reflections)."""
+    w = depth.shape[1]
+    K = K.copy()
+    K[0, 2] = (w - 1) - K[0, 2]
+    return (np.ascontiguousarray(rgb_f[:, ::-1]), np.ascontiguousarray(depth[:, ::-1]), K,
+            _REFLECT_X @ cam2world @ _REFLECT_X)
+
+
 def _to_view(rgb_f, depth, K, cam2world, world2cam1):
     pts_cam = _unproject(depth, K)
     valid = depth > 0
@@ -247,11 +263,13 @@ class PairDataset(Dataset):
     magnification between the views tells the camera's forward motion (docs/data.md).
     grey_p: probability that an augmented pair is seen by a monochrome camera (both views' luma in all three
     channels, after the colour augmentation; 0 draws nothing, so the other augmentations stay as they were).
+    flip_p: probability that an augmented pair is mirrored left-right (``_mirror``; drawn last, 0 draws nothing): the
+    mirrored pair is a valid pair of a mirrored scene, with the same pair geometry up to the reflection.
     """
 
     def __init__(self, root, size: int = 224, augment: bool = True, split: str = "train", *,
                  val_percent: float = 2.0, crop_scale=(0.5, 1.0), swap_p: float = 0.5, crop_link: float = 1.0,
-                 grey_p: float = 0.0, verify: bool = True):
+                 grey_p: float = 0.0, flip_p: float = 0.0, verify: bool = True):
         if split not in SPLITS:
             raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
         if not 0 <= val_percent <= 100:
@@ -270,6 +288,9 @@ class PairDataset(Dataset):
         if not 0 <= grey_p <= 1:
             raise ValueError(f"grey_p expected a probability in [0, 1], got {grey_p}")
         self.grey_p = float(grey_p)
+        if not 0 <= flip_p <= 1:
+            raise ValueError(f"flip_p expected a probability in [0, 1], got {flip_p}")
+        self.flip_p = float(flip_p)
         self.root, self.config, entries = _open_root(root, verify)
         if self.config.get("kind") != "pairs":
             raise ShardError(f"{self.root} was rendered with --kind {self.config.get('kind')}; PairDataset needs "
@@ -353,6 +374,10 @@ class PairDataset(Dataset):
             f1, f2 = _photometric(rng, rgb1), _photometric(rng, rgb2)
             if self.grey_p > 0 and rng.random() < self.grey_p:
                 f1, f2 = _grey(f1), _grey(f2)
+            if self.flip_p > 0 and rng.random() < self.flip_p:
+                (f1, d1, K1, T1), (f2, d2, K2, T2) = _mirror(f1, d1, K1, T1), _mirror(f2, d2, K2, T2)
+                corr = corr[:, ::-1].copy()
+                corr[..., 0] = (out_w - 1) - corr[..., 0]
         else:
             f1, f2 = rgb1.astype(np.float32) / 255.0, rgb2.astype(np.float32) / 255.0
         w2c1 = _inv(T1)

@@ -96,8 +96,8 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Opti
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp``, ``--crop_link`` or ``--grey_p`` that cannot
-    run as configured."""
+    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp``, ``--crop_link``, ``--grey_p`` or
+    ``--flip_p`` that cannot run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
@@ -113,6 +113,8 @@ def check_loop_options(cfg: TrainConfig) -> None:
         raise ValueError(f"--crop_link expected a probability in [0, 1], got {cfg.crop_link}")
     if not 0 <= cfg.grey_p <= 1:
         raise ValueError(f"--grey_p expected a probability in [0, 1], got {cfg.grey_p}")
+    if not 0 <= cfg.flip_p <= 1:
+        raise ValueError(f"--flip_p expected a probability in [0, 1], got {cfg.flip_p}")
     if cfg.amp not in ("auto", "bf16", "off"):
         raise ValueError(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
 

@@ -238,7 +238,8 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
-                                          crop_link=cfg.crop_link, grey_p=cfg.grey_p), cfg.max_rotation)
+                                          crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p),
+                             cfg.max_rotation)
     eval_fn = None
     if cfg.eval_data:
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
