@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -30,6 +31,9 @@ import torch
 from pointmap.errors import ShapeError
 from pointmap.pose import _bearings
 from pointmap.reconstruction import K_to_original
+
+# lsmr's default tolerances stop its steps early: hundreds of slow iterations, ending 1 degree off
+LSMR_TIGHT = {"atol": 1e-12, "btol": 1e-12, "regularize": False}
 
 
 @dataclass(frozen=True)
@@ -80,9 +84,47 @@ def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(w).as_matrix()
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] cross-product matrices of v [..., 3]."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return out
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] left Jacobians of SO(3) at rotation vectors w [N, 3]: exp(w + d) = exp(J_l(w) d) exp(w) to first
+    order, so a derivative by a left perturbation of exp(w) R0, times J_l(w), is the derivative by w."""
+    th = np.linalg.norm(w, axis=1)[:, None, None]
+    W = _skew(w)
+    small = th < 1e-4
+    t = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th ** 2 / 24, (1 - np.cos(t)) / t ** 2)
+    b = np.where(small, 1 / 6 - th ** 2 / 120, (t - np.sin(t)) / t ** 3)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def _residual_jacobian(R, C, I, J, r1, r2):
+    """Derivatives of ``_residuals_by_pair``'s residuals [M] by a left rotation perturbation of each match's two
+    cameras (R_k -> exp(phi_k) R_k) and by their centres: (d_phi_i, d_phi_j, d_C_i, d_C_j), each [M, 3].
+
+    In the world frame the residual is e = (d x b) . a / |d x b| with a = R_i r1, b = R_j r2, d = C_j - C_i (camera
+    j's centre direction; the length cancels). With N = d x b, q = |N|, s = N . a and g = de/dN = a / q - s N / q^3:
+    de/dphi_i = a x N / q, de/dphi_j = b x (g x d), de/dC_j = b x g = -de/dC_i."""
+    a = np.einsum("mab,mb->ma", R[I], r1)
+    b = np.einsum("mab,mb->ma", R[J], r2)
+    d = C[J] - C[I]
+    N = np.cross(d, b)
+    q = np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+    s = (N * a).sum(1, keepdims=True)
+    g = a / q - s * N / q ** 3
+    dC = np.cross(b, g)
+    return np.cross(a, N) / q, np.cross(b, np.cross(g, d)), -dC, dC
+
+
 def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                 scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
-                max_evals: int = 200, sparse: bool | None = None):
+                max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic"):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
     ``keep_scale``: the mean distance of the other cameras from the first held one stays as given, by a residual
@@ -90,10 +132,16 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     every centre and joins all cameras in one column group; but it let the demo room's cameras pass through each
     other, their directions mirrored, 159 degrees off); ``sparse``: finite differences by column groups of cameras
     that share no pair (scipy's ``jac_sparsity``, for many cameras) or dense (few cameras); None: sparse beyond 8
-    free cameras. Returns (R, C, report)."""
+    free cameras; ``jac``: "analytic" (``_residual_jacobian``, one evaluation per Jacobian) or "2-point" (scipy's
+    finite differences: on 100 views the scale row, which joins every centre, makes them cost one evaluation per
+    centre coordinate; kept as the reference ``benchmarks/bench_align.py --epipolar`` compares against).
+    Returns (R, C, report)."""
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
+    from threadpoolctl import threadpool_limits
 
+    if jac not in ("analytic", "2-point"):
+        raise ValueError(f"jac expected 'analytic' or '2-point', got {jac!r}")
     n = len(R0)
     held = sorted(set(int(k) for k in held))
     if not held:
@@ -144,37 +192,73 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
         return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
                           shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
 
-    def sparse_opts(sel):  # lsmr's default tolerances stop its steps early: hundreds of slow iterations, off by 1 deg
-        return {"jac_sparsity": sparsity(sel), "tr_solver": "lsmr",
-                "tr_options": {"atol": 1e-12, "btol": 1e-12, "regularize": False}}
+    def sparse_opts(sel):
+        return {"jac_sparsity": sparsity(sel), "tr_solver": "lsmr", "tr_options": LSMR_TIGHT}
+
+    def jacobian(x, sel, dense):
+        """The rows of ``fun`` by the parameters (w, C) of the free cameras, analytic (``_residual_jacobian``)."""
+        R, C = unpack(x)
+        Is, Js, m = I[sel], J[sel], int(sel.sum())
+        parts = _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel])
+        Jl = _left_jacobian(x[:3 * nf].reshape(nf, 3)) if nf else np.zeros((0, 3, 3))
+        rows, cols, vals = [], [], []
+        for cams, d_phi, d_C in ((Is, parts[0], parts[2]), (Js, parts[1], parts[3])):
+            s_ = slots[cams]
+            r = np.nonzero(s_ >= 0)[0]
+            d_w = np.einsum("ma,mab->mb", d_phi[r], Jl[s_[r]]) / scale[sel][r, None]
+            d_c = d_C[r] / scale[sel][r, None]
+            for off, dv in ((0, d_w), (3 * nf, d_c)):
+                for c in range(3):
+                    rows.append(r)
+                    cols.append(off + 3 * s_[r] + c)
+                    vals.append(dv[:, c])
+        rows.append(m + np.arange(3 * nf))
+        cols.append(np.arange(3 * nf))
+        vals.append(np.full(3 * nf, 1.0 / prior))
+        if keep_scale:
+            diff = C[free] - C[anchor]
+            unit_dirs = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-12)
+            rows.append(np.full(3 * nf, m + 3 * nf))
+            cols.append(3 * nf + np.arange(3 * nf))
+            vals.append((10.0 / nf) * unit_dirs.ravel())
+        out = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
+        return out.toarray() if dense else out
 
     x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
     e0 = all_residuals(x)
     gate = np.abs(e0) < 3
     solves = evals = 0
-    for _ in range(rounds if nf else 0):
-        if gate.sum() < 5:
-            break
-        sel = gate.copy()
+    # one BLAS thread: lsmr's products are of vectors of a few 10^4 entries, where OpenBLAS's threads only wait
+    # for each other, and on a busy machine (training beside it) they made the fit 10 times slower
+    with threadpool_limits(1, user_api="blas"):
+        for _ in range(rounds if nf else 0):
+            if gate.sum() < 5:
+                break
+            sel = gate.copy()
 
-        def fun(x, sel=sel):
-            R, C = unpack(x)
-            e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
-            out = [e, x[:3 * nf] / prior]
-            if keep_scale:
-                dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
-                out.append([10.0 * (dist - 1.0)])
-            return np.concatenate(out)
+            def fun(x, sel=sel):
+                R, C = unpack(x)
+                e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
+                out = [e, x[:3 * nf] / prior]
+                if keep_scale:
+                    dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
+                    out.append([10.0 * (dist - 1.0)])
+                return np.concatenate(out)
 
-        # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
-        sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6,
-                            **(sparse_opts(sel) if (nf > 8 if sparse is None else sparse) else {}))
-        x, evals = sol.x, evals + sol.nfev
-        solves += 1
-        new = np.abs(all_residuals(x)) < 3
-        if np.array_equal(new, gate):
-            break
-        gate = new
+            use_sparse = nf > 8 if sparse is None else sparse
+            if jac == "analytic":
+                jac_fn = partial(jacobian, sel=sel, dense=not use_sparse)
+                opts = {"jac": jac_fn, **({"tr_solver": "lsmr", "tr_options": LSMR_TIGHT} if use_sparse else {})}
+            else:  # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
+                opts = sparse_opts(sel) if use_sparse else {}
+            sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6, **opts)
+            x, evals = sol.x, evals + sol.nfev
+            solves += 1
+            new = np.abs(all_residuals(x)) < 3
+            if np.array_equal(new, gate):
+                break
+            gate = new
     R, C = unpack(x)
     C = C * unit
     C[held] = C0[held]

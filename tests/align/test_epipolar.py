@@ -10,7 +10,14 @@ import torch
 from align_scene import gt_matches, gt_preds, make_scene, pose_errors, views_of, with_descriptors
 
 from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
-from pointmap.align.epipolar import epipolar_residuals, solve_poses
+from pointmap.align.epipolar import (
+    _left_jacobian,
+    _residual_jacobian,
+    _residuals_by_pair,
+    _rotvec_to_matrix,
+    epipolar_residuals,
+    solve_poses,
+)
 from pointmap.errors import ShapeError
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.pose import _bearings, _epipolar_residuals
@@ -187,15 +194,48 @@ def test_bad_settings_are_refused_when_the_config_is_made(kwargs):
         EpipolarConfig(**kwargs)
 
 
-def test_the_sparse_jacobian_path_agrees_with_the_dense_one():
+def test_the_analytic_residual_jacobian_agrees_with_central_differences(scene):
+    """``_residual_jacobian`` and ``_left_jacobian`` against central differences of the residuals through the fit's
+    own parameterisation R_k = exp(w_k) R_k0 (w well away from 0, where the left Jacobian matters)."""
+    I, J, r1, r2 = stacked(scene, 0.2)
+    c2w = perturbed(scene["cam2world"], seed=4)
+    R0, C0 = c2w[:, :3, :3], c2w[:, :3, 3]
+    rng = np.random.default_rng(0)
+    w = rng.normal(scale=0.4, size=(len(R0), 3))
+    pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
+
+    def residuals(w_, C_):
+        return _residuals_by_pair(_rotvec_to_matrix(w_) @ R0, C_, pairs[:, 0], pairs[:, 1], pid.reshape(-1), r1, r2)
+
+    d_phi_i, d_phi_j, d_C_i, d_C_j = _residual_jacobian(_rotvec_to_matrix(w) @ R0, C0, I, J, r1, r2)
+    Jl = _left_jacobian(w)
+    h = 1e-6
+    for cam in (1, 3):
+        for c in range(3):
+            dw, dc = np.zeros_like(w), np.zeros_like(C0)
+            dw[cam, c] = dc[cam, c] = h
+            num_w = (residuals(w + dw, C0) - residuals(w - dw, C0)) / (2 * h)
+            num_c = (residuals(w, C0 + dc) - residuals(w, C0 - dc)) / (2 * h)
+            ana_w = np.where(I == cam, (d_phi_i @ Jl[cam])[:, c], 0) + np.where(J == cam, (d_phi_j @ Jl[cam])[:, c], 0)
+            ana_c = np.where(I == cam, d_C_i[:, c], 0) + np.where(J == cam, d_C_j[:, c], 0)
+            assert np.abs(num_w).max() > 1e-2 and np.abs(num_c).max() > 1e-2  # not a comparison of zeros
+            np.testing.assert_allclose(ana_w, num_w, atol=1e-6)
+            np.testing.assert_allclose(ana_c, num_c, atol=1e-6)
+    tiny = np.array([[1e-7, -2e-7, 3e-8], [0.0, 0.0, 0.0]])  # the series branch near 0
+    np.testing.assert_allclose(_left_jacobian(tiny)[1], np.eye(3))
+    np.testing.assert_allclose(_left_jacobian(tiny)[0], np.eye(3), atol=1e-6)
+
+
+@pytest.mark.parametrize("jac", ["analytic", "2-point"])
+def test_the_sparse_jacobian_path_agrees_with_the_dense_one(jac):
     sc = make_scene(10, 64, 96, seed=62, focal_range=(76.0, 104.0))
     gt = sc["cam2world"]
     I, J, r1, r2 = stacked(sc, 0.1, step=6)
     start = perturbed(gt, rot_deg=1.0, centre=0.1, seed=9)
     scale = np.full(len(I), 1.0 / 90.0)
     args = (start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale)
-    Rd, Cd, rep_d = solve_poses(*args, held=[0], keep_scale=True, sparse=False)
-    Rs, Cs, rep_s = solve_poses(*args, held=[0], keep_scale=True, sparse=True)
+    Rd, Cd, rep_d = solve_poses(*args, held=[0], keep_scale=True, sparse=False, jac=jac)
+    Rs, Cs, rep_s = solve_poses(*args, held=[0], keep_scale=True, sparse=True, jac=jac)
     assert rep_d["median_residual_after"] < 0.1 * rep_d["median_residual_before"]
     assert rep_s["evaluations"] < 100  # lsmr at its default tolerances crawled (hundreds, 1 degree off)
     # two solvers stopping at ftol 1e-6: the same poses to a few hundredths of a degree and 1% in the centres
@@ -206,6 +246,20 @@ def test_the_sparse_jacobian_path_agrees_with_the_dense_one():
         c2w = np.tile(np.eye(4), (len(R), 1, 1))
         c2w[:, :3, :3], c2w[:, :3, 3] = R, C
         assert max(direction_errors(c2w, gt)) < 0.5
+
+
+def test_the_analytic_jacobian_fit_agrees_with_the_finite_difference_one_on_outlier_laden_matches(wide_scene):
+    gt = wide_scene["cam2world"]
+    I, J, r1, r2 = stacked(wide_scene, 0.3)
+    start = perturbed(gt, rot_deg=3.0, centre=0.3, seed=5)
+    args = (start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, np.full(len(I), 2.0 / 135.0))
+    Ra, Ca, rep_a = solve_poses(*args, held=[0], keep_scale=True, jac="analytic")
+    Rn, Cn, rep_n = solve_poses(*args, held=[0], keep_scale=True, jac="2-point")
+    np.testing.assert_allclose(Ra, Rn, atol=2e-4)
+    np.testing.assert_allclose(Ca, Cn, atol=2e-3 * np.abs(Cn).max())
+    assert rep_a["inliers_after"] == pytest.approx(rep_n["inliers_after"], abs=3)
+    with pytest.raises(ValueError, match="jac expected"):
+        solve_poses(*args, held=[0], keep_scale=True, jac="3-point")
 
 
 def test_known_poses_and_intrinsics_come_back_as_given(mid_scene):

@@ -1,0 +1,165 @@
+"""Time of the epipolar pose refinement (``pointmap.align.epipolar.solve_poses``) against the number of images, with
+the analytic Jacobian and with scipy's finite differences (the reference) on the same inputs in the same run.
+
+Inputs: the analytic test scene (tests/align/align_scene.py), a cyclic sliding-window pair graph (every image with
+its next ``--window`` images), true matches on a pixel grid of each pair with ``--outliers`` of them moved to random
+pixels, and a start ``--rot-deg`` degrees and ``--centre`` (in units of the scene's ~1-unit camera spacing) off the
+true poses, camera 0 held and the scale kept, as ``reconstruct`` runs it. Prints a markdown table: per image count
+the time, evaluations and the worst relative-pose errors (rotation, direction, degrees) of both Jacobians.
+
+    nice .venv/bin/python benchmarks/bench_epipolar.py --sizes 10 40 100 --threads 1
+
+``--stage``: instead, the whole stage as ``reconstruct`` runs it (``refine_epipolar``: coarse matches, the fit with
+the analytic Jacobian, the depths re-fitted) next to the dense alignment before it, on predictions of the same scene
+with 8-degree pose noise per pass, 2% depth noise and descriptors of the world points (tests/align/align_scene.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def make_inputs(n: int, h: int, w: int, window: int, outliers: float, rot_deg: float, centre: float, seed: int = 0):
+    sys.path.insert(0, str(ROOT / "tests" / "align"))
+    import torch
+    from align_scene import gt_matches, make_scene
+
+    from pointmap.geometry.rotations import axis_angle_to_matrix
+    from pointmap.pose import _bearings
+
+    f = 0.85 * w
+    sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
+    pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, window + 1)})
+    I, J, r1, r2 = [], [], [], []
+    for p, (i, j) in enumerate(pairs):
+        xy1, xy2, _ = gt_matches(sc, i, j, step=max(2, h // 24), outliers=outliers, seed=seed + p, occluded=True)
+        I.append(np.full(len(xy1), i))
+        J.append(np.full(len(xy1), j))
+        r1.append(_bearings(xy1, sc["K"][i]))
+        r2.append(_bearings(xy2, sc["K"][j]))
+    I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
+    scale = 2.0 / sc["K"][I, 0, 0]  # 2 px over each match's first camera's focal
+    rng = np.random.default_rng(seed + 1)
+    start = sc["cam2world"].copy()
+    for k in range(1, n):
+        axis = rng.normal(size=3)
+        axis *= np.radians(rot_deg) / np.linalg.norm(axis)
+        start[k, :3, :3] = axis_angle_to_matrix(torch.from_numpy(axis)).numpy() @ start[k, :3, :3]
+        start[k, :3, 3] += rng.normal(scale=centre, size=3)
+    return sc["cam2world"], start, (I, J, r1, r2, scale), len(pairs)
+
+
+def worst_errors(R, C, gt) -> tuple[float, float]:
+    """Largest rotation and direction errors (degrees) over the relative poses of the consecutive images."""
+    rot, dirs = [], []
+    n = len(gt)
+    for i in range(n):
+        j = (i + 1) % n
+        Ri, Rj = R[i], R[j]
+        e_R, g_R = Ri.T @ Rj, gt[i, :3, :3].T @ gt[j, :3, :3]
+        e_t, g_t = Ri.T @ (C[j] - C[i]), gt[i, :3, :3].T @ (gt[j, :3, 3] - gt[i, :3, 3])
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(e_R.T @ g_R) - 1) / 2, -1, 1))))
+        dirs.append(np.degrees(np.arccos(np.clip(e_t @ g_t / np.linalg.norm(e_t) / np.linalg.norm(g_t), -1, 1))))
+    return max(rot), max(dirs)
+
+
+def run_stage(sizes, h: int, w: int, window: int) -> None:
+    """Seconds of ``global_align`` and of ``refine_epipolar`` after it, and the camera errors of both."""
+    sys.path.insert(0, str(ROOT / "tests" / "align"))
+    from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
+
+    from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
+
+    rows = []
+    for n in sizes:
+        f = 0.85 * w
+        sc = make_scene(n, h, w, seed=0, focal_range=(f * 0.9, f * 1.1))
+        pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, window + 1)})
+        views = views_of(sc)
+        preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+        t = time.perf_counter()
+        recon = global_align(views, preds, config=AlignConfig(quiet=True))
+        t_ga = time.perf_counter() - t
+        t = time.perf_counter()
+        out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+        t_e = time.perf_counter() - t
+        rep = out.info["epipolar"]
+        row = (n, len(pairs), rep.get("matches", 0), t_ga, t_e, rep.get("evaluations", 0),
+               pose_errors(recon.cam2world.double().numpy(), sc["cam2world"])[0],
+               pose_errors(out.cam2world.double().numpy(), sc["cam2world"])[0])
+        rows.append(row)
+        print(row, file=sys.stderr, flush=True)
+    print(f"\nmaps {h}x{w}, cyclic window {window}, 8-px cells; rotation error: pose_errors after a similarity fit\n")
+    print("| images | pairs | matches | alignment (s) | epipolar stage (s) | evaluations | rot err GA / GA+E (deg) |")
+    print("|---|---|---|---|---|---|---|")
+    for n, np_, m, t_ga, t_e, ev, r0, r1 in rows:
+        print(f"| {n} | {np_} | {m} | {t_ga:.1f} | {t_e:.1f} | {ev} | {r0:.2f} / {r1:.2f} |")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10, 40, 100])
+    ap.add_argument("--hw", type=int, nargs=2, default=[96, 128], metavar=("H", "W"))
+    ap.add_argument("--window", type=int, default=3)
+    ap.add_argument("--outliers", type=float, default=0.2)
+    ap.add_argument("--rot-deg", type=float, default=3.0)
+    ap.add_argument("--centre", type=float, default=0.05)
+    ap.add_argument("--jacobians", nargs="+", default=["2-point", "analytic"], choices=["2-point", "analytic"])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
+    args = ap.parse_args(argv)
+    if min(args.sizes) < 3 or args.window < 1:
+        ap.error(f"--sizes expected image counts >= 3 and --window >= 1, got {args.sizes} and {args.window}")
+    import torch
+
+    from pointmap.align.epipolar import solve_poses
+
+    torch.set_num_threads(args.threads)
+    h, w = args.hw
+    if args.stage:
+        run_stage(args.sizes, h, w, args.window)
+        return
+    rows = []
+    for n in args.sizes:
+        gt, start, (I, J, r1, r2, scale), n_pairs = make_inputs(n, h, w, min(args.window, n - 1), args.outliers,
+                                                                args.rot_deg, args.centre)
+        row = {"n": n, "pairs": n_pairs, "matches": len(I), "start": worst_errors(start[:, :3, :3], start[:, :3, 3], gt)}
+        for jac in args.jacobians:
+            t = time.perf_counter()
+            R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
+                                    keep_scale=True, jac=jac)
+            row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt))
+        rows.append(row)
+        print(row, file=sys.stderr, flush=True)
+    print(f"\nmaps {h}x{w}, cyclic window {args.window}, {args.outliers:.0%} outliers, start {args.rot_deg} deg / "
+          f"{args.centre} off, {args.threads} thread(s); errors: worst over consecutive images' relative poses\n")
+    head = "| images | pairs | matches | start rot / dir (deg) |"
+    rule = "|---|---|---|---|"
+    for jac in args.jacobians:
+        head += f" {jac}: time (s) | evaluations | rot / dir (deg) |"
+        rule += "---|---|---|"
+    if len(args.jacobians) == 2:
+        head += f" speed-up ({args.jacobians[0]} / {args.jacobians[1]}) |"
+        rule += "---|"
+    print(head)
+    print(rule)
+    for r in rows:
+        line = f"| {r['n']} | {r['pairs']} | {r['matches']} | {r['start'][0]:.2f} / {r['start'][1]:.2f} |"
+        for jac in args.jacobians:
+            secs, evals, rot, dirs = r[jac]
+            line += f" {secs:.2f} | {evals} | {rot:.3f} / {dirs:.3f} |"
+        if len(args.jacobians) == 2:
+            line += f" {r[args.jacobians[0]][0] / max(r[args.jacobians[1]][0], 1e-9):.1f}x |"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
