@@ -77,9 +77,10 @@ def setting_name(s: str) -> str:
     return s
 
 
-def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
-    """{method: [(rot err, dir err, true rotation), ...] over camera pairs i < j}, {method: [focal err %, ...]}
-    and the alignments that failed (their pairs count 180 degrees, their focals 100%)."""
+def scene_errors(model, size: int, scene: dict, settings: dict) -> tuple:
+    """{method: [(rot err, dir err, true rotation), ...] over camera pairs i < j}, {method: [focal err %, ...]},
+    the alignments that failed (their pairs count 180 degrees, their focals 100%) and the '+E' stages that kept the
+    aligned poses (with the stage's reason)."""
     imgs = [(x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for x in scene["img"]]
     views = pm.load_images(imgs, size=size)
     n = len(views)
@@ -96,13 +97,15 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
         est = pm.pair_pose(preds[(i, j)], preds[(j, i)], patch=model.cfg.patch_size, pose=est)[0].double().numpy()
         out["pairwise + matches"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
     f_gt = scene["K"][:, 0, 0].double()
-    failed = []
+    failed, kept = [], []  # kept: '+E' settings whose stage left the aligned poses (its reason)
     matches = None
     for name, (cfg, known_K, sparse, epipolar) in settings.items():
         try:
             recon = global_align(views, preds, config=cfg, K=scene["K"].double() if known_K else None)
             if epipolar:
                 recon = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=model.cfg.patch_size))
+                if not recon.info["epipolar"]["applied"]:
+                    kept.append(f"GA {name}: {recon.info['epipolar']['reason']}")
             if sparse:  # as reconstruct(refine=True): the focals stay as aligned when known or shared
                 matches = matches or {k: pm.match(p) for k, p in preds.items()}
                 recon = refine_matches(recon, matches, config=SparseConfig(quiet=True),
@@ -117,7 +120,7 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> dict:
             est = (torch.linalg.inv(c2w[i]) @ c2w[j]).numpy()
             out[f"GA {name}"].append((*errors(est, rel_gt[(i, j)]), true_rot[(i, j)]))
         focal[f"GA {name}"] += (100 * (recon.K[:, 0, 0].double() - f_gt).abs() / f_gt).tolist()
-    return out, focal, failed
+    return out, focal, failed, kept
 
 
 def main(argv=None) -> int:
@@ -153,15 +156,16 @@ def main(argv=None) -> int:
     model, size = model_at_size(args.model, args.size)
     res = defaultdict(list)
     foc = defaultdict(list)
-    failures, view_counts = [], set()
+    failures, kept_all, view_counts = [], [], set()
     for d, set_name in zip(args.data, set_names):
         ds = MultiViewDataset(d)
         count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
         for k in tqdm(range(count), desc=set_name, leave=False):
             scene = ds[k]
             view_counts.add(len(scene["img"]))
-            out, focal, failed = scene_errors(model, size, scene, settings)
+            out, focal, failed, kept = scene_errors(model, size, scene, settings)
             failures += [f"{set_name} scene {k}: {f}" for f in failed]
+            kept_all += [f"{set_name} scene {k}: {f}" for f in kept]
             for m, v in out.items():
                 res[(set_name, m)] += v
                 res[("overall", m)] += v
@@ -176,6 +180,8 @@ def main(argv=None) -> int:
           "GA = global_align of each scene's views")
     for f in failures:
         print(f"alignment failed (its pairs count 180 degrees): {f}")
+    for f in kept_all:
+        print(f"epipolar stage not applied (the aligned poses kept): {f}")
     print("| set | camera pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
     print("|---|---|---|---|---|---|---|")
     for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):

@@ -78,6 +78,37 @@ def _residuals_by_pair(R, C, PI, PJ, pid, r1, r2):
     return (n * r1).sum(1) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
 
 
+def in_front_share(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
+                   n_pairs: int, pid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera pair (``pid`` [M] in [0, n_pairs)): the share of its matches whose two rays meet (closest points)
+    in front of both cameras, and how many matches had a defined meeting point. The epipolar residuals cannot tell a
+    direction from its opposite; this can: mirrored, the points land behind both cameras."""
+    a = np.einsum("mab,mb->ma", R[I], r1)
+    b = np.einsum("mab,mb->ma", R[J], r2)
+    d = C[J] - C[I]
+    ab, ad, bd = (a * b).sum(1), (a * d).sum(1), (b * d).sum(1)
+    den = 1.0 - ab ** 2  # unit rays
+    ok = den > 1e-8
+    lam = np.where(ok, (ad - ab * bd) / np.where(ok, den, 1.0), 0.0)
+    mu = np.where(ok, (ab * ad - bd) / np.where(ok, den, 1.0), 0.0)
+    front = ok & (lam > 0) & (mu > 0)
+    n_ok = np.bincount(pid[ok], minlength=n_pairs)
+    return np.bincount(pid[front], minlength=n_pairs) / np.maximum(n_ok, 1), n_ok
+
+
+def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: float = 0.7,
+                   now: float = 0.3) -> list:
+    """Camera pairs [i, j] whose matches met in front of both cameras at the start (share > ``was``) and no longer do
+    after a fit (share < ``now``): a reversed direction, which the epipolar residuals cannot see. The margins keep
+    short baselines, whose meeting points are ill-conditioned, from being called mirrored by chance."""
+    pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
+    pid = pid.reshape(-1)
+    before, _ = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
+    after, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid)
+    flag = (counted >= min_matches) & (before > was) & (after < now)
+    return [[int(i), int(j)] for i, j in pairs[flag]]
+
+
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -132,7 +163,8 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     every centre and joins all cameras in one column group; but it let the demo room's cameras pass through each
     other, their directions mirrored, 159 degrees off); ``sparse``: finite differences by column groups of cameras
     that share no pair (scipy's ``jac_sparsity``, for many cameras) or dense (few cameras); None: sparse beyond 8
-    free cameras; ``jac``: "analytic" (``_residual_jacobian``, one evaluation per Jacobian) or "2-point" (scipy's
+    free cameras; the report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches) lists camera pairs
+    whose direction the fit reversed; ``jac``: "analytic" (``_residual_jacobian``, one evaluation per Jacobian) or "2-point" (scipy's
     finite differences: on 100 views the scale row, which joins every centre, makes them cost one evaluation per
     centre coordinate; kept as the reference ``benchmarks/bench_align.py --epipolar`` compares against).
     Returns (R, C, report)."""
@@ -263,10 +295,12 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     C = C * unit
     C[held] = C0[held]
     e1 = all_residuals(x)
+    g = np.abs(e1) < 3
+    mirrored = mirrored_pairs(R0, C0, R, C, I[g], J[g], r1[g], r2[g])
     report = {"matches": int(len(I)), "inliers_before": int((np.abs(e0) < 1).sum()),
               "inliers_after": int((np.abs(e1) < 1).sum()), "median_residual_before": float(np.median(np.abs(e0))),
               "median_residual_after": float(np.median(np.abs(e1))), "solves": solves, "evaluations": evals,
-              "held": held}
+              "held": held, "mirrored_pairs": mirrored}
     return R, C, report
 
 
@@ -354,6 +388,11 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     R, C, fit = solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held,
                             keep_scale=len(known_poses) < 2, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
                             max_evals=cfg.max_evals)
+    if fit["mirrored_pairs"]:
+        return replace(recon, info={**recon.info, "epipolar": {
+            "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {fit['mirrored_pairs']} "
+            "(their matches' points moved behind the cameras): the aligned poses are kept", **fit,
+            "config": asdict(cfg)}})
     new = recon.cam2world.double().clone()
     new[:, :3, :3] = torch.from_numpy(R)
     new[:, :3, 3] = torch.from_numpy(C)

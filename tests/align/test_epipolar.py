@@ -16,6 +16,8 @@ from pointmap.align.epipolar import (
     _residuals_by_pair,
     _rotvec_to_matrix,
     epipolar_residuals,
+    in_front_share,
+    mirrored_pairs,
     solve_poses,
 )
 from pointmap.errors import ShapeError
@@ -185,6 +187,47 @@ def test_the_stage_skips_models_without_descriptors_and_scenes_with_every_pose_k
     assert not out.info["epipolar"]["applied"] and "every pose is known" in out.info["epipolar"]["reason"]
     with pytest.raises(ShapeError, match="indices below 5"):
         refine_epipolar(views, {(0, 7): preds[(0, 1)]}, recon)
+
+
+def test_a_reversed_direction_puts_the_matched_points_behind_the_cameras_and_is_flagged(wide_scene):
+    gt = wide_scene["cam2world"]
+    I, J, r1, r2 = stacked(wide_scene, 0.1)
+    R, C = gt[:, :3, :3], gt[:, :3, 3]
+    pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
+    share, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid.reshape(-1))
+    assert counted.min() > 50 and share.min() > 0.85  # true poses: the outliers aside, every point is in front
+    # camera 3 mirrored through camera 1: pair (1, 3)'s direction reversed, the epipolar residuals of it unchanged
+    C_m = C.copy()
+    C_m[3] = 2 * C[1] - C[3]
+    sel = (I == 1) & (J == 3)
+    np.testing.assert_allclose(np.abs(epipolar_residuals(R, C_m, I[sel], J[sel], r1[sel], r2[sel])),
+                               np.abs(epipolar_residuals(R, C, I[sel], J[sel], r1[sel], r2[sel])), atol=1e-12)
+    share_m, _ = in_front_share(R, C_m, I, J, r1, r2, len(pairs), pid.reshape(-1))
+    assert share_m[(pairs == [1, 3]).all(1)][0] < 0.15
+    assert [1, 3] in mirrored_pairs(R, C, R, C_m, I, J, r1, r2)
+    assert mirrored_pairs(R, C, R, C, I, J, r1, r2) == []
+    assert mirrored_pairs(R, C_m, R, C, I, J, r1, r2) == []  # un-mirroring a pair is not flagged
+
+
+def test_a_fit_that_reverses_a_direction_is_rejected_and_the_aligned_poses_are_kept(mid_scene, monkeypatch):
+    import pointmap.align.epipolar as epi
+
+    sc, views, preds, recon = mid_scene
+    real = epi.solve_poses
+
+    def mirroring(R0, C0, *args, **kwargs):
+        R, C, rep = real(R0, C0, *args, **kwargs)
+        C[2] = 2 * C[0] - C[2]  # what the scale-free variant did to the demo room
+        return R, C, {**rep, "mirrored_pairs": [[0, 2]]}
+
+    monkeypatch.setattr(epi, "solve_poses", mirroring)
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert not rep["applied"] and "reversed the direction of camera pair(s) [[0, 2]]" in rep["reason"]
+    assert torch.equal(out.cam2world, recon.cam2world) and rep["matches"] > 150
+    monkeypatch.setattr(epi, "solve_poses", real)
+    fit = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8)).info["epipolar"]
+    assert fit["applied"] and fit["mirrored_pairs"] == []
 
 
 @pytest.mark.parametrize("kwargs", [dict(rotation_prior_deg=0.0), dict(threshold_px=-1.0), dict(rounds=0),
