@@ -5,7 +5,8 @@ Inputs: the analytic test scene (tests/align/align_scene.py), a cyclic sliding-w
 its next ``--window`` images), true matches on a pixel grid of each pair with ``--outliers`` of them moved to random
 pixels, and a start ``--rot-deg`` degrees and ``--centre`` (in units of the scene's ~1-unit camera spacing) off the
 true poses, camera 0 held and the scale kept, as ``reconstruct`` runs it. Prints a markdown table: per image count
-the time, evaluations and the worst relative-pose errors (rotation, direction, degrees) of both Jacobians.
+the time, evaluations, the worst relative-pose errors (rotation, direction, degrees) of both Jacobians and the camera
+pairs whose direction the fit reversed (``mirrored_pairs``: ``refine_epipolar`` would keep the aligned poses).
 
     nice .venv/bin/python benchmarks/bench_epipolar.py --sizes 10 40 100 --threads 1
 
@@ -57,8 +58,10 @@ def make_inputs(n: int, h: int, w: int, window: int, outliers: float, rot_deg: f
     return sc["cam2world"], start, (I, J, r1, r2, scale), len(pairs)
 
 
-def worst_errors(R, C, gt) -> tuple[float, float]:
-    """Largest rotation and direction errors (degrees) over the relative poses of the consecutive images."""
+def worst_errors(R, C, gt) -> tuple[float, float, float]:
+    """Largest rotation error, median and largest direction errors (degrees) over the relative poses of the
+    consecutive images (the ring's random spacing makes some of their baselines short: their directions are the
+    ill-conditioned ones)."""
     rot, dirs = [], []
     n = len(gt)
     for i in range(n):
@@ -68,7 +71,7 @@ def worst_errors(R, C, gt) -> tuple[float, float]:
         e_t, g_t = Ri.T @ (C[j] - C[i]), gt[i, :3, :3].T @ (gt[j, :3, 3] - gt[i, :3, 3])
         rot.append(np.degrees(np.arccos(np.clip((np.trace(e_R.T @ g_R) - 1) / 2, -1, 1))))
         dirs.append(np.degrees(np.arccos(np.clip(e_t @ g_t / np.linalg.norm(e_t) / np.linalg.norm(g_t), -1, 1))))
-    return max(rot), max(dirs)
+    return max(rot), float(np.median(dirs)), max(dirs)
 
 
 def run_stage(sizes, h: int, w: int, window: int) -> None:
@@ -136,26 +139,26 @@ def main(argv=None) -> None:
             t = time.perf_counter()
             R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
                                     keep_scale=True, jac=jac)
-            row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt))
+            row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt), len(rep["mirrored_pairs"]))
         rows.append(row)
         print(row, file=sys.stderr, flush=True)
     print(f"\nmaps {h}x{w}, cyclic window {args.window}, {args.outliers:.0%} outliers, start {args.rot_deg} deg / "
           f"{args.centre} off, {args.threads} thread(s); errors: worst over consecutive images' relative poses\n")
-    head = "| images | pairs | matches | start rot / dir (deg) |"
+    head = "| images | pairs | matches | start: worst rot / median dir / worst dir (deg) |"
     rule = "|---|---|---|---|"
     for jac in args.jacobians:
-        head += f" {jac}: time (s) | evaluations | rot / dir (deg) |"
-        rule += "---|---|---|"
+        head += f" {jac}: time (s) | evaluations | worst rot / median dir / worst dir | pairs reversed |"
+        rule += "---|---|---|---|"
     if len(args.jacobians) == 2:
         head += f" speed-up ({args.jacobians[0]} / {args.jacobians[1]}) |"
         rule += "---|"
     print(head)
     print(rule)
     for r in rows:
-        line = f"| {r['n']} | {r['pairs']} | {r['matches']} | {r['start'][0]:.2f} / {r['start'][1]:.2f} |"
+        line = f"| {r['n']} | {r['pairs']} | {r['matches']} | {' / '.join(f'{e:.2f}' for e in r['start'])} |"
         for jac in args.jacobians:
-            secs, evals, rot, dirs = r[jac]
-            line += f" {secs:.2f} | {evals} | {rot:.3f} / {dirs:.3f} |"
+            secs, evals, rot, dir_med, dir_max, mirrored = r[jac]
+            line += f" {secs:.2f} | {evals} | {rot:.3f} / {dir_med:.3f} / {dir_max:.3f} | {mirrored} |"
         if len(args.jacobians) == 2:
             line += f" {r[args.jacobians[0]][0] / max(r[args.jacobians[1]][0], 1e-9):.1f}x |"
         print(line)
