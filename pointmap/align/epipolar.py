@@ -109,6 +109,21 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
 
+def pinned_cameras(pairs: list) -> list:
+    """Few cameras that touch every pair in ``pairs`` (greedy: the camera in most of the pairs left, until none is
+    left): where a fit reversed several pairs of one camera, that camera is the one that passed through the others."""
+    left, out = [tuple(p) for p in pairs], []
+    while left:
+        counts: dict = {}
+        for p in left:
+            for k in p:
+                counts[k] = counts.get(k, 0) + 1
+        k = max(sorted(counts), key=counts.get)
+        out.append(int(k))
+        left = [p for p in left if k not in p]
+    return sorted(out)
+
+
 def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -385,14 +400,22 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     I, J, r1, r2, s = (np.concatenate(x) for x in (I, J, r1, r2, s))
     c2w = recon.cam2world.double().numpy()
     held = known_poses or [0]
-    R, C, fit = solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held,
-                            keep_scale=len(known_poses) < 2, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
-                            max_evals=cfg.max_evals)
-    if fit["mirrored_pairs"]:
-        return replace(recon, info={**recon.info, "epipolar": {
-            "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {fit['mirrored_pairs']} "
-            "(their matches' points moved behind the cameras): the aligned poses are kept", **fit,
-            "config": asdict(cfg)}})
+
+    def fit_with(held):
+        return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=len(held) < 2,
+                           prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds, max_evals=cfg.max_evals)
+
+    R, C, fit = fit_with(held)
+    if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned
+        pinned = [k for k in pinned_cameras(fit["mirrored_pairs"]) if k not in held]
+        held = sorted(held + pinned)
+        R, C, fit = fit_with(held)
+        fit["pinned"] = pinned
+        if fit["mirrored_pairs"]:
+            return replace(recon, info={**recon.info, "epipolar": {
+                "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {fit['mirrored_pairs']} "
+                f"(their matches' points moved behind the cameras), also with cameras {pinned} held: the aligned "
+                "poses are kept", **fit, "config": asdict(cfg)}})
     new = recon.cam2world.double().clone()
     new[:, :3, :3] = torch.from_numpy(R)
     new[:, :3, 3] = torch.from_numpy(C)

@@ -18,6 +18,7 @@ from pointmap.align.epipolar import (
     epipolar_residuals,
     in_front_share,
     mirrored_pairs,
+    pinned_cameras,
     solve_poses,
 )
 from pointmap.errors import ShapeError
@@ -209,25 +210,43 @@ def test_a_reversed_direction_puts_the_matched_points_behind_the_cameras_and_is_
     assert mirrored_pairs(R, C_m, R, C, I, J, r1, r2) == []  # un-mirroring a pair is not flagged
 
 
-def test_a_fit_that_reverses_a_direction_is_rejected_and_the_aligned_poses_are_kept(mid_scene, monkeypatch):
+def test_cameras_touching_every_reversed_pair_are_few():
+    assert pinned_cameras([[4, 6], [5, 6], [6, 8]]) == [6]
+    assert pinned_cameras([[0, 1], [2, 3]]) == [0, 2]
+    assert pinned_cameras([]) == []
+
+
+def test_a_fit_that_reverses_a_direction_is_refitted_with_that_camera_held_then_rejected(mid_scene, monkeypatch):
     import pointmap.align.epipolar as epi
 
     sc, views, preds, recon = mid_scene
     real = epi.solve_poses
+    calls = []
 
-    def mirroring(R0, C0, *args, **kwargs):
+    def mirroring(R0, C0, *args, times=2, **kwargs):
         R, C, rep = real(R0, C0, *args, **kwargs)
-        C[2] = 2 * C[0] - C[2]  # what the scale-free variant did to the demo room
-        return R, C, {**rep, "mirrored_pairs": [[0, 2]]}
+        calls.append(list(kwargs["held"]))
+        if len(calls) <= times:
+            C[2] = 2 * C[0] - C[2]  # what the scale-free variant did to the demo room
+            rep = {**rep, "mirrored_pairs": [[0, 2], [1, 2], [2, 4]]}
+        return R, C, rep
 
     monkeypatch.setattr(epi, "solve_poses", mirroring)
     out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
     rep = out.info["epipolar"]
-    assert not rep["applied"] and "reversed the direction of camera pair(s) [[0, 2]]" in rep["reason"]
-    assert torch.equal(out.cam2world, recon.cam2world) and rep["matches"] > 150
+    assert calls == [[0], [0, 2]]  # the second fit holds camera 2, the one in every reversed pair
+    assert not rep["applied"] and "reversed the direction of camera pair(s) [[0, 2], [1, 2], [2, 4]]" in rep["reason"]
+    assert "also with cameras [2] held" in rep["reason"] and rep["matches"] > 150
+    assert torch.equal(out.cam2world, recon.cam2world)
+    calls.clear()
+    monkeypatch.setattr(epi, "solve_poses", lambda *a, **k: mirroring(*a, times=1, **k))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["pinned"] == [2] and rep["held"] == [0, 2]
+    assert torch.allclose(out.cam2world[2], recon.cam2world[2], atol=1e-5)  # held where it was aligned
     monkeypatch.setattr(epi, "solve_poses", real)
     fit = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8)).info["epipolar"]
-    assert fit["applied"] and fit["mirrored_pairs"] == []
+    assert fit["applied"] and fit["mirrored_pairs"] == [] and "pinned" not in fit
 
 
 @pytest.mark.parametrize("kwargs", [dict(rotation_prior_deg=0.0), dict(threshold_px=-1.0), dict(rounds=0),
