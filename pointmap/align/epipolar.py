@@ -109,10 +109,13 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
 
-def pinned_cameras(pairs: list) -> list:
-    """Few cameras that touch every pair in ``pairs`` (greedy: the camera in most of the pairs left, until none is
-    left): where a fit reversed several pairs of one camera, that camera is the one that passed through the others."""
-    left, out = [tuple(p) for p in pairs], []
+def pinned_cameras(pairs: list, held=()) -> list:
+    """Few cameras, none of ``held``, that touch every pair in ``pairs`` (greedy: the camera in most of the pairs
+    left, until none is left): where a fit reversed several pairs of one camera, that camera is the one that passed
+    through the others; a pair with a held camera has its other camera pinned."""
+    held = set(held)
+    left, out = [tuple(k for k in p if k not in held) for p in pairs], []
+    left = [p for p in left if p]
     while left:
         counts: dict = {}
         for p in left:
@@ -407,7 +410,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
 
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned
-        pinned = [k for k in pinned_cameras(fit["mirrored_pairs"]) if k not in held]
+        pinned = pinned_cameras(fit["mirrored_pairs"], held)
         held = sorted(held + pinned)
         R, C, fit = fit_with(held)
         fit["pinned"] = pinned

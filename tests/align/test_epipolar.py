@@ -214,6 +214,7 @@ def test_cameras_touching_every_reversed_pair_are_few():
     assert pinned_cameras([[4, 6], [5, 6], [6, 8]]) == [6]
     assert pinned_cameras([[0, 1], [2, 3]]) == [0, 2]
     assert pinned_cameras([]) == []
+    assert pinned_cameras([[0, 3]], held=[0]) == [3] and pinned_cameras([[0, 3]], held=[0, 3]) == []
 
 
 def test_a_fit_that_reverses_a_direction_is_refitted_with_that_camera_held_then_rejected(mid_scene, monkeypatch):
