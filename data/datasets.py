@@ -194,6 +194,7 @@ def _mirror(rgb_f, depth, K, cam2world):
     w = depth.shape[1]
     K = K.copy()
     K[0, 2] = (w - 1) - K[0, 2]
+    K[0, 1] = -K[0, 1]  # a skew term changes sign with x
     return (np.ascontiguousarray(rgb_f[:, ::-1]), np.ascontiguousarray(depth[:, ::-1]), K,
             _REFLECT_X @ cam2world @ _REFLECT_X)
 

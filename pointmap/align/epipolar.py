@@ -12,10 +12,17 @@ R_i^T R_j r_j, both in camera i's frame (``pointmap.pose._epipolar_residuals``, 
 Robust least squares (Cauchy, scale ``threshold_px`` over the focal) over the matches within 3 scales of the
 current poses (the gate is re-drawn after each solve), plus a Cauchy prior of width ``rotation_prior_deg`` per
 rotation-vector component keeping each rotation near the aligned one. Rotations move as R_k = exp(w_k) R_k0 in
-the world frame. Gauge: known poses are held (else image 0's); without two known centres the mean distance of
-the free cameras from the held one keeps its aligned value. Intrinsics: known ones as given; otherwise each
-image's focal is the median of the Weiszfeld focals of its own-frame pointmaps (one per pass in which it is the
-first view), with the principal point as aligned; ``shared_focal``: the median over all images.
+the world frame; the Jacobian is analytic (``_residual_jacobian``). Gauge: known poses are held (else image 0's);
+without two known centres the mean distance of the free cameras from the first held one keeps its aligned value.
+Intrinsics: known ones as given; otherwise each image's focal is the median of the Weiszfeld focals of its
+own-frame pointmaps (one per pass in which it is the first view), with the principal point as aligned;
+``shared_focal``: the median over all images.
+
+Mirror check: the residuals cannot tell a direction from its opposite. After the fit each camera pair's gated
+matches are triangulated under the start and the fitted poses (``in_front_share``); a pair whose points moved from in
+front of its cameras to behind them was reversed (``mirrored_pairs``). The fit is then run once more with the
+cameras touching those pairs held at their aligned poses (``pinned_cameras``; the gauge as in the first fit), and
+the aligned poses are kept when that reverses a pair too, or when every camera would be held.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from pointmap.reconstruction import K_to_original
 
 # lsmr's default tolerances stop its steps early: hundreds of slow iterations, ending 1 degree off
 LSMR_TIGHT = {"atol": 1e-12, "btol": 1e-12, "regularize": False}
+MIN_PARALLAX_DEG = 0.5  # in_front_share: rays closer to parallel than this do not count
 
 
 @dataclass(frozen=True)
@@ -81,14 +89,21 @@ def _residuals_by_pair(R, C, PI, PJ, pid, r1, r2):
 def in_front_share(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                    n_pairs: int, pid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per camera pair (``pid`` [M] in [0, n_pairs)): the share of its matches whose two rays meet (closest points)
-    in front of both cameras, and how many matches had a defined meeting point. The epipolar residuals cannot tell a
-    direction from its opposite; this can: mirrored, the points land behind both cameras."""
+    in front of both cameras, and how many matches counted: those whose rays are at least ``MIN_PARALLAX_DEG`` apart
+    (closer to parallel, the meeting point's side is noise). The epipolar residuals cannot tell a direction from its
+    opposite; this can: mirrored, the points land behind both cameras."""
+    pid = np.asarray(pid)
+    if len(pid) != len(I) or (len(pid) and not 0 <= pid.min() <= pid.max() < n_pairs):
+        raise ShapeError(f"in_front_share expected one pair index in [0, {n_pairs}) per match ({len(I)}), got "
+                         f"{len(pid)} in [{pid.min() if len(pid) else '-'}, {pid.max() if len(pid) else '-'}]")
     a = np.einsum("mab,mb->ma", R[I], r1)
     b = np.einsum("mab,mb->ma", R[J], r2)
+    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
     d = C[J] - C[I]
     ab, ad, bd = (a * b).sum(1), (a * d).sum(1), (b * d).sum(1)
-    den = 1.0 - ab ** 2  # unit rays
-    ok = den > 1e-8
+    den = 1.0 - ab ** 2  # sin^2 of the angle between the rays
+    ok = den > math.sin(math.radians(MIN_PARALLAX_DEG)) ** 2
     lam = np.where(ok, (ad - ab * bd) / np.where(ok, den, 1.0), 0.0)
     mu = np.where(ok, (ab * ad - bd) / np.where(ok, den, 1.0), 0.0)
     front = ok & (lam > 0) & (mu > 0)
@@ -100,12 +115,18 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
                    now: float = 0.3) -> list:
     """Camera pairs [i, j] whose matches met in front of both cameras at the start (share > ``was``) and no longer do
     after a fit (share < ``now``): a reversed direction, which the epipolar residuals cannot see. The margins keep
-    short baselines, whose meeting points are ill-conditioned, from being called mirrored by chance."""
+    short baselines, whose meeting points are ill-conditioned, from being called mirrored by chance; a pair needs
+    ``min_matches`` counted matches before and after."""
+    if not (0 <= now < was <= 1) or min_matches < 1:
+        raise ValueError(f"mirrored_pairs expected 0 <= now < was <= 1 and min_matches >= 1, got now={now}, "
+                         f"was={was}, min_matches={min_matches}")
+    if len(I) == 0:
+        return []
     pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
     pid = pid.reshape(-1)
-    before, _ = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
+    before, counted_before = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
     after, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid)
-    flag = (counted >= min_matches) & (before > was) & (after < now)
+    flag = (counted_before >= min_matches) & (counted >= min_matches) & (before > was) & (after < now)
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
 
@@ -173,18 +194,19 @@ def _residual_jacobian(R, C, I, J, r1, r2):
 
 def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                 scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
-                max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic"):
+                max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic", anchor: int | None = None):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
-    ``keep_scale``: the mean distance of the other cameras from the first held one stays as given, by a residual
-    (restoring it after each solve instead was 5 times faster on 100 views, 32 s against 170, since this row touches
-    every centre and joins all cameras in one column group; but it let the demo room's cameras pass through each
-    other, their directions mirrored, 159 degrees off); ``sparse``: finite differences by column groups of cameras
-    that share no pair (scipy's ``jac_sparsity``, for many cameras) or dense (few cameras); None: sparse beyond 8
-    free cameras; the report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches) lists camera pairs
-    whose direction the fit reversed; ``jac``: "analytic" (``_residual_jacobian``, one evaluation per Jacobian) or "2-point" (scipy's
-    finite differences: on 100 views the scale row, which joins every centre, makes them cost one evaluation per
-    centre coordinate; kept as the reference ``benchmarks/bench_align.py --epipolar`` compares against).
+    ``keep_scale``: the mean distance of the free cameras from ``anchor`` (a held camera; default the first held one)
+    stays as given, by a residual (restoring it after each solve instead was 5 times faster with finite differences on
+    100 views, but it let the demo room's cameras pass through each other, their directions mirrored, 159 degrees off);
+    ``jac``: "analytic" (``_residual_jacobian``, one evaluation per Jacobian) or "2-point" (scipy's finite
+    differences, by column groups of cameras that share no pair when sparse: the scale row, which joins every centre,
+    makes them cost one evaluation per centre coordinate; kept as the reference ``benchmarks/bench_epipolar.py``
+    compares against); ``sparse``: a sparse Jacobian solved by ``lsmr`` (many cameras) or a dense one (few); None:
+    sparse beyond 8 free cameras. The report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches)
+    lists camera pairs whose direction the fit reversed. The fit limits BLAS to one thread while it runs
+    (``threadpoolctl``, process-wide: other threads of the caller get one BLAS thread meanwhile).
     Returns (R, C, report)."""
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
@@ -196,10 +218,13 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     held = sorted(set(int(k) for k in held))
     if not held:
         raise ShapeError("solve_poses expected at least one held camera (the gauge)")
+    if anchor is None:
+        anchor = held[0]
+    elif anchor not in held:
+        raise ShapeError(f"solve_poses expected the anchor ({anchor}) among the held cameras {held}")
     free = [k for k in range(n) if k not in held]
     slot = {k: s for s, k in enumerate(free)}
     nf = len(free)
-    anchor = held[0]
     d0 = float(np.linalg.norm(C0[free] - C0[anchor], axis=1).mean()) if nf else 1.0
     unit = d0 if d0 > 0 else 1.0
     prior = math.radians(prior_deg)
@@ -403,22 +428,32 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     I, J, r1, r2, s = (np.concatenate(x) for x in (I, J, r1, r2, s))
     c2w = recon.cam2world.double().numpy()
     held = known_poses or [0]
+    keep_scale = len(known_poses) < 2
 
     def fit_with(held):
-        return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=len(held) < 2,
-                           prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds, max_evals=cfg.max_evals)
+        return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
+                           anchor=held_first, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
+                           max_evals=cfg.max_evals)
 
+    held_first = min(held)
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned
+        first = {"mirrored_pairs": fit["mirrored_pairs"], "evaluations": fit["evaluations"]}
         pinned = pinned_cameras(fit["mirrored_pairs"], held)
         held = sorted(held + pinned)
-        R, C, fit = fit_with(held)
-        fit["pinned"] = pinned
-        if fit["mirrored_pairs"]:
+
+        def kept(why):
             return replace(recon, info={**recon.info, "epipolar": {
-                "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {fit['mirrored_pairs']} "
-                f"(their matches' points moved behind the cameras), also with cameras {pinned} held: the aligned "
-                "poses are kept", **fit, "config": asdict(cfg)}})
+                "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {first['mirrored_pairs']}"
+                f" (their matches' points moved behind the cameras){why}: the aligned poses are kept", **fit,
+                "first_fit": first, "pinned": pinned, "config": asdict(cfg)}})
+
+        if len(held) == n:
+            return kept(", and holding their cameras would hold every camera")
+        R, C, fit = fit_with(held)
+        fit = {**fit, "pinned": pinned, "first_fit": first, "evaluations": first["evaluations"] + fit["evaluations"]}
+        if fit["mirrored_pairs"]:
+            return kept(f", and the re-fit with cameras {pinned} held reversed {fit['mirrored_pairs']}")
     new = recon.cam2world.double().clone()
     new[:, :3, :3] = torch.from_numpy(R)
     new[:, :3, 3] = torch.from_numpy(C)

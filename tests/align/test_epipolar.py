@@ -15,6 +15,7 @@ from pointmap.align.epipolar import (
     _residual_jacobian,
     _residuals_by_pair,
     _rotvec_to_matrix,
+    _skew,
     epipolar_residuals,
     in_front_share,
     mirrored_pairs,
@@ -220,34 +221,63 @@ def test_cameras_touching_every_reversed_pair_are_few():
 def test_a_fit_that_reverses_a_direction_is_refitted_with_that_camera_held_then_rejected(mid_scene, monkeypatch):
     import pointmap.align.epipolar as epi
 
-    sc, views, preds, recon = mid_scene
+    _, views, preds, recon = mid_scene
     real = epi.solve_poses
     calls = []
 
-    def mirroring(R0, C0, *args, times=2, **kwargs):
+    def mirroring(R0, C0, *args, times=2, pairs=([0, 2], [1, 2], [2, 4]), **kwargs):
         R, C, rep = real(R0, C0, *args, **kwargs)
-        calls.append(list(kwargs["held"]))
+        calls.append((list(kwargs["held"]), kwargs["keep_scale"], kwargs["anchor"]))
         if len(calls) <= times:
             C[2] = 2 * C[0] - C[2]  # what the scale-free variant did to the demo room
-            rep = {**rep, "mirrored_pairs": [[0, 2], [1, 2], [2, 4]]}
+            rep = {**rep, "mirrored_pairs": [list(p) for p in pairs]}
         return R, C, rep
 
     monkeypatch.setattr(epi, "solve_poses", mirroring)
     out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
     rep = out.info["epipolar"]
-    assert calls == [[0], [0, 2]]  # the second fit holds camera 2, the one in every reversed pair
+    # the second fit holds camera 2, the one in every reversed pair, with the first fit's gauge
+    assert calls == [([0], True, 0), ([0, 2], True, 0)]
     assert not rep["applied"] and "reversed the direction of camera pair(s) [[0, 2], [1, 2], [2, 4]]" in rep["reason"]
-    assert "also with cameras [2] held" in rep["reason"] and rep["matches"] > 150
+    assert "the re-fit with cameras [2] held reversed" in rep["reason"] and rep["matches"] > 150
     assert torch.equal(out.cam2world, recon.cam2world)
     calls.clear()
     monkeypatch.setattr(epi, "solve_poses", lambda *a, **k: mirroring(*a, times=1, **k))
     out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
     rep = out.info["epipolar"]
     assert rep["applied"] and rep["pinned"] == [2] and rep["held"] == [0, 2]
+    assert rep["first_fit"]["mirrored_pairs"] == [[0, 2], [1, 2], [2, 4]]
+    assert rep["evaluations"] > rep["first_fit"]["evaluations"] > 0  # both fits counted
     assert torch.allclose(out.cam2world[2], recon.cam2world[2], atol=1e-5)  # held where it was aligned
+    calls.clear()  # reversed pairs touching every free camera: holding them all would leave nothing to fit
+    monkeypatch.setattr(epi, "solve_poses",
+                        lambda *a, **k: mirroring(*a, pairs=([0, 1], [0, 2], [0, 3], [0, 4]), **k))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert len(calls) == 1 and not rep["applied"] and "would hold every camera" in rep["reason"]
+    assert torch.equal(out.cam2world, recon.cam2world)
     monkeypatch.setattr(epi, "solve_poses", real)
     fit = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8)).info["epipolar"]
     assert fit["applied"] and fit["mirrored_pairs"] == [] and "pinned" not in fit
+
+
+def test_the_mirror_check_refuses_bad_settings_and_counts_only_rays_with_parallax(wide_scene):
+    gt = wide_scene["cam2world"]
+    I, J, r1, r2 = stacked(wide_scene)
+    R, C = gt[:, :3, :3], gt[:, :3, 3]
+    with pytest.raises(ValueError, match="mirrored_pairs expected"):
+        mirrored_pairs(R, C, R, C, I, J, r1, r2, was=0.3, now=0.7)
+    with pytest.raises(ShapeError, match="one pair index"):
+        in_front_share(R, C, I, J, r1, r2, 1, np.full(len(I), 3))
+    assert mirrored_pairs(R, C, R, C, I[:0], J[:0], r1[:0], r2[:0]) == []
+    # a camera on top of another (no baseline): its rays meet nowhere in particular, and none of them counts
+    C_same = C.copy()
+    C_same[1] = C[0]
+    R_same = R.copy()
+    R_same[1] = R[0]
+    sel = (I == 0) & (J == 1)
+    _, counted = in_front_share(R_same, C_same, I[sel], J[sel], r1[sel], r1[sel], 1, np.zeros(int(sel.sum()), int))
+    assert counted[0] == 0
 
 
 @pytest.mark.parametrize("kwargs", [dict(rotation_prior_deg=0.0), dict(threshold_px=-1.0), dict(rounds=0),
@@ -284,9 +314,14 @@ def test_the_analytic_residual_jacobian_agrees_with_central_differences(scene):
             assert np.abs(num_w).max() > 1e-2 and np.abs(num_c).max() > 1e-2  # not a comparison of zeros
             np.testing.assert_allclose(ana_w, num_w, atol=1e-6)
             np.testing.assert_allclose(ana_c, num_c, atol=1e-6)
-    tiny = np.array([[1e-7, -2e-7, 3e-8], [0.0, 0.0, 0.0]])  # the series branch near 0
-    np.testing.assert_allclose(_left_jacobian(tiny)[1], np.eye(3))
-    np.testing.assert_allclose(_left_jacobian(tiny)[0], np.eye(3), atol=1e-6)
+    # the series branch near 0 against its own truncation I + W / 2 + W^2 / 6, and both branches meeting at 1e-4
+    axis = np.array([0.6, -0.64, 0.48])
+    for th in (0.0, 3e-5, 0.99e-4):
+        W = _skew(th * axis)
+        np.testing.assert_allclose(_left_jacobian((th * axis)[None])[0], np.eye(3) + W / 2 + W @ W / 6,
+                                   rtol=0, atol=1e-13)  # the series' next terms are ~th^3 / 24
+    below, above = _left_jacobian(np.stack([0.999999e-4 * axis, 1.000001e-4 * axis]))
+    np.testing.assert_allclose(below, above, rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("jac", ["analytic", "2-point"])
