@@ -245,33 +245,13 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     slots = np.array([slot.get(k, -1) for k in range(n)])
 
-    def sparsity(sel):
-        """Which parameters each residual depends on: a match on its two cameras' rotation and centre (held cameras
-        have none), a prior row on its camera's rotation, the scale row on every centre."""
-        m = int(sel.sum())
-        rows, cols = [], []
-        for cam in (I[sel], J[sel]):
-            s_ = slots[cam]
-            r = np.nonzero(s_ >= 0)[0]
-            for off in (0, 3 * nf):
-                for c in range(3):
-                    rows.append(r)
-                    cols.append(off + 3 * s_[r] + c)
-        for c in range(3):
-            rows.append(m + 3 * np.arange(nf) + c)
-            cols.append(3 * np.arange(nf) + c)
-        if keep_scale:
-            rows.append(np.full(3 * nf, m + 3 * nf))
-            cols.append(3 * nf + np.arange(3 * nf))
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return coo_matrix((np.ones(len(rows), np.int8), (rows, cols)),
-                          shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
+    def sparse_opts(x, sel):  # scipy's differences by column groups, on the analytic Jacobian's pattern
+        return {"jac_sparsity": jacobian(x, sel, pattern=True), "tr_solver": "lsmr", "tr_options": LSMR_TIGHT}
 
-    def sparse_opts(sel):
-        return {"jac_sparsity": sparsity(sel), "tr_solver": "lsmr", "tr_options": LSMR_TIGHT}
-
-    def jacobian(x, sel, dense):
-        """The rows of ``fun`` by the parameters (w, C) of the free cameras, analytic (``_residual_jacobian``)."""
+    def jacobian(x, sel, dense=False, pattern=False):
+        """The rows of ``fun`` by the parameters (w, C) of the free cameras, analytic (``_residual_jacobian``); with
+        ``pattern``, which entries can be nonzero (ones): a match on its two cameras' rotation and centre (held
+        cameras have none), a prior row on its camera's rotation, the scale row on every centre."""
         R, C = unpack(x)
         Is, Js, m = I[sel], J[sel], int(sel.sum())
         parts = _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel])
@@ -296,8 +276,9 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
             rows.append(np.full(3 * nf, m + 3 * nf))
             cols.append(3 * nf + np.arange(3 * nf))
             vals.append((10.0 / nf) * unit_dirs.ravel())
-        out = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        vals = np.ones(len(rows), np.int8) if pattern else np.concatenate(vals)
+        out = coo_matrix((vals, (rows, cols)), shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
         return out.toarray() if dense else out
 
     x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
@@ -326,7 +307,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
                 jac_fn = partial(jacobian, sel=sel, dense=not use_sparse)
                 opts = {"jac": jac_fn, **({"tr_solver": "lsmr", "tr_options": LSMR_TIGHT} if use_sparse else {})}
             else:  # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
-                opts = sparse_opts(sel) if use_sparse else {}
+                opts = sparse_opts(x, sel) if use_sparse else {}
             sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6, **opts)
             x, evals = sol.x, evals + sol.nfev
             solves += 1
@@ -428,14 +409,13 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     I, J, r1, r2, s = (np.concatenate(x) for x in (I, J, r1, r2, s))
     c2w = recon.cam2world.double().numpy()
     held = known_poses or [0]
-    keep_scale = len(known_poses) < 2
+    keep_scale, anchor = len(known_poses) < 2, min(held)  # the first fit's gauge, kept by the re-fit
 
     def fit_with(held):
         return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
-                           anchor=held_first, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
+                           anchor=anchor, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
                            max_evals=cfg.max_evals)
 
-    held_first = min(held)
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned
         first = {"mirrored_pairs": fit["mirrored_pairs"], "evaluations": fit["evaluations"]}
