@@ -31,9 +31,11 @@ def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
     sys.path.insert(0, str(ROOT / "tests" / "align"))
     from align_scene import gt_preds, make_scene, views_of
 
+    from pointmap.pairs import make_pairs
+
     f = 0.85 * w
     sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
-    pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, window + 1)})
+    pairs = sorted(make_pairs(n, f"swin-{window}"))  # cyclic sliding window
     preds = gt_preds(sc, pairs, seed=seed, noise=0.01, outliers=0.02, pair_rot_deg=0.3)
     del sc["pts_world"]
     return sc, views_of(sc), preds, pairs, np, torch

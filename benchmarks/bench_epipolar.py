@@ -34,11 +34,12 @@ def make_inputs(n: int, h: int, w: int, window: int, outliers: float, rot_deg: f
     from align_scene import gt_matches, make_scene
 
     from pointmap.geometry.rotations import axis_angle_to_matrix
+    from pointmap.pairs import make_pairs
     from pointmap.pose import _bearings
 
     f = 0.85 * w
     sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
-    pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n) for k in range(1, window + 1)})
+    pairs = sorted(make_pairs(n, f"swin-{window}"))  # cyclic sliding window
     I, J, r1, r2 = [], [], [], []
     for p, (i, j) in enumerate(pairs):
         xy1, xy2, _ = gt_matches(sc, i, j, step=max(2, h // 24), outliers=outliers, seed=seed + p, occluded=True)
@@ -80,13 +81,13 @@ def run_stage(sizes, h: int, w: int, window: int) -> None:
     from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
 
     from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
+    from pointmap.pairs import make_pairs
 
     rows = []
     for n in sizes:
         f = 0.85 * w
         sc = make_scene(n, h, w, seed=0, focal_range=(f * 0.9, f * 1.1))
-        pairs = sorted({(min(i, (i + k) % n), max(i, (i + k) % n)) for i in range(n)
-                        for k in range(1, min(window, n - 1) + 1)})
+        pairs = sorted(make_pairs(n, f"swin-{window}"))
         views = views_of(sc)
         preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
         t = time.perf_counter()
@@ -134,7 +135,7 @@ def main(argv=None) -> None:
         return
     rows = []
     for n in args.sizes:
-        gt, start, (I, J, r1, r2, scale), n_pairs = make_inputs(n, h, w, min(args.window, n - 1), args.outliers,
+        gt, start, (I, J, r1, r2, scale), n_pairs = make_inputs(n, h, w, args.window, args.outliers,
                                                                 args.rot_deg, args.centre)
         row = {"n": n, "pairs": n_pairs, "matches": len(I), "start": worst_errors(start[:, :3, :3], start[:, :3, 3], gt)}
         for jac in args.jacobians:
