@@ -1,11 +1,14 @@
 """Time and peak memory of global alignment against the number of images (alignment only).
 
 Predictions are ground-truth pointmaps of the analytic test scene (tests/align/align_scene.py) with 1%
-depth noise, 2% outliers, 0.3 deg per-pair pose noise and a random scale per pair, on a sparse cyclic
-sliding-window graph (every image paired with its next ``--window`` images). Each image count runs in
-a fresh subprocess so the peak RSS is its own. Writes a table (stdout, markdown) and a PNG plot.
+depth noise, 2% outliers, ``--pose-noise`` degrees of per-pair pose noise (default 0.3) and a random scale per
+pair, on a sparse cyclic sliding-window graph (every image paired with its next ``--window`` images). Each image
+count (and start, ``--init``) runs in a fresh subprocess so the peak RSS is its own. Writes a table (stdout,
+markdown) and a PNG plot of the first start.
 
     nice .venv/bin/python benchmarks/bench_align.py --sizes 10 25 50 100 --hw 384 512 --png bench_align.png
+    nice .venv/bin/python benchmarks/bench_align.py --sizes 10 40 100 --hw 64 96 --window 3 --pose-noise 8 \
+        --init mst averaging   # the two starts on the same predictions
 
 ``--official PATH`` additionally runs the official DUSt3R PointCloudOptimizer (needs a checkout with
 croco, and the ``roma`` and ``einops`` packages) on the same predictions for the smaller sizes.
@@ -24,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
+def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0, pose_noise: float = 0.3):
     import numpy as np
     import torch
 
@@ -36,13 +39,14 @@ def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0):
     f = 0.85 * w
     sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
     pairs = sorted(make_pairs(n, f"swin-{window}"))  # cyclic sliding window
-    preds = gt_preds(sc, pairs, seed=seed, noise=0.01, outliers=0.02, pair_rot_deg=0.3)
+    preds = gt_preds(sc, pairs, seed=seed, noise=0.01, outliers=0.02, pair_rot_deg=pose_noise)
     del sc["pts_world"]
     return sc, views_of(sc), preds, pairs, np, torch
 
 
-def run_one(n: int, h: int, w: int, window: int, official: str | None, niter: int) -> dict:
-    sc, views, preds, pairs, np, torch = make_inputs(n, h, w, window)
+def run_one(n: int, h: int, w: int, window: int, official: str | None, niter: int, init: str = "averaging",
+            pose_noise: float = 0.3) -> dict:
+    sc, views, preds, pairs, np, torch = make_inputs(n, h, w, window, pose_noise=pose_noise)
     sys.path.insert(0, str(ROOT / "tests" / "align"))
     from align_scene import pose_errors
 
@@ -50,17 +54,19 @@ def run_one(n: int, h: int, w: int, window: int, official: str | None, niter: in
 
     torch.set_num_threads(1)
     rss_inputs = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-    out = {"n": n, "pairs": len(pairs), "directed": len(preds), "hw": [h, w]}
+    out = {"n": n, "pairs": len(pairs), "directed": len(preds), "hw": [h, w], "init": init}
     if official:
         out.update(run_official(official, views, preds, sc, niter))
         return out
     t = time.perf_counter()
-    recon = global_align(views, preds, config=AlignConfig(quiet=True, niter=niter))
+    recon = global_align(views, preds, config=AlignConfig(quiet=True, niter=niter, init=init))
     out["seconds"] = time.perf_counter() - t
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     out["inputs_rss_gb"] = rss_inputs
     rot, centre, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
     out["rot_err_deg"], out["centre_err"] = rot, centre
+    start = global_align(views, preds, config=AlignConfig(quiet=True, optimizer="none", init=init))  # after timing
+    out["start_rot_err_deg"] = pose_errors(start.cam2world.numpy(), sc["cam2world"])[0]
     rep = recon.info["align"]
     out.update({k: rep[k] for k in ("iterations", "stop_reason", "stride", "opt_pixels_per_image")})
     out["seconds_optimise"] = rep["seconds"]
@@ -127,6 +133,10 @@ def main(argv=None) -> None:
     ap.add_argument("--hw", type=int, nargs=2, default=[384, 512], metavar=("H", "W"))
     ap.add_argument("--window", type=int, default=2)
     ap.add_argument("--niter", type=int, default=100)
+    ap.add_argument("--init", nargs="+", default=["averaging"], choices=["averaging", "mst"],
+                    help="the alignment's start(s), each run on the same predictions (AlignConfig.init)")
+    ap.add_argument("--pose-noise", dest="pose_noise", type=float, default=0.3,
+                    help="per-pair pose noise of the predictions, degrees")
     ap.add_argument("--png", default="bench_align.png")
     ap.add_argument("--official", default=None, help="path to an official dust3r checkout (with croco)")
     ap.add_argument("--official-max", type=int, default=25, help="largest image count run with --official")
@@ -137,39 +147,45 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     h, w = args.hw
     if args.one is not None:
-        res = run_one(args.one, h, w, args.window, args.official if args.as_official else None, args.niter)
+        res = run_one(args.one, h, w, args.window, args.official if args.as_official else None, args.niter,
+                      args.init[0], args.pose_noise)
         print("RESULT " + json.dumps(res))
         return
     rows = []
+    inits = list(dict.fromkeys(args.init))
     for n in args.sizes:
-        modes = [False] + ([True] if args.official and n <= args.official_max else [])
-        row = {}
-        for as_off in modes:
-            cmd = [sys.executable, __file__, "--one", str(n), "--hw", str(h), str(w), "--window", str(args.window),
-                   "--niter", str(args.official_niter if as_off else args.niter)] + (["--official", args.official, "--as-official"] if as_off else [])
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
-            if not line:
-                print(f"n={n} official={as_off} failed:\n{proc.stderr[-2000:]}", file=sys.stderr)
-                continue
-            row.update(json.loads(line[0][7:]))
-        if row:
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr)
-    print(f"\nmaps {h}x{w}, cyclic sliding window {args.window}, niter {args.niter}\n")
-    print("| images | pairs | time (s) | optimise (s) | peak RSS (GB) | inputs RSS (GB) | rot err (deg) | centre err |"
+        for k, init in enumerate(inits):  # the official optimiser (its own MST start) runs once, beside the first
+            modes = [False] + ([True] if args.official and n <= args.official_max and k == 0 else [])
+            row = {}
+            for as_off in modes:
+                cmd = [sys.executable, __file__, "--one", str(n), "--hw", str(h), str(w), "--window", str(args.window),
+                       "--niter", str(args.official_niter if as_off else args.niter), "--init", init,
+                       "--pose-noise", str(args.pose_noise)] + (["--official", args.official, "--as-official"] if as_off else [])
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+                if not line:
+                    print(f"n={n} init={init} official={as_off} failed:\n{proc.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                row.update(json.loads(line[0][7:]))
+            if row:
+                rows.append(row)
+                print(json.dumps(row), file=sys.stderr)
+    print(f"\nmaps {h}x{w}, cyclic sliding window {args.window}, niter {args.niter}, per-pair pose noise "
+          f"{args.pose_noise} deg; errors: the worst camera after a similarity fit (start = before optimising)\n")
+    print("| images | pairs | init | time (s) | optimise (s) | peak RSS (GB) | inputs RSS (GB) | start rot err (deg) | rot err (deg) | centre err |"
           + (" official time (s) | official RSS (GB) | official rot err |" if args.official else ""))
-    print("|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.official else ""))
+    print("|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.official else ""))
     for r in rows:
-        line = (f"| {r['n']} | {r['pairs']} | {r.get('seconds', float('nan')):.1f} | {r.get('seconds_optimise', float('nan')):.1f} | "
+        line = (f"| {r['n']} | {r['pairs']} | {r.get('init', '-')} | {r.get('seconds', float('nan')):.1f} | {r.get('seconds_optimise', float('nan')):.1f} | "
                 f"{r.get('peak_rss_gb', float('nan')):.2f} | {r.get('inputs_rss_gb', float('nan')):.2f} | "
+                f"{r.get('start_rot_err_deg', float('nan')):.3f} | "
                 f"{r.get('rot_err_deg', float('nan')):.3f} | {r.get('centre_err', float('nan')):.4f} |")
         if args.official:
             line += (f" {r.get('official_seconds', float('nan')):.1f} | {r.get('official_peak_rss_gb', float('nan')):.2f} |"
                      f" {r.get('official_rot_err_deg', float('nan')):.3f} |")
         print(line)
     if rows:
-        plot(rows, args.png, f"{h}x{w}, window {args.window}")
+        plot([r for r in rows if r.get("init") == inits[0]], args.png, f"{h}x{w}, window {args.window}, {inits[0]} start")
 
 
 def plot(rows, png, title):

@@ -75,7 +75,7 @@ def worst_errors(R, C, gt) -> tuple[float, float, float]:
     return max(rot), float(np.median(dirs)), max(dirs)
 
 
-def run_stage(sizes, h: int, w: int, window: int) -> None:
+def run_stage(sizes, h: int, w: int, window: int, init: str = "averaging") -> None:
     """Seconds of ``global_align`` and of ``refine_epipolar`` after it, and the camera errors of both."""
     sys.path.insert(0, str(ROOT / "tests" / "align"))
     from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
@@ -91,7 +91,7 @@ def run_stage(sizes, h: int, w: int, window: int) -> None:
         views = views_of(sc)
         preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
         t = time.perf_counter()
-        recon = global_align(views, preds, config=AlignConfig(quiet=True))
+        recon = global_align(views, preds, config=AlignConfig(quiet=True, init=init))
         t_ga = time.perf_counter() - t
         t = time.perf_counter()
         out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
@@ -102,7 +102,8 @@ def run_stage(sizes, h: int, w: int, window: int) -> None:
                pose_errors(out.cam2world.double().numpy(), sc["cam2world"])[0])
         rows.append(row)
         print(row, file=sys.stderr, flush=True)
-    print(f"\nmaps {h}x{w}, cyclic window {window}, 8-px cells; rotation error: pose_errors after a similarity fit\n")
+    print(f"\nmaps {h}x{w}, cyclic window {window}, 8-px cells, the alignment's {init} start; rotation error: the worst "
+          "camera after a similarity fit\n")
     print("| images | pairs | matches | alignment (s) | epipolar stage (s) | evaluations | rot err GA / GA+E (deg) |")
     print("|---|---|---|---|---|---|---|")
     for n, np_, m, t_ga, t_e, ev, r0, r1 in rows:
@@ -121,6 +122,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the alignment in --stage); the fit itself "
                     "always runs with one BLAS thread")
     ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
+    ap.add_argument("--init", default="averaging", choices=["averaging", "mst"], help="--stage: the alignment's start")
     args = ap.parse_args(argv)
     if min(args.sizes) < 3 or args.window < 1:
         ap.error(f"--sizes expected image counts >= 3 and --window >= 1, got {args.sizes} and {args.window}")
@@ -131,7 +133,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     h, w = args.hw
     if args.stage:
-        run_stage(args.sizes, h, w, args.window)
+        run_stage(args.sizes, h, w, args.window, args.init)
         return
     rows = []
     for n in args.sizes:

@@ -13,8 +13,9 @@ A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1'
 ':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), then '+K' to give the alignment the scenes'
 true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep) and/or '+F' for
 one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
-'+S' for the sparse refinement on matches (``refine_matches``) and '+E' for the epipolar pose refinement on the
-model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default). The table gives RRA@15 / RTA@15 / median
+'+S' for the sparse refinement on matches (``refine_matches``), '+E' for the epipolar pose refinement on the
+model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default) and '+T' for DUSt3R's
+spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one. The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
@@ -54,20 +55,21 @@ def per_pair_path(prefix: str, method: str) -> Path:
 
 
 def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, bool]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E' ... -> (AlignConfig (quiet), whether
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+T' ... -> (AlignConfig (quiet), whether
     the true intrinsics are given, whether the sparse refinement on matches follows, whether the epipolar pose
     refinement follows)."""
     body, *flags = s.split("+")
-    if any(f not in ("K", "F", "S", "E") for f in flags) or len(set(flags)) < len(flags):
+    if any(f not in ("K", "F", "S", "E", "T") for f in flags) or len(set(flags)) < len(flags):
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
-                                         "'+S' (sparse refinement on matches) and/or '+E' (epipolar pose refinement "
-                                         "on matches, as reconstruct)")
+                                         "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
+                                         "on matches, as reconstruct) and/or '+T' (spanning-tree start)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
-    cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags, quiet=True)
+    cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
+                      init="mst" if "T" in flags else "averaging", quiet=True)
     return cfg, "K" in flags, "S" in flags, "E" in flags
 
 

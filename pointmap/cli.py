@@ -280,7 +280,7 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
     from pointmap.align import AlignConfig
     from pointmap.pipeline import reconstruct
 
-    align = AlignConfig(shared_focal=args.shared_focal, quiet=args.quiet)
+    align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet)
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
@@ -452,6 +452,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--masks", default=None, metavar="DIR",
                    help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
                         "are left out of the alignment, the matches and the exports (sky, people, a turntable)")
+    r.add_argument("--align-init", dest="align_init", default="averaging", choices=["averaging", "mst"],
+                   help="the alignment's start: averaging (default: rotations, scales and centres averaged over every "
+                        "pair) or mst (DUSt3R's spanning tree, one pair per image; drifts on long sequences)")
     r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
     r.add_argument("--no-epipolar", dest="no_epipolar", action="store_true",
                    help="skip the pose refinement on the model's coarse matches that follows alignment (the poses "

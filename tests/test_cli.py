@@ -379,3 +379,22 @@ def test_no_epipolar_turns_the_pose_refinement_on_matches_off(tiny, tmp_path, mo
                      "--export", "npz", *extra]) == 0
         assert (out / "reconstruction.npz").exists()
     assert seen == [True, False]
+
+
+def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, capsys):
+    import pointmap.pipeline
+
+    weights, folder = tiny
+    seen = []
+    real = pointmap.pipeline.reconstruct
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["align"].init) or real(*a, **k))
+    for extra in ([], ["--align-init", "mst"]):
+        out = tmp_path / f"out{len(extra)}"
+        assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                     "--export", "npz", *extra]) == 0
+        info = np.load(out / "reconstruction.npz", allow_pickle=False)
+        assert info["cam2world"].shape[0] >= 2
+    assert seen == ["averaging", "mst"]
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--align-init", "tree"])
+    assert "invalid choice: 'tree'" in capsys.readouterr().err

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from pointmap.align.averaging import init_averaging
 from pointmap.align.edges import (
     CONF_TRANSFORMS,
     build_stack,
@@ -35,6 +36,8 @@ from pointmap.align.params import AlignParams
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.reconstruction import K_to_original, Reconstruction
+
+INITS = ("averaging", "mst")
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,8 @@ class AlignConfig:
     shared_focal: all images come from one camera: one focal for all of them (started at the median of the
         per-image estimates), as MASt3R's ``shared_intrinsics``; needs images of one original size, resized and
         cropped alike, and K given for all images (one focal) or none (``check_one_camera``)
+    init: the start of the optimisation: 'averaging' (default: every edge at once, rotation, scale and centre
+        averaging; pointmap.align.averaging) or 'mst' (DUSt3R's maximum spanning tree: one edge per image, chained)
     quiet: no progress bar
     """
 
@@ -73,13 +78,15 @@ class AlignConfig:
     early_stop_window: int = 20
     fuse_iters: int = 1
     shared_focal: bool = False
+    init: str = "averaging"
     quiet: bool = False
 
     def __post_init__(self):
         """Names are checked here, before any inference or initialisation runs on a bad config."""
         for field, value, allowed in (("optimizer", self.optimizer, ("adam", "lbfgs", "none")),
                                       ("schedule", self.schedule, ("cosine", "linear", "constant")),
-                                      ("conf_transform", self.conf_transform, ("auto",) + CONF_TRANSFORMS)):
+                                      ("conf_transform", self.conf_transform, ("auto",) + CONF_TRANSFORMS),
+                                      ("init", self.init, INITS)):
             if value not in allowed:
                 raise ValueError(f"AlignConfig.{field} expected one of {allowed}, got {value!r}")
 
@@ -141,7 +148,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     if cfg.shared_focal and not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
         fx = fy = torch.full_like(fx, float(fx.quantile(0.5)))
     t_init = time.perf_counter()
-    init = init_mst(stack, fx, fy, cx, cy)
+    init = (init_averaging if cfg.init == "averaging" else init_mst)(stack, fx, fy, cx, cy)
     c2w, depth, pw_s, pw_R, pw_t = init.cam2world, init.depth, init.pw_s, init.pw_R, init.pw_t
     scale_fixed = False
     if known_poses:

@@ -97,6 +97,7 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
         ("auto", "adam", False, False, False, False)
     assert parse_setting("log+S")[2] and not parse_setting("log+S")[1] and not parse_setting("log+S")[3]
     assert parse_setting("auto+E")[3] and not parse_setting("auto+E")[2]
-    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "rank", "log:sgd"):
+    assert cfg.init == "averaging" and parse_setting("auto+T+E")[0].init == "mst"  # the library's start, or the tree's
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+T+T", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
