@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pointmap.align.optimize import INITS  # noqa: E402
 
 
 def make_inputs(n: int, h: int, w: int, window: int, seed: int = 0, pose_noise: float = 0.3):
@@ -133,7 +136,7 @@ def main(argv=None) -> None:
     ap.add_argument("--hw", type=int, nargs=2, default=[384, 512], metavar=("H", "W"))
     ap.add_argument("--window", type=int, default=2)
     ap.add_argument("--niter", type=int, default=100)
-    ap.add_argument("--init", nargs="+", default=["averaging"], choices=["averaging", "mst"],
+    ap.add_argument("--init", nargs="+", default=["averaging"], choices=INITS,
                     help="the alignment's start(s), each run on the same predictions (AlignConfig.init)")
     ap.add_argument("--pose-noise", dest="pose_noise", type=float, default=0.3,
                     help="per-pair pose noise of the predictions, degrees")

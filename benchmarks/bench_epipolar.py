@@ -27,6 +27,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pointmap.align.optimize import INITS  # noqa: E402
+
 
 def make_inputs(n: int, h: int, w: int, window: int, outliers: float, rot_deg: float, centre: float, seed: int = 0):
     sys.path.insert(0, str(ROOT / "tests" / "align"))
@@ -122,7 +124,7 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the alignment in --stage); the fit itself "
                     "always runs with one BLAS thread")
     ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
-    ap.add_argument("--init", default="averaging", choices=["averaging", "mst"], help="--stage: the alignment's start")
+    ap.add_argument("--init", default="averaging", choices=INITS, help="--stage: the alignment's start")
     args = ap.parse_args(argv)
     if min(args.sizes) < 3 or args.window < 1:
         ap.error(f"--sizes expected image counts >= 3 and --window >= 1, got {args.sizes} and {args.window}")

@@ -10,7 +10,7 @@ orders); then for every camera pair (i < j):
 - "GA <setting>": the relative pose of cameras i and j after ``global_align`` of all the scene's views.
 
 A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1', 'sqrt', 'id'), optionally with
-':lbfgs' (optimizer) or ':none' (spanning-tree initialisation only), then '+K' to give the alignment the scenes'
+':lbfgs' (optimizer) or ':none' (the start only, no optimisation), then '+K' to give the alignment the scenes'
 true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep) and/or '+F' for
 one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
 '+S' for the sparse refinement on matches (``refine_matches``), '+E' for the epipolar pose refinement on the

@@ -398,3 +398,12 @@ def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, ca
     with pytest.raises(SystemExit):
         main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--align-init", "tree"])
     assert "invalid choice: 'tree'" in capsys.readouterr().err
+
+
+def test_align_init_offers_exactly_the_alignments_starts():
+    from pointmap.align.optimize import INITS
+    from pointmap.cli import build_parser
+
+    sub = next(a for a in build_parser()._subparsers._group_actions[0].choices["reconstruct"]._actions
+               if a.dest == "align_init")
+    assert tuple(sub.choices) == INITS and sub.default == INITS[0]

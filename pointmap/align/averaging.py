@@ -1,8 +1,9 @@
 """Motion averaging: the alignment's initial poses and depths from every edge at once.
 
 The spanning-tree start (``init.init_mst``) chains one edge per image, so the pose error of each tree edge moves
-every image behind it: on a 100-image ring of pairs with 8 degrees of pose noise each, the tree start is 59
-degrees off at worst and the dense alignment, started there, ends 37 degrees off (docs/alignment.md). Every
+every image behind it: on ``benchmarks/bench_align.py``'s 100-image ring with 8 degrees of pose noise per pair, the
+tree start is 37 degrees off at worst and the dense alignment, started there, ends 27 degrees off; from this start,
+15 and 14 (docs/alignment.md). Every
 directed edge e = (i, j) measures image j's camera in image i's frame, and averaging those measurements over all
 edges spreads the error instead of accumulating it. Three linear least-squares problems, each reweighted a few
 times by a Cauchy function of its residuals (iteratively reweighted least squares), on the edge scores:
@@ -28,7 +29,7 @@ import math
 import numpy as np
 import torch
 
-from pointmap.align.edges import EdgeStack
+from pointmap.align.edges import EdgeStack, check_connected
 from pointmap.align.init import InitResult, edge_similarities, own_maps, spanning_tree
 from pointmap.align.objective import rays, world_points
 from pointmap.errors import GraphError
@@ -43,7 +44,8 @@ IRLS_ITERS = 4
 
 def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64):
     """Per directed edge e = (i, j): (Q [E, 3, 3] j's axes in i's frame, t [E, 3] j's centre in i's frame at the
-    edge's scale, log_ratio [E] = log(s_e / sigma_e), sigma [E]), all float64."""
+    edge's scale, s [E] the edge's map of j over j's own map, sigma [E] the edge's map of i over i's own map), all
+    float64. Non-finite where a Procrustes failed."""
     dt = torch.float64
     own_t = torch.as_tensor(own, dtype=torch.long)
     Q, t, s, sigma = [], [], [], []
@@ -154,7 +156,7 @@ def average_centres(n: int, i: np.ndarray, j: np.ndarray, d: np.ndarray, w: np.n
     free, E = [k for k in range(n) if k != root], len(i)
     rows, cols, vals = _difference_rows(n, i, j, root)
     base = np.linalg.norm(d, axis=1)
-    floor = 1e-3 * float(np.median(base)) + 1e-30
+    floor = 1e-3 * float(np.median(base[w > 0] if (w > 0).any() else base)) + 1e-30
     weights = w.copy()
     C = np.zeros((n, 3))
     for _ in range(iters + 1):
@@ -166,7 +168,8 @@ def average_centres(n: int, i: np.ndarray, j: np.ndarray, d: np.ndarray, w: np.n
 
 def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
     """The alignment's start from motion averaging (module docstring); intrinsics as given [N]. GraphError for
-    a graph that cannot be averaged (not connected; an image never first in a pair)."""
+    a graph that cannot be averaged: not connected, or not connected by the edges whose relative motion came out
+    usable (finite, positive scales); an image never first in a pair; a non-finite result."""
     n = stack.uv.shape[0]
     dt = torch.float64
     tree, _ = spanning_tree(n, stack)  # checks connectivity; kept in the report as the tree start's
@@ -177,8 +180,14 @@ def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
     ok = (torch.isfinite(Q).flatten(1).all(1) & torch.isfinite(t).all(1) & (s > 0) & (sigma > 0)).numpy()
     ok &= np.isfinite(w) & (w > 0)
     w[~ok] = 0.0
-    if not ok.any():
+    if not (w > 0).any():
         raise GraphError("motion averaging: no edge gave a usable relative motion (all weights zero)")
+    try:
+        check_connected(n, [stack.keys[e] for e in np.flatnonzero(w > 0)])
+    except GraphError as err:
+        raise GraphError(f"motion averaging over the edges with a usable relative motion: {err}") from None
+    Q = torch.where(torch.from_numpy(ok)[:, None, None], Q, torch.eye(3, dtype=Q.dtype))  # unused: weight 0
+    t = torch.where(torch.from_numpy(ok)[:, None], t, torch.zeros((), dtype=t.dtype))
     root = int(i[int(np.argmax(w))])
     R = average_rotations(n, i, j, Q.numpy(), w, root)[0]
     log_ratio = np.where(ok, np.log(np.where(ok, (s / sigma).numpy(), 1.0)), 0.0)

@@ -1,7 +1,7 @@
 """``global_align``: pair predictions -> Reconstruction (poses, intrinsics in original pixels, depth).
 
 Steps: validate the graph; stack the edges at the optimisation resolution (stride-subsampled); intrinsics
-(known, or Weiszfeld); maximum-spanning-tree initialisation; gauge (known poses, or unit mean edge scale);
+(known, or Weiszfeld); a start by motion averaging over every edge (or DUSt3R's maximum spanning tree); gauge (known poses, or unit mean edge scale);
 Adam or LBFGS on the chunked DUSt3R objective with early stopping (the best iterate is kept); full-
 resolution depth by fusing every edge with the final poses; without known poses, the world moved to image 0's
 camera frame; a Reconstruction with a convergence report
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass
 
 import torch
@@ -148,7 +149,16 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     if cfg.shared_focal and not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
         fx = fy = torch.full_like(fx, float(fx.quantile(0.5)))
     t_init = time.perf_counter()
-    init = (init_averaging if cfg.init == "averaging" else init_mst)(stack, fx, fy, cx, cy)
+    init, init_used = None, cfg.init
+    if cfg.init == "averaging":
+        try:
+            init = init_averaging(stack, fx, fy, cx, cy)
+        except GraphError as err:  # the graph is connected (checked above): the averaging itself failed
+            warnings.warn(f"global_align: the motion-averaging start failed ({err}); starting from the spanning "
+                          "tree instead", stacklevel=2)
+            init_used = f"mst (averaging failed: {err})"
+    if init is None:
+        init = init_mst(stack, fx, fy, cx, cy)
     c2w, depth, pw_s, pw_R, pw_t = init.cam2world, init.depth, init.pw_s, init.pw_R, init.pw_t
     scale_fixed = False
     if known_poses:
@@ -190,7 +200,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                   report={**report, "init_seconds": seconds_init, "total_seconds": time.perf_counter() - t_start,
                           "num_images": n, "num_edges": stack.num_edges, "stride": stride,
                           "opt_pixels_per_image": stack.num_pixels, "chunk_edges": chunk,
-                          "scale_fixed_by_known_poses": scale_fixed, "tree": init.tree,
+                          "scale_fixed_by_known_poses": scale_fixed, "init": init_used, "root": init.root,
+                          "tree": init.tree,
                           "conf_transform": conf_transform,
                           "known_pose_indices": sorted(known_poses),
                           "known_K_indices": [k for k in range(n) if K_known[k]],

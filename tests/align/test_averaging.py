@@ -157,11 +157,57 @@ def test_unknown_init_name_is_refused():
         AlignConfig(init="tree")
 
 
-def test_averaging_start_refuses_a_disconnected_graph():
+def _stack(sc, pairs):
+    from pointmap.align.edges import build_stack, check_preds
+
+    n, shape = len(sc["K"]), sc["depth"].shape[1:]
+    preds = gt_preds(sc, pairs, seed=2)
+    return build_stack(preds, check_preds(preds, n, [shape] * n), [shape] * n, stride=1)
+
+
+def _intrinsics(sc):
+    K = torch.from_numpy(sc["K"])
+    return K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
+
+
+def test_averaging_start_refuses_an_image_reached_only_by_unusable_edges():
+    """Connectivity counts only the edges whose relative motion is usable: an image tied to the rest by zero-weight
+    edges alone would otherwise come out wherever the solver's ridge leaves it."""
+    from pointmap.align.averaging import init_averaging
+    from pointmap.errors import GraphError
+
     sc = make_scene(4, 24, 32, seed=0)
-    preds = gt_preds(sc, [(0, 1), (2, 3)], seed=2)
-    with pytest.raises(Exception, match="disconnected|connected"):
-        global_align(views_of(sc), preds, config=AlignConfig(quiet=True, optimizer="none", init="averaging"))
+    stack = _stack(sc, make_pairs(4, "swin-1-noncyclic"))
+    stack.score[(stack.i == 3) | (stack.j == 3)] = 0.0
+    with pytest.raises(GraphError, match="usable relative motion.*disconnected"):
+        init_averaging(stack, *_intrinsics(sc))
+
+
+def test_a_failed_averaging_falls_back_to_the_spanning_tree_with_a_warning(monkeypatch):
+    import pointmap.align.averaging as averaging
+
+    real = averaging.edge_motions
+
+    def broken(stack, own, chunk=64):
+        Q, t, s, sigma = real(stack, own, chunk)
+        bad = (stack.i == 3) | (stack.j == 3)
+        return torch.where(bad[:, None, None], torch.nan, Q), t, s, sigma
+
+    monkeypatch.setattr(averaging, "edge_motions", broken)
+    sc = make_scene(4, 24, 32, seed=0)
+    preds = gt_preds(sc, make_pairs(4, "swin-1-noncyclic"), seed=2)
+    with pytest.warns(UserWarning, match="motion-averaging start failed"):
+        recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, optimizer="none"))
+    assert recon.info["align"]["init"].startswith("mst (averaging failed")
+    assert pose_errors(recon.cam2world.numpy(), sc["cam2world"])[0] < 0.05  # the tree's exact start
+
+
+def test_the_report_names_the_start_and_its_root():
+    sc = make_scene(4, 24, 32, seed=0)
+    preds = gt_preds(sc, complete_pairs(4), seed=2)
+    for init in ("averaging", "mst"):
+        rep = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, optimizer="none", init=init)).info["align"]
+        assert rep["init"] == init and 0 <= rep["root"] < 4
 
 
 def test_complete_graph_start_agrees_with_the_tree_when_predictions_are_exact():

@@ -69,7 +69,7 @@ def test_noise_and_outliers_degrade_gracefully(scene):
     rot0, centre0, _, _ = _errors(init, scene)
     rot, centre, focal, depth = _errors(recon, scene)
     assert rot < 0.5 and centre < 0.01 and focal < 0.02 and depth < 0.02, (rot, centre, focal, depth)
-    assert rot <= rot0 + 1e-3  # optimisation improves on (or keeps) the spanning-tree initialisation
+    assert rot <= rot0 + 1e-3  # optimisation improves on (or keeps) its start
     assert recon.info["align"]["final_loss"] < recon.info["align"]["init_loss"]
 
 
