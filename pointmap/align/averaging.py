@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from pointmap.align.edges import EdgeStack, check_connected
-from pointmap.align.init import InitResult, edge_similarities, own_maps, spanning_tree
+from pointmap.align.init import InitResult, edge_similarities, own_maps
 from pointmap.align.objective import rays, world_points
 from pointmap.errors import GraphError
 from pointmap.geometry.procrustes import weighted_procrustes
@@ -64,11 +64,6 @@ def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64):
         sigma.append((w * (p * q).sum(-1)).sum(-1) / (w * q.square().sum(-1)).sum(-1).clamp_min(1e-30))
     Q, t, s, sigma = torch.cat(Q), torch.cat(t), torch.cat(s), torch.cat(sigma)
     return Q, t, s, sigma
-
-
-def _nearest_rotations(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest to each [3, 3] matrix of M [n, 3, 3] (Frobenius; SVD with det +1)."""
-    return np.stack([project_to_rotation(torch.from_numpy(m)).numpy() for m in M])
 
 
 def _cauchy(r: np.ndarray, sigma: float) -> np.ndarray:
@@ -129,7 +124,7 @@ def average_rotations(n: int, i: np.ndarray, j: np.ndarray, Q: np.ndarray, w: np
         x = _solve(rows, cols, vals, 3 * E, 3 * len(free), rhs, np.repeat(weights, 3))  # [3 (n-1), 3]
         for k in free:
             R[k] = x[3 * col[k]:3 * col[k] + 3].T  # column a holds row a of R_k
-        R = _nearest_rotations(R)
+        R = project_to_rotation(torch.from_numpy(R)).numpy()
         res = np.degrees(rotation_angle(torch.from_numpy(np.swapaxes(R[j], -1, -2) @ R[i] @ Q)).numpy())
         weights = w * _cauchy(res, sigma_deg)
     return R, weights
@@ -172,7 +167,6 @@ def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
     usable (finite, positive scales); an image never first in a pair; a non-finite result."""
     n = stack.uv.shape[0]
     dt = torch.float64
-    tree, _ = spanning_tree(n, stack)  # checks connectivity; kept in the report as the tree start's
     own = own_maps(n, stack)
     Q, t, s, sigma = edge_motions(stack, own)
     i, j = stack.i.numpy(), stack.j.numpy()
@@ -186,14 +180,15 @@ def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         check_connected(n, [stack.keys[e] for e in np.flatnonzero(w > 0)])
     except GraphError as err:
         raise GraphError(f"motion averaging over the edges with a usable relative motion: {err}") from None
-    Q = torch.where(torch.from_numpy(ok)[:, None, None], Q, torch.eye(3, dtype=Q.dtype))  # unused: weight 0
-    t = torch.where(torch.from_numpy(ok)[:, None], t, torch.zeros((), dtype=t.dtype))
+    # unusable edges (weight 0) get a neutral motion, so that no NaN reaches the normal equations
+    Q = np.where(ok[:, None, None], Q.numpy(), np.eye(3))
+    t = np.where(ok[:, None], t.numpy(), 0.0)
+    s, sigma = np.where(ok, s.numpy(), 1.0), np.where(ok, sigma.numpy(), 1.0)
     root = int(i[int(np.argmax(w))])
-    R = average_rotations(n, i, j, Q.numpy(), w, root)[0]
-    log_ratio = np.where(ok, np.log(np.where(ok, (s / sigma).numpy(), 1.0)), 0.0)
-    log_lam = average_log_scales(n, i, j, log_ratio, w, root)
-    m = np.exp(log_lam[i]) / np.where(ok, sigma.numpy(), 1.0)  # each edge's scale in world units
-    d = m[:, None] * np.einsum("eab,eb->ea", R[i], np.where(ok[:, None], t.numpy(), 0.0))
+    R = average_rotations(n, i, j, Q, w, root)[0]
+    log_lam = average_log_scales(n, i, j, np.log(s / sigma), w, root)
+    m = np.exp(log_lam[i]) / sigma  # each edge's scale in world units
+    d = m[:, None] * np.einsum("eab,eb->ea", R[i], t)
     C = average_centres(n, i, j, d, w, root)
     if not (np.isfinite(R).all() and np.isfinite(C).all() and np.isfinite(log_lam).all()):
         raise GraphError("motion averaging produced non-finite poses")
@@ -208,4 +203,4 @@ def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
     pw_s, pw_R, pw_t = edge_similarities(stack, pts_world)
     if not (math.isfinite(float(pw_s.sum())) and bool((pw_s > 0).all())):
         raise GraphError("motion averaging produced degenerate edge similarities")
-    return InitResult(cam2world=cam2world, depth=depth, pw_s=pw_s, pw_R=pw_R, pw_t=pw_t, tree=tree, root=root)
+    return InitResult(cam2world=cam2world, depth=depth, pw_s=pw_s, pw_R=pw_R, pw_t=pw_t, tree=[], root=root)

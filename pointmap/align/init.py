@@ -31,7 +31,7 @@ class InitResult:
     pw_s: torch.Tensor        # [E]
     pw_R: torch.Tensor        # [E, 3, 3]
     pw_t: torch.Tensor        # [E, 3]
-    tree: list                # [(k_placed, m_new, edge_index)]
+    tree: list                # [(k_placed, m_new, edge_index)] of the tree start; [] for motion averaging
     root: int
 
 

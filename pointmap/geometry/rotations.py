@@ -18,11 +18,11 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
 
 
 def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
-    """The rotation nearest to a [3, 3] matrix in Frobenius norm (SVD, det fixed to +1). Applied to a sum of
-    rotations it is their chordal mean."""
+    """The rotation nearest to a [..., 3, 3] matrix in Frobenius norm (SVD, det fixed to +1), batched over the
+    leading dimensions. Applied to a sum of rotations it is their chordal mean."""
     U, _, Vh = torch.linalg.svd(M)
     d = torch.sign(torch.det(U @ Vh))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
     return U @ D @ Vh
 
 

@@ -86,3 +86,16 @@ def test_weiszfeld_focal_recovers_the_focal_of_an_exact_pointmap_even_with_outli
     pts[0, :5, :5] *= torch.tensor([3.0, 0.2, 1.0])  # corrupt 25 pixels
     est = focal_from_pointmap(pts)
     assert math.isclose(float(est), f, rel_tol=1e-3)
+
+
+def test_rotation_projection_of_a_batch_equals_one_matrix_at_a_time():
+    from pointmap.geometry.rotations import project_to_rotation
+
+    g = torch.Generator().manual_seed(0)
+    M = torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    M[2] = -M[2] @ M[2].T  # a symmetric negative-definite one: det(U Vh) = -1, the reflection branch
+    batched = project_to_rotation(M)
+    single = torch.stack([project_to_rotation(m) for m in M])
+    assert batched.shape == (5, 3, 3) and torch.allclose(batched, single, atol=1e-12)
+    assert torch.allclose(batched @ batched.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.det(batched), torch.ones(5, dtype=torch.float64), atol=1e-12)
