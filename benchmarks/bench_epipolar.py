@@ -12,7 +12,9 @@ pairs whose direction the fit reversed (``mirrored_pairs``: ``refine_epipolar`` 
 
 ``--stage``: instead, the whole stage as ``reconstruct`` runs it (``refine_epipolar``: coarse matches, the fit with
 the analytic Jacobian, the depths re-fitted) next to the dense alignment before it, on predictions of the same scene
-with 8-degree pose noise per pass, 2% depth noise and descriptors of the world points (tests/align/align_scene.py).
+with 8-degree pose noise per pass, 2% depth noise and descriptors of the world points (tests/align/align_scene.py);
+``--seeds`` gives more scenes, ``--cheirality on off`` runs the stage with and without its cheirality residuals on the
+same alignment. Outside ``--stage``, ``--cheirality`` takes its first value.
 """
 
 from __future__ import annotations
@@ -77,8 +79,9 @@ def worst_errors(R, C, gt) -> tuple[float, float, float]:
     return max(rot), float(np.median(dirs)), max(dirs)
 
 
-def run_stage(sizes, h: int, w: int, window: int, init: str = "averaging") -> None:
-    """Seconds of ``global_align`` and of ``refine_epipolar`` after it, and the camera errors of both."""
+def run_stage(sizes, h: int, w: int, window: int, init: str = "averaging", seeds=(0,), cheirality=("on",)) -> None:
+    """Seconds of ``global_align`` and of ``refine_epipolar`` after it (with and without its cheirality residuals, on
+    the same alignment), and the camera errors of both, per image count and scene seed."""
     sys.path.insert(0, str(ROOT / "tests" / "align"))
     from align_scene import gt_preds, make_scene, pose_errors, views_of, with_descriptors
 
@@ -87,29 +90,34 @@ def run_stage(sizes, h: int, w: int, window: int, init: str = "averaging") -> No
 
     rows = []
     for n in sizes:
-        f = 0.85 * w
-        sc = make_scene(n, h, w, seed=0, focal_range=(f * 0.9, f * 1.1))
-        pairs = sorted(make_pairs(n, f"swin-{window}"))
-        views = views_of(sc)
-        preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
-        t = time.perf_counter()
-        recon = global_align(views, preds, config=AlignConfig(quiet=True, init=init))
-        t_ga = time.perf_counter() - t
-        t = time.perf_counter()
-        out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
-        t_e = time.perf_counter() - t
-        rep = out.info["epipolar"]
-        row = (n, len(pairs), rep.get("matches", 0), t_ga, t_e, rep.get("evaluations", 0),
-               pose_errors(recon.cam2world.double().numpy(), sc["cam2world"])[0],
-               pose_errors(out.cam2world.double().numpy(), sc["cam2world"])[0])
-        rows.append(row)
-        print(row, file=sys.stderr, flush=True)
+        for seed in seeds:
+            f = 0.85 * w
+            sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
+            pairs = sorted(make_pairs(n, f"swin-{window}"))
+            views = views_of(sc)
+            preds = with_descriptors(gt_preds(sc, pairs, seed=seed + 2, pair_rot_deg=8.0, noise=0.02), sc)
+            t = time.perf_counter()
+            recon = global_align(views, preds, config=AlignConfig(quiet=True, init=init))
+            t_ga = time.perf_counter() - t
+            err_ga = pose_errors(recon.cam2world.double().numpy(), sc["cam2world"])[0]
+            for ch in cheirality:
+                t = time.perf_counter()
+                out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, cheirality=ch == "on"))
+                t_e = time.perf_counter() - t
+                rep = out.info["epipolar"]
+                row = (n, seed, len(pairs), rep.get("matches", 0), t_ga, ch, t_e, rep.get("evaluations", 0),
+                       "yes" if rep["applied"] else "kept", err_ga,
+                       pose_errors(out.cam2world.double().numpy(), sc["cam2world"])[0])
+                rows.append(row)
+                print(row, file=sys.stderr, flush=True)
     print(f"\nmaps {h}x{w}, cyclic window {window}, 8-px cells, the alignment's {init} start; rotation error: the worst "
-          "camera after a similarity fit\n")
-    print("| images | pairs | matches | alignment (s) | epipolar stage (s) | evaluations | rot err GA / GA+E (deg) |")
-    print("|---|---|---|---|---|---|---|")
-    for n, np_, m, t_ga, t_e, ev, r0, r1 in rows:
-        print(f"| {n} | {np_} | {m} | {t_ga:.1f} | {t_e:.1f} | {ev} | {r0:.2f} / {r1:.2f} |")
+          "camera after a similarity fit; cheirality: the stage's residuals for matched points behind a camera; "
+          "applied: 'kept' when the mirror check kept the aligned poses\n")
+    print("| images | seed | pairs | matches | alignment (s) | cheirality | epipolar stage (s) | evaluations | applied "
+          "| rot err GA / GA+E (deg) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n, seed, np_, m, t_ga, ch, t_e, ev, applied, r0, r1 in rows:
+        print(f"| {n} | {seed} | {np_} | {m} | {t_ga:.1f} | {ch} | {t_e:.1f} | {ev} | {applied} | {r0:.2f} / {r1:.2f} |")
 
 
 def main(argv=None) -> None:
@@ -125,6 +133,9 @@ def main(argv=None) -> None:
                     "always runs with one BLAS thread")
     ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
     ap.add_argument("--init", default="averaging", choices=INITS, help="--stage: the alignment's start")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="--stage: scene seeds (one scene per seed)")
+    ap.add_argument("--cheirality", nargs="+", default=["on"], choices=["on", "off"],
+                    help="the fit's cheirality residuals: on (the default), off (before session 33), or both")
     args = ap.parse_args(argv)
     if min(args.sizes) < 3 or args.window < 1:
         ap.error(f"--sizes expected image counts >= 3 and --window >= 1, got {args.sizes} and {args.window}")
@@ -135,7 +146,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     h, w = args.hw
     if args.stage:
-        run_stage(args.sizes, h, w, args.window, args.init)
+        run_stage(args.sizes, h, w, args.window, args.init, args.seeds, args.cheirality)
         return
     rows = []
     for n in args.sizes:
@@ -145,7 +156,7 @@ def main(argv=None) -> None:
         for jac in args.jacobians:
             t = time.perf_counter()
             R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
-                                    keep_scale=True, jac=jac)
+                                    keep_scale=True, jac=jac, cheirality=args.cheirality[0] == "on")
             row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt), len(rep["mirrored_pairs"]))
         rows.append(row)
         print(row, file=sys.stderr, flush=True)

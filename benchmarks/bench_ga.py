@@ -14,7 +14,8 @@ A setting is a conf_transform name ('auto' = the default, 'log' = DUSt3R's, 'm1'
 true intrinsics (the rendered sets' K is in the images' own pixels, which the 224 px maps keep) and/or '+F' for
 one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
 '+S' for the sparse refinement on matches (``refine_matches``), '+E' for the epipolar pose refinement on the
-model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default) and '+T' for DUSt3R's
+model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default; '+E-' for that stage without its
+cheirality residuals, as before session 33) and '+T' for DUSt3R's
 spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one. The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,15 +56,17 @@ def per_pair_path(prefix: str, method: str) -> Path:
     return Path(f"{prefix}-{method.replace(' ', '_').replace(':', '_')}.csv")
 
 
-def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, bool]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+T' ... -> (AlignConfig (quiet), whether
-    the true intrinsics are given, whether the sparse refinement on matches follows, whether the epipolar pose
-    refinement follows)."""
+def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | None]:
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+T' ... -> (AlignConfig
+    (quiet), whether the true intrinsics are given, whether the sparse refinement on matches follows, the epipolar
+    pose refinement's config or None)."""
     body, *flags = s.split("+")
-    if any(f not in ("K", "F", "S", "E", "T") for f in flags) or len(set(flags)) < len(flags):
+    if any(f not in ("K", "F", "S", "E", "E-", "T") for f in flags) or len(set(flags)) < len(flags) \
+            or {"E", "E-"} <= set(flags):
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
-                                         "on matches, as reconstruct) and/or '+T' (spanning-tree start)")
+                                         "on matches, as reconstruct) or '+E-' (the same without its cheirality "
+                                         "residuals) and/or '+T' (spanning-tree start)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
@@ -70,7 +74,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, bool]:
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
                       init="mst" if "T" in flags else "averaging", quiet=True)
-    return cfg, "K" in flags, "S" in flags, "E" in flags
+    epipolar = EpipolarConfig(cheirality="E" in flags) if {"E", "E-"} & set(flags) else None
+    return cfg, "K" in flags, "S" in flags, epipolar
 
 
 def setting_name(s: str) -> str:
@@ -104,8 +109,8 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> tuple:
     for name, (cfg, known_K, sparse, epipolar) in settings.items():
         try:
             recon = global_align(views, preds, config=cfg, K=scene["K"].double() if known_K else None)
-            if epipolar:
-                recon = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=model.cfg.patch_size))
+            if epipolar is not None:
+                recon = refine_epipolar(views, preds, recon, config=replace(epipolar, patch=model.cfg.patch_size))
                 if not recon.info["epipolar"]["applied"]:
                     kept.append(f"GA {name}: {recon.info['epipolar']['reason']}")
             if sparse:  # as reconstruct(refine=True): the focals stay as aligned when known or shared

@@ -18,7 +18,12 @@ Intrinsics: known ones as given; otherwise each image's focal is the median of t
 own-frame pointmaps (one per pass in which it is the first view), with the principal point as aligned;
 ``shared_focal``: the median over all images.
 
-Mirror check: the residuals cannot tell a direction from its opposite. After the fit each camera pair's gated
+Cheirality (session 33): the residuals cannot tell a direction from its opposite, so a camera could slide through
+its neighbour at no cost to that pair. Each gated match also has two residuals that are zero while its rays meet
+in front of both cameras and grow with how far behind they meet (``cheirality_margins``, over the match's scale),
+for the pairs whose points met mostly in front at the start. The mirror check stays as the safety net.
+
+Mirror check: after the fit each camera pair's gated
 matches are triangulated under the start and the fitted poses (``in_front_share``); a pair whose points moved from in
 front of its cameras to behind them was reversed (``mirrored_pairs``). The fit is then run once more with the
 cameras touching those pairs held at their aligned poses (``pinned_cameras``; the gauge as in the first fit), and
@@ -50,7 +55,9 @@ class EpipolarConfig:
     threshold_px: Cauchy scale of the epipolar residual in map pixels (None: max(h, w) / 56, 4 px at 224);
     rounds: least-squares solves with a re-drawn inlier gate; max_evals: function evaluations per solve;
     patch: cell size of the coarse matches (the model's patch size); refit_depth: re-run dense alignment with
-    the refined poses and intrinsics held, so the depths agree with them (else the depths stay as aligned)."""
+    the refined poses and intrinsics held, so the depths agree with them (else the depths stay as aligned);
+    cheirality: the fit also pays for matched points moved behind a camera (``solve_poses``; False: the epipolar
+    residuals alone, the stage before session 33)."""
 
     rotation_prior_deg: float = 3.0
     threshold_px: float | None = None
@@ -58,6 +65,7 @@ class EpipolarConfig:
     max_evals: int = 200
     patch: int = 16
     refit_depth: bool = True
+    cheirality: bool = True
 
     def __post_init__(self):
         if not self.rotation_prior_deg > 0 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
@@ -192,9 +200,49 @@ def _residual_jacobian(R, C, I, J, r1, r2):
     return np.cross(a, N) / q, np.cross(b, np.cross(g, d)), -dC, dC
 
 
+def cheirality_margins(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray,
+                       r2: np.ndarray) -> np.ndarray:
+    """[M, 2] per match, the signs of the depths at which its two rays (r1 in camera I[m]'s frame, r2 in camera
+    J[m]'s) pass closest, along ray 1 and along ray 2, as bounded margins: with a = R_i r1, b = R_j r2 (unit) and d
+    the unit direction from camera i's centre to camera j's, d . (a - (a.b) b) and -d . (b - (a.b) a). Each is the
+    numerator of that depth (``in_front_share``'s lambda, mu) over the baseline, so it has the depth's sign; it is at
+    most the sine of the angle between the rays, so near-parallel rays, whose meeting side is noise, weigh little."""
+    a = np.einsum("mab,mb->ma", R[I], r1)
+    b = np.einsum("mab,mb->ma", R[J], r2)
+    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    d = C[J] - C[I]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    ab = (a * b).sum(1, keepdims=True)
+    return np.stack([(d * (a - ab * b)).sum(1), -(d * (b - ab * a)).sum(1)], 1)
+
+
+def _cheirality_jacobian(R, C, I, J, r1, r2):
+    """Derivatives of ``cheirality_margins`` [M, 2] by a left rotation perturbation of each match's two cameras and
+    by their centres: (d_phi_i, d_phi_j, d_C_i, d_C_j), each [M, 2, 3] (rays r1, r2 unit). With u = a.b and the
+    gradients g_a, g_b, g_d of a margin by a, b and the unit baseline direction d: de/dphi_i = a x g_a,
+    de/dphi_j = b x g_b, de/dC_j = (I - d d^T) g_d / |d| = -de/dC_i."""
+    a = np.einsum("mab,mb->ma", R[I], r1)
+    b = np.einsum("mab,mb->ma", R[J], r2)
+    D = C[J] - C[I]
+    L = np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)
+    d = D / L
+    u = (a * b).sum(1, keepdims=True)
+    ad, bd = (a * d).sum(1, keepdims=True), (b * d).sum(1, keepdims=True)
+    # margin 1: d.a - u (b.d); margin 2: u (a.d) - b.d
+    g_a = np.stack([d - bd * b, ad * b + u * d], 1)
+    g_b = np.stack([-u * d - bd * a, ad * a - d], 1)
+    g_d = np.stack([a - u * b, u * a - b], 1)
+    d_phi_i = np.cross(a[:, None], g_a)
+    d_phi_j = np.cross(b[:, None], g_b)
+    d_Cj = (g_d - (g_d * d[:, None]).sum(2, keepdims=True) * d[:, None]) / L[:, None]
+    return d_phi_i, d_phi_j, -d_Cj, d_Cj
+
+
 def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                 scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
-                max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic", anchor: int | None = None):
+                max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic", anchor: int | None = None,
+                cheirality: bool = True):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
     ``keep_scale``: the mean distance of the free cameras from ``anchor`` (a held camera; default the first held one)
@@ -204,7 +252,13 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     differences, by column groups of cameras that share no pair when sparse: the scale row, which joins every centre,
     makes them cost one evaluation per centre coordinate; kept as the reference ``benchmarks/bench_epipolar.py``
     compares against); ``sparse``: a sparse Jacobian solved by ``lsmr`` (many cameras) or a dense one (few); None:
-    sparse beyond 8 free cameras. The report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches)
+    sparse beyond 8 free cameras; ``cheirality``: two more residuals per gated match, its ``cheirality_margins``
+    over its scale where negative (zero where positive), so the fit pays for matched points behind a camera, which
+    the epipolar residuals cannot see (their square is the same for a direction and its opposite). Only pairs whose
+    points met mostly in front of both cameras at the start (``in_front_share`` > 0.5) are charged: from a start
+    with a camera already passed through another, charging its pairs too swung rotations by 50-180 degrees on the
+    analytic scene (docs/alignment.md).
+    The report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches)
     lists camera pairs whose direction the fit reversed. The fit limits BLAS to one thread while it runs
     (``threadpoolctl``, process-wide: other threads of the caller get one BLAS thread meanwhile).
     Returns (R, C, report)."""
@@ -250,23 +304,33 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     def jacobian(x, sel, dense=False, pattern=False):
         """The rows of ``fun`` by the parameters (w, C) of the free cameras, analytic (``_residual_jacobian``); with
-        ``pattern``, which entries can be nonzero (ones): a match on its two cameras' rotation and centre (held
-        cameras have none), a prior row on its camera's rotation, the scale row on every centre."""
+        ``pattern``, which entries can be nonzero (ones): a match (and its two cheirality rows, which are zero while
+        the margin is positive) on its two cameras' rotation and centre (held cameras have none), a prior row on its
+        camera's rotation, the scale row on every centre."""
         R, C = unpack(x)
         Is, Js, m = I[sel], J[sel], int(sel.sum())
-        parts = _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel])
         Jl = _left_jacobian(x[:3 * nf].reshape(nf, 3)) if nf else np.zeros((0, 3, 3))
         rows, cols, vals = [], [], []
-        for cams, d_phi, d_C in ((Is, parts[0], parts[2]), (Js, parts[1], parts[3])):
-            s_ = slots[cams]
-            r = np.nonzero(s_ >= 0)[0]
-            d_w = np.einsum("ma,mab->mb", d_phi[r], Jl[s_[r]]) / scale[sel][r, None]
-            d_c = d_C[r] / scale[sel][r, None]
-            for off, dv in ((0, d_w), (3 * nf, d_c)):
-                for c in range(3):
-                    rows.append(r)
-                    cols.append(off + 3 * s_[r] + c)
-                    vals.append(dv[:, c])
+        # row blocks (first row, derivatives, each row's factor): the epipolar residuals (rows 0..m), then with
+        # cheirality margin 1 and margin 2 of each match, where charged (negative, and positive at the start)
+        blocks = [(0, _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel]), np.ones(m))]
+        if cheirality:
+            slope = ((cheirality_margins(R, C, Is, Js, r1[sel], r2[sel]) < 0) & front0[sel]).astype(float)
+            ch = _cheirality_jacobian(R, C, Is, Js, r1[sel], r2[sel])
+            blocks += [(m * (1 + k), [p[:, k] for p in ch], slope[:, k]) for k in range(2)]
+        for start, parts, gain in blocks:
+            for cams, d_phi, d_C in ((Is, parts[0], parts[2]), (Js, parts[1], parts[3])):
+                s_ = slots[cams]
+                r = np.nonzero((s_ >= 0) & ((gain != 0) | pattern))[0]
+                f = gain[r, None] / scale[sel][r, None]
+                d_w = np.einsum("ma,mab->mb", d_phi[r], Jl[s_[r]]) * f
+                d_c = d_C[r] * f
+                for off, dv in ((0, d_w), (3 * nf, d_c)):
+                    for c in range(3):
+                        rows.append(start + r)
+                        cols.append(off + 3 * s_[r] + c)
+                        vals.append(dv[:, c])
+        m = m * (3 if cheirality else 1)  # the prior and scale rows follow the match rows
         rows.append(m + np.arange(3 * nf))
         cols.append(np.arange(3 * nf))
         vals.append(np.full(3 * nf, 1.0 / prior))
@@ -283,6 +347,10 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
     e0 = all_residuals(x)
+    front0 = None
+    if cheirality:  # [M, 1]: charged matches, those of pairs whose points met mostly in front at the start
+        share0, _ = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
+        front0 = (share0 > 0.5)[pid, None]
     gate = np.abs(e0) < 3
     solves = evals = 0
     # one BLAS thread: lsmr's products are of vectors of a few 10^4 entries, where OpenBLAS's threads only wait
@@ -296,7 +364,12 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
             def fun(x, sel=sel):
                 R, C = unpack(x)
                 e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
-                out = [e, x[:3 * nf] / prior]
+                out = [e]
+                if cheirality:
+                    u = cheirality_margins(R, C, I[sel], J[sel], r1[sel], r2[sel]) / scale[sel, None]
+                    charge = np.minimum(u, 0.0) * front0[sel]
+                    out += [charge[:, 0], charge[:, 1]]
+                out.append(x[:3 * nf] / prior)
                 if keep_scale:
                     dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
                     out.append([10.0 * (dist - 1.0)])
@@ -414,7 +487,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     def fit_with(held):
         return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
                            anchor=anchor, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
-                           max_evals=cfg.max_evals)
+                           max_evals=cfg.max_evals, cheirality=cfg.cheirality)
 
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned

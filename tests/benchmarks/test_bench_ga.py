@@ -91,13 +91,14 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
 
     cfg, known_K, sparse, epipolar = parse_setting("id:lbfgs+F+K")
     assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse, epipolar) == \
-        ("id", "lbfgs", True, True, False, False)
+        ("id", "lbfgs", True, True, False, None)
     cfg, known_K, sparse, epipolar = parse_setting("auto")
     assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse, epipolar) == \
-        ("auto", "adam", False, False, False, False)
-    assert parse_setting("log+S")[2] and not parse_setting("log+S")[1] and not parse_setting("log+S")[3]
-    assert parse_setting("auto+E")[3] and not parse_setting("auto+E")[2]
+        ("auto", "adam", False, False, False, None)
+    assert parse_setting("log+S")[2] and not parse_setting("log+S")[1] and parse_setting("log+S")[3] is None
+    assert parse_setting("auto+E")[3].cheirality and not parse_setting("auto+E")[2]
+    assert parse_setting("auto+E-")[3].cheirality is False  # the stage without its cheirality residuals
     assert cfg.init == "averaging" and parse_setting("auto+T+E")[0].init == "mst"  # the library's start, or the tree's
-    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+T+T", "rank", "log:sgd"):
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+T+T", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
