@@ -104,17 +104,9 @@ def in_front_share(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r
     if len(pid) != len(I) or (len(pid) and not 0 <= pid.min() <= pid.max() < n_pairs):
         raise ShapeError(f"in_front_share expected one pair index in [0, {n_pairs}) per match ({len(I)}), got "
                          f"{len(pid)} in [{pid.min() if len(pid) else '-'}, {pid.max() if len(pid) else '-'}]")
-    a = np.einsum("mab,mb->ma", R[I], r1)
-    b = np.einsum("mab,mb->ma", R[J], r2)
-    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
-    d = C[J] - C[I]
-    ab, ad, bd = (a * b).sum(1), (a * d).sum(1), (b * d).sum(1)
-    den = 1.0 - ab ** 2  # sin^2 of the angle between the rays
-    ok = den > math.sin(math.radians(MIN_PARALLAX_DEG)) ** 2
-    lam = np.where(ok, (ad - ab * bd) / np.where(ok, den, 1.0), 0.0)
-    mu = np.where(ok, (ab * ad - bd) / np.where(ok, den, 1.0), 0.0)
-    front = ok & (lam > 0) & (mu > 0)
+    a, b = _world_rays(R, I, J, r1, r2)
+    ok = 1.0 - (a * b).sum(1) ** 2 > math.sin(math.radians(MIN_PARALLAX_DEG)) ** 2  # sin^2 between the rays
+    front = ok & (_margins(a, b, C[J] - C[I]) > 0).all(1)  # both meeting depths positive
     n_ok = np.bincount(pid[ok], minlength=n_pairs)
     return np.bincount(pid[front], minlength=n_pairs) / np.maximum(n_ok, 1), n_ok
 
@@ -207,12 +199,21 @@ def cheirality_margins(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarra
     the unit direction from camera i's centre to camera j's, d . (a - (a.b) b) and -d . (b - (a.b) a). Each is the
     numerator of that depth (``in_front_share``'s lambda, mu) over the baseline, so it has the depth's sign; it is at
     most the sine of the angle between the rays, so near-parallel rays, whose meeting side is noise, weigh little."""
+    return _margins(*_world_rays(R, I, J, r1, r2), C[J] - C[I])
+
+
+def _world_rays(R, I, J, r1, r2):
+    """Each match's two rays in the world, unit [M, 3]: a = R_i r1, b = R_j r2."""
     a = np.einsum("mab,mb->ma", R[I], r1)
     b = np.einsum("mab,mb->ma", R[J], r2)
-    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
-    d = C[J] - C[I]
-    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return (a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12),
+            b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12))
+
+
+def _margins(a, b, D):
+    """``cheirality_margins`` [M, 2] of unit world rays a, b [M, 3] and baselines D = C_j - C_i [M, 3]: the
+    numerators of the meeting depths lambda = (a.D - (a.b)(b.D)) / (1 - (a.b)^2) along a and mu along b, over |D|."""
+    d = D / np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)
     ab = (a * b).sum(1, keepdims=True)
     return np.stack([(d * (a - ab * b)).sum(1), -(d * (b - ab * a)).sum(1)], 1)
 
@@ -222,8 +223,7 @@ def _cheirality_jacobian(R, C, I, J, r1, r2):
     by their centres: (d_phi_i, d_phi_j, d_C_i, d_C_j), each [M, 2, 3] (rays r1, r2 unit). With u = a.b and the
     gradients g_a, g_b, g_d of a margin by a, b and the unit baseline direction d: de/dphi_i = a x g_a,
     de/dphi_j = b x g_b, de/dC_j = (I - d d^T) g_d / |d| = -de/dC_i."""
-    a = np.einsum("mab,mb->ma", R[I], r1)
-    b = np.einsum("mab,mb->ma", R[J], r2)
+    a, b = _world_rays(R, I, J, r1, r2)
     D = C[J] - C[I]
     L = np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)
     d = D / L
