@@ -13,8 +13,9 @@ pairs whose direction the fit reversed (``mirrored_pairs``: ``refine_epipolar`` 
 ``--stage``: instead, the whole stage as ``reconstruct`` runs it (``refine_epipolar``: coarse matches, the fit with
 the analytic Jacobian, the depths re-fitted) next to the dense alignment before it, on predictions of the same scene
 with 8-degree pose noise per pass, 2% depth noise and descriptors of the world points (tests/align/align_scene.py);
-``--seeds`` gives more scenes, ``--cheirality on off`` runs the stage with and without its cheirality residuals on the
-same alignment. Outside ``--stage``, ``--cheirality`` takes its first value.
+``--seeds`` gives more scenes, ``--cheirality off one on`` runs the stage without its cheirality residuals, with them
+in one descent (session 33's stage) and with them in two descents (the default) on the same alignment. Outside
+``--stage``, ``--cheirality`` takes its first value.
 """
 
 from __future__ import annotations
@@ -30,37 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pointmap.align.optimize import INITS  # noqa: E402
-
-
-def make_inputs(n: int, h: int, w: int, window: int, outliers: float, rot_deg: float, centre: float, seed: int = 0):
-    sys.path.insert(0, str(ROOT / "tests" / "align"))
-    import torch
-    from align_scene import gt_matches, make_scene
-
-    from pointmap.geometry.rotations import axis_angle_to_matrix
-    from pointmap.pairs import make_pairs
-    from pointmap.pose import _bearings
-
-    f = 0.85 * w
-    sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
-    pairs = sorted(make_pairs(n, f"swin-{window}"))  # cyclic sliding window
-    I, J, r1, r2 = [], [], [], []
-    for p, (i, j) in enumerate(pairs):
-        xy1, xy2, _ = gt_matches(sc, i, j, step=max(2, h // 24), outliers=outliers, seed=seed + p, occluded=True)
-        I.append(np.full(len(xy1), i))
-        J.append(np.full(len(xy1), j))
-        r1.append(_bearings(xy1, sc["K"][i]))
-        r2.append(_bearings(xy2, sc["K"][j]))
-    I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
-    scale = 2.0 / sc["K"][I, 0, 0]  # 2 px over each match's first camera's focal
-    rng = np.random.default_rng(seed + 1)
-    start = sc["cam2world"].copy()
-    for k in range(1, n):
-        axis = rng.normal(size=3)
-        axis *= np.radians(rot_deg) / np.linalg.norm(axis)
-        start[k, :3, :3] = axis_angle_to_matrix(torch.from_numpy(axis)).numpy() @ start[k, :3, :3]
-        start[k, :3, 3] += rng.normal(scale=centre, size=3)
-    return sc["cam2world"], start, (I, J, r1, r2, scale), len(pairs)
 
 
 def worst_errors(R, C, gt) -> tuple[float, float, float]:
@@ -102,7 +72,8 @@ def run_stage(sizes, h: int, w: int, window: int, init: str = "averaging", seeds
             err_ga = pose_errors(recon.cam2world.double().numpy(), sc["cam2world"])[0]
             for ch in cheirality:
                 t = time.perf_counter()
-                out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, cheirality=ch == "on"))
+                out = refine_epipolar(views, preds, recon, config=EpipolarConfig(
+                    patch=8, cheirality=ch != "off", second_descent=ch == "on"))
                 t_e = time.perf_counter() - t
                 rep = out.info["epipolar"]
                 row = (n, seed, len(pairs), rep.get("matches", 0), t_ga, ch, t_e, rep.get("evaluations", 0),
@@ -134,12 +105,16 @@ def main(argv=None) -> None:
     ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
     ap.add_argument("--init", default="averaging", choices=INITS, help="--stage: the alignment's start")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="--stage: scene seeds (one scene per seed)")
-    ap.add_argument("--cheirality", nargs="+", default=["on"], choices=["on", "off"],
-                    help="the fit's cheirality residuals: on (the default), off (before session 33), or both")
+    ap.add_argument("--cheirality", nargs="+", default=["on"], choices=["on", "one", "off"],
+                    help="the fit's cheirality residuals: on (the default: two descents), one (one descent, session "
+                    "33), off (before session 33), or several")
     args = ap.parse_args(argv)
     if min(args.sizes) < 3 or args.window < 1:
         ap.error(f"--sizes expected image counts >= 3 and --window >= 1, got {args.sizes} and {args.window}")
     import torch
+
+    sys.path.insert(0, str(ROOT / "tests" / "align"))
+    from align_scene import ring_matches
 
     from pointmap.align.epipolar import solve_poses
 
@@ -150,13 +125,14 @@ def main(argv=None) -> None:
         return
     rows = []
     for n in args.sizes:
-        gt, start, (I, J, r1, r2, scale), n_pairs = make_inputs(n, h, w, args.window, args.outliers,
-                                                                args.rot_deg, args.centre)
+        gt, start, (I, J, r1, r2, scale), n_pairs = ring_matches(n, h, w, args.window, args.outliers,
+                                                                 args.rot_deg, args.centre)
         row = {"n": n, "pairs": n_pairs, "matches": len(I), "start": worst_errors(start[:, :3, :3], start[:, :3, 3], gt)}
         for jac in args.jacobians:
             t = time.perf_counter()
             R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
-                                    keep_scale=True, jac=jac, cheirality=args.cheirality[0] == "on")
+                                    keep_scale=True, jac=jac, cheirality=args.cheirality[0] != "off",
+                                    second_descent=args.cheirality[0] == "on")
             row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt), len(rep["mirrored_pairs"]))
         rows.append(row)
         print(row, file=sys.stderr, flush=True)

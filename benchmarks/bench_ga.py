@@ -57,16 +57,18 @@ def per_pair_path(prefix: str, method: str) -> Path:
 
 
 def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | None]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+T' ... -> (AlignConfig
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+E1', 'auto+T' ... -> (AlignConfig
     (quiet), whether the true intrinsics are given, whether the sparse refinement on matches follows, the epipolar
     pose refinement's config or None)."""
     body, *flags = s.split("+")
-    if any(f not in ("K", "F", "S", "E", "E-", "T") for f in flags) or len(set(flags)) < len(flags) \
-            or {"E", "E-"} <= set(flags):
+    stages = {"E", "E-", "E1"}
+    if any(f not in ("K", "F", "S", "T", *stages) for f in flags) or len(set(flags)) < len(flags) \
+            or len(stages & set(flags)) > 1:
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
-                                         "on matches, as reconstruct) or '+E-' (the same without its cheirality "
-                                         "residuals) and/or '+T' (spanning-tree start)")
+                                         "on matches, as reconstruct), '+E-' (the same without its cheirality "
+                                         "residuals) or '+E1' (with them, one descent: session 33's stage) and/or '+T' "
+                                         "(spanning-tree start)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
@@ -74,7 +76,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
                       init="mst" if "T" in flags else "averaging", quiet=True)
-    epipolar = EpipolarConfig(cheirality="E" in flags) if {"E", "E-"} & set(flags) else None
+    epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags) if stages & set(flags) \
+        else None
     return cfg, "K" in flags, "S" in flags, epipolar
 
 

@@ -18,10 +18,15 @@ Intrinsics: known ones as given; otherwise each image's focal is the median of t
 own-frame pointmaps (one per pass in which it is the first view), with the principal point as aligned;
 ``shared_focal``: the median over all images.
 
-Cheirality (session 33): the residuals cannot tell a direction from its opposite, so a camera could slide through
-its neighbour at no cost to that pair. Each gated match also has two residuals that are zero while its rays meet
-in front of both cameras and grow with how far behind they meet (``cheirality_margins``, over the match's scale),
-for the pairs whose points met mostly in front at the start. The mirror check stays as the safety net.
+Cheirality (sessions 33-34): the residuals cannot tell a direction from its opposite, so a camera could slide
+through its neighbour at no cost to that pair. Each gated match also has two residuals that are zero while its pair's
+matches meet in front of both cameras on average and grow with how far behind they meet: the pair's mean
+``cheirality_margins`` over the scale (session 33 charged each match's own margins; the random matches that met behind
+a camera then pulled the fit, and a camera turned until a pair's rays were parallel escaped the charge). Only pairs
+whose points met mostly in front at the start are charged. The charge is a wall, and a camera whose way to the
+matches' optimum crosses it stops there (session 33's 100-view ring: a camera left 27 degrees off); a second descent,
+uncharged then charged, crosses it, and is kept where its charged cost is lower and it reverses no pair. The mirror
+check stays as the safety net.
 
 Mirror check: after the fit each camera pair's gated
 matches are triangulated under the start and the fitted poses (``in_front_share``); a pair whose points moved from in
@@ -57,7 +62,9 @@ class EpipolarConfig:
     patch: cell size of the coarse matches (the model's patch size); refit_depth: re-run dense alignment with
     the refined poses and intrinsics held, so the depths agree with them (else the depths stay as aligned);
     cheirality: the fit also pays for matched points moved behind a camera (``solve_poses``; False: the epipolar
-    residuals alone, the stage before session 33)."""
+    residuals alone, the stage before session 33); second_descent: with cheirality, a second descent (uncharged,
+    then charged) that can cross where the charge stops the first (``solve_poses``; False: one descent, session
+    33's stage)."""
 
     rotation_prior_deg: float = 3.0
     threshold_px: float | None = None
@@ -66,6 +73,7 @@ class EpipolarConfig:
     patch: int = 16
     refit_depth: bool = True
     cheirality: bool = True
+    second_descent: bool = True
 
     def __post_init__(self):
         if not self.rotation_prior_deg > 0 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
@@ -104,19 +112,26 @@ def in_front_share(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r
     if len(pid) != len(I) or (len(pid) and not 0 <= pid.min() <= pid.max() < n_pairs):
         raise ShapeError(f"in_front_share expected one pair index in [0, {n_pairs}) per match ({len(I)}), got "
                          f"{len(pid)} in [{pid.min() if len(pid) else '-'}, {pid.max() if len(pid) else '-'}]")
-    a, b = _world_rays(R, I, J, r1, r2)
-    ok = 1.0 - (a * b).sum(1) ** 2 > math.sin(math.radians(MIN_PARALLAX_DEG)) ** 2  # sin^2 between the rays
-    front = ok & (_margins(a, b, C[J] - C[I]) > 0).all(1)  # both meeting depths positive
+    ok, front = _counted_and_in_front(R, C, I, J, r1, r2)
     n_ok = np.bincount(pid[ok], minlength=n_pairs)
     return np.bincount(pid[front], minlength=n_pairs) / np.maximum(n_ok, 1), n_ok
 
 
+def _counted_and_in_front(R, C, I, J, r1, r2):
+    """[M] bools: the match's rays are at least ``MIN_PARALLAX_DEG`` apart; and they also meet in front of both."""
+    a, b = _world_rays(R, I, J, r1, r2)
+    ok = 1.0 - (a * b).sum(1) ** 2 > math.sin(math.radians(MIN_PARALLAX_DEG)) ** 2  # sin^2 between the rays
+    return ok, ok & (_margins(a, b, C[J] - C[I]) > 0).all(1)  # both meeting depths positive
+
+
 def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: float = 0.7,
-                   now: float = 0.3) -> list:
+                   now: float = 0.3, parallel_is_behind: bool = False) -> list:
     """Camera pairs [i, j] whose matches met in front of both cameras at the start (share > ``was``) and no longer do
     after a fit (share < ``now``): a reversed direction, which the epipolar residuals cannot see. The margins keep
     short baselines, whose meeting points are ill-conditioned, from being called mirrored by chance; a pair needs
-    ``min_matches`` counted matches before and after."""
+    ``min_matches`` counted matches before and after. ``parallel_is_behind``: the share after is over the matches
+    counted before, and one whose rays the fit made parallel counts as behind (a fit paying for points behind a
+    camera can escape by turning it until its pair's rays are parallel: nothing is counted after, nothing flagged)."""
     if not (0 <= now < was <= 1) or min_matches < 1:
         raise ValueError(f"mirrored_pairs expected 0 <= now < was <= 1 and min_matches >= 1, got now={now}, "
                          f"was={was}, min_matches={min_matches}")
@@ -125,7 +140,13 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
     pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
     pid = pid.reshape(-1)
     before, counted_before = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
-    after, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid)
+    if parallel_is_behind:
+        ok0, _ = _counted_and_in_front(R0, C0, I, J, r1, r2)
+        _, front = _counted_and_in_front(R, C, I, J, r1, r2)
+        after = np.bincount(pid[ok0 & front], minlength=len(pairs)) / np.maximum(counted_before, 1)
+        counted = counted_before
+    else:
+        after, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid)
     flag = (counted_before >= min_matches) & (counted >= min_matches) & (before > was) & (after < now)
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
@@ -239,10 +260,19 @@ def _cheirality_jacobian(R, C, I, J, r1, r2):
     return d_phi_i, d_phi_j, -d_Cj, d_Cj
 
 
+def _pair_means(v, ps, n_pairs):
+    """Per pair (``ps`` [M]: each row's pair): how many rows of v [M, ...] it has [P], and their mean [P, ...] (0
+    where none)."""
+    cnt = np.bincount(ps, minlength=n_pairs).astype(float)
+    out = np.zeros((n_pairs,) + v.shape[1:])
+    np.add.at(out, ps, v)
+    return cnt, out / np.maximum(cnt, 1).reshape((-1,) + (1,) * (v.ndim - 1))
+
+
 def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray, r2: np.ndarray,
                 scale: np.ndarray, *, held, keep_scale: bool, prior_deg: float = 3.0, rounds: int = 3,
                 max_evals: int = 200, sparse: bool | None = None, jac: str = "analytic", anchor: int | None = None,
-                cheirality: bool = True):
+                cheirality: bool = True, second_descent: bool = True):
     """Rotations [N, 3, 3] and centres [N, 3] refined on matches (the module's fit). ``scale`` [M]: each match's
     Cauchy scale (threshold over the focal of its camera I); ``held``: indices kept as given (at least one);
     ``keep_scale``: the mean distance of the free cameras from ``anchor`` (a held camera; default the first held one)
@@ -252,12 +282,19 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     differences, by column groups of cameras that share no pair when sparse: the scale row, which joins every centre,
     makes them cost one evaluation per centre coordinate; kept as the reference ``benchmarks/bench_epipolar.py``
     compares against); ``sparse``: a sparse Jacobian solved by ``lsmr`` (many cameras) or a dense one (few); None:
-    sparse beyond 8 free cameras; ``cheirality``: two more residuals per gated match, its ``cheirality_margins``
-    over its scale where negative (zero where positive), so the fit pays for matched points behind a camera, which
-    the epipolar residuals cannot see (their square is the same for a direction and its opposite). Only pairs whose
-    points met mostly in front of both cameras at the start (``in_front_share`` > 0.5) are charged: from a start
-    with a camera already passed through another, charging its pairs too turned cameras by 56-180 degrees in 5 of
-    8 such starts on the analytic scene (docs/alignment.md).
+    sparse beyond 8 free cameras; ``cheirality``: two more residuals per gated match, its pair's mean
+    ``cheirality_margins`` over the scale where negative (zero where positive), so the fit pays for a pair's points
+    moved behind a camera, which the epipolar residuals cannot see (their square is the same for a direction and its
+    opposite); the mean leaves the few random matches that meet behind uncharged, where each match's own margin made
+    them pull (worst rotation 1.2-1.6 against 0.1-0.3 degrees on 8-view rings started 15 degrees off with 10% random
+    matches, docs/alignment.md). Only pairs whose points met mostly in front of both cameras at the start
+    (``in_front_share`` > 0.5) are charged: from a start with a camera already passed through another, charging its
+    pairs too turned cameras by 56-180 degrees in 5 of 8 such starts on the analytic scene. ``second_descent`` (with
+    cheirality): the charge is a wall that can stop a camera short of the matches' optimum, so a second descent runs
+    uncharged, then charged from where it ended; it is kept when its charged cost over every match is lower and it
+    reverses no camera pair (``mirrored_pairs`` with ``parallel_is_behind``, over the matches gated at the start or at
+    its end: the robust loss caps what passing through a neighbour costs, and turning a camera until a pair's rays
+    are parallel hides it); the report's ``descent`` says which was kept ("aligned" or "uncharged first").
     The report's ``mirrored_pairs`` (``mirrored_pairs`` on the final gate's matches)
     lists camera pairs whose direction the fit reversed. The fit limits BLAS to one thread while it runs
     (``threadpoolctl``, process-wide: other threads of the caller get one BLAS thread meanwhile).
@@ -299,30 +336,36 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
 
     slots = np.array([slot.get(k, -1) for k in range(n)])
 
-    def sparse_opts(x, sel):  # scipy's differences by column groups, on the analytic Jacobian's pattern
-        return {"jac_sparsity": jacobian(x, sel, pattern=True), "tr_solver": "lsmr", "tr_options": LSMR_TIGHT}
+    def sparse_opts(x, sel, charged):  # scipy's differences by column groups, on the analytic Jacobian's pattern
+        return {"jac_sparsity": jacobian(x, sel, pattern=True, charged=charged), "tr_solver": "lsmr",
+                "tr_options": LSMR_TIGHT}
 
-    def jacobian(x, sel, dense=False, pattern=False):
+    def jacobian(x, sel, dense=False, pattern=False, charged=True):
         """The rows of ``fun`` by the parameters (w, C) of the free cameras, analytic (``_residual_jacobian``); with
         ``pattern``, which entries can be nonzero (ones): a match (and its two cheirality rows, which are zero while
-        the margin is positive) on its two cameras' rotation and centre (held cameras have none), a prior row on its
-        camera's rotation, the scale row on every centre."""
+        its pair's mean margin is positive) on its two cameras' rotation and centre (held cameras have none), a prior
+        row on its camera's rotation, the scale row on every centre."""
         R, C = unpack(x)
         Is, Js, m = I[sel], J[sel], int(sel.sum())
         Jl = _left_jacobian(x[:3 * nf].reshape(nf, 3)) if nf else np.zeros((0, 3, 3))
         rows, cols, vals = [], [], []
         # row blocks (first row, derivatives, each row's factor): the epipolar residuals (rows 0..m), then with
-        # cheirality margin 1 and margin 2 of each match, where charged (negative, and positive at the start)
-        blocks = [(0, _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel]), np.ones(m))]
-        if cheirality:
-            slope = ((cheirality_margins(R, C, Is, Js, r1[sel], r2[sel]) < 0) & front0[sel]).astype(float)
-            ch = _cheirality_jacobian(R, C, Is, Js, r1[sel], r2[sel])
+        # cheirality margin 1 and margin 2 of each match's pair (mean), where charged (the mean negative, and the
+        # pair's points mostly in front at the start)
+        inv = 1.0 / scale[sel]
+        blocks = [(0, _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel]), inv)]
+        if charged:  # each match's rows: its pair's mean margin, so its derivatives are the pair's mean ones
+            ps = pid[sel]
+            cnt, mean = _pair_means(cheirality_margins(R, C, Is, Js, r1[sel], r2[sel]) * inv[:, None], ps, len(pairs))
+            slope = ((mean[ps] < 0) & front0p[ps, None]).astype(float)
+            ch = [_pair_means(p * inv[:, None, None], ps, len(pairs))[1][ps]
+                  for p in _cheirality_jacobian(R, C, Is, Js, r1[sel], r2[sel])]
             blocks += [(m * (1 + k), [p[:, k] for p in ch], slope[:, k]) for k in range(2)]
         for start, parts, gain in blocks:
             for cams, d_phi, d_C in ((Is, parts[0], parts[2]), (Js, parts[1], parts[3])):
                 s_ = slots[cams]
                 r = np.nonzero((s_ >= 0) & ((gain != 0) | pattern))[0]
-                f = gain[r, None] / scale[sel][r, None]
+                f = gain[r, None]
                 d_w = np.einsum("ma,mab->mb", d_phi[r], Jl[s_[r]]) * f
                 d_c = d_C[r] * f
                 for off, dv in ((0, d_w), (3 * nf, d_c)):
@@ -330,7 +373,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
                         rows.append(start + r)
                         cols.append(off + 3 * s_[r] + c)
                         vals.append(dv[:, c])
-        m = m * (3 if cheirality else 1)  # the prior and scale rows follow the match rows
+        m = m * (3 if charged else 1)  # the prior and scale rows follow the match rows
         rows.append(m + np.arange(3 * nf))
         cols.append(np.arange(3 * nf))
         vals.append(np.full(3 * nf, 1.0 / prior))
@@ -345,49 +388,74 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
         out = coo_matrix((vals, (rows, cols)), shape=(m + 3 * nf + (1 if keep_scale else 0), 6 * nf)).tocsr()
         return out.toarray() if dense else out
 
-    x = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
-    e0 = all_residuals(x)
-    front0 = None
-    if cheirality:  # [M, 1]: charged matches, those of pairs whose points met mostly in front at the start
+    x0 = np.r_[np.zeros(3 * nf), (C0[free] / unit).ravel()]
+    e0 = all_residuals(x0)
+    front0p = None
+    if cheirality:  # [P]: charged pairs, those whose points met mostly in front at the start
         share0, _ = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
-        front0 = (share0 > 0.5)[pid, None]
-    gate = np.abs(e0) < 3
-    solves = evals = 0
-    # one BLAS thread: lsmr's products are of vectors of a few 10^4 entries, where OpenBLAS's threads only wait
-    # for each other, and on a busy machine (training beside it) they made the fit 10 times slower
-    with threadpool_limits(1, user_api="blas"):
+        front0p = share0 > 0.5
+
+    def residuals(x, sel, charged):
+        R, C = unpack(x)
+        e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
+        out = [e]
+        if charged:
+            u = cheirality_margins(R, C, I[sel], J[sel], r1[sel], r2[sel]) / scale[sel, None]
+            ps = pid[sel]
+            charge = np.minimum(_pair_means(u, ps, len(pairs))[1][ps], 0.0) * front0p[ps, None]
+            out += [charge[:, 0], charge[:, 1]]
+        out.append(x[:3 * nf] / prior)
+        if keep_scale:
+            dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
+            out.append([10.0 * (dist - 1.0)])
+        return np.concatenate(out)
+
+    def descend(x, charged):
+        """Rounds of robust least squares from x, the gate re-drawn after each: (x, solves, evaluations)."""
+        gate = np.abs(all_residuals(x)) < 3
+        solves = evals = 0
         for _ in range(rounds if nf else 0):
             if gate.sum() < 5:
                 break
             sel = gate.copy()
-
-            def fun(x, sel=sel):
-                R, C = unpack(x)
-                e = _residuals_by_pair(R, C, PI, PJ, pid[sel], r1[sel], r2[sel]) / scale[sel]
-                out = [e]
-                if cheirality:
-                    u = cheirality_margins(R, C, I[sel], J[sel], r1[sel], r2[sel]) / scale[sel, None]
-                    charge = np.minimum(u, 0.0) * front0[sel]
-                    out += [charge[:, 0], charge[:, 1]]
-                out.append(x[:3 * nf] / prior)
-                if keep_scale:
-                    dist = np.linalg.norm(C[free] - C[anchor], axis=1).mean()
-                    out.append([10.0 * (dist - 1.0)])
-                return np.concatenate(out)
-
             use_sparse = nf > 8 if sparse is None else sparse
             if jac == "analytic":
-                jac_fn = partial(jacobian, sel=sel, dense=not use_sparse)
+                jac_fn = partial(jacobian, sel=sel, dense=not use_sparse, charged=charged)
                 opts = {"jac": jac_fn, **({"tr_solver": "lsmr", "tr_options": LSMR_TIGHT} if use_sparse else {})}
             else:  # column groups pay off once cameras touch few pairs; for a handful the dense difference is cheaper
-                opts = sparse_opts(x, sel) if use_sparse else {}
-            sol = least_squares(fun, x, loss="cauchy", f_scale=1.0, max_nfev=max_evals, ftol=1e-6, xtol=1e-6, **opts)
+                opts = sparse_opts(x, sel, charged) if use_sparse else {}
+            sol = least_squares(partial(residuals, sel=sel, charged=charged), x, loss="cauchy", f_scale=1.0,
+                                max_nfev=max_evals, ftol=1e-6, xtol=1e-6, **opts)
             x, evals = sol.x, evals + sol.nfev
             solves += 1
             new = np.abs(all_residuals(x)) < 3
             if np.array_equal(new, gate):
                 break
             gate = new
+        return x, solves, evals
+
+    def objective(x):  # the charged fit's robust cost over every match (no gate), to compare its two descents
+        return float(np.log1p(residuals(x, np.ones(len(I), bool), True) ** 2).sum())
+
+    def reverses(x):  # camera pairs whose matches (gated at the start or at x) x moves from in front to behind
+        g = (np.abs(e0) < 3) | (np.abs(all_residuals(x)) < 3)
+        return mirrored_pairs(R0, C0 / unit, *unpack(x), I[g], J[g], r1[g], r2[g], parallel_is_behind=True)
+
+    # one BLAS thread: lsmr's products are of vectors of a few 10^4 entries, where OpenBLAS's threads only wait
+    # for each other, and on a busy machine (training beside it) they made the fit 10 times slower
+    with threadpool_limits(1, user_api="blas"):
+        x, solves, evals = descend(x0, cheirality)
+        descent = "aligned"
+        if cheirality and second_descent and nf:
+            # the charge is a wall: a camera whose path to the matches' optimum passes where some points meet
+            # behind it can stop at the wall. The second descent crosses it uncharged, then settles charged; it is
+            # taken where it costs less and reverses no camera pair (the uncharged path can slide a camera through
+            # a neighbour, and the robust loss caps what the charge makes that cost)
+            xb, sb, eb = descend(x0, False)
+            xb, sc_, ec = descend(xb, True)
+            solves, evals = solves + sb + sc_, evals + eb + ec
+            if objective(xb) < objective(x) and not reverses(xb):
+                x, descent = xb, "uncharged first"
     R, C = unpack(x)
     C = C * unit
     C[held] = C0[held]
@@ -397,7 +465,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
     report = {"matches": int(len(I)), "inliers_before": int((np.abs(e0) < 1).sum()),
               "inliers_after": int((np.abs(e1) < 1).sum()), "median_residual_before": float(np.median(np.abs(e0))),
               "median_residual_after": float(np.median(np.abs(e1))), "solves": solves, "evaluations": evals,
-              "held": held, "mirrored_pairs": mirrored}
+              "held": held, "mirrored_pairs": mirrored, **({"descent": descent} if cheirality else {})}
     return R, C, report
 
 
@@ -487,7 +555,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     def fit_with(held):
         return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
                            anchor=anchor, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
-                           max_evals=cfg.max_evals, cheirality=cfg.cheirality)
+                           max_evals=cfg.max_evals, cheirality=cfg.cheirality, second_descent=cfg.second_descent)
 
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned

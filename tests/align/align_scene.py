@@ -213,3 +213,36 @@ def gt_matches(sc, i, j, step=3, outliers=0.0, seed=0, occluded: bool = False):
         m = rng.random(len(xy2)) < outliers
         xy2[m] = rng.uniform([0, 0], [w - 1, h - 1], (int(m.sum()), 2))
     return xy1, xy2, np.ones(len(xy1))
+
+
+def ring_matches(n: int, h: int, w: int, window: int, outliers: float, rot_deg: float, centre: float, seed: int = 0):
+    """Inputs of the epipolar fit on a ring of ``n`` views (``make_scene``, focals within 10% of 0.85 w): a cyclic
+    sliding-window pair graph (every image with its next ``window``), true matches on a pixel grid of each pair
+    (hidden points included) with ``outliers`` of them moved to random pixels, and a start ``rot_deg`` degrees
+    (a random axis per camera) and ``centre`` (normal, per coordinate) off the true poses, camera 0 exact.
+    Returns (true cam2world [n, 4, 4], start [n, 4, 4], (I, J, r1, r2, scale), number of pairs); each match's scale
+    is 2 px over its first camera's focal."""
+    from pointmap.geometry.rotations import axis_angle_to_matrix
+    from pointmap.pairs import make_pairs
+    from pointmap.pose import _bearings
+
+    f = 0.85 * w
+    sc = make_scene(n, h, w, seed=seed, focal_range=(f * 0.9, f * 1.1))
+    pairs = sorted(make_pairs(n, f"swin-{window}"))
+    I, J, r1, r2 = [], [], [], []
+    for p, (i, j) in enumerate(pairs):
+        xy1, xy2, _ = gt_matches(sc, i, j, step=max(2, h // 24), outliers=outliers, seed=seed + p, occluded=True)
+        I.append(np.full(len(xy1), i))
+        J.append(np.full(len(xy1), j))
+        r1.append(_bearings(xy1, sc["K"][i]))
+        r2.append(_bearings(xy2, sc["K"][j]))
+    I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
+    scale = 2.0 / sc["K"][I, 0, 0]
+    rng = np.random.default_rng(seed + 1)
+    start = sc["cam2world"].copy()
+    for k in range(1, n):
+        axis = rng.normal(size=3)
+        axis *= np.radians(rot_deg) / np.linalg.norm(axis)
+        start[k, :3, :3] = axis_angle_to_matrix(torch.from_numpy(axis)).numpy() @ start[k, :3, :3]
+        start[k, :3, 3] += rng.normal(scale=centre, size=3)
+    return sc["cam2world"], start, (I, J, r1, r2, scale), len(pairs)

@@ -24,18 +24,18 @@ def test_the_epipolar_benchmark_times_both_jacobians_on_the_same_inputs_and_they
 
 def test_the_stage_mode_times_the_alignment_and_the_stage_after_it_with_and_without_cheirality(capsys):
     main(["--stage", "--sizes", "4", "--hw", "48", "64", "--window", "2", "--seeds", "0", "5",
-          "--cheirality", "off", "on"])
+          "--cheirality", "off", "one", "on"])
     rows = _table(capsys.readouterr().out)
-    assert len(rows) == 4  # one per seed and cheirality setting
+    assert len(rows) == 6  # one per seed and cheirality setting
     cells = [[c.strip() for c in r.strip("|").split("|")] for r in rows]
-    assert [(c[0], c[1], c[5]) for c in cells] == [("4", s, ch) for s in ("0", "5") for ch in ("off", "on")]
+    assert [(c[0], c[1], c[5]) for c in cells] == [("4", s, ch) for s in ("0", "5") for ch in ("off", "one", "on")]
     for c in cells:
         assert int(c[2]) > 0 and int(c[3]) > 0 and float(c[4]) >= 0 and float(c[6]) >= 0
         assert int(c[7]) > 0 and c[8] in ("yes", "kept")  # the fit ran (a skipped stage reports no evaluations)
         ga, stage = (float(x) for x in c[9].split("/"))
         assert ga >= 0 and stage >= 0
     assert cells[0][9].split("/")[0] == cells[1][9].split("/")[0]  # both settings start from the same alignment
-    assert cells[0][9] != cells[2][9]  # another seed, another scene
+    assert cells[0][9] != cells[3][9]  # another seed, another scene
 
 
 def test_the_epipolar_benchmark_refuses_image_counts_below_three(capsys):
