@@ -112,7 +112,11 @@ def in_front_share(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r
     if len(pid) != len(I) or (len(pid) and not 0 <= pid.min() <= pid.max() < n_pairs):
         raise ShapeError(f"in_front_share expected one pair index in [0, {n_pairs}) per match ({len(I)}), got "
                          f"{len(pid)} in [{pid.min() if len(pid) else '-'}, {pid.max() if len(pid) else '-'}]")
-    ok, front = _counted_and_in_front(R, C, I, J, r1, r2)
+    return _shares(*_counted_and_in_front(R, C, I, J, r1, r2), pid, n_pairs)
+
+
+def _shares(ok, front, pid, n_pairs):
+    """Per pair: the share of its counted matches (``ok`` [M]) that are ``front`` [M], and how many were counted."""
     n_ok = np.bincount(pid[ok], minlength=n_pairs)
     return np.bincount(pid[front], minlength=n_pairs) / np.maximum(n_ok, 1), n_ok
 
@@ -139,14 +143,12 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
         return []
     pairs, pid = np.unique(np.stack([I, J], 1), axis=0, return_inverse=True)
     pid = pid.reshape(-1)
-    before, counted_before = in_front_share(R0, C0, I, J, r1, r2, len(pairs), pid)
-    if parallel_is_behind:
-        ok0, _ = _counted_and_in_front(R0, C0, I, J, r1, r2)
-        _, front = _counted_and_in_front(R, C, I, J, r1, r2)
-        after = np.bincount(pid[ok0 & front], minlength=len(pairs)) / np.maximum(counted_before, 1)
-        counted = counted_before
-    else:
-        after, counted = in_front_share(R, C, I, J, r1, r2, len(pairs), pid)
+    ok0, front0 = _counted_and_in_front(R0, C0, I, J, r1, r2)
+    ok, front = _counted_and_in_front(R, C, I, J, r1, r2)
+    if parallel_is_behind:  # over the matches counted before; one no longer counted is not in front
+        ok, front = ok0, front & ok0
+    before, counted_before = _shares(ok0, front0, pid, len(pairs))
+    after, counted = _shares(ok, front, pid, len(pairs))
     flag = (counted_before >= min_matches) & (counted >= min_matches) & (before > was) & (after < now)
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
@@ -356,7 +358,7 @@ def solve_poses(R0: np.ndarray, C0: np.ndarray, I: np.ndarray, J: np.ndarray, r1
         blocks = [(0, _residual_jacobian(R, C, Is, Js, r1[sel], r2[sel]), inv)]
         if charged:  # each match's rows: its pair's mean margin, so its derivatives are the pair's mean ones
             ps = pid[sel]
-            cnt, mean = _pair_means(cheirality_margins(R, C, Is, Js, r1[sel], r2[sel]) * inv[:, None], ps, len(pairs))
+            _, mean = _pair_means(cheirality_margins(R, C, Is, Js, r1[sel], r2[sel]) * inv[:, None], ps, len(pairs))
             slope = ((mean[ps] < 0) & front0p[ps, None]).astype(float)
             ch = [_pair_means(p * inv[:, None, None], ps, len(pairs))[1][ps]
                   for p in _cheirality_jacobian(R, C, Is, Js, r1[sel], r2[sel])]
