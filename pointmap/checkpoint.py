@@ -250,20 +250,77 @@ def model_input_size(model, default: int = 512) -> int:
 # our format: one .safetensors file, the config and provenance as JSON in its metadata
 
 
+INT8_MIN_NUMEL = 4096  # smaller tensors (biases, norms, tiny kernels) stay fp16 in an int8 file
+SCALE_SUFFIX = ":int8_scale"
+
+
+def quantize_int8(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetric per-output-channel int8: (q [same shape, int8], scale [out] fp32) with w ~= q * scale
+    (each channel's largest magnitude maps to 127; the error per weight is at most scale / 2)."""
+    flat = w.detach().float().reshape(w.shape[0], -1)
+    scale = flat.abs().amax(dim=1).clamp_min(1e-12) / 127.0
+    q = torch.round(flat / scale[:, None]).clamp_(-127, 127).to(torch.int8)
+    return q.reshape(w.shape), scale
+
+
+def dequantize_int8(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    return (q.float().reshape(q.shape[0], -1) * scale.float()[:, None]).reshape(q.shape)
+
+
 def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtype=None) -> Path:
-    """Write ``model`` as safetensors + JSON config (atomically). ``dtype=torch.float16`` halves the size."""
+    """Write ``model`` as safetensors + JSON config (atomically). ``dtype=torch.float16`` halves the size;
+    ``dtype="int8"`` stores every weight matrix of at least INT8_MIN_NUMEL entries as int8 with a per-output-
+    channel fp32 scale (``quantize_int8``; about a quarter of fp32) and the rest as fp16. Loading
+    dequantizes to fp32, so an int8 file is a storage format: the model computes in float."""
     from safetensors.torch import save_file
 
+    if dtype not in (None, torch.float16, torch.float32, "int8"):
+        raise ValueError(f"dtype expected None, torch.float16, torch.float32 or 'int8', got {dtype!r}")
     path = Path(path)
     if path.suffix != ".safetensors":
         path = path.with_suffix(".safetensors")
-    tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).contiguous().cpu()
-               for k, v in model.state_dict().items()}
+    tensors, quantized = {}, []
+    for k, v in model.state_dict().items():
+        v = v.detach().cpu()
+        if dtype == "int8" and v.is_floating_point() and v.ndim >= 2 and v.numel() >= INT8_MIN_NUMEL:
+            tensors[k], tensors[k + SCALE_SUFFIX] = quantize_int8(v)
+            quantized.append(k)
+        elif v.is_floating_point() and dtype is not None:
+            tensors[k] = v.to(torch.float16 if dtype == "int8" else dtype)
+        else:
+            tensors[k] = v
+    tensors = {k: v.contiguous() for k, v in tensors.items()}
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
             "provenance": json.dumps(provenance or getattr(model, "provenance", {}) or {})}
+    if quantized:
+        meta["int8"] = json.dumps(quantized)
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata=meta)
     return path
+
+
+def _dequantize_state(state: dict, meta: dict, path) -> dict:
+    """``state`` with each int8 tensor listed in the file's metadata replaced by its fp32 dequantization (and its
+    scale removed). CheckpointError for a list that does not match the tensors (a corrupt or foreign file)."""
+    try:
+        keys = json.loads(meta.get("int8", "[]"))
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{path} has a broken int8 tensor list: {e}") from None
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        raise CheckpointError(f"{path}: int8 metadata expected a list of tensor names, got {type(keys).__name__}")
+    out = dict(state)
+    for k in keys:
+        q, scale = out.get(k), out.pop(k + SCALE_SUFFIX, None)
+        if q is None or scale is None or q.dtype != torch.int8 or scale.shape != (q.shape[0],):
+            raise CheckpointError(f"{path}: int8 tensor {k!r} expected an int8 tensor and a scale of shape "
+                                  f"[{q.shape[0] if q is not None else '?'}], got "
+                                  f"{None if q is None else (q.dtype, tuple(q.shape))} and "
+                                  f"{None if scale is None else tuple(scale.shape)}")
+        out[k] = dequantize_int8(q, scale)
+    stray = [k for k in out if k.endswith(SCALE_SUFFIX) or out[k].dtype == torch.int8]
+    if stray:
+        raise CheckpointError(f"{path}: int8 tensors or scales not listed in its metadata: {stray[:3]}")
+    return out
 
 
 def load_own(path: Path) -> PointmapNet:
@@ -282,6 +339,7 @@ def load_own(path: Path) -> PointmapNet:
     except (KeyError, json.JSONDecodeError, TypeError) as e:
         raise CheckpointError(f"{path} has a broken config: {e}") from None
     model = PointmapNet(cfg)
+    state = _dequantize_state(state, meta, path)
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     load_state_strict(model, state, source=str(path))
     model.provenance = json.loads(meta.get("provenance", "{}"))

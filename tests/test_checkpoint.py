@@ -1,6 +1,7 @@
 """Checkpoints: official .pth files (safely), our safetensors format, shipped names, clear failures."""
 
 import argparse
+import json
 import math
 
 import pytest
@@ -146,6 +147,70 @@ def test_half_precision_files_load_back_as_float32_within_half_precision_error(t
     w = loaded.state_dict()["enc_norm.weight"]
     assert w.dtype == torch.float32
     assert torch.allclose(w, tiny_model.state_dict()["enc_norm.weight"], atol=1e-2)
+
+
+def test_int8_quantization_agrees_with_a_channel_by_channel_reference():
+    from pointmap.checkpoint import dequantize_int8, quantize_int8
+
+    w = torch.randn(6, 5, 3) * torch.tensor([1e-3, 0.1, 1.0, 10.0, 0.0, 2.0])[:, None, None]
+    q, scale = quantize_int8(w)
+    for c in range(6):  # the reference: one channel at a time, in Python numbers
+        m = max(abs(float(x)) for x in w[c].flatten())
+        s = max(m, 1e-12) / 127.0
+        assert math.isclose(float(scale[c]), s, rel_tol=1e-6)
+        for x, qx in zip(w[c].flatten().tolist(), q[c].flatten().tolist()):
+            assert qx == max(-127, min(127, round(x / s)))
+    back = dequantize_int8(q, scale)
+    assert q.dtype == torch.int8 and back.shape == w.shape
+    assert ((back - w).abs() <= scale[:, None, None] / 2 + 1e-9).all()
+
+
+def test_int8_files_hold_weight_matrices_in_int8_and_load_back_within_half_a_step(tmp_path, tiny_model):
+    from safetensors import safe_open
+
+    from pointmap.checkpoint import SCALE_SUFFIX, quantize_int8
+
+    path = pm.save_model(tiny_model, tmp_path / "m8.safetensors", dtype="int8")
+    with safe_open(str(path), framework="pt") as f:
+        quantized = json.loads(f.metadata()["int8"])
+        stored = {k: f.get_tensor(k) for k in f.keys()}
+    assert "enc_blocks.0.mlp.fc1.weight" in quantized
+    assert all(stored[k].dtype == torch.int8 for k in quantized)
+    assert stored["enc_norm.weight"].dtype == torch.float16  # small tensors stay fp16
+    loaded = pm.load_model(path)
+    for k, v in tiny_model.state_dict().items():
+        got = loaded.state_dict()[k]
+        assert got.dtype == v.dtype, k
+        if k in quantized:
+            step = quantize_int8(v)[1].reshape(-1, *[1] * (v.ndim - 1))
+            assert ((got - v).abs() <= step / 2 + 1e-7).all(), k
+            assert torch.equal(stored[k + SCALE_SUFFIX], quantize_int8(v)[1]), k
+        elif v.is_floating_point():
+            torch.testing.assert_close(got, v.half().float(), rtol=0, atol=0)
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        a, b = tiny_model.eval()(x, x), loaded(x, x)
+    assert torch.allclose(a.pts1_cam1, b.pts1_cam1, rtol=0.05, atol=0.05)
+
+
+def test_int8_files_whose_tensor_list_does_not_match_are_refused(tmp_path, tiny_model):
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    path = pm.save_model(tiny_model, tmp_path / "m8.safetensors", dtype="int8")
+    with safe_open(str(path), framework="pt") as f:
+        meta, state = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    listed = json.loads(meta["int8"])
+    cases = {"missing scale": ({k: v for k, v in state.items() if k != listed[0] + ":int8_scale"}, meta),
+             "unlisted int8": (state, {**meta, "int8": json.dumps(listed[1:])}),
+             "broken list": (state, {**meta, "int8": "[not json"})}
+    for name, (tensors, md) in cases.items():
+        save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=md)
+        with pytest.raises(pm.CheckpointError, match="int8") as e:
+            pm.load_model(tmp_path / "bad.safetensors")
+        assert "\n" not in str(e.value), name
+    with pytest.raises(ValueError, match="dtype expected"):
+        pm.save_model(tiny_model, tmp_path / "x.safetensors", dtype=torch.int8)
 
 
 def test_a_safetensors_file_from_another_project_is_refused(tmp_path):

@@ -1,4 +1,4 @@
-"""Turn a training checkpoint into the shipped model file (fp16 safetensors inside the package):
+"""Turn a training checkpoint into the shipped model file (fp16 or int8 safetensors inside the package):
 
     python -m training.ship --ckpt runs/train/last.pt --name small --metrics runs/train/eval.csv
 
@@ -75,6 +75,9 @@ def main(argv=None) -> int:
     p.add_argument("--metrics", default=None, help="eval.csv of the run (its last row is recorded)")
     p.add_argument("--note", default="")
     p.add_argument("--out", default=None, help="default: pointmap/weights/NAME.safetensors")
+    p.add_argument("--dtype", choices=("fp16", "int8"), default="fp16",
+                   help="storage: fp16, or int8 weight matrices with per-channel scales (about half of fp16; "
+                        "pointmap.checkpoint.save_model)")
     a = p.parse_args(argv)
     try:
         ck = average_checkpoints(a.ckpt)
@@ -91,7 +94,7 @@ def main(argv=None) -> int:
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
     out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
-    path = save_model(model, out, provenance=provenance, dtype=torch.float16)
+    path = save_model(model, out, provenance=provenance, dtype=torch.float16 if a.dtype == "fp16" else "int8")
     avg = f", the average of steps {ck['averaged_steps']}" if len(a.ckpt) > 1 else ""
     print(f"{path} ({path.stat().st_size / 1e6:.1f} MB), step {ck['step']}{avg}")
     return 0

@@ -57,3 +57,17 @@ def test_averaging_refuses_checkpoints_of_other_architectures_or_kinds_in_one_li
         err = capsys.readouterr().err
         assert err.startswith("error:") and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_a_checkpoint_ships_in_int8_at_about_half_the_fp16_size_and_loads_as_float(tmp_path):
+    cfg = replace(PRESETS["test"], enc_dim=64, dec_dim=64, enc_heads=4, dec_heads=4)  # matrices worth quantizing
+    model = _checkpoint(tmp_path / "a.pt", seed=0, step=7, cfg=cfg)
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m16.safetensors")]) == 0
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m8.safetensors"), "--dtype", "int8"]) == 0
+    size16, size8 = (tmp_path / "m16.safetensors").stat().st_size, (tmp_path / "m8.safetensors").stat().st_size
+    assert size8 < 0.65 * size16
+    back = pm.load_model(tmp_path / "m8.safetensors")
+    w = model.state_dict()["enc_blocks.0.mlp.fc1.weight"]
+    got = back.state_dict()["enc_blocks.0.mlp.fc1.weight"]
+    assert got.dtype == torch.float32 and not torch.equal(got, w)
+    assert (got - w).abs().max() <= w.abs().amax(dim=1).max() / 254 + 1e-7

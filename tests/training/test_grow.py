@@ -1,0 +1,78 @@
+"""training.grow: a deepened model computes what the original did, and its new blocks can learn."""
+
+import pytest
+import torch
+
+import pointmap as pm
+from pointmap.model import PRESETS, PointmapNet
+from training.grow import deepen, main
+
+CFG = PRESETS["test"].replace(head="catmlp+linear", pose_head=True, desc_stem=4)
+
+
+def _model(seed=0, cfg=CFG):
+    torch.manual_seed(seed)
+    model = PointmapNet(cfg).eval()
+    with torch.no_grad():  # non-trivial norms and biases, so a copy that is not silent would show
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def test_a_deepened_model_computes_exactly_what_the_original_computes():
+    model = _model()
+    grown = deepen(model, enc_depth=5, dec_depth=7).eval()
+    assert (grown.cfg.enc_depth, grown.cfg.dec_depth) == (5, 7) and model.cfg.enc_depth == 2
+    torch.manual_seed(1)
+    a, b = torch.rand(2, 3, 32, 48), torch.rand(2, 3, 32, 48)
+    with torch.no_grad():
+        want, got = model(a, b), grown(a, b)
+    for k in ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2"):
+        torch.testing.assert_close(getattr(got, k), getattr(want, k), rtol=0, atol=1e-6)
+
+
+def test_new_blocks_follow_the_block_they_copy_spread_evenly_with_silent_outputs():
+    model = _model()
+    grown = deepen(model, enc_depth=5)  # 2 -> 5: block 0 gets 1 copy, block 1 gets 2
+    src = [0, 0, 1, 1, 1]
+    for i, blk in enumerate(grown.enc_blocks):
+        old = model.enc_blocks[src[i]]
+        new_block = i not in (0, 2)
+        torch.testing.assert_close(blk.attn.qkv.weight, old.attn.qkv.weight, rtol=0, atol=0)
+        torch.testing.assert_close(blk.mlp.fc1.weight, old.mlp.fc1.weight, rtol=0, atol=0)
+        for lin in (blk.attn.proj, blk.mlp.fc2):
+            assert bool((lin.weight == 0).all() and (lin.bias == 0).all()) == new_block, i
+    assert all(float(b.cross_attn.proj.weight.detach().abs().sum()) > 0 for b in grown.dec_blocks)  # decoders unchanged
+
+
+def test_the_silent_blocks_get_gradients_and_learn():
+    grown = deepen(_model(), dec_depth=5).train()
+    out = grown(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32))
+    (out.pts1_cam1.square().mean() + out.pts2_cam1.square().mean()).backward()
+    new = grown.dec_blocks[4]  # 4 -> 5: the one copy follows the last block
+    assert float(new.mlp.fc2.weight.detach().abs().sum()) == 0
+    assert float(new.mlp.fc2.weight.grad.abs().sum()) > 0
+    assert float(new.cross_attn.proj.weight.grad.abs().sum()) > 0
+
+
+def test_growth_refuses_shrinking_and_a_dpt_decoder_with_the_reason():
+    with pytest.raises(ValueError, match="growth only"):
+        deepen(_model(), enc_depth=1)
+    with pytest.raises(ValueError, match="intermediate decoder layers"):
+        deepen(PointmapNet(PRESETS["test"]), dec_depth=6)
+    assert deepen(PointmapNet(PRESETS["test"]), enc_depth=3).cfg.enc_depth == 3  # a DPT model's encoder may grow
+
+
+def test_the_command_writes_a_grown_model_file_and_fails_in_one_line(tmp_path, capsys):
+    model = _model()
+    pm.save_model(model, tmp_path / "m.safetensors", provenance={"steps": 9})
+    assert main(["--init", str(tmp_path / "m.safetensors"), "--dec_depth", "6", "--out", str(tmp_path / "g.safetensors")]) == 0
+    grown = pm.load_model(tmp_path / "g.safetensors")
+    assert grown.cfg.dec_depth == 6 and grown.provenance["grown_from"] == {"enc_depth": 2, "dec_depth": 4}
+    assert grown.provenance["steps"] == 9
+    (tmp_path / "junk.safetensors").write_bytes(b"junk")
+    for args in (["--init", str(tmp_path / "junk.safetensors")], ["--init", str(tmp_path / "m.safetensors"), "--enc_depth", "1"]):
+        assert main([*args, "--out", str(tmp_path / "x.safetensors")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.safetensors").exists()

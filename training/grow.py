@@ -1,0 +1,101 @@
+"""Deepen a trained model without changing what it computes (net2net-style growth):
+
+    python -m training.grow --init pointmap/weights/small.safetensors --enc_depth 8 --dec_depth 8 --out grown.safetensors
+
+Every new block is a copy of the block it follows with its output projections (self-attention ``proj``,
+cross-attention ``proj``, MLP ``fc2``) zeroed: each residual branch then adds exactly zero, so the grown
+model's outputs equal the original's, and training starts from the trained model's level instead of from
+scratch. The copied inner weights (queries, keys, values, ``fc1``) give the new block meaningful features
+the moment its output projections move off zero; the cross-attention scores the attention loss supervises
+start as its neighbour's.
+
+New blocks are spread evenly: with L old blocks and L' >= L new ones, old block i is followed by
+``(i + 1) * (L' - L) // L - i * (L' - L) // L`` copies of itself. Both decoders grow alike (they share
+a depth). The result is written as our fp32 .safetensors, which ``training.train --init`` fine-tunes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from pointmap.checkpoint import CheckpointError, load_model, save_model
+from pointmap.model import PointmapNet
+
+
+def _silent_copy(block: nn.Module) -> nn.Module:
+    """A copy of ``block`` whose residual branches output exactly zero (its output projections zeroed)."""
+    new = copy.deepcopy(block)
+    outs = [new.attn.proj, new.mlp.fc2] + ([new.cross_attn.proj] if hasattr(new, "cross_attn") else [])
+    with torch.no_grad():
+        for lin in outs:
+            lin.weight.zero_()
+            if lin.bias is not None:
+                lin.bias.zero_()
+    return new
+
+
+def _deepen(blocks: nn.ModuleList, depth: int) -> nn.ModuleList:
+    old = len(blocks)
+    extra = depth - old
+    out = []
+    for i, blk in enumerate(blocks):
+        out.append(blk)
+        out.extend(_silent_copy(blk) for _ in range((i + 1) * extra // old - i * extra // old))
+    return nn.ModuleList(out)
+
+
+def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int | None = None) -> PointmapNet:
+    """A new model with ``enc_depth`` encoder and ``dec_depth`` decoder blocks (None: unchanged) computing the
+    same function as ``model`` (see the module doc). ``model`` itself is left as it was. ValueError for a
+    depth below the current one (growth only) or a DPT head (its hooks index decoder layers)."""
+    cfg = model.cfg
+    enc_depth = cfg.enc_depth if enc_depth is None else int(enc_depth)
+    dec_depth = cfg.dec_depth if dec_depth is None else int(dec_depth)
+    if enc_depth < cfg.enc_depth or dec_depth < cfg.dec_depth:
+        raise ValueError(f"growth only: expected enc_depth >= {cfg.enc_depth} and dec_depth >= {cfg.dec_depth}, "
+                         f"got {enc_depth} and {dec_depth}")
+    if "dpt" in cfg.head and dec_depth != cfg.dec_depth:
+        raise ValueError(f"a {cfg.head!r} head reads intermediate decoder layers; deepening its decoder would "
+                         "change what they hold (only the encoder can grow)")
+    grown = PointmapNet(cfg.replace(enc_depth=enc_depth, dec_depth=dec_depth))
+    src = copy.deepcopy(model).float()
+    src.enc_blocks = _deepen(src.enc_blocks, enc_depth)
+    src.dec_blocks = _deepen(src.dec_blocks, dec_depth)
+    src.dec_blocks2 = _deepen(src.dec_blocks2, dec_depth)
+    grown.load_state_dict(src.state_dict(), strict=True)
+    grown.provenance = dict(getattr(model, "provenance", {}) or {},
+                            grown_from={"enc_depth": cfg.enc_depth, "dec_depth": cfg.dec_depth})
+    return grown
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--init", required=True, help="a model load_model reads (shipped name or .safetensors)")
+    p.add_argument("--enc_depth", type=int, default=None)
+    p.add_argument("--dec_depth", type=int, default=None)
+    p.add_argument("--out", required=True, help="the grown model (.safetensors, fp32)")
+    a = p.parse_args(argv)
+    try:
+        model = load_model(a.init)
+        if not isinstance(model, PointmapNet):
+            raise CheckpointError(f"--init {a.init} is not a PyTorch model")
+        grown = deepen(model, enc_depth=a.enc_depth, dec_depth=a.dec_depth)
+    except (CheckpointError, ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    path = save_model(grown, Path(a.out))
+    n0 = sum(t.numel() for t in model.state_dict().values())
+    n1 = sum(t.numel() for t in grown.state_dict().values())
+    print(f"{path}: encoder {model.cfg.enc_depth} -> {grown.cfg.enc_depth} blocks, decoders {model.cfg.dec_depth} -> "
+          f"{grown.cfg.dec_depth}; {n0 / 1e6:.2f}M -> {n1 / 1e6:.2f}M parameters")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
