@@ -3,6 +3,7 @@
 
     python benchmarks/bench_train.py --preset small --size 224 --batch 8 --threads 2 [--data SHARDS]
     python benchmarks/bench_train.py --preset small --size 160 --recipe shipped --amp [--compile]
+    python benchmarks/bench_train.py --preset small --size 224 --recipe shipped --depths 6,4 8,8
 
 --amp adds bf16-autocast rows (training --amp bf16) next to the float32 ones, with each mode's first-step loss.
 --recipe shipped times the shipped model's step (pose head; attention, coarse and pose losses on).
@@ -35,38 +36,14 @@ def synthetic_batch(B, H, W):
     return collate([data[i] for i in range(B)])
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="small")
-    p.add_argument("--size", type=int, default=224)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--steps", type=int, default=5)
-    p.add_argument("--data", default=None, help="shard root: also time data loading")
-    p.add_argument("--compile", action="store_true",
-                   help="also time the step with torch.compile (as training --compile true), in the same run")
-    p.add_argument("--amp", action="store_true", help="also time bf16 autocast (training --amp bf16), same run")
-    p.add_argument("--recipe", choices=("plain", "shipped"), default="plain",
-                   help="plain: regression + matching; shipped: + pose head, attention, coarse and pose losses")
-    a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    ceiling = matmul_ceiling()
-    torch.manual_seed(0)
-    if a.recipe == "shipped":
-        model = pm.PointmapNet(pm.PRESETS[a.preset].replace(pose_head=True)).train()
-        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024, match_weight=0.25, temperature=0.1,
-                          coarse_weight=1.0, attn_weight=0.5, attn_heads=2, pose_weight=1.0, pose_dir_weight=0.5)
-    else:
-        model = pm.PointmapNet(pm.PRESETS[a.preset]).train()
-        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
-    step = make_step(cfg)
-    batch = synthetic_batch(a.batch, a.size, a.size)
-
+def time_modes(model, step, batch, a) -> list:
+    """(parameters, GFLOP count, mode, median s/step, first step s, first loss) per mode (eager / compiled,
+    float32 / bf16 autocast) of one model's training step."""
     with FlopCounterMode(display=False) as fc:
         loss, _ = step(model, batch, 0)
         loss.backward()
     flops = fc.get_total_flops()
-
+    n = sum(t.numel() for t in model.state_dict().values())
     initial = {k: v.clone() for k, v in model.state_dict().items()}
 
     def timed(net, amp: bool):
@@ -95,19 +72,64 @@ def main(argv=None) -> int:
     rows = []
     for amp in (False, True) if a.amp else (False,):
         precision = "bf16 autocast" if amp else "float32"
-        rows.append((f"eager, {precision}", *timed(model, amp)))
+        rows.append((n, flops, f"eager, {precision}", *timed(model, amp)))
         if compiled is not None:
-            rows.append((f"torch.compile, {precision}", *timed(compiled, amp)))
+            rows.append((n, flops, f"torch.compile, {precision}", *timed(compiled, amp)))
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="small")
+    p.add_argument("--size", type=int, default=224)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--data", default=None, help="shard root: also time data loading")
+    p.add_argument("--compile", action="store_true",
+                   help="also time the step with torch.compile (as training --compile true), in the same run")
+    p.add_argument("--amp", action="store_true", help="also time bf16 autocast (training --amp bf16), same run")
+    p.add_argument("--recipe", choices=("plain", "shipped"), default="plain",
+                   help="plain: regression + matching; shipped: + pose head, attention, coarse and pose losses")
+    p.add_argument("--depths", nargs="+", default=None, metavar="ENC,DEC",
+                   help="time the preset at these encoder,decoder depths, one set of rows each (e.g. 6,4 8,8: "
+                        "a model grown by training.grow against the one it grew from)")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    ceiling = matmul_ceiling()
+    try:
+        depths = [tuple(int(x) for x in d.split(",")) for d in a.depths] if a.depths else [None]
+        if any(d is not None and (len(d) != 2 or min(d) < 1) for d in depths):
+            raise ValueError
+    except ValueError:
+        p.error(f"--depths expected ENC,DEC pairs of positive integers, got {a.depths}")
+    preset = pm.PRESETS[a.preset].replace(pose_head=True) if a.recipe == "shipped" else pm.PRESETS[a.preset]
+    if a.recipe == "shipped":
+        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024, match_weight=0.25, temperature=0.1,
+                          coarse_weight=1.0, attn_weight=0.5, attn_heads=2, pose_weight=1.0, pose_dir_weight=0.5)
+    else:
+        cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
+    batch = synthetic_batch(a.batch, a.size, a.size)
+    rows = []
+    for d in depths:
+        torch.manual_seed(0)
+        arch = preset if d is None else preset.replace(enc_depth=d[0], dec_depth=d[1])
+        name = a.preset if d is None else f"{a.preset} {d[0]}/{d[1]} blocks"
+        model = pm.PointmapNet(arch).train()
+        step = make_step(cfg)  # its forward taps bind to the first model they see: one per model
+        rows += [(name, *r) for r in time_modes(model, step, batch, a)]
     print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s, recipe {a.recipe}\n")
-    print("| preset | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s | % ceiling "
-          "| first loss |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for mode, t, first, loss in rows:
-        print(f"| {a.preset} | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | {a.batch / t:.2f} | "
-              f"{flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% | {loss:.4f} |")
+    print("| model | parameters | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s "
+          "| % ceiling | first loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, n, flops, mode, t, first, loss in rows:
+        print(f"| {name} | {n / 1e6:.2f}M | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | "
+              f"{a.batch / t:.2f} | {flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% "
+              f"| {loss:.4f} |")
     print()
-    for mode, t, _, _ in rows[1:]:
-        print(f"{mode} / {rows[0][0]} speed: {rows[0][1] / t:.2f}x")
+    for name, _, _, mode, t, _, _ in rows[1:]:
+        print(f"{name}, {mode} / {rows[0][0]}, {rows[0][3]} speed: {rows[0][4] / t:.2f}x")
+    rows = [r[3:] for r in rows]
     t = rows[0][1]
     if a.data:
         from data.datasets import PairDataset
