@@ -224,3 +224,12 @@ def test_a_safetensors_file_from_another_project_is_refused(tmp_path):
 def test_unknown_names_list_what_is_shipped():
     with pytest.raises(pm.CheckpointError, match="no such file or shipped model"):
         pm.load_model("nonexistent_model_name")
+
+
+def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_names_its_training():
+    from pointmap.checkpoint import WEIGHTS_DIR
+
+    assert pm.checkpoint.shipped_models()
+    for name in pm.checkpoint.shipped_models():
+        assert (WEIGHTS_DIR / f"{name}.safetensors").stat().st_size <= 25_000_000, name
+        assert pm.load_model(name).provenance["steps"] > 0, name
