@@ -255,22 +255,39 @@ SCALE_SUFFIX = ":int8_scale"
 
 
 def quantize_int8(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Symmetric per-output-channel int8: (q [same shape, int8], scale [out] fp32) with w ~= q * scale
-    (each channel's largest magnitude maps to 127; the error per weight is at most scale / 2)."""
+    """Symmetric int8 with one scale per slice along the first dimension (a Linear's or Conv2d's output
+    channel): (q [same shape, int8], scale [w.shape[0]] fp32) with w ~= q * scale, each slice's largest
+    magnitude mapped to 127 (the error per weight is at most scale / 2). ValueError for a tensor that is not
+    floating point, has no dimension or no entries, or holds NaN or inf."""
+    if not torch.is_tensor(w) or not w.is_floating_point() or w.ndim < 1 or w.numel() == 0:
+        raise ValueError(f"quantize_int8 expected a non-empty floating tensor with at least one dimension, got "
+                         f"{type(w).__name__} {getattr(w, 'dtype', '')} {tuple(getattr(w, 'shape', ()))}")
     flat = w.detach().float().reshape(w.shape[0], -1)
+    if not torch.isfinite(flat).all():
+        raise ValueError(f"quantize_int8 expected finite weights, got {int((~torch.isfinite(flat)).sum())} NaN/inf")
     scale = flat.abs().amax(dim=1).clamp_min(1e-12) / 127.0
     q = torch.round(flat / scale[:, None]).clamp_(-127, 127).to(torch.int8)
     return q.reshape(w.shape), scale
 
 
 def dequantize_int8(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    return (q.float().reshape(q.shape[0], -1) * scale.float()[:, None]).reshape(q.shape)
+    """The fp32 weights ``q * scale`` of ``quantize_int8``'s output (one scale per slice along dim 0).
+    ValueError unless q is int8 with at least one dimension and scale is a finite positive fp32 [q.shape[0]]."""
+    if not (torch.is_tensor(q) and q.dtype == torch.int8 and q.ndim >= 1 and q.numel() > 0):
+        raise ValueError(f"expected a non-empty int8 tensor, got {getattr(q, 'dtype', type(q).__name__)} "
+                         f"{tuple(getattr(q, 'shape', ()))}")
+    if not (torch.is_tensor(scale) and scale.dtype == torch.float32 and tuple(scale.shape) == (q.shape[0],)):
+        raise ValueError(f"expected a float32 scale of shape [{q.shape[0]}], got "
+                         f"{getattr(scale, 'dtype', type(scale).__name__)} {tuple(getattr(scale, 'shape', ()))}")
+    if not (torch.isfinite(scale).all() and (scale > 0).all()):
+        raise ValueError("expected finite positive scales, got NaN, inf, zero or negative ones")
+    return (q.float().reshape(q.shape[0], -1) * scale[:, None]).reshape(q.shape)
 
 
 def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtype=None) -> Path:
     """Write ``model`` as safetensors + JSON config (atomically). ``dtype=torch.float16`` halves the size;
-    ``dtype="int8"`` stores every weight matrix of at least INT8_MIN_NUMEL entries as int8 with a per-output-
-    channel fp32 scale (``quantize_int8``; about a quarter of fp32) and the rest as fp16. Loading
+    ``dtype="int8"`` stores every weight matrix of at least INT8_MIN_NUMEL entries as int8 with an fp32 scale
+    per slice along its first dimension (``quantize_int8``; about a quarter of fp32) and the rest as fp16. Loading
     dequantizes to fp32, so an int8 file is a storage format: the model computes in float."""
     from safetensors.torch import save_file
 
@@ -308,15 +325,20 @@ def _dequantize_state(state: dict, meta: dict, path) -> dict:
         raise CheckpointError(f"{path} has a broken int8 tensor list: {e}") from None
     if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
         raise CheckpointError(f"{path}: int8 metadata expected a list of tensor names, got {type(keys).__name__}")
+    bad = sorted({k for k in keys if keys.count(k) > 1 or k.endswith(SCALE_SUFFIX)})
+    if bad:
+        raise CheckpointError(f"{path}: int8 metadata expected distinct weight names, got repeated or scale names {bad[:3]}")
     out = dict(state)
     for k in keys:
-        q, scale = out.get(k), out.pop(k + SCALE_SUFFIX, None)
-        if q is None or scale is None or q.dtype != torch.int8 or scale.shape != (q.shape[0],):
-            raise CheckpointError(f"{path}: int8 tensor {k!r} expected an int8 tensor and a scale of shape "
-                                  f"[{q.shape[0] if q is not None else '?'}], got "
-                                  f"{None if q is None else (q.dtype, tuple(q.shape))} and "
-                                  f"{None if scale is None else tuple(scale.shape)}")
-        out[k] = dequantize_int8(q, scale)
+        q, scale = state.get(k), state.get(k + SCALE_SUFFIX)
+        if q is None or scale is None:
+            raise CheckpointError(f"{path}: int8 tensor {k!r} expected in the file with its scale "
+                                  f"{k + SCALE_SUFFIX!r}; missing: {'the tensor' if q is None else 'the scale'}")
+        try:
+            out[k] = dequantize_int8(q, scale)
+        except ValueError as e:
+            raise CheckpointError(f"{path}: int8 tensor {k!r}: {e}") from None
+        del out[k + SCALE_SUFFIX]
     stray = [k for k in out if k.endswith(SCALE_SUFFIX) or out[k].dtype == torch.int8]
     if stray:
         raise CheckpointError(f"{path}: int8 tensors or scales not listed in its metadata: {stray[:3]}")
@@ -342,7 +364,10 @@ def load_own(path: Path) -> PointmapNet:
     state = _dequantize_state(state, meta, path)
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     load_state_strict(model, state, source=str(path))
-    model.provenance = json.loads(meta.get("provenance", "{}"))
+    try:
+        model.provenance = json.loads(meta.get("provenance", "{}"))
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{path} has broken provenance metadata: {e}") from None
     return model
 
 

@@ -193,7 +193,7 @@ def test_int8_files_hold_weight_matrices_in_int8_and_load_back_within_half_a_ste
     assert torch.allclose(a.pts1_cam1, b.pts1_cam1, rtol=0.05, atol=0.05)
 
 
-def test_int8_files_whose_tensor_list_does_not_match_are_refused(tmp_path, tiny_model):
+def test_int8_files_whose_tensors_or_list_do_not_match_are_refused_in_one_line(tmp_path, tiny_model):
     from safetensors import safe_open
     from safetensors.torch import save_file
 
@@ -201,16 +201,46 @@ def test_int8_files_whose_tensor_list_does_not_match_are_refused(tmp_path, tiny_
     with safe_open(str(path), framework="pt") as f:
         meta, state = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
     listed = json.loads(meta["int8"])
-    cases = {"missing scale": ({k: v for k, v in state.items() if k != listed[0] + ":int8_scale"}, meta),
+    k, sk = listed[0], listed[0] + ":int8_scale"
+
+    def changed(**tensors):
+        return {**state, **tensors}
+
+    cases = {"missing scale": ({n: v for n, v in state.items() if n != sk}, meta),
              "unlisted int8": (state, {**meta, "int8": json.dumps(listed[1:])}),
-             "broken list": (state, {**meta, "int8": "[not json"})}
+             "broken list": (state, {**meta, "int8": "[not json"}),
+             "not a list": (state, {**meta, "int8": json.dumps({"a": 1})}),
+             "repeated name": (state, {**meta, "int8": json.dumps(listed + [k])}),
+             "scale listed": (state, {**meta, "int8": json.dumps(listed + [sk])}),
+             "float tensor listed": (changed(**{k: state[k].float()}), meta),
+             "int8 scale": (changed(**{sk: state[sk].to(torch.int8)}), meta),
+             "short scale": (changed(**{sk: state[sk][:-1]}), meta),
+             "NaN scale": (changed(**{sk: torch.full_like(state[sk], float("nan"))}), meta),
+             "negative scale": (changed(**{sk: -state[sk]}), meta),
+             "0-dim tensor": (changed(**{k: torch.tensor(3, dtype=torch.int8)}), meta)}
     for name, (tensors, md) in cases.items():
         save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=md)
         with pytest.raises(pm.CheckpointError, match="int8") as e:
             pm.load_model(tmp_path / "bad.safetensors")
         assert "\n" not in str(e.value), name
+    save_file(state, str(tmp_path / "bad.safetensors"), metadata={**meta, "provenance": "{broken"})
+    with pytest.raises(pm.CheckpointError, match="provenance"):
+        pm.load_model(tmp_path / "bad.safetensors")
+
+
+def test_saving_refuses_an_unknown_dtype_and_weights_int8_cannot_hold(tmp_path, tiny_model):
+    from pointmap.checkpoint import quantize_int8
+
     with pytest.raises(ValueError, match="dtype expected"):
         pm.save_model(tiny_model, tmp_path / "x.safetensors", dtype=torch.int8)
+    with torch.no_grad():
+        tiny_model.enc_blocks[0].mlp.fc1.weight[3, 5] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        pm.save_model(tiny_model, tmp_path / "x.safetensors", dtype="int8")
+    assert not (tmp_path / "x.safetensors").exists()
+    for bad in (torch.tensor(1.0), torch.zeros(0, 3), torch.ones(3, 3, dtype=torch.int64)):
+        with pytest.raises(ValueError, match="expected a non-empty floating tensor"):
+            quantize_int8(bad)
 
 
 def test_a_safetensors_file_from_another_project_is_refused(tmp_path):
@@ -226,10 +256,11 @@ def test_unknown_names_list_what_is_shipped():
         pm.load_model("nonexistent_model_name")
 
 
-def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_names_its_training():
+def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_steps_and_data():
     from pointmap.checkpoint import WEIGHTS_DIR
 
     assert pm.checkpoint.shipped_models()
     for name in pm.checkpoint.shipped_models():
         assert (WEIGHTS_DIR / f"{name}.safetensors").stat().st_size <= 25_000_000, name
-        assert pm.load_model(name).provenance["steps"] > 0, name
+        prov = pm.load_model(name).provenance
+        assert prov.get("steps", 0) > 0 and prov.get("data"), (name, sorted(prov))

@@ -2,16 +2,19 @@
 
     python -m training.grow --init pointmap/weights/small.safetensors --enc_depth 8 --dec_depth 8 --out grown.safetensors
 
-Every new block is a copy of the block it follows with its output projections (self-attention ``proj``,
+Every new block is a copy of the block it precedes with its output projections (self-attention ``proj``,
 cross-attention ``proj``, MLP ``fc2``) zeroed: each residual branch then adds exactly zero, so the grown
 model's outputs equal the original's, and training starts from the trained model's level instead of from
 scratch. The copied inner weights (queries, keys, values, ``fc1``) give the new block meaningful features
-the moment its output projections move off zero; the cross-attention scores the attention loss supervises
-start as its neighbour's.
+the moment its output projections move off zero. Each copy is placed before its original: every original
+block then sees what it saw before, and the last block is still an original (the layer whose attention
+accuracy training logs). The outputs are preserved; the cross-attention loss, taken at every decoder
+layer, is not exactly (a copy's queries lack the self-attention update its original adds before them).
 
-New blocks are spread evenly: with L old blocks and L' >= L new ones, old block i is followed by
+New blocks are spread evenly: with L old blocks and L' >= L new ones, old block i is preceded by
 ``(i + 1) * (L' - L) // L - i * (L' - L) // L`` copies of itself. Both decoders grow alike (they share
-a depth). The result is written as our fp32 .safetensors, which ``training.train --init`` fine-tunes.
+a depth). The result is written as our fp32 .safetensors, which ``training.train --init`` fine-tunes;
+its provenance lists every growth in ``grown_from``.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from pointmap.model import PointmapNet
 
 
 def _silent_copy(block: nn.Module) -> nn.Module:
-    """A copy of ``block`` whose residual branches output exactly zero (its output projections zeroed)."""
+    """A copy of ``block`` whose residual branches add exactly zero (its output projections zeroed)."""
     new = copy.deepcopy(block)
     outs = [new.attn.proj, new.mlp.fc2] + ([new.cross_attn.proj] if hasattr(new, "cross_attn") else [])
     with torch.no_grad():
@@ -45,21 +48,31 @@ def _deepen(blocks: nn.ModuleList, depth: int) -> nn.ModuleList:
     extra = depth - old
     out = []
     for i, blk in enumerate(blocks):
-        out.append(blk)
         out.extend(_silent_copy(blk) for _ in range((i + 1) * extra // old - i * extra // old))
+        out.append(blk)
     return nn.ModuleList(out)
 
 
 def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int | None = None) -> PointmapNet:
     """A new model with ``enc_depth`` encoder and ``dec_depth`` decoder blocks (None: unchanged) computing the
     same function as ``model`` (see the module doc). ``model`` itself is left as it was. ValueError for a
-    depth below the current one (growth only) or a DPT head (its hooks index decoder layers)."""
+    depth that is not an int above the current one (growth only; at least one more block), a model without
+    blocks to copy, or a DPT head's decoder (its hooks index decoder layers)."""
     cfg = model.cfg
-    enc_depth = cfg.enc_depth if enc_depth is None else int(enc_depth)
-    dec_depth = cfg.dec_depth if dec_depth is None else int(dec_depth)
+    enc_depth = cfg.enc_depth if enc_depth is None else enc_depth
+    dec_depth = cfg.dec_depth if dec_depth is None else dec_depth
+    for name, d in (("enc_depth", enc_depth), ("dec_depth", dec_depth)):
+        if isinstance(d, bool) or not isinstance(d, int):
+            raise ValueError(f"{name} expected an int, got {d!r}")
     if enc_depth < cfg.enc_depth or dec_depth < cfg.dec_depth:
         raise ValueError(f"growth only: expected enc_depth >= {cfg.enc_depth} and dec_depth >= {cfg.dec_depth}, "
                          f"got {enc_depth} and {dec_depth}")
+    if (enc_depth, dec_depth) == (cfg.enc_depth, cfg.dec_depth):
+        raise ValueError(f"nothing to grow: the model already has {cfg.enc_depth} encoder and {cfg.dec_depth} "
+                         "decoder blocks")
+    if (enc_depth > cfg.enc_depth and cfg.enc_depth == 0) or (dec_depth > cfg.dec_depth and cfg.dec_depth == 0):
+        raise ValueError(f"growth copies existing blocks; the model has {cfg.enc_depth} encoder and "
+                         f"{cfg.dec_depth} decoder blocks")
     if "dpt" in cfg.head and dec_depth != cfg.dec_depth:
         raise ValueError(f"a {cfg.head!r} head reads intermediate decoder layers; deepening its decoder would "
                          "change what they hold (only the encoder can grow)")
@@ -69,8 +82,9 @@ def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int |
     src.dec_blocks = _deepen(src.dec_blocks, dec_depth)
     src.dec_blocks2 = _deepen(src.dec_blocks2, dec_depth)
     grown.load_state_dict(src.state_dict(), strict=True)
-    grown.provenance = dict(getattr(model, "provenance", {}) or {},
-                            grown_from={"enc_depth": cfg.enc_depth, "dec_depth": cfg.dec_depth})
+    prov = dict(getattr(model, "provenance", {}) or {})
+    prov["grown_from"] = [*prov.get("grown_from", []), {"enc_depth": cfg.enc_depth, "dec_depth": cfg.dec_depth}]
+    grown.provenance = prov
     return grown
 
 
@@ -86,10 +100,10 @@ def main(argv=None) -> int:
         if not isinstance(model, PointmapNet):
             raise CheckpointError(f"--init {a.init} is not a PyTorch model")
         grown = deepen(model, enc_depth=a.enc_depth, dec_depth=a.dec_depth)
+        path = save_model(grown, Path(a.out))
     except (CheckpointError, ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    path = save_model(grown, Path(a.out))
     n0 = sum(t.numel() for t in model.state_dict().values())
     n1 = sum(t.numel() for t in grown.state_dict().values())
     print(f"{path}: encoder {model.cfg.enc_depth} -> {grown.cfg.enc_depth} blocks, decoders {model.cfg.dec_depth} -> "

@@ -19,48 +19,60 @@ def _model(seed=0, cfg=CFG):
     return model
 
 
-def test_a_deepened_model_computes_exactly_what_the_original_computes():
-    model = _model()
-    grown = deepen(model, enc_depth=5, dec_depth=7).eval()
-    assert (grown.cfg.enc_depth, grown.cfg.dec_depth) == (5, 7) and model.cfg.enc_depth == 2
+@pytest.mark.parametrize("head, depths", [("catmlp+linear", dict(enc_depth=5, dec_depth=7)),
+                                          ("linear", dict(enc_depth=3, dec_depth=5)),
+                                          ("catmlp+dpt", dict(enc_depth=4))])
+def test_a_deepened_model_computes_exactly_what_the_original_computes(head, depths):
+    cfg = CFG.replace(head=head, desc_dim=CFG.desc_dim if head.startswith("catmlp") else 0,
+                      desc_stem=CFG.desc_stem if head.startswith("catmlp") else 0)
+    model = _model(cfg=cfg)
+    grown = deepen(model, **depths).eval()
+    assert grown.cfg == cfg.replace(**depths) and model.cfg == cfg
     torch.manual_seed(1)
     a, b = torch.rand(2, 3, 32, 48), torch.rand(2, 3, 32, 48)
     with torch.no_grad():
         want, got = model(a, b), grown(a, b)
     for k in ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2"):
-        torch.testing.assert_close(getattr(got, k), getattr(want, k), rtol=0, atol=1e-6)
+        if getattr(want, k) is not None:
+            assert torch.equal(getattr(got, k), getattr(want, k)), k
 
 
-def test_new_blocks_follow_the_block_they_copy_spread_evenly_with_silent_outputs():
+def test_new_blocks_precede_the_block_they_copy_spread_evenly_with_silent_outputs():
     model = _model()
-    grown = deepen(model, enc_depth=5)  # 2 -> 5: block 0 gets 1 copy, block 1 gets 2
-    src = [0, 0, 1, 1, 1]
-    for i, blk in enumerate(grown.enc_blocks):
-        old = model.enc_blocks[src[i]]
-        new_block = i not in (0, 2)
-        torch.testing.assert_close(blk.attn.qkv.weight, old.attn.qkv.weight, rtol=0, atol=0)
-        torch.testing.assert_close(blk.mlp.fc1.weight, old.mlp.fc1.weight, rtol=0, atol=0)
-        for lin in (blk.attn.proj, blk.mlp.fc2):
-            assert bool((lin.weight == 0).all() and (lin.bias == 0).all()) == new_block, i
-    assert all(float(b.cross_attn.proj.weight.detach().abs().sum()) > 0 for b in grown.dec_blocks)  # decoders unchanged
+    grown = deepen(model, enc_depth=5, dec_depth=6)  # encoder 2 -> 5: block 0 gets 1 copy, block 1 gets 2
+    for blocks, old_blocks, src, originals in ((grown.enc_blocks, model.enc_blocks, [0, 0, 1, 1, 1], (1, 4)),
+                                               (grown.dec_blocks2, model.dec_blocks2, [0, 1, 1, 2, 3, 3], (0, 2, 3, 5))):
+        for i, blk in enumerate(blocks):
+            old = old_blocks[src[i]]
+            if i in originals:
+                assert blk is not old and all(torch.equal(x, y) for x, y in
+                                              zip(blk.state_dict().values(), old.state_dict().values())), i
+                continue
+            torch.testing.assert_close(blk.attn.qkv.weight, old.attn.qkv.weight, rtol=0, atol=0)
+            torch.testing.assert_close(blk.mlp.fc1.weight, old.mlp.fc1.weight, rtol=0, atol=0)
+            outs = [blk.attn.proj, blk.mlp.fc2] + ([blk.cross_attn.proj] if hasattr(blk, "cross_attn") else [])
+            assert all(bool((lin.weight == 0).all() and (lin.bias == 0).all()) for lin in outs), i
 
 
 def test_the_silent_blocks_get_gradients_and_learn():
     grown = deepen(_model(), dec_depth=5).train()
     out = grown(torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32))
     (out.pts1_cam1.square().mean() + out.pts2_cam1.square().mean()).backward()
-    new = grown.dec_blocks[4]  # 4 -> 5: the one copy follows the last block
+    new = grown.dec_blocks[3]  # 4 -> 5: the one copy precedes the last block
     assert float(new.mlp.fc2.weight.detach().abs().sum()) == 0
     assert float(new.mlp.fc2.weight.grad.abs().sum()) > 0
     assert float(new.cross_attn.proj.weight.grad.abs().sum()) > 0
 
 
-def test_growth_refuses_shrinking_and_a_dpt_decoder_with_the_reason():
+def test_growth_refuses_shrinking_no_change_and_a_dpt_decoder_with_the_reason():
     with pytest.raises(ValueError, match="growth only"):
         deepen(_model(), enc_depth=1)
+    with pytest.raises(ValueError, match="nothing to grow"):
+        deepen(_model(), enc_depth=2)
+    with pytest.raises(ValueError, match="expected an int"):
+        deepen(_model(), enc_depth=2.7)
     with pytest.raises(ValueError, match="intermediate decoder layers"):
         deepen(PointmapNet(PRESETS["test"]), dec_depth=6)
-    assert deepen(PointmapNet(PRESETS["test"]), enc_depth=3).cfg.enc_depth == 3  # a DPT model's encoder may grow
 
 
 def test_the_command_writes_a_grown_model_file_and_fails_in_one_line(tmp_path, capsys):
@@ -68,10 +80,14 @@ def test_the_command_writes_a_grown_model_file_and_fails_in_one_line(tmp_path, c
     pm.save_model(model, tmp_path / "m.safetensors", provenance={"steps": 9})
     assert main(["--init", str(tmp_path / "m.safetensors"), "--dec_depth", "6", "--out", str(tmp_path / "g.safetensors")]) == 0
     grown = pm.load_model(tmp_path / "g.safetensors")
-    assert grown.cfg.dec_depth == 6 and grown.provenance["grown_from"] == {"enc_depth": 2, "dec_depth": 4}
+    assert grown.cfg.dec_depth == 6 and grown.provenance["grown_from"] == [{"enc_depth": 2, "dec_depth": 4}]
     assert grown.provenance["steps"] == 9
+    assert main(["--init", str(tmp_path / "g.safetensors"), "--enc_depth", "3", "--out", str(tmp_path / "g2.safetensors")]) == 0
+    assert pm.load_model(tmp_path / "g2.safetensors").provenance["grown_from"] == [
+        {"enc_depth": 2, "dec_depth": 4}, {"enc_depth": 2, "dec_depth": 6}]
     (tmp_path / "junk.safetensors").write_bytes(b"junk")
-    for args in (["--init", str(tmp_path / "junk.safetensors")], ["--init", str(tmp_path / "m.safetensors"), "--enc_depth", "1"]):
+    for args in (["--init", str(tmp_path / "junk.safetensors")], ["--init", str(tmp_path / "m.safetensors"), "--enc_depth", "1"],
+                 ["--init", str(tmp_path / "m.safetensors")]):
         assert main([*args, "--out", str(tmp_path / "x.safetensors")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error:") and len(err.strip().splitlines()) == 1
