@@ -113,7 +113,10 @@ def main(argv=None) -> int:
     rows = []
     for d in depths:
         torch.manual_seed(0)
-        arch = preset if d is None else preset.replace(enc_depth=d[0], dec_depth=d[1])
+        try:
+            arch = preset if d is None else preset.replace(enc_depth=d[0], dec_depth=d[1])
+        except pm.CheckpointError as e:  # e.g. a DPT head below 4 decoder blocks
+            p.error(f"--depths {d[0]},{d[1]}: {e}")
         name = a.preset if d is None else f"{a.preset} {d[0]}/{d[1]} blocks"
         model = pm.PointmapNet(arch).train()
         step = make_step(cfg)  # its forward taps bind to the first model they see: one per model
