@@ -103,8 +103,9 @@ def main(argv=None) -> int:
             raise ValueError
     except ValueError:
         p.error(f"--depths expected ENC,DEC pairs of positive integers, got {a.depths}")
-    preset = pm.PRESETS[a.preset].replace(pose_head=True) if a.recipe == "shipped" else pm.PRESETS[a.preset]
+    preset = pm.PRESETS[a.preset]
     if a.recipe == "shipped":
+        preset = preset.replace(pose_head=True)
         cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024, match_weight=0.25, temperature=0.1,
                           coarse_weight=1.0, attn_weight=0.5, attn_heads=2, pose_weight=1.0, pose_dir_weight=0.5)
     else:
@@ -132,8 +133,7 @@ def main(argv=None) -> int:
     print()
     for name, _, _, mode, t, _, _ in rows[1:]:
         print(f"{name}, {mode} / {rows[0][0]}, {rows[0][3]} speed: {rows[0][4] / t:.2f}x")
-    rows = [r[3:] for r in rows]
-    t = rows[0][1]
+    t = rows[0][4]  # the first row's s/step
     if a.data:
         from data.datasets import PairDataset
 
