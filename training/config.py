@@ -53,6 +53,10 @@ class TrainConfig:
     pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
     pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
+    grown_from: str = ""           # "ENC,DEC": the --init model was grown (training.grow) from these depths ...
+    grown_lr: float = 1.0          # ... and the output projections that growth zeroed train at this multiple of
+                                   # --lr (they start at 0; AdamW moves every weight by about the same step, so
+                                   # at 1 they stay near 0 for thousands of steps: docs/training.md, Growing)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
     eval_every: int = 1000
@@ -111,6 +115,15 @@ class TrainConfig:
         for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "conf_reset"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
+        if cfg.grown_lr <= 0:
+            p.error(f"--grown_lr expected a learning-rate multiplier > 0, got {cfg.grown_lr}")
+        if cfg.grown_from:
+            try:
+                grown_depths(cfg.grown_from)
+            except ValueError as e:
+                p.error(str(e))
+        elif cfg.grown_lr != 1:
+            p.error("--grown_lr needs --grown_from ENC,DEC (the depths training.grow grew the --init model from)")
         if cfg.attn_heads < 1:
             p.error(f"--attn_heads expected >= 1 (supervised heads per decoder layer), got {cfg.attn_heads}")
         if not cfg.data:
@@ -127,3 +140,15 @@ def _bool(s: str) -> bool:
     if s.lower() in ("0", "false", "no", "off"):
         return False
     raise argparse.ArgumentTypeError(f"expected a boolean, got {s!r}")
+
+
+def grown_depths(text: str) -> tuple[int, int]:
+    """``--grown_from "ENC,DEC"`` as two ints >= 1; ValueError (one line) otherwise."""
+    parts = text.split(",")
+    try:
+        enc, dec = (int(x) for x in parts)
+    except ValueError:
+        raise ValueError(f"--grown_from expected ENC,DEC (two block counts, e.g. 6,4), got {text!r}") from None
+    if enc < 1 or dec < 1:
+        raise ValueError(f"--grown_from expected block counts >= 1, got {text!r}")
+    return enc, dec

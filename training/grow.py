@@ -30,25 +30,54 @@ from torch import nn
 from pointmap.checkpoint import CheckpointError, load_model, save_model
 from pointmap.model import PointmapNet
 
+SILENT = ("attn.proj", "cross_attn.proj", "mlp.fc2")  # a new block's output projections, zeroed at growth
+GROWN = ("enc_blocks", "dec_blocks", "dec_blocks2")    # the block lists growth deepens
+
 
 def _silent_copy(block: nn.Module) -> nn.Module:
     """A copy of ``block`` whose residual branches add exactly zero (its output projections zeroed)."""
     new = copy.deepcopy(block)
-    outs = [new.attn.proj, new.mlp.fc2] + ([new.cross_attn.proj] if hasattr(new, "cross_attn") else [])
     with torch.no_grad():
-        for lin in outs:
+        for name in SILENT:
+            if not hasattr(new, name.split(".")[0]):  # an encoder block has no cross-attention
+                continue
+            lin = new.get_submodule(name)
             lin.weight.zero_()
             if lin.bias is not None:
                 lin.bias.zero_()
     return new
 
 
+def _copies_before(i: int, old: int, new: int) -> int:
+    """How many silent copies of old block ``i`` precede it when ``old`` blocks grow to ``new`` (module doc)."""
+    return (i + 1) * (new - old) // old - i * (new - old) // old
+
+
+def new_block_indices(old: int, new: int) -> list[int]:
+    """Positions of the silent copies in a block list grown from ``old`` to ``new`` blocks."""
+    out, pos = [], 0
+    for i in range(old):
+        k = _copies_before(i, old, new)
+        out.extend(range(pos, pos + k))
+        pos += k + 1
+    return out
+
+
+def silent_parameters(names, enc_from: int, dec_from: int, enc_depth: int, dec_depth: int) -> list[str]:
+    """The parameters (of ``names``) that growth from ``enc_from`` / ``dec_from`` blocks to ``enc_depth`` /
+    ``dec_depth`` zeroed: the new blocks' output projections (``SILENT``), weights and biases. They start at
+    zero while every other weight starts trained, and AdamW moves every weight by about the same amount per
+    step, so they stay small for long (``training.train --grown_lr`` scales their learning rate)."""
+    new = {"enc_blocks": new_block_indices(enc_from, enc_depth), "dec_blocks": new_block_indices(dec_from, dec_depth)}
+    new["dec_blocks2"] = new["dec_blocks"]
+    prefixes = tuple(f"{g}.{i}.{m}." for g in GROWN for i in new[g] for m in SILENT)
+    return [n for n in names if n.startswith(prefixes)]
+
+
 def _deepen(blocks: nn.ModuleList, depth: int) -> nn.ModuleList:
-    old = len(blocks)
-    extra = depth - old
     out = []
     for i, blk in enumerate(blocks):
-        out.extend(_silent_copy(blk) for _ in range((i + 1) * extra // old - i * extra // old))
+        out.extend(_silent_copy(blk) for _ in range(_copies_before(i, len(blocks), depth)))
         out.append(blk)
     return nn.ModuleList(out)
 

@@ -84,15 +84,25 @@ class StepBatches(torch.utils.data.Sampler):
 NO_DECAY_SUFFIXES = ("pose_head.query",)  # learned embeddings, like tokens
 
 
-def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
-    """AdamW (0.9, 0.95); no weight decay on biases, norms, tokens and learned embeddings."""
-    decay, no_decay = [], []
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, lr_scale: dict[str, float] | None = None
+                   ) -> torch.optim.Optimizer:
+    """AdamW (0.9, 0.95); no weight decay on biases, norms, tokens and learned embeddings. ``lr_scale`` maps
+    parameter names to a multiplier of the learning rate (e.g. ``--grown_lr``); each group records its
+    multiplier as ``lr_scale``, which the schedule keeps."""
+    lr_scale = lr_scale or {}
+    unknown = set(lr_scale) - {name for name, _ in model.named_parameters()}
+    if unknown:
+        raise ValueError(f"lr_scale names parameters the model does not have: {sorted(unknown)[:3]}")
+    groups: dict[tuple[bool, float], list] = {}
     for name, p in model.named_parameters():
         if not p.requires_grad:
             continue
-        (no_decay if p.ndim < 2 or "token" in name or name.endswith(NO_DECAY_SUFFIXES) else decay).append(p)
-    groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
-    return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.95))
+        decay = not (p.ndim < 2 or "token" in name or name.endswith(NO_DECAY_SUFFIXES))
+        groups.setdefault((decay, float(lr_scale.get(name, 1.0))), []).append(p)
+    # the unscaled groups first, in the order earlier checkpoints hold them (decay, then no decay)
+    order = sorted(groups, key=lambda k: (k[1] != 1.0, k[1], not k[0]))
+    return torch.optim.AdamW([{"params": groups[k], "weight_decay": cfg.weight_decay if k[0] else 0.0,
+                               "lr": cfg.lr * k[1], "lr_scale": k[1]} for k in order], lr=cfg.lr, betas=(0.9, 0.95))
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
@@ -265,8 +275,10 @@ class Logger:
 
 
 # -- the loop -------------------------------------------------------------------------------------
-def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eval_fn=None) -> dict:
-    """Train ``model`` with ``step_fn(model, batch, step) -> (loss, metrics dict)``.
+def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eval_fn=None,
+        lr_scale: dict[str, float] | None = None) -> dict:
+    """Train ``model`` with ``step_fn(model, batch, step) -> (loss, metrics dict)`` (``lr_scale``:
+    ``make_optimizer``).
 
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
     every ``ckpt_every`` steps to ``out/last.pt``; both also at the last step, whether ``--steps`` or
@@ -283,14 +295,19 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     np.random.seed(cfg.seed + rank)
     random.seed(cfg.seed + rank)
     model.to(device)
-    optimizer = make_optimizer(model, cfg)
+    optimizer = make_optimizer(model, cfg, lr_scale)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, cfg))
     start = 0
     last = out / "last.pt"
     if cfg.resume and last.exists():
         ck = load_checkpoint(last)
         model.load_state_dict(ck["model"])
-        optimizer.load_state_dict(ck["optimizer"])
+        try:
+            optimizer.load_state_dict(ck["optimizer"])
+        except ValueError as e:  # torch: "loaded state dict has a different number of parameter groups", ...
+            raise CheckpointError(f"{last}: its optimizer state does not fit this run's parameter groups ({e}); "
+                                  "options that change the groups (--grown_lr) need a new --out, with --init "
+                                  f"{last} to start from its weights") from None
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})
@@ -298,10 +315,12 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
                 and start > saved["steps"] - saved["decay_steps"]):
             cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
-        scheduler.base_lrs = [cfg.lr] * len(optimizer.param_groups)
-        for group, fresh in zip(optimizer.param_groups, make_optimizer(model, cfg).param_groups):
-            group["lr"], group["initial_lr"] = cfg.lr * lr_factor(start, cfg), cfg.lr
+        fresh_groups = make_optimizer(model, cfg, lr_scale).param_groups
+        for group, fresh in zip(optimizer.param_groups, fresh_groups):
+            base = cfg.lr * fresh["lr_scale"]
+            group["lr"], group["initial_lr"], group["lr_scale"] = base * lr_factor(start, cfg), base, fresh["lr_scale"]
             group["weight_decay"] = fresh["weight_decay"]
+        scheduler.base_lrs = [g["initial_lr"] for g in optimizer.param_groups]
         scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
         if world == 1:
             _set_rng_state(ck["rng"])
@@ -351,7 +370,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
         if moved:  # the next update already runs at the first decay step's rate
             for group in optimizer.param_groups:
-                group["lr"] = cfg.lr * lr_factor(step, cfg)
+                group["lr"] = cfg.lr * group["lr_scale"] * lr_factor(step, cfg)
             scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
             bar.total = cfg.steps
             if rank == 0:

@@ -15,8 +15,9 @@ import torch
 from pointmap.checkpoint import load_model, load_state_strict, load_trunk, official_to_ours
 from pointmap.errors import CheckpointError
 from pointmap.model import PRESETS, PointmapNet
-from training.config import TrainConfig
+from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
+from training.grow import silent_parameters
 from training.loop import fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
@@ -214,6 +215,21 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
     return loss, details
 
 
+def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
+    """``--grown_from`` / ``--grown_lr``: the learning-rate multiplier of each parameter the model's growth zeroed
+    (``training.grow.silent_parameters``); {} without ``--grown_from``. ValueError (one line) when the model's
+    depths cannot have grown from ``--grown_from``."""
+    if not cfg.grown_from:
+        return {}
+    enc, dec = grown_depths(cfg.grown_from)
+    have = (model.cfg.enc_depth, model.cfg.dec_depth)
+    if enc > have[0] or dec > have[1] or (enc, dec) == have:
+        raise ValueError(f"--grown_from {cfg.grown_from}: the model has {have[0]} encoder and {have[1]} decoder "
+                         "blocks, so it was not grown from those depths (expected fewer blocks in at least one)")
+    names = silent_parameters([n for n, _ in model.named_parameters()], enc, dec, *have)
+    return {n: cfg.grown_lr for n in names}
+
+
 def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
     """Options that depend on the architecture, checked before any data is opened."""
     if cfg.attn_weight > 0 and cfg.attn_heads > model.cfg.dec_heads:
@@ -234,6 +250,7 @@ def main(argv=None) -> int:
     try:
         model = build_model(cfg)
         check_model_options(cfg, model)
+        lr_scale = grown_lr_scale(cfg, model)
     except (ValueError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -244,7 +261,10 @@ def main(argv=None) -> int:
     if cfg.eval_data:
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
         eval_fn = lambda m: evaluate_pairs(m, eval_set, cfg.eval_pairs)  # noqa: E731
-    result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
+    if lr_scale:
+        print(f"--grown_lr {cfg.grown_lr}: {len(lr_scale)} tensors (the output projections of the blocks grown from "
+              f"{cfg.grown_from})", file=sys.stderr)
+    result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale)
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
     return 0
 

@@ -5,7 +5,7 @@ import torch
 
 import pointmap as pm
 from pointmap.model import PRESETS, PointmapNet
-from training.grow import deepen, main
+from training.grow import deepen, main, silent_parameters
 
 CFG = PRESETS["test"].replace(head="catmlp+linear", pose_head=True, desc_stem=4)
 
@@ -92,3 +92,14 @@ def test_the_command_writes_a_grown_model_file_and_fails_in_one_line(tmp_path, c
         err = capsys.readouterr().err
         assert err.startswith("error:") and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.safetensors").exists()
+
+
+@pytest.mark.parametrize("new", [(3, 7), (2, 5), (7, 4)])
+def test_silent_parameters_name_exactly_the_tensors_growth_zeroed(new):
+    model = _model()  # every tensor non-zero, so the grown model's zeros are growth's
+    old = (model.cfg.enc_depth, model.cfg.dec_depth)
+    grown = deepen(model, enc_depth=new[0], dec_depth=new[1])
+    zero = {n for n, p in grown.named_parameters() if not p.any()}
+    silent = silent_parameters([n for n, _ in grown.named_parameters()], *old, *new)
+    assert zero and set(silent) == zero and len(silent) == len(zero)
+    assert not silent_parameters([n for n, _ in model.named_parameters()], *old, *old)  # no growth, none

@@ -519,3 +519,67 @@ def test_a_run_stopped_by_the_clock_evaluates_its_last_state(tmp_path, monkeypat
     rows = list(csv.DictReader(open(out / "eval.csv")))
     assert len(calls) == 1 and [int(r["step"]) for r in rows] == [result["step"]]
     assert torch.load(out / "last.pt", weights_only=True)["step"] == result["step"]
+
+
+def test_a_scaled_learning_rate_moves_its_tensors_by_that_multiple_and_keeps_it_through_the_schedule(tmp_path):
+    scaled = {"enc_blocks.1.mlp.fc2.weight": 10.0, "enc_blocks.1.mlp.fc2.bias": 10.0}
+
+    def train(out, steps, lr_scale, **overrides):
+        torch.manual_seed(0)
+        model = PointmapNet(PRESETS["test"])
+        cfg = dataclasses.replace(config(out, steps), **overrides)
+        fit(cfg, model, PlanePairs(6), collate, make_step(cfg), lr_scale=lr_scale)
+        return model
+
+    torch.manual_seed(0)
+    start = PointmapNet(PRESETS["test"]).state_dict()
+    plain, fast = train(tmp_path / "plain", 1, None).state_dict(), train(tmp_path / "fast", 1, scaled).state_dict()
+    for k in start:  # AdamW's first update is linear in the rate: lr * (the sign of the gradient + weight decay)
+        want = (plain[k] - start[k]) * scaled.get(k, 1.0)
+        assert torch.allclose(fast[k] - start[k], want, rtol=1e-3, atol=5e-7), k  # float32 steps of ~1e-4
+    assert (plain["enc_blocks.1.mlp.fc2.weight"] != start["enc_blocks.1.mlp.fc2.weight"]).any()
+    train(tmp_path / "fast", 6, scaled, schedule="wsd", decay_steps=2)  # resumed through the stable phase into the decay
+    groups = torch.load(tmp_path / "fast" / "last.pt", weights_only=True)["optimizer"]["param_groups"]
+    assert [(g["weight_decay"], g["lr_scale"], len(g["params"])) for g in groups][2:] == [(0.05, 10.0, 1),
+                                                                                          (0.0, 10.0, 1)]
+    assert [(g["weight_decay"], g["lr_scale"]) for g in groups][:2] == [(0.05, 1.0), (0.0, 1.0)]
+    for g in groups:
+        assert g["lr"] == pytest.approx(10 ** (g["lr_scale"] > 1) * groups[0]["lr"])
+        assert g["initial_lr"] == pytest.approx(TrainConfig.lr * g["lr_scale"])
+
+
+def test_resuming_with_a_learning_rate_scale_the_checkpoint_lacks_asks_for_a_new_run(tmp_path):
+    from pointmap.errors import CheckpointError
+
+    run(tmp_path / "a", 2)
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    cfg = config(tmp_path / "a", 4)
+    with pytest.raises(CheckpointError, match="need a new --out, with --init .*last.pt"):
+        fit(cfg, model, PlanePairs(6), collate, make_step(cfg), lr_scale={"enc_blocks.1.mlp.fc2.weight": 10.0})
+    with pytest.raises(ValueError, match="parameters the model does not have"):
+        fit(config(tmp_path / "b", 2), model, PlanePairs(6), collate, make_step(cfg), lr_scale={"nope": 2.0})
+
+
+def test_grown_learning_rate_options_are_checked_against_each_other_and_the_model(tmp_path, capsys):
+    from training.grow import deepen
+    from training.train import grown_lr_scale
+
+    for argv, message in ((["--grown_lr", "10"], "--grown_lr needs --grown_from ENC,DEC"),
+                          (["--grown_from", "6", "--grown_lr", "10"], "--grown_from expected ENC,DEC"),
+                          (["--grown_from", "0,4"], "block counts >= 1"),
+                          (["--grown_from", "6,4", "--grown_lr", "0"], "--grown_lr expected a learning-rate multiplier > 0")):
+        with pytest.raises(SystemExit):
+            TrainConfig.from_args(["--data", "x", *argv])
+        assert message in capsys.readouterr().err
+    model = PointmapNet(PRESETS["test"].replace(head="catmlp+linear"))  # 2 encoder, 4 decoder blocks
+    grown = deepen(model, enc_depth=3, dec_depth=6)
+    cfg = dataclasses.replace(config(tmp_path, 1), grown_from="2,4", grown_lr=10.0)
+    scale = grown_lr_scale(cfg, grown)
+    assert set(scale.values()) == {10.0}
+    assert {n for n, p in grown.named_parameters() if p.ndim > 1 and not p.any()} <= set(scale)
+    assert all(".mlp.fc2." in n or ".proj." in n for n in scale)
+    assert grown_lr_scale(config(tmp_path, 1), grown) == {}
+    for wrong in ("3,6", "4,4", "2,7"):
+        with pytest.raises(ValueError, match=f"--grown_from {wrong}: the model has 3 encoder and 6 decoder"):
+            grown_lr_scale(dataclasses.replace(cfg, grown_from=wrong), grown)
