@@ -65,7 +65,7 @@ def main(argv=None) -> int:
         except (CheckpointError, OSError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        if enc_from > cfg.enc_depth or dec_from > cfg.dec_depth:
+        if enc_from > cfg.enc_depth or dec_from > cfg.dec_depth or (enc_from, dec_from) == (cfg.enc_depth, cfg.dec_depth):
             print(f"error: {path} has {cfg.enc_depth} encoder and {cfg.dec_depth} decoder blocks: it was not grown "
                   f"from {a.grown_from}", file=sys.stderr)
             return 2

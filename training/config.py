@@ -53,10 +53,11 @@ class TrainConfig:
     pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
     pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
-    grown_from: str = ""           # "ENC,DEC": the --init model was grown (training.grow) from these depths ...
+    grown_from: str = ""           # "ENC,DEC": the --init model's last growth (training.grow) was from these depths
     grown_lr: float = 1.0          # ... and the output projections that growth zeroed train at this multiple of
-                                   # --lr (they start at 0; AdamW moves every weight by about the same step, so
-                                   # at 1 they stay near 0 for thousands of steps: docs/training.md, Growing)
+                                   # --lr, weight decay included (they start at 0; AdamW moves every weight by
+                                   # about the same step, so at 1 they stay near 0 for thousands of steps:
+                                   # docs/training.md, Growing a model)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
     eval_every: int = 1000
@@ -117,6 +118,10 @@ class TrainConfig:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.grown_lr <= 0:
             p.error(f"--grown_lr expected a learning-rate multiplier > 0, got {cfg.grown_lr}")
+        if cfg.task == "pretrain" and (cfg.grown_from or cfg.grown_lr != 1):
+            p.error("--grown_from / --grown_lr are for training a grown model (task train), not pretraining")
+        if cfg.grown_from and not cfg.init:
+            p.error("--grown_from needs --init (the grown model: training.grow's output, or a checkpoint of its run)")
         if cfg.grown_from:
             try:
                 grown_depths(cfg.grown_from)

@@ -276,9 +276,9 @@ class Logger:
 
 # -- the loop -------------------------------------------------------------------------------------
 def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eval_fn=None,
-        lr_scale: dict[str, float] | None = None) -> dict:
+        lr_scale: dict[str, float] | None = None, extra: dict | None = None) -> dict:
     """Train ``model`` with ``step_fn(model, batch, step) -> (loss, metrics dict)`` (``lr_scale``:
-    ``make_optimizer``).
+    ``make_optimizer``; ``extra``: recorded in every checkpoint, e.g. the model's growth history).
 
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
     every ``ckpt_every`` steps to ``out/last.pt``; both also at the last step, whether ``--steps`` or
@@ -304,10 +304,12 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         model.load_state_dict(ck["model"])
         try:
             optimizer.load_state_dict(ck["optimizer"])
-        except ValueError as e:  # torch: "loaded state dict has a different number of parameter groups", ...
-            raise CheckpointError(f"{last}: its optimizer state does not fit this run's parameter groups ({e}); "
-                                  "options that change the groups (--grown_lr) need a new --out, with --init "
-                                  f"{last} to start from its weights") from None
+        except ValueError:  # torch: "loaded state dict has a different number of parameter groups", ...
+            def groups(gs):
+                return f"{len(gs)} parameter groups (learning-rate multipliers {sorted({g.get('lr_scale', 1.0) for g in gs})})"
+            raise CheckpointError(f"{last}: its optimizer holds {groups(ck['optimizer']['param_groups'])}, this run "
+                                  f"{groups(optimizer.param_groups)}: turning --grown_lr on or off needs a new --out, "
+                                  f"with --init {last} to start from its weights") from None
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})
@@ -370,7 +372,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
         if moved:  # the next update already runs at the first decay step's rate
             for group in optimizer.param_groups:
-                group["lr"] = cfg.lr * group["lr_scale"] * lr_factor(step, cfg)
+                group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
             scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
             bar.total = cfg.steps
             if rank == 0:
@@ -384,11 +386,11 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             logger.log("train", step, metrics)
         if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
             # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
-            save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg)
+            save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
         ending = stop or step >= cfg.steps  # the last update: checkpointed and evaluated, whatever ended it
         if rank == 0 and (step % cfg.ckpt_every == 0 or ending):
             t_ckpt = time.time()
-            save_checkpoint(last, model, optimizer, scheduler, step, cfg)
+            save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
             ckpt_seconds = time.time() - t_ckpt
         if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
             model.eval()

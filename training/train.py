@@ -31,16 +31,18 @@ from training.mix import limit_rotation, open_pairs
 
 
 def _init_state(path: Path):
-    """(state dict under our key names, model config, kind) of any --init source."""
+    """(state dict under our key names, model config, kind, growth history) of any --init source; the history is
+    the list ``training.grow`` records (``grown_from``), None where the source does not record one."""
     if path.suffix == ".pt":  # one of our training checkpoints (pretraining or training)
         from pointmap.model.config import ModelConfig
 
         ck = load_checkpoint(path)
-        return official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind")
+        growth = (ck.get("extra") or {}).get("grown_from")
+        return official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind"), growth
     model = load_model(str(path))
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"--init {path} is not a PyTorch model")
-    return model.state_dict(), model.cfg, "weights"
+    return model.state_dict(), model.cfg, "weights", (getattr(model, "provenance", None) or {}).get("grown_from")
 
 
 def build_model(cfg: TrainConfig) -> PointmapNet:
@@ -52,8 +54,10 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
     if cfg.desc_stem:
         preset = preset.replace(desc_stem=cfg.desc_stem)
     if not cfg.init:
-        return PointmapNet(preset)
-    state, model_cfg, kind = _init_state(Path(cfg.init))
+        model = PointmapNet(preset)
+        model.growth = []  # never grown
+        return model
+    state, model_cfg, kind, growth = _init_state(Path(cfg.init))
     if cfg.init_heads == "fresh":
         model = PointmapNet(preset)
         fresh = load_trunk(model, state, source=cfg.init)
@@ -69,6 +73,7 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
         reset_confidence(model, cfg.conf_reset)
+    model.growth = growth  # training.grow's record (None: --init does not say), kept in the run's checkpoints
     return model.train()
 
 
@@ -216,9 +221,12 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
 
 
 def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
-    """``--grown_from`` / ``--grown_lr``: the learning-rate multiplier of each parameter the model's growth zeroed
-    (``training.grow.silent_parameters``); {} without ``--grown_from``. ValueError (one line) when the model's
-    depths cannot have grown from ``--grown_from``."""
+    """``--grown_from`` / ``--grown_lr``: the learning-rate multiplier of each parameter the model's last growth
+    zeroed (``training.grow.silent_parameters``); {} without ``--grown_from`` or at ``--grown_lr 1``. ValueError
+    (one line) when the model cannot have grown from ``--grown_from``: depths that are not fewer, or a growth
+    history (``model.growth``, from ``--init``) whose last entry is other depths. A model whose history is
+    unknown (None: a checkpoint written before runs recorded it) takes ``--grown_from`` as its history, with a
+    warning."""
     if not cfg.grown_from:
         return {}
     enc, dec = grown_depths(cfg.grown_from)
@@ -226,6 +234,19 @@ def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
     if enc > have[0] or dec > have[1] or (enc, dec) == have:
         raise ValueError(f"--grown_from {cfg.grown_from}: the model has {have[0]} encoder and {have[1]} decoder "
                          "blocks, so it was not grown from those depths (expected fewer blocks in at least one)")
+    growth = getattr(model, "growth", None)
+    if growth is None:
+        print(f"warning: --init {cfg.init} records no growth history; taking --grown_from {cfg.grown_from} as "
+              "its last growth", file=sys.stderr)
+        model.growth = [{"enc_depth": enc, "dec_depth": dec}]
+    elif not growth:
+        raise ValueError(f"--grown_from {cfg.grown_from}: the model ({cfg.init or 'built from scratch'}) was "
+                         "never grown (training.grow records each growth in the provenance's grown_from)")
+    elif (growth[-1]["enc_depth"], growth[-1]["dec_depth"]) != (enc, dec):
+        raise ValueError(f"--grown_from {cfg.grown_from}: the --init model's last growth was from "
+                         f"{growth[-1]['enc_depth']},{growth[-1]['dec_depth']} (its grown_from record: {growth})")
+    if cfg.grown_lr == 1:
+        return {}
     names = silent_parameters([n for n, _ in model.named_parameters()], enc, dec, *have)
     return {n: cfg.grown_lr for n in names}
 
@@ -264,7 +285,12 @@ def main(argv=None) -> int:
     if lr_scale:
         print(f"--grown_lr {cfg.grown_lr}: {len(lr_scale)} tensors (the output projections of the blocks grown from "
               f"{cfg.grown_from})", file=sys.stderr)
-    result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale)
+    extra = {"grown_from": model.growth} if model.growth is not None else None
+    try:
+        result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale, extra=extra)
+    except CheckpointError as e:  # e.g. a resume whose optimizer groups do not fit
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
     return 0
 

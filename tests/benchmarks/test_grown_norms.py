@@ -29,13 +29,15 @@ def test_the_new_blocks_are_marked_and_their_norms_read_against_the_originals(tm
     assert norms[("dec_blocks", 1)]["cross_attn.proj"] == pytest.approx(float(grown.dec_blocks[1].cross_attn.proj.weight.detach().norm()))
     assert main([str(path), "--grown_from", "2,4"]) == 0
     out = capsys.readouterr().out
-    assert "attn.proj: new blocks' median norm / originals' = 0.000" in out
+    assert re.search(r"^attn\.proj: new blocks' median norm / originals' = 0\.000 / ", out, re.M)
+    assert re.search(r"^mlp\.fc2: new blocks' median norm / originals' = 0\.000 / ", out, re.M)  # 1 of 5 woke up
     assert re.search(r"^enc_blocks\.1 +yes +0\.000 +\d+\.\d{3}$", out, re.M)  # no cross-attention in the encoder
 
 
 def test_a_model_that_cannot_have_grown_from_the_given_depths_is_refused(tmp_path, capsys):
     _, path = _grown(tmp_path)
-    assert main([str(path), "--grown_from", "4,4"]) == 2
-    assert "was not grown from 4,4" in capsys.readouterr().err
+    for depths in ("4,4", "3,6"):  # more blocks than it has; no fewer than it has
+        assert main([str(path), "--grown_from", depths]) == 2
+        assert f"was not grown from {depths}" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([str(path), "--grown_from", "x"])

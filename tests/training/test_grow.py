@@ -103,3 +103,14 @@ def test_silent_parameters_name_exactly_the_tensors_growth_zeroed(new):
     silent = silent_parameters([n for n, _ in grown.named_parameters()], *old, *new)
     assert zero and set(silent) == zero and len(silent) == len(zero)
     assert not silent_parameters([n for n, _ in model.named_parameters()], *old, *old)  # no growth, none
+
+
+def test_after_two_growths_silent_parameters_of_the_last_one_name_its_zeroed_tensors():
+    first = deepen(_model(), enc_depth=3, dec_depth=6)
+    with torch.no_grad():  # trained since: the first growth's copies are no longer zero
+        for p in first.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    grown = deepen(first, enc_depth=4, dec_depth=8)
+    assert grown.provenance["grown_from"][-2:] == [{"enc_depth": 2, "dec_depth": 4}, {"enc_depth": 3, "dec_depth": 6}]
+    zero = {n for n, p in grown.named_parameters() if not p.any()}
+    assert zero and set(silent_parameters([n for n, _ in grown.named_parameters()], 3, 6, 4, 8)) == zero

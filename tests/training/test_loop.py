@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+import pointmap as pm
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.loop import StepBatches, batch_indices, fit, lr_factor
@@ -548,38 +549,86 @@ def test_a_scaled_learning_rate_moves_its_tensors_by_that_multiple_and_keeps_it_
         assert g["initial_lr"] == pytest.approx(TrainConfig.lr * g["lr_scale"])
 
 
-def test_resuming_with_a_learning_rate_scale_the_checkpoint_lacks_asks_for_a_new_run(tmp_path):
+def test_resuming_with_other_learning_rate_groups_asks_for_a_new_run_and_old_checkpoints_resume(tmp_path):
     from pointmap.errors import CheckpointError
 
+    scale = {"enc_blocks.1.mlp.fc2.weight": 10.0}
+
+    def resume(out, steps, lr_scale):
+        torch.manual_seed(0)
+        model = PointmapNet(PRESETS["test"])
+        fit(config(out, steps), model, PlanePairs(6), collate, make_step(config(out, steps)), lr_scale=lr_scale)
+
     run(tmp_path / "a", 2)
-    torch.manual_seed(0)
-    model = PointmapNet(PRESETS["test"])
-    cfg = config(tmp_path / "a", 4)
-    with pytest.raises(CheckpointError, match="need a new --out, with --init .*last.pt"):
-        fit(cfg, model, PlanePairs(6), collate, make_step(cfg), lr_scale={"enc_blocks.1.mlp.fc2.weight": 10.0})
+    with pytest.raises(CheckpointError, match=r"2 parameter groups \(learning-rate multipliers \[1.0\]\), this run 3 "
+                                              r"parameter groups \(learning-rate multipliers \[1.0, 10.0\]\).*new --out, with --init .*last.pt"):
+        resume(tmp_path / "a", 4, scale)
+    resume(tmp_path / "b", 2, scale)
+    with pytest.raises(CheckpointError, match=r"3 parameter groups .*, this run 2 "):  # and the reverse
+        resume(tmp_path / "b", 4, None)
     with pytest.raises(ValueError, match="parameters the model does not have"):
-        fit(config(tmp_path / "b", 2), model, PlanePairs(6), collate, make_step(cfg), lr_scale={"nope": 2.0})
+        resume(tmp_path / "c", 2, {"nope": 2.0})
+    ck = torch.load(tmp_path / "a" / "last.pt", weights_only=True)  # as written before groups had multipliers
+    for g in ck["optimizer"]["param_groups"]:
+        del g["lr_scale"]
+    torch.save(ck, tmp_path / "a" / "last.pt")
+    resume(tmp_path / "a", 4, None)
+    groups = torch.load(tmp_path / "a" / "last.pt", weights_only=True)["optimizer"]["param_groups"]
+    assert [g["lr_scale"] for g in groups] == [1.0, 1.0]
 
 
 def test_grown_learning_rate_options_are_checked_against_each_other_and_the_model(tmp_path, capsys):
     from training.grow import deepen
     from training.train import grown_lr_scale
 
-    for argv, message in ((["--grown_lr", "10"], "--grown_lr needs --grown_from ENC,DEC"),
-                          (["--grown_from", "6", "--grown_lr", "10"], "--grown_from expected ENC,DEC"),
-                          (["--grown_from", "0,4"], "block counts >= 1"),
-                          (["--grown_from", "6,4", "--grown_lr", "0"], "--grown_lr expected a learning-rate multiplier > 0")):
+    for argv, message in ((["--init", "m", "--grown_lr", "10"], "--grown_lr needs --grown_from ENC,DEC"),
+                          (["--grown_from", "6,4"], "--grown_from needs --init"),
+                          (["--init", "m", "--grown_from", "6"], "--grown_from expected ENC,DEC"),
+                          (["--init", "m", "--grown_from", "0,4"], "block counts >= 1"),
+                          (["--init", "m", "--grown_from", "6,4", "--grown_lr", "0"], "multiplier > 0, got 0.0"),
+                          (["--task", "pretrain", "--init", "m", "--grown_from", "6,4"], "not pretraining")):
         with pytest.raises(SystemExit):
             TrainConfig.from_args(["--data", "x", *argv])
         assert message in capsys.readouterr().err
     model = PointmapNet(PRESETS["test"].replace(head="catmlp+linear"))  # 2 encoder, 4 decoder blocks
     grown = deepen(model, enc_depth=3, dec_depth=6)
-    cfg = dataclasses.replace(config(tmp_path, 1), grown_from="2,4", grown_lr=10.0)
+    grown.growth = grown.provenance["grown_from"]  # as training.train's build_model records it from --init
+    cfg = dataclasses.replace(config(tmp_path, 1), init="g.safetensors", grown_from="2,4", grown_lr=10.0)
     scale = grown_lr_scale(cfg, grown)
     assert set(scale.values()) == {10.0}
-    assert {n for n, p in grown.named_parameters() if p.ndim > 1 and not p.any()} <= set(scale)
-    assert all(".mlp.fc2." in n or ".proj." in n for n in scale)
+    zeroed = {n for n, p in grown.named_parameters() if p.ndim > 1 and not p.any() and "blocks" in n}  # weights
+    assert set(scale) == zeroed | {n[: -len("weight")] + "bias" for n in zeroed}
+    assert grown_lr_scale(dataclasses.replace(cfg, grown_lr=1.0), grown) == {}  # checked, then nothing to scale
     assert grown_lr_scale(config(tmp_path, 1), grown) == {}
     for wrong in ("3,6", "4,4", "2,7"):
         with pytest.raises(ValueError, match=f"--grown_from {wrong}: the model has 3 encoder and 6 decoder"):
             grown_lr_scale(dataclasses.replace(cfg, grown_from=wrong), grown)
+    with pytest.raises(ValueError, match=r"--grown_from 1,4: the --init model's last growth was from 2,4"):
+        grown_lr_scale(dataclasses.replace(cfg, grown_from="1,4"), grown)
+    grown.growth = []
+    with pytest.raises(ValueError, match="was never grown"):
+        grown_lr_scale(cfg, grown)
+    grown.growth = None  # a checkpoint from before runs recorded growth: --grown_from is taken, with a warning
+    assert set(grown_lr_scale(cfg, grown)) == set(scale)
+    assert grown.growth == [{"enc_depth": 2, "dec_depth": 4}] and "records no growth history" in capsys.readouterr().err
+
+
+def test_a_run_from_a_grown_model_records_its_growth_in_every_checkpoint(tmp_path, capsys):
+    from training.grow import deepen
+    from training.train import main
+
+    torch.manual_seed(0)
+    grown = deepen(PointmapNet(PRESETS["test"].replace(head="catmlp+linear")), enc_depth=3)
+    init = pm.save_model(grown, tmp_path / "g.safetensors")
+    data = tmp_path / "missing"
+    assert main(["--data", str(data), "--init", str(init), "--grown_from", "3,4", "--grown_lr", "5"]) == 2
+    assert "--grown_from 3,4: the model has 3 encoder and 4 decoder blocks" in capsys.readouterr().err  # before data
+    from training.train import build_model
+
+    cfg = dataclasses.replace(config(tmp_path / "run", 1), init=str(init), preset="test")
+    model = build_model(cfg)
+    assert model.growth == [{"enc_depth": 2, "dec_depth": 4}]
+    fit(cfg, model, PlanePairs(6), collate, make_step(cfg), extra={"grown_from": model.growth})
+    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    assert ck["extra"] == {"grown_from": [{"enc_depth": 2, "dec_depth": 4}]}
+    assert build_model(dataclasses.replace(cfg, init=str(tmp_path / "run" / "last.pt"))).growth == model.growth

@@ -11,11 +11,11 @@ from training.config import TrainConfig
 from training.ship import average_checkpoints, main
 
 
-def _checkpoint(path, seed, step, cfg=PRESETS["test"], kind="train"):
+def _checkpoint(path, seed, step, cfg=PRESETS["test"], kind="train", extra=None):
     torch.manual_seed(seed)
     model = PointmapNet(cfg)
     torch.save({"model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": step, "kind": kind,
-                "train_config": TrainConfig().to_dict()}, path)
+                "train_config": TrainConfig().to_dict(), **({"extra": extra} if extra is not None else {})}, path)
     return model
 
 
@@ -71,3 +71,12 @@ def test_a_checkpoint_ships_in_int8_at_about_half_the_fp16_size_and_loads_as_flo
     got = back.state_dict()["enc_blocks.0.mlp.fc1.weight"]
     assert got.dtype == torch.float32 and not torch.equal(got, w)
     assert ((got - w).abs() <= w.abs().amax(dim=1, keepdim=True) / 254 + 1e-7).all()  # half a step per channel
+
+
+def test_the_growth_history_a_run_records_ships_in_the_provenance(tmp_path):
+    _checkpoint(tmp_path / "g.pt", seed=0, step=5, extra={"grown_from": [{"enc_depth": 1, "dec_depth": 2}]})
+    _checkpoint(tmp_path / "p.pt", seed=0, step=5, extra={"grown_from": []})
+    for name in ("g", "p"):
+        assert main(["--ckpt", str(tmp_path / f"{name}.pt"), "--out", str(tmp_path / f"{name}.safetensors")]) == 0
+    assert pm.load_model(tmp_path / "g.safetensors").provenance["grown_from"] == [{"enc_depth": 1, "dec_depth": 2}]
+    assert "grown_from" not in pm.load_model(tmp_path / "p.safetensors").provenance  # never grown: nothing to say
