@@ -196,9 +196,33 @@ def _set_rng_state(s: dict) -> None:
     random.setstate((s["py_version"], tuple(int(v) for v in s["py_internal"].tolist()), s["py_gauss"]))
 
 
+def _group_names(model, optimizer) -> list[list[str]]:
+    """The parameter names of each of ``optimizer``'s groups, in its order."""
+    names = {id(p): n for n, p in _unwrap(model).named_parameters()}
+    return [[names[id(p)] for p in g["params"]] for g in optimizer.param_groups]
+
+
+def _regroup(saved: dict, saved_names: list[list[str]], optimizer, model) -> dict:
+    """``saved`` (an optimizer state dict whose groups hold ``saved_names``) re-keyed by parameter name for
+    ``optimizer``'s groups, whose own hyperparameters it takes. CheckpointError when the names differ."""
+    by_name = {}
+    for group, names in zip(saved["param_groups"], saved_names):
+        if len(group["params"]) != len(names):
+            raise CheckpointError(f"the checkpoint names {len(names)} parameters for a group of {len(group['params'])}")
+        by_name.update({n: saved["state"][i] for i, n in zip(group["params"], names) if i in saved["state"]})
+    now, current = optimizer.state_dict(), _group_names(model, optimizer)
+    if sorted(n for g in saved_names for n in g) != sorted(n for g in current for n in g):
+        raise CheckpointError("the checkpoint's optimizer holds other parameters than this model's")
+    state = {i: by_name[n] for group, names in zip(now["param_groups"], current)
+             for i, n in zip(group["params"], names) if n in by_name}
+    return {"state": state, "param_groups": now["param_groups"]}
+
+
 def save_checkpoint(path: Path, model, optimizer, scheduler, step: int, cfg: TrainConfig, extra=None) -> None:
-    """Atomic write (temp file + rename) of everything needed to resume exactly."""
+    """Atomic write (temp file + rename) of everything needed to resume exactly; the optimizer's groups are saved
+    with their parameters' names (``optimizer_names``), so a resume with other groups can regroup its state."""
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+             "optimizer_names": _group_names(model, optimizer),
              "step": step, "rng": _rng_state(), "train_config": cfg.to_dict(),
              "model_config": _unwrap(model).cfg.to_dict(), "kind": cfg.task, "extra": extra or {}}
     with atomic_path(path) as tmp:
@@ -302,14 +326,22 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     if cfg.resume and last.exists():
         ck = load_checkpoint(last)
         model.load_state_dict(ck["model"])
-        try:
-            optimizer.load_state_dict(ck["optimizer"])
-        except ValueError:  # torch: "loaded state dict has a different number of parameter groups", ...
-            def groups(gs):
-                return f"{len(gs)} parameter groups (learning-rate multipliers {sorted({g.get('lr_scale', 1.0) for g in gs})})"
-            raise CheckpointError(f"{last}: its optimizer holds {groups(ck['optimizer']['param_groups'])}, this run "
-                                  f"{groups(optimizer.param_groups)}: turning --grown_lr on or off needs a new --out, "
-                                  f"with --init {last} to start from its weights") from None
+        saved_names = ck.get("optimizer_names")
+        if saved_names is not None and saved_names != _group_names(model, optimizer):
+            # other groups (e.g. --grown_lr turned on or off): Adam's moments follow their parameters by name
+            optimizer.load_state_dict(_regroup(ck["optimizer"], saved_names, optimizer, model))
+        else:
+            try:
+                optimizer.load_state_dict(ck["optimizer"])
+            except ValueError:  # torch: "loaded state dict has a different number of parameter groups", ...
+                def groups(gs):
+                    return (f"{len(gs)} parameter groups (learning-rate multipliers "
+                            f"{sorted({g.get('lr_scale', 1.0) for g in gs})})")
+                raise CheckpointError(
+                    f"{last}: its optimizer holds {groups(ck['optimizer']['param_groups'])}, this run "
+                    f"{groups(optimizer.param_groups)}, and it does not name their parameters (written before "
+                    f"checkpoints did), so its state cannot be regrouped: start a new --out with --init {last} "
+                    "(its weights; the optimizer starts fresh)") from None
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})

@@ -549,32 +549,46 @@ def test_a_scaled_learning_rate_moves_its_tensors_by_that_multiple_and_keeps_it_
         assert g["initial_lr"] == pytest.approx(TrainConfig.lr * g["lr_scale"])
 
 
-def test_resuming_with_other_learning_rate_groups_asks_for_a_new_run_and_old_checkpoints_resume(tmp_path):
+def test_a_run_resumed_with_other_learning_rate_groups_keeps_each_parameters_adam_state(tmp_path):
     from pointmap.errors import CheckpointError
 
-    scale = {"enc_blocks.1.mlp.fc2.weight": 10.0}
+    name = "enc_blocks.1.mlp.fc2.weight"
 
     def resume(out, steps, lr_scale):
         torch.manual_seed(0)
         model = PointmapNet(PRESETS["test"])
         fit(config(out, steps), model, PlanePairs(6), collate, make_step(config(out, steps)), lr_scale=lr_scale)
+        return model.state_dict()
 
-    run(tmp_path / "a", 2)
+    at2 = run(tmp_path / "plain", 2).state_dict()
+    shutil.copytree(tmp_path / "plain", tmp_path / "scaled")
+    shutil.copy(tmp_path / "plain" / "last.pt", tmp_path / "step2.pt")
+    plain, scaled = resume(tmp_path / "plain", 3, None), resume(tmp_path / "scaled", 3, {name: 10.0})
+    # the same gradients and, carried by name, the same Adam moments: step 3 moves every tensor as the plain
+    # resume does, the scaled one 10x as far (a fresh Adam state would move it by lr * sign(gradient) instead)
+    for k in at2:
+        want = (plain[k] - at2[k]) * (10.0 if k == name else 1.0)
+        assert torch.allclose(scaled[k] - at2[k], want, rtol=1e-3, atol=5e-7), k
+    ck = torch.load(tmp_path / "scaled" / "last.pt", weights_only=True)
+    assert [g["lr_scale"] for g in ck["optimizer"]["param_groups"]] == [1.0, 1.0, 10.0]
+    assert ck["optimizer_names"][2] == [name]
+    resume(tmp_path / "scaled", 4, None)  # and off again
+    assert [g["lr_scale"] for g in torch.load(tmp_path / "scaled" / "last.pt", weights_only=True)["optimizer"]
+            ["param_groups"]] == [1.0, 1.0]
+    old = torch.load(tmp_path / "step2.pt", weights_only=True)  # as written before checkpoints named parameters
+    del old["optimizer_names"]
+    for g in old["optimizer"]["param_groups"]:
+        del g["lr_scale"]
+    (tmp_path / "old").mkdir()
+    torch.save(old, tmp_path / "old" / "last.pt")
     with pytest.raises(CheckpointError, match=r"2 parameter groups \(learning-rate multipliers \[1.0\]\), this run 3 "
-                                              r"parameter groups \(learning-rate multipliers \[1.0, 10.0\]\).*new --out, with --init .*last.pt"):
-        resume(tmp_path / "a", 4, scale)
-    resume(tmp_path / "b", 2, scale)
-    with pytest.raises(CheckpointError, match=r"3 parameter groups .*, this run 2 "):  # and the reverse
-        resume(tmp_path / "b", 4, None)
+                                              r"parameter groups .* cannot be regrouped: start a new --out with --init"):
+        resume(tmp_path / "old", 4, {name: 10.0})
+    resume(tmp_path / "old", 3, None)  # the same groups: it resumes, and the groups get their multipliers back
+    groups = torch.load(tmp_path / "old" / "last.pt", weights_only=True)["optimizer"]["param_groups"]
+    assert [g["lr_scale"] for g in groups] == [1.0, 1.0]
     with pytest.raises(ValueError, match="parameters the model does not have"):
         resume(tmp_path / "c", 2, {"nope": 2.0})
-    ck = torch.load(tmp_path / "a" / "last.pt", weights_only=True)  # as written before groups had multipliers
-    for g in ck["optimizer"]["param_groups"]:
-        del g["lr_scale"]
-    torch.save(ck, tmp_path / "a" / "last.pt")
-    resume(tmp_path / "a", 4, None)
-    groups = torch.load(tmp_path / "a" / "last.pt", weights_only=True)["optimizer"]["param_groups"]
-    assert [g["lr_scale"] for g in groups] == [1.0, 1.0]
 
 
 def test_grown_learning_rate_options_are_checked_against_each_other_and_the_model(tmp_path, capsys):
