@@ -190,10 +190,15 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
     missing = [k for k in own if not is_head(k) and k not in state]
     shapes = [f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
               for k in own if not is_head(k) and k in state and tuple(state[k].shape) != tuple(own[k].shape)]
-    if missing or shapes:
+    # blocks beyond the model's depth (a deeper, e.g. grown, checkpoint): taking the first ones would cut it silently
+    deeper = sorted({k.split(".")[0] + "." + k.split(".")[1] for k in state
+                     if k.startswith(("enc_blocks.", "dec_blocks.", "dec_blocks2.")) and k not in own})
+    if missing or shapes or deeper:
         parts = [f"{len(missing)} missing trunk keys (e.g. {missing[:4]})"] if missing else []
         if shapes:
             parts.append(f"{len(shapes)} trunk shape mismatches (e.g. {shapes[:3]})")
+        if deeper:
+            parts.append(f"{len(deeper)} blocks the model does not have (e.g. {deeper[:3]}: a deeper checkpoint)")
         raise CheckpointError(f"{source}: its encoder/decoder do not match the architecture: " + "; ".join(parts))
     take = {k: v for k, v in state.items() if k in own and tuple(v.shape) == tuple(own[k].shape)}
     model.load_state_dict(take, strict=False)

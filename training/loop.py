@@ -329,7 +329,10 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         saved_names = ck.get("optimizer_names")
         if saved_names is not None and saved_names != _group_names(model, optimizer):
             # other groups (e.g. --grown_lr turned on or off): Adam's moments follow their parameters by name
-            optimizer.load_state_dict(_regroup(ck["optimizer"], saved_names, optimizer, model))
+            try:
+                optimizer.load_state_dict(_regroup(ck["optimizer"], saved_names, optimizer, model))
+            except CheckpointError as e:
+                raise CheckpointError(f"{last}: {e}") from None
         else:
             try:
                 optimizer.load_state_dict(ck["optimizer"])

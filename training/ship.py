@@ -91,7 +91,7 @@ def main(argv=None) -> int:
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   "heldout_metrics": last_eval(Path(a.metrics)) if a.metrics else {}, "note": a.note,
                   **({"averaged_steps": ck["averaged_steps"]} if len(a.ckpt) > 1 else {}),
-                  **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) else {}),
+                  **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
     out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"

@@ -73,6 +73,8 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
         reset_confidence(model, cfg.conf_reset)
+    if (model.cfg.enc_depth, model.cfg.dec_depth) != (model_cfg.enc_depth, model_cfg.dec_depth):
+        growth = None  # (not reached while load_trunk refuses other depths) another architecture: not its history
     model.growth = growth  # training.grow's record (None: --init does not say), kept in the run's checkpoints
     return model.train()
 

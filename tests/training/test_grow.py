@@ -114,3 +114,12 @@ def test_after_two_growths_silent_parameters_of_the_last_one_name_its_zeroed_ten
     assert grown.provenance["grown_from"][-2:] == [{"enc_depth": 2, "dec_depth": 4}, {"enc_depth": 3, "dec_depth": 6}]
     zero = {n for n, p in grown.named_parameters() if not p.any()}
     assert zero and set(silent_parameters([n for n, _ in grown.named_parameters()], 3, 6, 4, 8)) == zero
+
+
+def test_a_grown_model_cannot_be_cut_down_to_a_shallower_one_by_loading_its_trunk():
+    from pointmap.checkpoint import load_trunk
+    from pointmap.errors import CheckpointError
+
+    grown = deepen(_model(), enc_depth=3, dec_depth=6)
+    with pytest.raises(CheckpointError, match=r"blocks the model does not have \(e.g. \['dec_blocks.4'"):
+        load_trunk(PointmapNet(CFG), grown.state_dict(), source="grown")

@@ -639,10 +639,12 @@ def test_a_run_from_a_grown_model_records_its_growth_in_every_checkpoint(tmp_pat
     assert "--grown_from 3,4: the model has 3 encoder and 4 decoder blocks" in capsys.readouterr().err  # before data
     from training.train import build_model
 
-    cfg = dataclasses.replace(config(tmp_path / "run", 1), init=str(init), preset="test")
+    cfg = dataclasses.replace(config(tmp_path / "run", 4), init=str(init), preset="test", schedule="wsd",
+                              decay_steps=2)
     model = build_model(cfg)
     assert model.growth == [{"enc_depth": 2, "dec_depth": 4}]
     fit(cfg, model, PlanePairs(6), collate, make_step(cfg), extra={"grown_from": model.growth})
-    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
-    assert ck["extra"] == {"grown_from": [{"enc_depth": 2, "dec_depth": 4}]}
+    for name in ("last.pt", "stable_2.pt"):
+        ck = torch.load(tmp_path / "run" / name, weights_only=True)
+        assert ck["extra"] == {"grown_from": [{"enc_depth": 2, "dec_depth": 4}]}, name
     assert build_model(dataclasses.replace(cfg, init=str(tmp_path / "run" / "last.pt"))).growth == model.growth

@@ -79,4 +79,4 @@ def test_the_growth_history_a_run_records_ships_in_the_provenance(tmp_path):
     for name in ("g", "p"):
         assert main(["--ckpt", str(tmp_path / f"{name}.pt"), "--out", str(tmp_path / f"{name}.safetensors")]) == 0
     assert pm.load_model(tmp_path / "g.safetensors").provenance["grown_from"] == [{"enc_depth": 1, "dec_depth": 2}]
-    assert "grown_from" not in pm.load_model(tmp_path / "p.safetensors").provenance  # never grown: nothing to say
+    assert pm.load_model(tmp_path / "p.safetensors").provenance["grown_from"] == []  # never grown, and it says so
