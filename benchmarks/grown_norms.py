@@ -23,7 +23,7 @@ from pointmap.checkpoint import load_model  # noqa: E402
 from pointmap.errors import CheckpointError  # noqa: E402
 from pointmap.model.config import ModelConfig  # noqa: E402
 from training.config import grown_depths  # noqa: E402
-from training.grow import GROWN, SILENT, silent_parameters  # noqa: E402
+from training.grow import GROWN, SILENT, is_growth, new_blocks  # noqa: E402
 from training.loop import load_checkpoint  # noqa: E402
 
 
@@ -40,14 +40,13 @@ def weights(path: str):
 
 def block_norms(state: dict, enc_from: int, dec_from: int, cfg: ModelConfig) -> list[tuple[str, int, bool, dict]]:
     """(block list, index, new?, {projection: weight norm}) for every block of ``GROWN``."""
-    new = {n.rsplit(".", 2)[0] for n in silent_parameters(list(state), enc_from, dec_from,
-                                                          cfg.enc_depth, cfg.dec_depth)}
+    new = new_blocks(enc_from, dec_from, cfg.enc_depth, cfg.dec_depth)
     rows: dict[tuple[str, int], dict] = {}
     for name, t in state.items():
         m = re.fullmatch(rf"({'|'.join(GROWN)})\.(\d+)\.({'|'.join(re.escape(s) for s in SILENT)})\.weight", name)
         if m:
             rows.setdefault((m[1], int(m[2])), {})[m[3]] = float(t.float().norm())
-    return [(g, i, any(n.startswith(f"{g}.{i}.") for n in new), norms) for (g, i), norms in sorted(rows.items())]
+    return [(g, i, i in new[g], norms) for (g, i), norms in sorted(rows.items())]
 
 
 def main(argv=None) -> int:
@@ -65,7 +64,7 @@ def main(argv=None) -> int:
         except (CheckpointError, OSError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        if enc_from > cfg.enc_depth or dec_from > cfg.dec_depth or (enc_from, dec_from) == (cfg.enc_depth, cfg.dec_depth):
+        if not is_growth((enc_from, dec_from), (cfg.enc_depth, cfg.dec_depth)):
             print(f"error: {path} has {cfg.enc_depth} encoder and {cfg.dec_depth} decoder blocks: it was not grown "
                   f"from {a.grown_from}", file=sys.stderr)
             return 2

@@ -63,13 +63,24 @@ def new_block_indices(old: int, new: int) -> list[int]:
     return out
 
 
+def is_growth(old: tuple[int, int], new: tuple[int, int]) -> bool:
+    """Whether (encoder, decoder) depths ``new`` can have grown from ``old``: none fewer, and not the same."""
+    return old != new and all(o <= n for o, n in zip(old, new))
+
+
+def new_blocks(enc_from: int, dec_from: int, enc_depth: int, dec_depth: int) -> dict[str, list[int]]:
+    """The silent copies' positions in each block list of ``GROWN`` after growth from ``enc_from`` / ``dec_from``
+    blocks to ``enc_depth`` / ``dec_depth`` (both decoders grow alike)."""
+    dec = new_block_indices(dec_from, dec_depth)
+    return {"enc_blocks": new_block_indices(enc_from, enc_depth), "dec_blocks": dec, "dec_blocks2": dec}
+
+
 def silent_parameters(names, enc_from: int, dec_from: int, enc_depth: int, dec_depth: int) -> list[str]:
     """The parameters (of ``names``) that growth from ``enc_from`` / ``dec_from`` blocks to ``enc_depth`` /
     ``dec_depth`` zeroed: the new blocks' output projections (``SILENT``), weights and biases. They start at
     zero while every other weight starts trained, and AdamW moves every weight by about the same amount per
     step, so they stay small for long (``training.train --grown_lr`` scales their learning rate)."""
-    new = {"enc_blocks": new_block_indices(enc_from, enc_depth), "dec_blocks": new_block_indices(dec_from, dec_depth)}
-    new["dec_blocks2"] = new["dec_blocks"]
+    new = new_blocks(enc_from, dec_from, enc_depth, dec_depth)
     prefixes = tuple(f"{g}.{i}.{m}." for g in GROWN for i in new[g] for m in SILENT)
     return [n for n in names if n.startswith(prefixes)]
 

@@ -17,7 +17,7 @@ from pointmap.errors import CheckpointError
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
-from training.grow import silent_parameters
+from training.grow import is_growth, silent_parameters
 from training.loop import fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
@@ -73,8 +73,6 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
         reset_confidence(model, cfg.conf_reset)
-    if (model.cfg.enc_depth, model.cfg.dec_depth) != (model_cfg.enc_depth, model_cfg.dec_depth):
-        growth = None  # (not reached while load_trunk refuses other depths) another architecture: not its history
     model.growth = growth  # training.grow's record (None: --init does not say), kept in the run's checkpoints
     return model.train()
 
@@ -233,7 +231,7 @@ def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
         return {}
     enc, dec = grown_depths(cfg.grown_from)
     have = (model.cfg.enc_depth, model.cfg.dec_depth)
-    if enc > have[0] or dec > have[1] or (enc, dec) == have:
+    if not is_growth((enc, dec), have):
         raise ValueError(f"--grown_from {cfg.grown_from}: the model has {have[0]} encoder and {have[1]} decoder "
                          "blocks, so it was not grown from those depths (expected fewer blocks in at least one)")
     growth = getattr(model, "growth", None)
