@@ -71,6 +71,20 @@ _IGNORED_KWARGS = {"img_size", "patch_embed_cls", "landscape_only", "freeze", "d
                    "norm_layer", "enc_pos_embed", "dec_pos_embed"}
 
 
+def _official_sizes(a: dict, pos: str, head: str, desc_dim: int, conf_mode: tuple, desc_conf, name: str) -> dict:
+    """The ModelConfig fields of an official constructor's arguments ``a`` (popped from it); KeyError, TypeError or
+    ValueError for missing or malformed ones (``config_from_ctor`` turns them into CheckpointError)."""
+    return dict(
+        enc_dim=int(a.pop("enc_embed_dim")), enc_depth=int(a.pop("enc_depth")), enc_heads=int(a.pop("enc_num_heads")),
+        dec_dim=int(a.pop("dec_embed_dim")), dec_depth=int(a.pop("dec_depth")), dec_heads=int(a.pop("dec_num_heads")),
+        mlp_ratio=float(a.pop("mlp_ratio")), patch_size=int(a.pop("patch_size")), rope_base=float(pos[4:] or 100),
+        head=head, desc_dim=desc_dim, two_confs=bool(a.pop("two_confs", False)),
+        depth_mode=tuple(a.pop("depth_mode", ("exp", -math.inf, math.inf))), conf_mode=conf_mode,
+        desc_conf_mode=tuple(desc_conf) if desc_conf is not None else conf_mode,
+        metric=name == "AsymmetricMASt3R",
+    )
+
+
 def config_from_ctor(text: str) -> ModelConfig:
     """ModelConfig from an official constructor string (see anchors-spec 1.8)."""
     name, kw = parse_ctor(text)
@@ -83,10 +97,13 @@ def config_from_ctor(text: str) -> ModelConfig:
     if not a.pop("norm_im2_in_dec"):
         raise CheckpointError("norm_im2_in_dec=False is not supported")
     head = a.pop("head_type", "linear")
-    output_mode = a.pop("output_mode", "pts3d")
+    output_mode = str(a.pop("output_mode", "pts3d"))
     desc_dim = 0
     if output_mode.startswith("pts3d+desc"):
-        desc_dim = int(output_mode[len("pts3d+desc"):])
+        tail = output_mode[len("pts3d+desc"):]
+        if not tail.isdigit():
+            raise CheckpointError(f"output_mode={output_mode!r}: expected pts3d+descN with N a number")
+        desc_dim = int(tail)
     elif output_mode != "pts3d":
         raise CheckpointError(f"output_mode={output_mode!r} is not supported (pts3d or pts3d+descN)")
     if head == "catmlp+dpt" and not desc_dim:
@@ -97,15 +114,11 @@ def config_from_ctor(text: str) -> ModelConfig:
         raise CheckpointError(f"desc_mode={a['desc_mode']!r} is not supported (only 'norm')")
     conf_mode = tuple(a.pop("conf_mode", ("exp", 1, math.inf)))
     desc_conf = a.pop("desc_conf_mode", None)
-    cfg = dict(
-        enc_dim=int(a.pop("enc_embed_dim")), enc_depth=int(a.pop("enc_depth")), enc_heads=int(a.pop("enc_num_heads")),
-        dec_dim=int(a.pop("dec_embed_dim")), dec_depth=int(a.pop("dec_depth")), dec_heads=int(a.pop("dec_num_heads")),
-        mlp_ratio=float(a.pop("mlp_ratio")), patch_size=int(a.pop("patch_size")), rope_base=float(pos[4:] or 100),
-        head=head, desc_dim=desc_dim, two_confs=bool(a.pop("two_confs", False)),
-        depth_mode=tuple(a.pop("depth_mode", ("exp", -math.inf, math.inf))), conf_mode=conf_mode,
-        desc_conf_mode=tuple(desc_conf) if desc_conf is not None else conf_mode,
-        metric=name == "AsymmetricMASt3R",
-    )
+    try:
+        cfg = _official_sizes(a, pos, head, desc_dim, conf_mode, desc_conf, name)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{name} constructor arguments are missing or malformed ({e.__class__.__name__}: "
+                              f"{e})") from None
     unknown = set(a) - _IGNORED_KWARGS
     if unknown:
         raise CheckpointError(f"unsupported constructor arguments in {name}: {sorted(unknown)}")
@@ -388,6 +401,9 @@ def load_model(src, device="cpu", **kwargs):
     """
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
+    if not isinstance(src, (str, os.PathLike)):
+        raise CheckpointError(f"load_model expected a shipped model's name (e.g. 'small'), a checkpoint path or a "
+                              f"PointmapNet, got {type(src).__name__}")
     if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
         if (WEIGHTS_DIR / f"{src}.safetensors").exists():
             return load_own(WEIGHTS_DIR / f"{src}.safetensors").to(device).eval()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -50,8 +51,9 @@ def K_from_focals(images: list, focal: list[float]):
 def cmd_pair(args) -> int:
     from pointmap.io_pair import write_pair_outputs
 
-    model, size = _model_and_size(args.model, args.size)
+    writable_dir(Path(args.out))
     focal = None if args.focal is None else parse_focals(args.focal, 2)
+    model, size = _model_and_size(args.model, args.size)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal)
     for p in paths:
@@ -218,7 +220,7 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--each-folder takes --cameras and --masks relative to each scene folder (e.g. "
                             "--cameras sparse/0, --masks masks): an absolute path or per-image --focal would apply "
                             "one scene's cameras or masks to every scene (a single --focal for all is accepted)")
-    out_root = Path(args.out).resolve()
+    out_root = writable_dir(Path(args.out)).resolve()
     scenes = sorted(d for d in Path(args.images[0]).iterdir()  # hidden, __MACOSX-like and the output skipped
                     if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
     if not scenes:
@@ -240,12 +242,30 @@ def cmd_reconstruct(args) -> int:
     return 1 if failed else 0
 
 
+def writable_dir(out: Path, flag: str = "-o") -> Path:
+    """``out`` if it is, or can be made, a writable folder (checked without creating it, before any model runs);
+    PointmapError naming ``flag`` otherwise."""
+    out = Path(out)
+    probe = out
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        what = "is a file" if probe == out else f"cannot be made: {probe} is a file"
+        raise PointmapError(f"{flag} expected a folder to write into, got {str(out)!r}, which {what}")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PointmapError(f"{flag} expected a folder to write into, got {str(out)!r}: {probe} is not writable")
+    return out
+
+
 def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     """A scene's inputs (files, folders, a video) read and checked without the model: the image paths, the pair
     graph, known K / poses (``--cameras``, ``--focal``) and masks, for ``reconstruct_scene``."""
     from pointmap.pipeline import auto_graph
     from pointmap.video import is_video
 
+    writable_dir(out)
     if args.cameras is not None and not Path(args.cameras).exists():
         raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {args.cameras!r}")
     if args.masks is not None and not Path(args.masks).is_dir():
@@ -316,7 +336,7 @@ def cmd_splat(args) -> int:
     if args.test_align_steps < 0:
         raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
     recon = load_npz(npz)
-    out = Path(args.out or npz.parent / "splat")
+    out = writable_dir(Path(args.out or npz.parent / "splat"))
     if args.test:  # the test views and the model are read before the fit, which takes minutes
         from pointmap.checkpoint import load_model
         from pointmap.localize import query_views
@@ -358,7 +378,7 @@ def cmd_localize(args) -> int:
     npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
-    out = Path(args.out)
+    out = writable_dir(Path(args.out))
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     recon = load_npz(npz)
@@ -382,7 +402,7 @@ def cmd_localize(args) -> int:
 def cmd_demo(args) -> int:
     from pointmap.demo import run_demo
 
-    return run_demo(Path(args.out), model_name=args.model, quiet=args.quiet)
+    return run_demo(writable_dir(Path(args.out)), model_name=args.model, quiet=args.quiet)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,6 +6,7 @@ reported in original pixels (docs/conventions.md).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,9 +41,23 @@ class View:
         return tuple(self.img.shape[-2:])
 
 
+def _as_list(paths_or_arrays, caller: str):
+    """One image (a path, an array or a PIL image) as a list of one; an iterable as it is; ImageError otherwise."""
+    from PIL import Image
+
+    if isinstance(paths_or_arrays, (str, os.PathLike, np.ndarray, Image.Image)):
+        return [paths_or_arrays]
+    if not hasattr(paths_or_arrays, "__iter__"):
+        raise ImageError(f"{caller} expected a list of image paths, arrays or PIL images, got "
+                         f"{type(paths_or_arrays).__name__}")
+    return paths_or_arrays
+
+
 def _read(src, index: int):
     from PIL import Image, ImageOps, UnidentifiedImageError
 
+    if isinstance(src, Image.Image):  # a PIL image: its pixels, as an array would give them
+        src = np.asarray(src.convert("RGBA" if "A" in src.getbands() else "RGB"))
     if isinstance(src, np.ndarray):
         arr = src
         name = f"image_{index:03d}.png"
@@ -63,6 +78,10 @@ def _read(src, index: int):
         elif arr.dtype != np.uint8:
             raise ImageError(f"image {index}: expected dtype uint8, uint16 or float in [0, 1], got {arr.dtype}")
         return Image.fromarray(np.ascontiguousarray(arr)), name
+    if not isinstance(src, (str, os.PathLike)):
+        raise ImageError(f"image {index}: expected a path, an HxWx3 numpy array or a PIL image, got "
+                         f"{type(src).__name__}" + (" (a [3, H, W] tensor: pass img.permute(1, 2, 0).numpy())"
+                                                    if isinstance(src, torch.Tensor) else ""))
     path = Path(src)
     if not path.exists():
         raise ImageError(f"image not found: {path}")
@@ -96,9 +115,7 @@ def read_rgb(src) -> np.ndarray:
 def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
     """(width, height) of each image as ``load_images`` reads it (EXIF orientation applied): the "original
     pixels" that known intrinsics refer to."""
-    if isinstance(paths_or_arrays, (str, Path, np.ndarray)):
-        paths_or_arrays = [paths_or_arrays]
-    return [_read(src, i)[0].size for i, src in enumerate(paths_or_arrays)]
+    return [_read(src, i)[0].size for i, src in enumerate(_as_list(paths_or_arrays, "image_sizes"))]
 
 
 def prepare(im, size: int, *, square_ok: bool = False):
@@ -133,15 +150,14 @@ def prepare(im, size: int, *, square_ok: bool = False):
 
 
 def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) -> list[View]:
-    """Read images (paths or HxWx3 uint8 arrays) and prepare them for the network.
+    """Read images (paths, HxWx3 uint8 arrays or PIL images) and prepare them for the network.
 
     Example:
         >>> views = load_images([np.zeros((480, 640, 3), np.uint8)], size=512)
         >>> views[0].img.shape, views[0].original_size
         (torch.Size([3, 384, 512]), (640, 480))
     """
-    if isinstance(paths_or_arrays, (str, Path, np.ndarray)):
-        paths_or_arrays = [paths_or_arrays]
+    paths_or_arrays = _as_list(paths_or_arrays, "load_images")
     if not isinstance(size, int) or size < PATCH or (size != 224 and size % PATCH):
         raise ImageError(f"size expected 224 or a multiple of {PATCH} (e.g. 512), got {size!r}")
     views = []

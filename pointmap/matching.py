@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from pointmap.errors import ShapeError
-from pointmap.prediction import PairPrediction
+from pointmap.prediction import PairPrediction, check_prediction
 
 
 @dataclass
@@ -94,6 +94,7 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     pixel). min_conf drops pixels whose confidence is below it; border drops matches that close to the
     image border. Score: sqrt(conf1 * conf2) of the matched pixels (descriptor confidences for 'desc').
     """
+    check_prediction(pred)
     if pred.batch_size != 1:
         raise ShapeError(f"match expects a single pair (batch size 1), got batch size {pred.batch_size}; "
                          f"use pred[i] to pick one")
@@ -159,6 +160,7 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
     descriptors are not yet distinctive: the cell descriptor is what the coarse matching loss
     (training.losses.patch_matching_loss) trains.
     """
+    check_prediction(pred)
     if pred.batch_size != 1:
         raise ShapeError(f"match_coarse expects a single pair (batch size 1), got batch size {pred.batch_size}")
     if not pred.has_desc:

@@ -5,6 +5,8 @@ Pairs are unordered ``(i, j)`` with ``i < j``; inference runs both orders of eac
 
 from __future__ import annotations
 
+import numbers
+
 from pointmap.errors import GraphError
 
 GRAPHS = "complete, swin-K, logwin-K, oneref-I (swin/logwin take a '-noncyclic' suffix)"
@@ -17,8 +19,13 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
         >>> make_pairs(4, "swin-1-noncyclic")
         [(0, 1), (1, 2), (2, 3)]
     """
-    if not isinstance(n, int) or n < 2:
-        raise GraphError(f"a pair graph needs at least 2 images, got {n!r}")
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral):
+        raise GraphError(f"a pair graph expected a number of images (an int), got {type(n).__name__} {n!r}")
+    n = int(n)
+    if n < 2:
+        raise GraphError(f"a pair graph needs at least 2 images, got {n}")
+    if not isinstance(graph, str):
+        raise GraphError(f"graph expected a name (one of: {GRAPHS}), got {type(graph).__name__} {graph!r}")
     parts = graph.split("-")
     kind = parts[0]
     cyclic = not (len(parts) == 3 and parts[2] == "noncyclic")

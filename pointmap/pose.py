@@ -12,7 +12,7 @@ from pointmap.errors import ShapeError
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
 from pointmap.geometry.rotations import project_to_rotation
-from pointmap.prediction import PairPrediction
+from pointmap.prediction import PairPrediction, check_prediction
 
 
 def _conf_mask(conf: torch.Tensor, pts: torch.Tensor, keep: float) -> torch.Tensor:
@@ -118,6 +118,9 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     ``keep``: fraction of most confident pixels used (dense paths). A pose that cannot be found is NaN (never raises
     for degenerate content; raises ShapeError for wrong inputs).
     """
+    check_prediction(pred)
+    if pred_reverse is not None:
+        check_prediction(pred_reverse, "pred_reverse")
     B = pred.batch_size
     if K2 is None and K1 is not None and tuple(pred.pts1_cam1.shape[1:3]) == tuple(pred.pts2_cam1.shape[1:3]):
         K2 = K1
@@ -127,6 +130,7 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             K2 = K2.expand(B, 3, 3)
         if tuple(K2.shape) != (B, 3, 3):
             raise ShapeError(f"K2 expected [3, 3] or [{B}, 3, 3], got {list(K2.shape)}")
+        _check_focals("K2", K2)
     if pred_reverse is not None and pred_reverse.batch_size != B:
         raise ShapeError(f"pred_reverse batch size {pred_reverse.batch_size} differs from pred's {B}")
     if matches is not None and (pred_reverse is not None or not isinstance(matches, (list, tuple))
@@ -216,6 +220,15 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     world2cam2 = np.eye(4)
     world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
     return np.linalg.inv(world2cam2)
+
+
+def _check_focals(name: str, K: torch.Tensor) -> None:
+    """ShapeError unless every [3, 3] of ``K`` [B, 3, 3] is finite with positive focals (a user's intrinsics)."""
+    ok = torch.isfinite(K).all(-1).all(-1) & (K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)
+    if not bool(ok.all()):
+        b = int((~ok).nonzero()[0])
+        raise ShapeError(f"{name} expected finite intrinsics with positive focals, got {K[b].tolist()}"
+                         f"{f' (batch item {b})' if K.shape[0] > 1 else ''}")
 
 
 def _checked_pixels(xy1, xy2, K1, K2, threshold_px):
@@ -407,6 +420,7 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
     from pointmap.geometry.cameras import intrinsics
     from pointmap.matching import match_coarse
 
+    check_prediction(pred)
     if not isinstance(pred_reverse, PairPrediction):
         raise ShapeError(f"pred_reverse expected the PairPrediction of (view 2, view 1), got "
                          f"{type(pred_reverse).__name__}")
@@ -415,20 +429,25 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
         raise ShapeError(f"pose expected relative_pose's [{B}, 4, 4], got {list(pose.shape)}")
     if matches is not None and (not isinstance(matches, (list, tuple)) or len(matches) != B):
         raise ShapeError(f"matches expected a list of {B} Matches, got {type(matches).__name__}")
-    out = relative_pose(pred, pred_reverse=pred_reverse) if pose is None else pose.float().clone()
-    if not pred.has_desc:
-        return out
-    Ks = []
-    for name, K, own in (("K1", K1, pred), ("K2", K2, pred_reverse)):
-        if K is None:  # the view's focal from its own-frame pointmap, the principal point at the centre
-            H, W = own.pts1_cam1.shape[1:3]
-            K = torch.stack([intrinsics(float(f), (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
-                             for f in focal_from_prediction(own)])
-        else:
+    given = {}
+    for name, K in (("K1", K1), ("K2", K2)):  # the user's intrinsics, checked whether or not they get used
+        if K is not None:
             K = torch.as_tensor(K, dtype=torch.float64)
             K = K.expand(B, 3, 3) if K.shape == (3, 3) else K
             if tuple(K.shape) != (B, 3, 3):
                 raise ShapeError(f"{name} expected [3, 3] or [{B}, 3, 3], got {list(K.shape)}")
+            _check_focals(name, K)
+            given[name] = K
+    out = relative_pose(pred, pred_reverse=pred_reverse) if pose is None else pose.float().clone()
+    if not pred.has_desc:
+        return out
+    Ks = []
+    for name, own in (("K1", pred), ("K2", pred_reverse)):
+        K = given.get(name)
+        if K is None:  # the view's focal from its own-frame pointmap, the principal point at the centre
+            H, W = own.pts1_cam1.shape[1:3]
+            K = torch.stack([intrinsics(float(f), (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
+                             for f in focal_from_prediction(own)])
         Ks.append(K)
     prior = (10.0 if K1 is not None and K2 is not None else 3.0) if rotation_prior_deg is None else rotation_prior_deg
     for b in range(B):

@@ -30,6 +30,10 @@ class PairPrediction:
     desc_conf2: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            t = getattr(self, f.name)
+            if not isinstance(t, torch.Tensor) and (t is not None or not f.name.startswith("desc")):
+                raise ShapeError(f"{f.name} expected a torch.Tensor, got {type(t).__name__}")
         for v, pts, conf in (("1", self.pts1_cam1, self.conf1), ("2", self.pts2_cam1, self.conf2)):
             if pts.ndim != 4 or pts.shape[-1] != 3:
                 raise ShapeError(f"pts{v}_cam1 expected [B, H, W, 3], got {list(pts.shape)}")
@@ -40,6 +44,21 @@ class PairPrediction:
                 f"pts1_cam1 and pts2_cam1 need the same batch size, got "
                 f"{self.pts1_cam1.shape[0]} and {self.pts2_cam1.shape[0]}"
             )
+        given = [n for n in ("desc1", "desc2", "desc_conf1", "desc_conf2") if getattr(self, n) is not None]
+        if given and len(given) != 4:
+            raise ShapeError(f"desc1, desc2, desc_conf1 and desc_conf2 expected all four or none, got only {given}")
+        if given:
+            dims = set()
+            for v, pts in (("1", self.pts1_cam1), ("2", self.pts2_cam1)):
+                d, dc = getattr(self, f"desc{v}"), getattr(self, f"desc_conf{v}")
+                if d.ndim != 4 or tuple(d.shape[:3]) != tuple(pts.shape[:3]):
+                    raise ShapeError(f"desc{v} expected {list(pts.shape[:3]) + ['D']} (pts{v}_cam1's grid), "
+                                     f"got {list(d.shape)}")
+                if tuple(dc.shape) != tuple(pts.shape[:3]):
+                    raise ShapeError(f"desc_conf{v} expected {list(pts.shape[:3])}, got {list(dc.shape)}")
+                dims.add(int(d.shape[-1]))
+            if len(dims) != 1:
+                raise ShapeError(f"desc1 and desc2 expected the same descriptor length D, got {sorted(dims)}")
 
     @property
     def batch_size(self) -> int:
@@ -75,3 +94,10 @@ class PairPrediction:
             vals = [getattr(p, f.name) for p in preds]
             out[f.name] = None if vals[0] is None else torch.cat(vals, 0)
         return PairPrediction(**out)
+
+
+def check_prediction(pred, name: str = "pred") -> None:
+    """ShapeError unless ``pred`` is a PairPrediction (what the model and ``predict_pairs`` return)."""
+    if not isinstance(pred, PairPrediction):
+        raise ShapeError(f"{name} expected a PairPrediction (the model's output, or an entry of predict_pairs), got "
+                         f"{type(pred).__name__}")

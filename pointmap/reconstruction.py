@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from pointmap.errors import ShapeError
 from pointmap.geometry.cameras import depth_to_points_world, similarity_on_cam2world
+
+_REQUIRED = ("images", "cam2world", "K", "depth_z", "conf")
 
 
 @dataclass
@@ -38,6 +41,12 @@ class Reconstruction:
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        for name in ("images", "cam2world", "K", "depth_z", "conf", "map_from_original", "masks"):
+            t = getattr(self, name)
+            if isinstance(t, np.ndarray):  # arrays are taken as they are; anything else is a mistake
+                setattr(self, name, torch.from_numpy(t))
+            elif not isinstance(t, torch.Tensor) and (t is not None or name in _REQUIRED):
+                raise ShapeError(f"{name} expected a torch.Tensor (or numpy array), got {type(t).__name__}")
         n, h, w = self.depth_z.shape if self.depth_z.ndim == 3 else (None, None, None)
         if n is None:
             raise ShapeError(f"depth_z expected [N, h, w], got {list(self.depth_z.shape)}")
@@ -50,18 +59,48 @@ class Reconstruction:
             t = getattr(self, name)
             if not torch.isfinite(t).all():
                 raise ShapeError(f"{name} contains NaN or inf values")
+        for name in ("depth_z", "conf"):  # 0 marks "no value"; below it is a mistake (e.g. a disparity map)
+            t = getattr(self, name)
+            if t.numel() and float(t.min()) < 0:
+                raise ShapeError(f"{name} expected values >= 0 (0: no value), got a minimum of {float(t.min()):.4g}")
         if self.map_from_original is None:
             self.map_from_original = torch.tensor([[1.0, 1.0, 0.0, 0.0]]).repeat(n, 1)
         if tuple(self.map_from_original.shape) != (n, 4):
             raise ShapeError(f"map_from_original expected [{n}, 4], got {list(self.map_from_original.shape)}")
+        mfo = self.map_from_original
+        if not (bool(torch.isfinite(mfo).all()) and bool((mfo[:, :2] > 0).all())):
+            raise ShapeError(f"map_from_original expected finite rows (sx, sy, left, top) with sx, sy > 0, got "
+                             f"{mfo.tolist()}")
         if self.original_sizes is None:
             self.original_sizes = [(w, h)] * n
         if len(self.original_sizes) != n:
             raise ShapeError(f"original_sizes expected {n} entries, got {len(self.original_sizes)}")
         if self.names is None:
             self.names = [f"view_{i:03d}.png" for i in range(n)]
+        self.names = list(self.names)
+        if len(self.names) != n or not all(isinstance(nm, str) and nm for nm in self.names):
+            raise ShapeError(f"names expected {n} non-empty strings, got {self.names!r}")
+        if len(set(self.names)) != n:
+            dup = sorted({nm for nm in self.names if self.names.count(nm) > 1})
+            raise ShapeError(f"names expected to be unique (COLMAP export keys images by name), got {dup} twice or more")
         if self.masks is not None and tuple(self.masks.shape) != (n, h, w):
             raise ShapeError(f"masks expected [{n}, {h}, {w}], got {list(self.masks.shape)}")
+        if self.masks is not None and self.masks.dtype != torch.bool:
+            raise ShapeError(f"masks expected dtype bool (True: keep the pixel), got {self.masks.dtype}")
+        f = torch.stack([self.K[:, 0, 0], self.K[:, 1, 1]], -1)
+        if not bool((f > 0).all()):
+            bad = sorted({int(i) for i in (f <= 0).any(-1).nonzero().flatten()})
+            raise ShapeError(f"K expected focal lengths fx, fy > 0, got K[{bad[0]}] = {self.K[bad[0]].tolist()}"
+                             f"{f' (views {bad})' if len(bad) > 1 else ''}")
+        R = self.cam2world[:, :3, :3].double()
+        eye = torch.eye(3, dtype=torch.float64)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+        rigid = ((R @ R.transpose(-1, -2) - eye).abs().amax((-1, -2)) < 1e-3) & (torch.det(R) > 0) & \
+                ((self.cam2world[:, 3].double() - bottom).abs().amax(-1) < 1e-6)
+        if not bool(rigid.all()):
+            k = int((~rigid).nonzero()[0])
+            raise ShapeError(f"cam2world expected rigid [R t; 0 0 0 1] matrices (R a rotation), got "
+                             f"cam2world[{k}] = {self.cam2world[k].tolist()}")
 
     def __len__(self) -> int:
         return int(self.depth_z.shape[0])

@@ -264,3 +264,35 @@ def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_st
         assert (WEIGHTS_DIR / f"{name}.safetensors").stat().st_size <= 25_000_000, name
         prov = pm.load_model(name).provenance
         assert prov.get("steps", 0) > 0 and prov.get("data"), (name, sorted(prov))
+
+
+@pytest.mark.parametrize("change,named", [({"enc_heads": 0}, "enc_heads=0"), ({"enc_dim": "abc"}, "enc_dim='abc'"),
+                                          ({"dec_depth": -1}, "dec_depth=-1"),
+                                          ({"mlp_ratio": float("inf")}, "mlp_ratio=inf")])
+def test_a_safetensors_file_whose_config_has_impossible_sizes_is_refused_naming_them(tmp_path, tiny_model, change,
+                                                                                      named):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from pointmap.checkpoint import save_model
+
+    good = save_model(tiny_model, tmp_path / "good.safetensors")
+    with safe_open(str(good), "pt") as f:
+        meta = f.metadata()
+    meta["config"] = json.dumps({**json.loads(meta["config"]), **change})
+    save_file(load_file(str(good)), str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(pm.CheckpointError, match=f"invalid model config: .*{named}"):
+        pm.load_model(tmp_path / "bad.safetensors")
+
+
+def test_an_official_constructor_with_a_malformed_number_is_refused_as_a_checkpoint_error():
+    with pytest.raises(pm.CheckpointError, match="malformed .*could not convert string to float: 'a'"):
+        config_from_ctor(TINY_CTOR.replace("dec_num_heads=2", "dec_num_heads=2, mlp_ratio='a'"))
+    with pytest.raises(pm.CheckpointError, match="pts3d\\+descN with N a number"):
+        config_from_ctor(TINY_CTOR.replace("pts3d+desc8", "pts3d+descX"))
+
+
+@pytest.mark.parametrize("src", [None, 123, 1.5])
+def test_load_model_refuses_what_is_neither_a_name_nor_a_path_nor_a_model(src):
+    with pytest.raises(pm.CheckpointError, match="expected a shipped model's name .*got "):
+        pm.load_model(src)

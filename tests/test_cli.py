@@ -1,6 +1,9 @@
 """The command line's argument handling: folders of images, the export list, flags after the command, and
 refusals that come before any model runs."""
 
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -407,3 +410,21 @@ def test_align_init_offers_exactly_the_alignments_starts():
     sub = next(a for a in build_parser()._subparsers._group_actions[0].choices["reconstruct"]._actions
                if a.dest == "align_init")
     assert tuple(sub.choices) == INITS and sub.default == INITS[0]
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "pair", "localize", "demo"])
+def test_an_output_path_that_is_a_file_is_refused_before_the_model_is_even_loaded(tiny, tmp_path, capsys, command):
+    _, folder = tiny
+    (tmp_path / "taken").write_text("x")
+    images = [str(folder / "a.jpg"), str(folder / "c.png")]
+    args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path), *images], "demo": []}[command]
+    if command == "localize":  # the reconstruction it reads must exist for -o to be the first error
+        from pointmap.io import save_reconstruction
+
+        sys.path.insert(0, str(Path(__file__).parent / "io"))
+        from recon_factory import make_recon
+
+        save_reconstruction(make_recon(), tmp_path, formats=("npz",))
+    # the model named does not exist: the -o error shows the folder was checked first
+    assert main([command, *args, "-o", str(tmp_path / "taken" / "sub"), "--model", "no_such_model"]) == 2
+    assert "-o expected a folder to write into, got" in capsys.readouterr().err

@@ -99,3 +99,15 @@ def test_crop_to_common_cuts_portrait_and_landscape_to_one_shape_and_keeps_the_t
         assert abs(ys.mean() - ((y + 0.5) * sy - 0.5 - top)) < 0.5
     same = pm.load_images([land, land], size=512)
     assert crop_to_common(same)[0][0] is same[0]
+
+
+def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the_conversion_to_use():
+    rng = np.random.default_rng(0)
+    arr = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    from_pil = pm.load_images(Image.fromarray(arr), size=32)[0]
+    from_arr = pm.load_images([arr], size=32)[0]
+    assert torch.equal(from_pil.img, from_arr.img) and from_pil.original_size == (80, 60)
+    with pytest.raises(pm.ImageError, match="got Tensor \\(a \\[3, H, W\\] tensor: pass img.permute"):
+        pm.load_images([torch.zeros(3, 64, 64)])
+    with pytest.raises(pm.ImageError, match="expected a list of image paths, arrays or PIL images, got int"):
+        pm.load_images(123)

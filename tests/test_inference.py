@@ -58,3 +58,14 @@ def test_invalid_pairs_are_refused(tiny_model):
         pm.predict_pairs(tiny_model, views(2), [], quiet=True)
     with pytest.raises(pm.ShapeError):
         pm.predict_pairs(tiny_model, [torch.rand(4, 4)], [(0, 1)], quiet=True)
+
+
+def test_pairs_that_are_not_index_pairs_a_fractional_batch_size_and_a_non_model_are_refused(tiny_model):
+    for bad in [(0.5, 1), (0, 1, 2), "01"]:
+        with pytest.raises(pm.GraphError, match="pairs expected \\(i, j\\) pairs of image indices"):
+            pm.predict_pairs(tiny_model, views(2), [bad], quiet=True)
+    assert set(pm.predict_pairs(tiny_model, views(2), [(np.int64(0), np.int64(1))], quiet=True)) == {(0, 1), (1, 0)}
+    with pytest.raises(pm.ShapeError, match="batch_size expected an int >= 1, got 2.5"):
+        pm.predict_pairs(tiny_model, views(2), [(0, 1)], batch_size=2.5, quiet=True)
+    with pytest.raises(pm.CheckpointError, match="expected a model .*got NoneType"):
+        pm.predict_pairs(None, views(2), [(0, 1)], quiet=True)

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 
 import pointmap as pm
@@ -37,3 +38,11 @@ def test_a_disconnected_graph_is_reported_with_its_components():
     with pytest.raises(pm.GraphError, match="2 components"):
         pm.check_connected(4, [(0, 1), (2, 3)])
     pm.check_connected(4, [(0, 1), (1, 2), (2, 3)])
+
+
+def test_numpy_image_counts_are_taken_and_other_types_are_refused_naming_them():
+    assert pm.make_pairs(np.int64(3)) == [(0, 1), (0, 2), (1, 2)]
+    with pytest.raises(pm.GraphError, match="expected a number of images \\(an int\\), got float 3.0"):
+        pm.make_pairs(3.0)
+    with pytest.raises(pm.GraphError, match="graph expected a name .*got int 5"):
+        pm.make_pairs(3, 5)

@@ -491,3 +491,41 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
         pm.pair_pose(fwd, rev, matches=[])
     with pytest.raises(pm.ShapeError, match=r"K2 expected \[3, 3\] or \[1, 3, 3\]"):
         pm.pair_pose(fwd, rev, K, K[:2])
+
+
+def test_a_prediction_refuses_descriptors_that_do_not_come_in_fours_fit_the_grid_or_agree_in_length():
+    p1, p2, *_ = two_views()
+    pts = (p1[None].float(), p2[None].float(), torch.ones(1, H, W), torch.ones(1, H, W))
+    d, dc = torch.ones(1, H, W, 8), torch.ones(1, H, W)
+    with pytest.raises(pm.ShapeError, match="all four or none, got only \\['desc1', 'desc2'\\]"):
+        pm.PairPrediction(*pts, desc1=d, desc2=d)
+    with pytest.raises(pm.ShapeError, match="desc1 expected .*pts1_cam1's grid"):
+        pm.PairPrediction(*pts, desc1=torch.ones(1, 5, 5, 8), desc2=d, desc_conf1=dc, desc_conf2=dc)
+    with pytest.raises(pm.ShapeError, match="desc_conf2 expected"):
+        pm.PairPrediction(*pts, desc1=d, desc2=d, desc_conf1=dc, desc_conf2=torch.ones(1, 5, 5))
+    with pytest.raises(pm.ShapeError, match="same descriptor length D, got \\[4, 8\\]"):
+        pm.PairPrediction(*pts, desc1=d, desc2=d[..., :4], desc_conf1=dc, desc_conf2=dc)
+    with pytest.raises(pm.ShapeError, match="pts1_cam1 expected a torch.Tensor, got ndarray"):
+        pm.PairPrediction(pts[0].numpy(), *pts[1:])
+    assert pm.PairPrediction(*pts, desc1=d, desc2=d, desc_conf1=dc, desc_conf2=dc).has_desc
+
+
+def test_intrinsics_with_a_zero_or_nan_focal_are_refused_not_turned_into_a_nan_pose():
+    p1, p2, *_ = two_views()
+    pred = as_pred(p1, p2)
+    for bad in (torch.zeros(3, 3), torch.full((3, 3), float("nan"))):
+        with pytest.raises(pm.ShapeError, match="K2 expected finite intrinsics with positive focals"):
+            pm.relative_pose(pred, K2=bad)
+        with pytest.raises(pm.ShapeError, match="K1 expected finite intrinsics with positive focals"):
+            pm.pair_pose(pred, as_pred(p2, p1), bad, K)
+    assert torch.isfinite(pm.relative_pose(pred, K2=K)).all()
+
+
+def test_matching_and_pose_refuse_what_is_not_a_prediction():
+    p1, p2, *_ = two_views()
+    with pytest.raises(pm.ShapeError, match="pred expected a PairPrediction .*got dict"):
+        pm.match(as_pred(p1, p2).as_dict())
+    with pytest.raises(pm.ShapeError, match="pred expected a PairPrediction .*got dict"):
+        pm.match_coarse(as_pred(p1, p2).as_dict())
+    with pytest.raises(pm.ShapeError, match="pred_reverse expected a PairPrediction .*got tuple"):
+        pm.relative_pose(as_pred(p1, p2), pred_reverse=(p2, p1))

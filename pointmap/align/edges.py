@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from pointmap.errors import GraphError, ShapeError
+from pointmap.prediction import check_prediction
 
 CONF_TRANSFORMS = ("log", "m1", "sqrt", "id")
 # 'auto': log(conf) when the confidences spread above 1, conf itself when they sit at the floor
@@ -96,6 +97,7 @@ def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> li
     for key, p in preds.items():
         if not (isinstance(key, tuple) and len(key) == 2):
             raise GraphError(f"preds keys expected (i, j) tuples, got {key!r}")
+        check_prediction(p, f"preds[{key}]")
         i, j = int(key[0]), int(key[1])
         if not (0 <= i < n_images and 0 <= j < n_images):
             raise GraphError(f"pair {key} refers to an image outside 0..{n_images - 1}")

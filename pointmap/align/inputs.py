@@ -31,12 +31,15 @@ def parse_views(views) -> ViewInfo:
         img = torch.as_tensor(np.asarray(img) if not torch.is_tensor(img) else img).float()
         if img.ndim != 3 or img.shape[0] != 3:
             raise ShapeError(f"view {k}: expected an image [3, h, w], got {list(img.shape)}")
+        if not bool(torch.isfinite(img).all()):
+            raise ShapeError(f"view {k}: expected a finite image, got NaN or inf pixels")
         h, w = int(img.shape[1]), int(img.shape[2])
         images.append(img.permute(1, 2, 0).clamp(0, 1))
         shapes.append((h, w))
         mfo.append(tuple(float(x) for x in getattr(v, "map_from_original", (1.0, 1.0, 0.0, 0.0))))
         sizes.append(tuple(int(x) for x in getattr(v, "original_size", (w, h))))
-        names.append(getattr(v, "name", f"view_{k:03d}.png"))
+        name = getattr(v, "name", None)  # a plain tensor has a .name too (None, for named dimensions)
+        names.append(name if isinstance(name, str) and name else f"view_{k:03d}.png")
     if len(set(names)) != len(names):
         seen = {}
         for k, nm in enumerate(names):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from pointmap.errors import ShapeError
 from pointmap.io.colmap import write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
 from pointmap.io.nerfstudio import write_transforms
@@ -38,6 +39,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     if bad:
         raise ValueError(f"formats expected a subset of {FORMATS}, got {bad}")
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")
     out.mkdir(parents=True, exist_ok=True)
     written: dict = {}
     if "ply" in formats or "glb" in formats:

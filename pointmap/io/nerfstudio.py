@@ -91,23 +91,27 @@ def read_transforms(path) -> dict:
                 or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4) or np.linalg.det(T[:3, :3]) < 0:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): transform_matrix must be a rigid "
                                 f"[4, 4] camera-to-world matrix, got {T.tolist() if T.size == 16 else list(T.shape)}")
-        w, h = get("w"), get("h")
-        size = (int(w), int(h)) if w is not None and h is not None else None
-        fx, fy = get("fl_x"), get("fl_y")
-        if fx is None and get("camera_angle_x") is not None and w is not None:
-            fx = focal_from_angle(float(get("camera_angle_x")), float(w))
-        K = None
-        if fx is not None:
-            fy = fx if fy is None else fy
-            cx = get("cx") if get("cx") is not None else (float(w) / 2 if w is not None else None)
-            cy = get("cy") if get("cy") is not None else (float(h) / 2 if h is not None else None)
-            if cx is None or cy is None:
-                raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a focal but neither a principal "
-                                    "point (cx, cy) nor the image size (w, h)")
-            K = np.array([[float(fx), 0.0, float(cx) - 0.5], [0.0, float(fy), float(cy) - 0.5], [0.0, 0.0, 1.0]])
-            if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
-                raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): focal lengths must be positive, "
-                                    f"got {fx}, {fy}")
+        try:  # numbers that are not numbers ("w": "abc") are refused like the rest
+            w, h = get("w"), get("h")
+            size = (int(w), int(h)) if w is not None and h is not None else None
+            fx, fy = get("fl_x"), get("fl_y")
+            if fx is None and get("camera_angle_x") is not None and w is not None:
+                fx = focal_from_angle(float(get("camera_angle_x")), float(w))
+            K = None
+            if fx is not None:
+                fy = fx if fy is None else fy
+                cx = get("cx") if get("cx") is not None else (float(w) / 2 if w is not None else None)
+                cy = get("cy") if get("cy") is not None else (float(h) / 2 if h is not None else None)
+                if cx is None or cy is None:
+                    raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) has a focal but neither a principal "
+                                        "point (cx, cy) nor the image size (w, h)")
+                K = np.array([[float(fx), 0.0, float(cx) - 0.5], [0.0, float(fy), float(cy) - 0.5], [0.0, 0.0, 1.0]])
+                if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
+                    raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): focal lengths must be positive, "
+                                        f"got {fx}, {fy}")
+        except (TypeError, ValueError) as e:
+            raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): an intrinsics field (w, h, fl_x, fl_y, "
+                                f"cx, cy, camera_angle_x) is not a number: {e}") from None
         angle = get("camera_angle_x") if K is None and get("camera_angle_x") is not None else None
         if not dist.is_identity and K is None:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) states lens distortion but no focal length "

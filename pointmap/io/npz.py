@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -40,13 +42,34 @@ def write_npz(path, recon) -> None:
         np.savez_compressed(f, **arrays)
 
 
+_KEYS = ("images", "cam2world", "K", "depth_z", "conf", "map_from_original", "original_sizes", "names", "info_json")
+
+
 def load_npz(path):
-    """Read a ``write_npz`` file back into a Reconstruction."""
+    """Read a ``write_npz`` file back into a Reconstruction. PointmapError (one line, naming the file) for a file
+    that is missing, not an npz archive, truncated, or another program's archive."""
+    from pointmap.errors import PointmapError, ShapeError
     from pointmap.reconstruction import Reconstruction
 
-    with np.load(path, allow_pickle=False) as z:
-        t = {k: torch.from_numpy(z[k]) for k in ("images", "cam2world", "K", "depth_z", "conf", "map_from_original")}
-        return Reconstruction(**t, original_sizes=[tuple(int(v) for v in s) for s in z["original_sizes"]],
-                              names=[str(s) for s in z["names"]],
-                              masks=torch.from_numpy(z["masks"]) if "masks" in z.files else None,
-                              info=json.loads(str(z["info_json"])))
+    path = Path(path)
+    if not path.is_file():
+        raise PointmapError(f"expected a reconstruction.npz file, got {str(path)!r}, which is not a file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise PointmapError(f"{path} is not a pointmap reconstruction.npz (a single .npy array)")
+            missing = [k for k in _KEYS if k not in z.files]
+            if missing:
+                raise PointmapError(f"{path} is not a pointmap reconstruction.npz (missing {', '.join(missing)}; "
+                                    f"it holds {', '.join(z.files[:8]) or 'nothing'})")
+            t = {k: torch.from_numpy(z[k]) for k in _KEYS[:6]}
+            return Reconstruction(**t, original_sizes=[tuple(int(v) for v in s) for s in z["original_sizes"]],
+                                  names=[str(s) for s in z["names"]],
+                                  masks=torch.from_numpy(z["masks"]) if "masks" in z.files else None,
+                                  info=json.loads(str(z["info_json"])))
+    except ShapeError as e:  # arrays that do not make a reconstruction
+        raise PointmapError(f"{path}: not a valid reconstruction: {e}") from None
+    except PointmapError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, json.JSONDecodeError, TypeError) as e:
+        raise PointmapError(f"{path} is not a readable reconstruction.npz ({e.__class__.__name__}: {e})") from None

@@ -45,6 +45,17 @@ class ModelConfig:
                                   # descriptor head fuses into its output (0: none, as the official heads)
 
     def __post_init__(self) -> None:
+        sizes = ("enc_dim", "enc_depth", "enc_heads", "dec_dim", "dec_depth", "dec_heads", "patch_size", "desc_dim",
+                 "desc_stem")
+        bad = [f"{n}={getattr(self, n)!r}" for n in sizes
+               if isinstance(getattr(self, n), bool) or not isinstance(getattr(self, n), int)
+               or getattr(self, n) < (0 if n.startswith("desc") else 1)]
+        bad += [f"{n}={getattr(self, n)!r}" for n in ("mlp_ratio", "rope_base", "desc_hidden_factor")
+                if isinstance(getattr(self, n), bool) or not isinstance(getattr(self, n), (int, float))
+                or not 0 < getattr(self, n) < math.inf]
+        if bad:  # before the checks below, which divide by these
+            raise CheckpointError(f"invalid model config: expected positive integer sizes and finite positive ratios "
+                                  f"(desc_dim, desc_stem >= 0), got {', '.join(bad)}")
         errors = []
         if self.head not in HEADS:
             errors.append(f"head expected one of {HEADS}, got {self.head!r}")

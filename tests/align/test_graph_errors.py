@@ -113,3 +113,21 @@ def test_self_pairs_are_ignored_with_a_warning(scene):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert np.isfinite(recon.K.numpy()).all()
+
+
+def test_plain_tensor_views_get_default_names_and_a_nan_image_is_refused(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    tensors = [v.img for v in views_of(scene)]
+    recon = global_align(tensors, preds, config=QUIET)
+    assert recon.names == [f"view_{k:03d}.png" for k in range(4)]
+    tensors[2] = tensors[2].clone()
+    tensors[2][0, 0, 0] = float("nan")
+    with pytest.raises(ShapeError, match="view 2: expected a finite image"):
+        global_align(tensors, preds, config=QUIET)
+
+
+def test_a_prediction_entry_that_is_not_a_prediction_is_refused_naming_its_pair(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    preds[(1, 2)] = preds[(1, 2)].as_dict()
+    with pytest.raises(ShapeError, match="preds\\[\\(1, 2\\)\\] expected a PairPrediction"):
+        global_align(views_of(scene), preds, config=QUIET)

@@ -421,6 +421,7 @@ def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_g
     ({"transform_matrix": (2 * np.eye(4)).tolist()}, "must be a rigid"),
     ({"transform_matrix": None}, "lacks 'file_path' or 'transform_matrix'"),
     ({"fl_x": -3.0}, "focal lengths must be positive"),
+    ({"w": "abc"}, "an intrinsics field .* is not a number"),
 ])
 def test_read_transforms_refuses_what_pointmap_cannot_use_and_says_why(tmp_path, change, message):
     import json
@@ -465,3 +466,100 @@ def test_tum_trajectory_lines_give_back_each_camera_to_world_pose(tmp_path):
         assert t == k
         assert np.allclose([tx, ty, tz], recon.cam2world[k, :3, 3].numpy(), atol=1e-6)
         assert np.allclose(R, recon.cam2world[k, :3, :3].double().numpy(), atol=1e-6)
+
+
+def _fields(**change):
+    recon = make_recon(n=2)
+    kw = {k: getattr(recon, k) for k in ("images", "cam2world", "K", "depth_z", "conf", "map_from_original",
+                                         "original_sizes", "names", "masks")}
+    return {**kw, **change}
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"names": ["a.png"]}, "names expected 2 non-empty strings"),
+    ({"names": ["a.png", "a.png"]}, "names expected to be unique .*\\['a.png'\\]"),
+    ({"masks": torch.ones(2, 24, 32)}, "masks expected dtype bool"),
+    ({"K": torch.zeros(2, 3, 3)}, "K expected focal lengths fx, fy > 0"),
+    ({"cam2world": torch.zeros(2, 4, 4)}, "cam2world expected rigid"),
+    ({"cam2world": 2 * torch.eye(4).repeat(2, 1, 1)}, "cam2world expected rigid"),
+    ({"depth_z": -torch.ones(2, 24, 32)}, "depth_z expected values >= 0"),
+    ({"map_from_original": torch.zeros(2, 4)}, "map_from_original expected finite rows .*sx, sy > 0"),
+    ({"images": [[0.5]]}, "images expected a torch.Tensor \\(or numpy array\\), got list"),
+])
+def test_a_reconstruction_refuses_fields_its_exports_would_crash_on_or_write_wrong(change, message):
+    from pointmap.errors import ShapeError
+    from pointmap.reconstruction import Reconstruction
+
+    with pytest.raises(ShapeError, match=message):
+        Reconstruction(**_fields(**change))
+
+
+def test_a_reconstruction_takes_numpy_arrays_as_the_tensors_they_hold():
+    from pointmap.reconstruction import Reconstruction
+
+    kw = _fields()
+    back = Reconstruction(**{k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in kw.items()})
+    assert all(torch.equal(getattr(back, k), kw[k]) for k in ("images", "cam2world", "K", "depth_z", "conf"))
+
+
+def test_load_npz_names_the_file_when_it_is_missing_foreign_corrupt_or_truncated(tmp_path):
+    from pointmap.errors import PointmapError
+
+    with pytest.raises(PointmapError, match="nope.npz', which is not a file"):
+        load_npz(tmp_path / "nope.npz")
+    np.savez(tmp_path / "foreign.npz", x=np.zeros(3))
+    with pytest.raises(PointmapError, match="foreign.npz is not a pointmap reconstruction.npz \\(missing images"):
+        load_npz(tmp_path / "foreign.npz")
+    (tmp_path / "garbage.npz").write_bytes(b"not an archive at all")
+    with pytest.raises(PointmapError, match="garbage.npz is not a readable reconstruction.npz"):
+        load_npz(tmp_path / "garbage.npz")
+    save_reconstruction(make_recon(), tmp_path, formats=("npz",))
+    raw = (tmp_path / "reconstruction.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(PointmapError, match="cut.npz is not a readable reconstruction.npz"):
+        load_npz(tmp_path / "cut.npz")
+    assert len(load_npz(tmp_path / "reconstruction.npz")) == 3  # the whole file still reads
+
+
+def test_write_ply_refuses_points_and_colours_it_would_write_wrong_and_scales_float_colours(tmp_path):
+    from pointmap.errors import ShapeError
+    from pointmap.io import write_ply
+
+    xyz = np.arange(12, dtype=np.float32).reshape(4, 3)
+    write_ply(tmp_path / "f.ply", xyz, np.full((4, 3), 0.5))
+    assert read_ply(tmp_path / "f.ply")["red"].tolist() == [128] * 4  # floats in [0, 1] scaled, not cast to 0
+    for args, message in [((np.zeros((6, 2)), np.zeros((6, 3), np.uint8)), "xyz expected \\[M, 3\\]"),
+                          ((xyz, np.zeros((3, 3), np.uint8)), "rgb expected \\[4, 3\\] \\(one colour per point\\)"),
+                          ((xyz, np.full((4, 3), 300)), "rgb expected uint8 colours .*in \\[300, 300\\]"),
+                          ((np.full((4, 3), np.nan), np.zeros((4, 3), np.uint8)), "xyz expected finite points")]:
+        with pytest.raises(ShapeError, match=message):
+            write_ply(tmp_path / "bad.ply", *args)
+    assert not (tmp_path / "bad.ply").exists()
+
+
+def test_read_ply_reads_other_programs_scalar_properties_and_names_files_it_cannot_read(tmp_path):
+    from pointmap.errors import ShapeError
+
+    body = np.array([(1.0, 2.0, 3.0, 7)], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")]).tobytes()
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n" \
+           "property float z\nproperty uint8 red\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n"
+    (tmp_path / "other.ply").write_bytes(head.encode() + body)
+    got = read_ply(tmp_path / "other.ply")
+    assert got["x"].tolist() == [1.0] and got["red"].tolist() == [7]
+    (tmp_path / "cut.ply").write_bytes(head.encode() + body[:-3])
+    with pytest.raises(ShapeError, match="cut.ply: truncated: 1 vertices of 13 bytes need 13 bytes, the file has 10"):
+        read_ply(tmp_path / "cut.ply")
+    (tmp_path / "garbage.ply").write_bytes(b"\x00\x01 nothing like a ply")
+    with pytest.raises(ShapeError, match="garbage.ply: not a PLY file"):
+        read_ply(tmp_path / "garbage.ply")
+    (tmp_path / "ascii.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(ShapeError, match="only binary little-endian PLY is supported, got 'format ascii 1.0'"):
+        read_ply(tmp_path / "ascii.ply")
+
+
+def test_saving_into_a_path_that_is_a_file_is_refused_naming_it(tmp_path):
+    from pointmap.errors import ShapeError
+
+    (tmp_path / "taken").write_text("x")
+    with pytest.raises(ShapeError, match="out_dir expected a folder to write into, got .*taken', which is a file"):
+        save_reconstruction(make_recon(), tmp_path / "taken", formats=("npz",))
