@@ -119,7 +119,7 @@ def bench_scene(time_budget=None, align_steps=60, seed=0):
     c0, w0 = time.process_time(), time.perf_counter()
     g = init_from(recon, max_gaussians=budget["max_gaussians"], seed=seed)
     t_init = time.perf_counter() - w0
-    remaining = None if time_budget is None else time_budget - t_init
+    remaining = None if time_budget is None else max(1.0, time_budget - t_init)  # as pointmap.splat.run
     res = fit(recon, g, progress=False, time_budget=remaining, seed=seed)
     cpu_fit, wall_fit = time.process_time() - c0, time.perf_counter() - w0
 

@@ -211,7 +211,10 @@ def write_manifest(out: Path, cfg: GenConfig) -> dict:
 
 def prepare_out(out: Path, cfg: GenConfig) -> None:
     """Create ``out`` with ``config.json``, or check an existing one matches (resume needs the same config)."""
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError, PermissionError) as e:
+        raise ValueError(f"--out expected a folder for the dataset, got {str(out)!r}: {e.strerror}") from None
     path = out / "config.json"
     want = cfg.to_dict()
     if path.exists():

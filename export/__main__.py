@@ -53,6 +53,10 @@ def main(argv=None) -> int:
     except (PointmapError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except (FileExistsError, NotADirectoryError, PermissionError) as e:  # --out cannot be a folder here
+        print(f"error: --out expected a folder to write the export into, got {str(args.out)!r}: {e.strerror}",
+              file=sys.stderr)
+        return 2
     if not args.quiet:
         print(f"wrote {args.out} ({meta['precision']}, {'split' if meta['split'] else 'single graph'}, "
               f"opset {meta['opset']}) in {time.perf_counter() - t0:.0f} s")

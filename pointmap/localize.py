@@ -12,6 +12,7 @@ a view paired with its own reference frame scored lower than with a neighbour on
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, replace
 
 import torch
@@ -140,15 +141,22 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     if K is not None:
         K = torch.as_tensor(K, dtype=torch.float64)
         K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
-        if tuple(K.shape) != (m, 3, 3) or not torch.isfinite(K).all() or (K[:, 0, 0] <= 0).any():
-            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] finite with positive focals, got {list(K.shape)}")
+        if tuple(K.shape) != (m, 3, 3) or not torch.isfinite(K).all() or (K[:, 0, 0] <= 0).any() \
+                or (K[:, 1, 1] <= 0).any() or (K[:, 1, 0] != 0).any() or (K[:, 2] != K.new_tensor([0, 0, 1])).any():
+            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "
+                             f"finite with positive focals, got {K.tolist() if K.numel() <= 9 else list(K.shape)}")
     refs_views = reference_views(recon)
     if refs is None:
         if not isinstance(n_refs, int) or n_refs < 1:
             raise PointmapError(f"n_refs expected an int >= 1, got {n_refs!r}")
         refs = rank_references(model, refs_views, queries, n_refs, device=device)
-    refs = [[r] if isinstance(r, int) else list(r) for r in refs]
-    if len(refs) != m or any(not r or any(not isinstance(k, int) or not 0 <= k < n for k in r) for r in refs):
+    def is_index(k):
+        return isinstance(k, numbers.Integral) and not isinstance(k, bool)
+
+    refs = [[int(r)] if is_index(r) else [int(k) if is_index(k) else k for k in r] if hasattr(r, "__iter__") else r
+            for r in refs]
+    if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
+                                                                     for k in r) for r in refs):
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
                          f"got {refs}")
     views = refs_views + [replace(q, index=n + k) for k, q in enumerate(queries)]

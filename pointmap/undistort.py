@@ -37,7 +37,11 @@ class Distortion:
         if self.model not in MODELS:
             raise PointmapError(f"distortion model expected one of {', '.join(MODELS)}, got {self.model!r}")
         names = MODELS[self.model]
-        c = tuple(float(x) for x in self.coeffs)
+        try:
+            c = tuple(float(x) for x in self.coeffs)
+        except (TypeError, ValueError):
+            raise PointmapError(f"{self.model} expected a sequence of up to {len(names)} numbers ({', '.join(names)}), "
+                                f"got {self.coeffs!r}") from None
         if len(c) > len(names) or not all(np.isfinite(c)):
             raise PointmapError(f"{self.model} expected up to {len(names)} finite coefficients ({', '.join(names)}), "
                                 f"got {list(self.coeffs)}")
@@ -77,8 +81,10 @@ class Distortion:
 def _check_K(K, size) -> np.ndarray:
     K = np.asarray(K, np.float64)
     w, h = size
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise PointmapError(f"K expected a finite [3, 3] matrix with positive focal lengths, got {K.tolist()}")
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 \
+            or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+        raise PointmapError(f"K expected a finite [3, 3] matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive "
+                            f"focal lengths, got {K.tolist()}")
     if not (isinstance(w, (int, np.integer)) and isinstance(h, (int, np.integer)) and w > 1 and h > 1):
         raise PointmapError(f"size expected (width, height) in pixels, got {size}")
     return K
@@ -159,8 +165,12 @@ def undistort(image: np.ndarray, K, distortion: Distortion, K_new=None, *, neare
     import cv2
 
     image = np.asarray(image)
-    if image.ndim not in (2, 3) or image.shape[0] < 2 or image.shape[1] < 2:
-        raise PointmapError(f"undistort expected an [H, W] or [H, W, C] image, got shape {list(image.shape)}")
+    if image.ndim not in (2, 3) or image.shape[0] < 2 or image.shape[1] < 2 or (image.ndim == 3 and
+                                                                                 not 1 <= image.shape[2] <= 4):
+        raise PointmapError(f"undistort expected an [H, W] or [H, W, C] image (C 1..4), got shape {list(image.shape)}")
+    if image.dtype not in (np.uint8, np.uint16, np.float32, np.float64, bool):
+        raise PointmapError(f"undistort expected an image of dtype uint8, uint16, float32, float64 or bool, got "
+                            f"{image.dtype}")
     h, w = image.shape[:2]
     K = _check_K(K, (w, h))
     K_new = pinhole_for(K, distortion, (w, h)) if K_new is None else _check_K(K_new, (w, h))
@@ -188,6 +198,9 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
 
     paths, K = list(paths), dict(K)
     masks = None if masks is None else list(masks)
+    bad = [k for k in list(distortions) + list(K) if not (isinstance(k, (int, np.integer)) and 0 <= k < len(paths))]
+    if bad:
+        raise PointmapError(f"distortions and K expected photograph indices in 0..{len(paths) - 1}, got {bad}")
     names = [Path(paths[k]).name for k in distortions]
     if len(set(names)) != len(names):
         raise PointmapError(f"undistorted photographs would share a file name in {out_dir}: {sorted(names)}")

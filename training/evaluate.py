@@ -433,6 +433,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
     if a.pairs < 1:
         p.error(f"--pairs expected >= 1, got {a.pairs}")
+    if a.size is not None and (a.size < 16 or (a.size != 224 and a.size % 16)):
+        p.error(f"--size expected 224 or a multiple of 16, got {a.size}")
     set_name = a.set or Path(a.data).resolve().name
     if a.per_pair is not None:
         if a.set is None and "," in a.data:
@@ -450,6 +452,9 @@ def main(argv=None) -> int:
             ck = load_checkpoint(Path(a.model))
             if ck.get("kind") != "train":
                 raise pm.CheckpointError(f"{a.model} is a {ck.get('kind')!r} checkpoint; evaluate a 'train' one")
+            missing = [k for k in ("model_config", "model", "train_config") if k not in ck]
+            if missing:
+                raise pm.CheckpointError(f"{a.model} is not a complete training checkpoint (missing {missing})")
             model = pm.PointmapNet(pm.ModelConfig.from_dict(ck["model_config"]))
             load_state_strict(model, official_to_ours(ck["model"]), source=a.model)
             size = a.size or int(ck["train_config"]["size"])

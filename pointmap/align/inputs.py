@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from dataclasses import dataclass
 
@@ -77,6 +78,15 @@ def _as_tensor(x, name: str) -> torch.Tensor:
     return t
 
 
+def _image_index(i, n: int, name: str) -> int:
+    """A dict key of known K / poses as an image index; ShapeError for a non-integer or out-of-range one."""
+    if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+        raise ShapeError(f"{name}: keys expected integer image indices, got {type(i).__name__} {i!r}")
+    if not 0 <= int(i) < n:
+        raise ShapeError(f"{name}: image index {i} outside 0..{n - 1}")
+    return int(i)
+
+
 def parse_known_K(K, n: int, info: ViewInfo):
     """Known intrinsics in ORIGINAL pixels -> (K_orig [N,3,3] float64 or None rows, known mask [N],
     fx, fy, cx, cy [N] in map pixels (NaN where unknown)). K: None, [3, 3], [N, 3, 3] or {i: [3, 3]}."""
@@ -85,9 +95,7 @@ def parse_known_K(K, n: int, info: ViewInfo):
         pass
     elif isinstance(K, dict):
         for i, k in K.items():
-            if not 0 <= int(i) < n:
-                raise ShapeError(f"K: image index {i} outside 0..{n - 1}")
-            per[int(i)] = _as_tensor(k, f"K[{i}]")
+            per[_image_index(i, n, "K")] = _as_tensor(k, f"K[{i}]")
     else:
         Kt = _as_tensor(K, "K")
         if tuple(Kt.shape) == (3, 3):
@@ -106,8 +114,10 @@ def parse_known_K(K, n: int, info: ViewInfo):
         k = k.double()
         if tuple(k.shape) != (3, 3):
             raise ShapeError(f"K[{i}] expected [3, 3], got {list(k.shape)}")
-        if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(float(k[2, 2]) - 1) > 1e-6:
-            raise ConventionError(f"K[{i}] expected positive focals and K[2, 2] = 1 (pixels), got {k.tolist()}")
+        if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(float(k[2, 2]) - 1) > 1e-6 or float(k[1, 0]) != 0 \
+                or float(k[2, 0]) != 0 or float(k[2, 1]) != 0:
+            raise ConventionError(f"K[{i}] expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels with positive "
+                                  f"focals (a transposed K puts cx, cy in the bottom row), got {k.tolist()}")
         Km = K_to_map(k, info.map_from_original[i])
         fx[i], fy[i], cx[i], cy[i] = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
     return per, known, fx, fy, cx, cy
@@ -121,7 +131,10 @@ def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
             raise ShapeError("pose_mask given without cam2world")
         return {}
     if isinstance(cam2world, dict):
-        out = {int(i): _as_tensor(T, f"cam2world[{i}]") for i, T in cam2world.items()}
+        if pose_mask is not None:
+            raise ShapeError("pose_mask expected only with a [N, 4, 4] cam2world; a dict's keys already say which "
+                             "poses are known")
+        out = {_image_index(i, n, "cam2world"): _as_tensor(T, f"cam2world[{i}]") for i, T in cam2world.items()}
     else:
         T = _as_tensor(cam2world, "cam2world")
         if tuple(T.shape) != (n, 4, 4):

@@ -11,6 +11,7 @@ The dense depth maps are then rescaled per image by the median depth change of t
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import asdict, dataclass, replace
 
@@ -37,6 +38,23 @@ class SparseConfig:
     max_matches_per_pair: int = 4096
     quiet: bool = False
 
+    def __post_init__(self) -> None:
+        bad = []
+        if isinstance(self.niter, bool) or not isinstance(self.niter, int) or self.niter < 1:
+            bad.append(f"niter expected an int >= 1, got {self.niter!r}")
+        if self.robust_px is not None and not (isinstance(self.robust_px, (int, float)) and
+                                               0 < self.robust_px < math.inf):
+            bad.append(f"robust_px expected pixels > 0 (None: automatic), got {self.robust_px!r}")
+        if not (isinstance(self.depth_prior, (int, float)) and 0 <= self.depth_prior < math.inf):
+            bad.append(f"depth_prior expected a weight >= 0, got {self.depth_prior!r}")
+        if not (isinstance(self.min_score, (int, float)) and math.isfinite(self.min_score)):
+            bad.append(f"min_score expected a finite score, got {self.min_score!r}")
+        if isinstance(self.max_matches_per_pair, bool) or not isinstance(self.max_matches_per_pair, int) \
+                or self.max_matches_per_pair < 1:
+            bad.append(f"max_matches_per_pair expected an int >= 1, got {self.max_matches_per_pair!r}")
+        if bad:
+            raise ShapeError("SparseConfig: " + "; ".join(bad))
+
 
 def _unpack(m):
     if isinstance(m, (tuple, list)):
@@ -55,6 +73,11 @@ def _unpack(m):
 def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed: int = 0):
     """Flatten {(i, j): matches} into tensors, keeping matches inside both images with depth at xy_i."""
     n, h, w = recon.depth_z.shape
+    if not isinstance(matches, dict):
+        raise ShapeError(f"matches expected a dict {{(i, j): matches}}, got {type(matches).__name__}")
+    for key in matches:
+        if not (isinstance(key, tuple) and len(key) == 2 and all(isinstance(k, numbers.Integral) and 0 <= k < n for k in key)):
+            raise ShapeError(f"matches keys expected (i, j) image indices in 0..{n - 1}, got {key!r}")
     g = torch.Generator().manual_seed(seed)
     I, J, A, B, S = [], [], [], [], []
     for (i, j), m in matches.items():
@@ -93,8 +116,16 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
         the world stays where it was); fixed_intrinsics: indices (or True for all) with K kept as is.
     """
     cfg = config or SparseConfig()
+    if not isinstance(recon, Reconstruction) or not isinstance(cfg, SparseConfig):
+        raise ShapeError(f"refine_matches expected a Reconstruction and a SparseConfig, got {type(recon).__name__} "
+                         f"and {type(cfg).__name__}")
     t0 = time.perf_counter()
     n = len(recon)
+    for name, idx in (("fixed_poses", fixed_poses), ("fixed_intrinsics", () if fixed_intrinsics is True
+                                                     else fixed_intrinsics or ())):
+        out_of_range = [i for i in idx if not 0 <= int(i) < n]
+        if out_of_range:
+            raise ShapeError(f"{name} expected image indices in 0..{n - 1}, got {out_of_range}")
     I, J, xy_i, xy_j, score = gather_matches(recon, matches, cfg)
     fixed_poses = sorted(int(i) for i in fixed_poses)
     anchor = not fixed_poses  # then image 0 is put back where it was given (global_align's world: its frame)

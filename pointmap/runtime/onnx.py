@@ -131,7 +131,12 @@ def read_metadata(path) -> dict:
                 return read_metadata(path.parent)
             raise CheckpointError(f"{path} is not a pointmap ONNX export (no '{METADATA_KEY}' metadata, "
                                   f"no {SIDECAR} beside it)")
-        meta = json.loads(props[METADATA_KEY])
+        try:
+            meta = json.loads(props[METADATA_KEY])
+        except json.JSONDecodeError as e:
+            raise CheckpointError(f"{path}: its '{METADATA_KEY}' metadata is not valid JSON: {e}") from None
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: its export metadata expected a JSON object, got {type(meta).__name__}")
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path}: unsupported export format {meta.get('format')!r} (expected {FORMAT!r})")
     return meta

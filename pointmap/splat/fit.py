@@ -17,6 +17,7 @@ that a 2-6 view scene fits in about two minutes; with CUDA it uses InstantSplat'
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass, field, replace
 
@@ -98,16 +99,60 @@ def _check_image(image, name="image") -> torch.Tensor:
 
 def _check_pose(T, name) -> torch.Tensor:
     T = torch.as_tensor(T, dtype=torch.float32)
-    if tuple(T.shape) != (4, 4):
-        raise ShapeError(f"{name} expected [4, 4], got {list(T.shape)}")
+    if tuple(T.shape) != (4, 4) or not bool(torch.isfinite(T).all()):
+        raise ShapeError(f"{name} expected a finite [4, 4] cam2world, got "
+                         f"{list(T.shape) if tuple(T.shape) != (4, 4) else T.tolist()}")
     return T
 
 
 def _check_K(K) -> torch.Tensor:
     K = torch.as_tensor(K, dtype=torch.float32)
-    if tuple(K.shape) != (3, 3):
-        raise ShapeError(f"K expected [3, 3], got {list(K.shape)}")
+    if tuple(K.shape) != (3, 3) or not bool(torch.isfinite(K).all()) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ShapeError(f"K expected finite [3, 3] intrinsics with positive focals, got "
+                         f"{list(K.shape) if tuple(K.shape) != (3, 3) else K.tolist()}")
     return K
+
+
+LR_KEYS = ("means", "sh_dc", "opacity", "scales", "quats")
+
+
+def _check_fit_options(*, steps, max_side, coarse_frac, lr, pose_lr, ssim_weight, densify_every, densify_grad,
+                       time_budget) -> None:
+    """ShapeError (one line) for a ``fit`` option out of its range (None means "the default" where allowed)."""
+    def is_int(x):
+        return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+    def is_num(x):
+        return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+
+    bad = []
+    if steps is not None and not (is_int(steps) and steps >= 0):
+        bad.append(f"steps expected an int >= 0, got {steps!r}")
+    if max_side is not None and not (is_int(max_side) and max_side >= 16):
+        bad.append(f"max_side expected an int >= 16 (pixels), got {max_side!r}")
+    if coarse_frac is not None and not (is_num(coarse_frac) and 0 <= coarse_frac < 1):
+        bad.append(f"coarse_frac expected a fraction in [0, 1), got {coarse_frac!r}")
+    if lr is not None:
+        if not isinstance(lr, dict):
+            bad.append(f"lr expected a dict over {LR_KEYS}, got {type(lr).__name__}")
+        else:
+            unknown = sorted(set(lr) - set(LR_KEYS))
+            if unknown:
+                bad.append(f"lr expected keys among {LR_KEYS}, got unknown {unknown}")
+            bad += [f"lr[{k!r}] expected a finite rate > 0, got {v!r}" for k, v in lr.items()
+                    if k in LR_KEYS and not (is_num(v) and v > 0)]
+    if not (isinstance(pose_lr, (tuple, list)) and len(pose_lr) == 2 and all(is_num(v) and v >= 0 for v in pose_lr)):
+        bad.append(f"pose_lr expected (rotation, translation) rates >= 0, got {pose_lr!r}")
+    if not (is_num(ssim_weight) and 0 <= ssim_weight <= 1):
+        bad.append(f"ssim_weight expected a weight in [0, 1], got {ssim_weight!r}")
+    if not (is_int(densify_every) and densify_every >= 1):
+        bad.append(f"densify_every expected an int >= 1, got {densify_every!r}")
+    if not (is_num(densify_grad) and densify_grad > 0):
+        bad.append(f"densify_grad expected a finite threshold > 0, got {densify_grad!r}")
+    if time_budget is not None and not (is_num(time_budget) and time_budget > 0):
+        bad.append(f"time_budget expected seconds > 0 (None: no limit), got {time_budget!r}")
+    if bad:
+        raise ShapeError("fit: " + "; ".join(bad))
 
 
 def _render_params(g: Gaussians):
@@ -222,8 +267,9 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         raise ShapeError(f"fit expects Gaussians (from pm.splat.init_from), got {type(gaussians).__name__}")
     if len(gaussians) == 0:
         raise ShapeError("fit needs at least one Gaussian")
-    if steps is not None and steps < 0:
-        raise ShapeError(f"steps must be >= 0, got {steps}")
+    _check_fit_options(steps=steps, max_side=max_side, coarse_frac=coarse_frac, lr=lr, pose_lr=pose_lr,
+                       ssim_weight=ssim_weight, densify_every=densify_every, densify_grad=densify_grad,
+                       time_budget=time_budget)
     t_start = time.perf_counter()
     device = torch.device("cpu")
     n, h, w = recon.depth_z.shape

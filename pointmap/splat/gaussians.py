@@ -104,8 +104,19 @@ class Gaussians:
         """Isotropic Gaussians at ``points`` [N, 3] with colours ``rgb`` [N, 3] in [0, 1] and
         standard deviation ``scale`` (float or [N])."""
         points = torch.as_tensor(points, dtype=torch.float32)
+        if points.ndim != 2 or points.shape[1] != 3 or not bool(torch.isfinite(points).all()):
+            raise ShapeError(f"points expected finite [N, 3], got {list(points.shape)}"
+                             f"{' with NaN or inf' if points.ndim == 2 and points.shape[1] == 3 else ''}")
         n = points.shape[0]
-        scale = torch.as_tensor(scale, dtype=torch.float32).expand(n)
+        rgb_t = torch.as_tensor(rgb, dtype=torch.float32)
+        if tuple(rgb_t.shape) != (n, 3) or not bool(((rgb_t >= 0) & (rgb_t <= 1)).all()):
+            raise ShapeError(f"rgb expected [{n}, 3] colours in [0, 1], got {list(rgb_t.shape)}"
+                             f"{'' if tuple(rgb_t.shape) != (n, 3) else ' outside [0, 1] or NaN'}")
+        scale = torch.as_tensor(scale, dtype=torch.float32)
+        if scale.numel() not in (1, n) or not bool(torch.isfinite(scale).all() and (scale >= 0).all()):
+            raise ShapeError(f"scale expected a finite standard deviation >= 0 (a float or [{n}]), got "
+                             f"{scale.tolist() if scale.numel() <= 4 else list(scale.shape)}")
+        scale = scale.reshape(-1).expand(n)
         if not 0.0 < opacity < 1.0:
             raise ShapeError(f"opacity must be in (0, 1), got {opacity}")
         quats = torch.zeros(n, 4)
@@ -167,6 +178,10 @@ class Gaussians:
                 props.append(parts[2])
         if n is None:
             raise ShapeError(f"{path}: no vertex element")
+        have = len(raw) - end - len(b"end_header\n")
+        if have < 4 * n * len(props):
+            raise ShapeError(f"{path}: truncated: {n} Gaussians of {len(props)} floats need {4 * n * len(props)} "
+                             f"bytes, the file has {have} after its header")
         arr = np.frombuffer(raw, dtype="<f4", offset=end + len(b"end_header\n"), count=n * len(props))
         arr = torch.from_numpy(arr.reshape(n, len(props)).copy())
         col = {name: i for i, name in enumerate(props)}

@@ -91,3 +91,17 @@ def test_bad_known_inputs_give_clear_errors(scene):
         global_align(views, preds, cam2world=bad, config=QUIET)
     with pytest.raises(ShapeError, match="cam2world expected"):
         global_align(views, preds, cam2world=torch.eye(4).repeat(3, 1, 1), config=QUIET)
+
+
+def test_a_transposed_K_fractional_image_keys_and_a_pose_mask_beside_a_dict_are_refused(scene):
+    preds = gt_preds(scene, complete_pairs(5), seed=1)
+    K = torch.from_numpy(scene["K"][0]).double()
+    with pytest.raises(ConventionError, match="a transposed K puts cx, cy in the bottom row"):
+        global_align(views_of(scene), preds, K=K.T, config=QUIET)
+    with pytest.raises(ShapeError, match="K: keys expected integer image indices, got float 0.7"):
+        global_align(views_of(scene), preds, K={0.7: K}, config=QUIET)
+    c2w = torch.from_numpy(scene["cam2world"]).float()
+    with pytest.raises(ShapeError, match="cam2world: keys expected integer image indices, got float 1.9"):
+        global_align(views_of(scene), preds, cam2world={1.9: c2w[1]}, config=QUIET)
+    with pytest.raises(ShapeError, match="pose_mask expected only with a \\[N, 4, 4\\] cam2world"):
+        global_align(views_of(scene), preds, cam2world={1: c2w[1]}, pose_mask=[True] * 5, config=QUIET)

@@ -143,3 +143,13 @@ def test_references_are_ranked_by_encoder_similarity_so_a_copy_of_a_view_finds_t
     views = [View(im, (48, 32), (1.0, 1.0, 0.0, 0.0), f"v{k}", k) for k, im in enumerate(imgs)]
     ranked = rank_references(model, views, [views[2], views[0]], n_refs=2)
     assert [r[0] for r in ranked] == [2, 0] and all(len(r) == 2 for r in ranked)
+
+
+def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_numpy_reference_indices_taken(scene):
+    _, recon, queries, _, _ = scene
+    K = np.array([[20.0, 0, 23.5], [0, 20.0, 15.5], [0, 0, 1]])
+    for bad in (np.diag([20.0, -20.0, 1.0]), K.T):
+        with pytest.raises(ShapeError, match=r"K expected .*\[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
+            localize(None, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
+    loc = localize(None, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
+    assert loc.ref == [3, 0]

@@ -96,3 +96,23 @@ def test_match_objects_and_no_usable_matches(scene):
     from pointmap.errors import ShapeError
     with pytest.raises(ShapeError, match="no usable matches"):
         refine_matches(start, {(0, 1): (np.array([[-5.0, -5.0]]), np.array([[1.0, 1.0]]), np.ones(1))}, config=CFG)
+
+
+def test_matches_and_fixed_indices_outside_the_reconstruction_and_impossible_settings_are_refused(scene):
+    from pointmap.errors import ShapeError
+
+    recon = perturbed_recon(scene)
+    m = _matches(scene)
+    with pytest.raises(ShapeError, match="matches keys expected \\(i, j\\) image indices in 0..4, got \\(0, 5\\)"):
+        refine_matches(recon, {(0, 5): m[(0, 1)]})
+    with pytest.raises(ShapeError, match="matches expected a dict"):
+        refine_matches(recon, list(m.values()))
+    with pytest.raises(ShapeError, match="fixed_poses expected image indices in 0..4, got \\[7\\]"):
+        refine_matches(recon, m, fixed_poses=[7])
+    with pytest.raises(ShapeError, match="fixed_intrinsics expected image indices in 0..4, got \\[7\\]"):
+        refine_matches(recon, m, fixed_intrinsics=[7])
+    for kw, message in [({"niter": -1}, "niter expected an int >= 1"), ({"max_matches_per_pair": -1},
+                        "max_matches_per_pair expected an int >= 1"), ({"robust_px": 0.0}, "robust_px expected"),
+                        ({"depth_prior": float("nan")}, "depth_prior expected")]:
+        with pytest.raises(ShapeError, match=message):
+            SparseConfig(**kw)

@@ -124,3 +124,10 @@ def test_shard_range_parsing():
     assert parse_shards(":3", 10) == range(0, 3) and parse_shards("7:", 10) == range(7, 10)
     with pytest.raises(ValueError, match="A:B"):
         parse_shards("3", 10)
+
+
+def test_cli_refuses_an_output_path_that_is_a_file_in_one_line(tmp_path, capsys):
+    (tmp_path / "taken").write_text("x")
+    assert main(["--out", str(tmp_path / "taken"), "--scenes", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out expected a folder for the dataset" in err[0]

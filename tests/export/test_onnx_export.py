@@ -235,3 +235,10 @@ def test_a_descriptor_stem_model_exports_split_with_its_local_features_between_t
     assert enc.local.shape == (1, 6, 4 * 16 * 16)
     with pytest.raises(pm.ShapeError, match="local1"):
         runner.decode_pair(Encoded(enc.tokens, enc.grid), enc)
+
+
+def test_cli_refuses_an_output_path_under_a_file_in_one_line(tmp_path, capsys):
+    (tmp_path / "taken").write_text("x")
+    assert main(["--model", "preset:test", "--out", str(tmp_path / "taken" / "sub"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --out expected a folder to write the export into")

@@ -106,6 +106,16 @@ def test_load_errors(tmp_path, split_export):
     bad.write_bytes(b"\x08\x07garbage that is not a protobuf" * 10)
     with pytest.raises(CheckpointError):
         load_onnx(bad)
+    import onnx
+
+    proto = onnx.load(str(sorted(split_export.glob("*.onnx"))[0]), load_external_data=False)
+    for value, message in [("{not json", "metadata is not valid JSON"), ("[1, 2]", "expected a JSON object, got list")]:
+        for p in proto.metadata_props:
+            if p.key == "pointmap":
+                p.value = value
+        onnx.save(proto, str(tmp_path / "meta.onnx"))
+        with pytest.raises(CheckpointError, match=message):
+            load_onnx(tmp_path / "meta.onnx")
     with pytest.raises(CheckpointError, match="not available"):
         load_onnx(split_export, providers=["CUDAExecutionProvider"] if "CUDAExecutionProvider" not in
                   __import__("onnxruntime").get_available_providers() else ["NoSuchExecutionProvider"])

@@ -121,3 +121,37 @@ def test_run_writes_outputs(tmp_path, tiny):
 
         back = load_npz(tmp_path / "refined" / "reconstruction.npz")
         assert torch.allclose(back.cam2world, out["recon_refined"].cam2world)
+
+
+@pytest.mark.parametrize("kw,message", [
+    ({"lr": {"means": -1.0}}, "lr\\['means'\\] expected a finite rate > 0, got -1.0"),
+    ({"lr": {"sh_dc": float("nan")}}, "lr\\['sh_dc'\\] expected a finite rate > 0"),
+    ({"lr": {"mean": 1.0}}, "lr expected keys among .*unknown \\['mean'\\]"),
+    ({"densify": True, "densify_every": 0}, "densify_every expected an int >= 1, got 0"),
+    ({"max_side": 0}, "max_side expected an int >= 16"),
+    ({"pose_lr": (1e-3,)}, "pose_lr expected \\(rotation, translation\\) rates >= 0"),
+    ({"steps": "3"}, "steps expected an int >= 0, got '3'"),
+    ({"time_budget": -1}, "time_budget expected seconds > 0"),
+])
+def test_fit_refuses_settings_out_of_their_range_before_any_work(tiny, kw, message):
+    d, g, _ = tiny
+    with pytest.raises(ShapeError, match=message):
+        fit(d["recon"], g, progress=False, **kw)
+
+
+def test_a_fit_refuses_to_render_from_a_nan_pose_or_nan_intrinsics(tiny):
+    d, _, res = tiny
+    K = res.K[0]
+    with pytest.raises(ShapeError, match="expected a finite \\[4, 4\\] cam2world"):
+        res.render(torch.full((4, 4), float("nan")), K, 16, 16)
+    with pytest.raises(ShapeError, match="K expected finite \\[3, 3\\] intrinsics with positive focals"):
+        res.render(res.cam2world[0], torch.full((3, 3), float("nan")), 16, 16)
+
+
+def test_run_refuses_an_orbit_it_cannot_write_before_it_fits_or_writes_anything(tmp_path, tiny):
+    d, _, _ = tiny
+    with pytest.raises(ShapeError, match="orbit expected a file name ending in .gif or .mp4"):
+        run(d["recon"], tmp_path / "out", steps=2, orbit="orbit.png", quiet=True)
+    with pytest.raises(ShapeError, match="orbit_frames expected an int >= 0"):
+        run(d["recon"], tmp_path / "out", steps=2, orbit_frames=-1, quiet=True)
+    assert not (tmp_path / "out").exists()

@@ -70,3 +70,18 @@ def test_orbit_and_png_writers_leave_only_finished_files(tmp_path):
     from PIL import Image
 
     assert Image.open(gif).n_frames == 2 and Image.open(png).size == (10, 8)
+
+
+def test_a_truncated_3dgs_ply_and_unusable_points_are_refused_naming_what_is_wrong(tmp_path):
+    path = _g().save_ply(tmp_path / "s.ply")
+    raw = path.read_bytes()
+    (tmp_path / "cut.ply").write_bytes(raw[:-10])
+    with pytest.raises(ShapeError, match="cut.ply: truncated: 50 Gaussians"):
+        Gaussians.load_ply(tmp_path / "cut.ply")
+    pts, rgb = torch.zeros(3, 3), torch.full((3, 3), 0.5)
+    with pytest.raises(ShapeError, match="points expected finite \\[N, 3\\], got \\[3, 3\\] with NaN or inf"):
+        Gaussians.from_points(torch.full((3, 3), float("nan")), rgb, 0.05)
+    with pytest.raises(ShapeError, match="rgb expected \\[3, 3\\] colours in \\[0, 1\\]"):
+        Gaussians.from_points(pts, rgb * 4, 0.05)
+    with pytest.raises(ShapeError, match="scale expected a finite standard deviation >= 0"):
+        Gaussians.from_points(pts, rgb, -0.05)

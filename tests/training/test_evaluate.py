@@ -309,3 +309,19 @@ def test_match_precision_scores_a_pair_without_matches_as_zero_and_only_unjudgea
     monkeypatch.setattr(ev, "match", lambda _: Matches([[0.0, 0.0]], [[1.0, 1.0]]))
     assert math.isnan(ev.match_precision(pred, corr))
     assert math.isnan(ev.match_precision(SimpleNamespace(has_desc=False), corr))
+
+
+def test_the_evaluate_command_refuses_a_checkpoint_missing_its_training_config_and_an_impossible_size(tmp_path,
+                                                                                                       capsys):
+    import pointmap as pm
+    from training.evaluate import main
+
+    model = PointmapNet(PRESETS["test"])
+    torch.save({"kind": "train", "model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": 3},
+               tmp_path / "nocfg.pt")
+    assert main(["--model", str(tmp_path / "nocfg.pt"), "--data", str(tmp_path)]) == 2
+    assert "not a complete training checkpoint (missing ['train_config'])" in capsys.readouterr().err
+    weights = pm.save_model(model, tmp_path / "m.safetensors")
+    with pytest.raises(SystemExit):
+        main(["--model", str(weights), "--data", str(tmp_path), "--size", "0"])
+    assert "--size expected 224 or a multiple of 16, got 0" in capsys.readouterr().err
