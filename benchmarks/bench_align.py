@@ -226,8 +226,9 @@ def plot(rows, png, title):
             if pts:
                 cv2.putText(img, name, (x0 + m + 10, 40 + 16 * li), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1)
     cv2.putText(img, title, (W - 80, H - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (80, 80, 80), 1)
-    cv2.imwrite(str(png), img)
-    print(f"\nplot: {png}")
+    from pointmap.io_pair import write_png
+
+    print(f"\nplot: {write_png(png, img[..., ::-1])}")  # atomic; raises if the file cannot be written
 
 
 if __name__ == "__main__":

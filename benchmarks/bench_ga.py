@@ -149,6 +149,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes expected a positive count, got {args.scenes}")
+    if args.size is not None and (args.size < 16 or (args.size != 224 and args.size % 16)):
+        ap.error(f"--size expected 224 or a multiple of 16, got {args.size}")
     names = list(dict.fromkeys(args.settings or ["auto", "log", "id"]))
     settings = {nm: parse_setting(nm) for nm in names}
     set_names = [Path(d).resolve().name for d in args.data]
@@ -163,12 +165,15 @@ def main(argv=None) -> int:
                 except (ValueError, OSError) as e:
                     ap.error(f"--per-pair: {e}")
     torch.set_num_threads(args.threads)
-    model, size = model_at_size(args.model, args.size)
+    try:  # the model and every set, opened before the long run
+        model, size = model_at_size(args.model, args.size)
+        datasets = [MultiViewDataset(d) for d in args.data]
+    except (PointmapError, OSError, ValueError) as e:
+        ap.error(str(e))
     res = defaultdict(list)
     foc = defaultdict(list)
     failures, kept_all, view_counts = [], [], set()
-    for d, set_name in zip(args.data, set_names):
-        ds = MultiViewDataset(d)
+    for ds, set_name in zip(datasets, set_names):
         count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
         for k in tqdm(range(count), desc=set_name, leave=False):
             scene = ds[k]

@@ -144,6 +144,13 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.quick:
         a.presets, a.runs, a.cache_counts, a.sizes = ["small"], 3, [2, 4, 8], [224]
+    if set(a.sizes) - set(SHAPES):
+        p.error(f"--sizes expected sizes among {sorted(SHAPES)}, got {sorted(set(a.sizes) - set(SHAPES))}")
+    if set(a.presets) - set(pm.PRESETS):
+        p.error(f"--presets expected names among {sorted(pm.PRESETS)}, got {sorted(set(a.presets) - set(pm.PRESETS))}")
+    if a.runs < 1 or a.threads < 1 or min(a.cache_counts) < 2:
+        p.error(f"--runs and --threads expected >= 1 and --cache-counts >= 2, got {a.runs}, {a.threads}, "
+                f"{a.cache_counts}")
     torch.set_num_threads(a.threads)
     ceiling = matmul_ceiling()
     print(f"threads: {a.threads}; float32 matmul ceiling (2048^3): {ceiling:.1f} GFLOP/s")

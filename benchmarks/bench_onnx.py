@@ -67,6 +67,10 @@ def main(argv=None) -> int:
     if args.quick:
         args.models, args.res, args.repeats = "small", "224", 3
     variants = args.variants.split(",")
+    unknown = sorted(set(variants) - {"fp32", "int8", "fp16"})
+    if unknown or args.repeats < 1:
+        ap.error(f"--variants expected names from fp32,int8,fp16 and --repeats >= 1, got {unknown or variants} and "
+                 f"{args.repeats}")
     tmp = tempfile.TemporaryDirectory() if args.workdir is None else None
     work = Path(args.workdir or tmp.name)
     rows, eval_rows = [], []

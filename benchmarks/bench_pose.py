@@ -89,15 +89,22 @@ def main(argv=None) -> int:
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
                    help="also save the model's per-pair errors (set: the --data folder's name) for benchmarks/paired.py")
     a = p.parse_args(argv)
+    if a.pairs < 1:
+        p.error(f"--pairs expected >= 1, got {a.pairs}")
+    if a.size is not None and (a.size < 16 or (a.size != 224 and a.size % 16)):
+        p.error(f"--size expected 224 or a multiple of 16, got {a.size}")
     if a.per_pair is not None:
         try:  # before the long run, not after it
             check_per_pair(a.per_pair, Path(a.data).resolve().name)
         except (OSError, ValueError) as e:
             p.error(str(e))
     torch.set_num_threads(a.threads)
-    model, size = model_at_size(a.model, a.size)
+    try:  # the model and the data, checked before the long run
+        model, size = model_at_size(a.model, a.size)
+        ds = PairDataset(a.data, size=size, augment=False, split="all")
+    except (pm.PointmapError, OSError, ValueError) as e:
+        p.error(str(e))
     per_pair = []
-    ds = PairDataset(a.data, size=size, augment=False, split="all")
     res = defaultdict(lambda: defaultdict(list))
     n = min(a.pairs, len(ds))
     for idx in range(n):

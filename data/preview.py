@@ -116,9 +116,15 @@ def main(argv=None) -> int:
     except ShardError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    ok = cv2.imwrite(str(args.out), sheet[..., ::-1])
-    if not ok:
-        print(f"error: could not write {args.out}", file=sys.stderr)
+    from pointmap.atomic import atomic_path
+
+    try:
+        with atomic_path(args.out) as tmp:  # the suffix picks the format; nothing half-written is left
+            if not cv2.imwrite(str(tmp), sheet[..., ::-1]):
+                raise OSError("OpenCV cannot write this file type")
+    except (OSError, cv2.error) as e:
+        print(f"error: could not write {args.out} ({str(e).strip().splitlines()[0] if str(e).strip() else e})",
+              file=sys.stderr)
         return 2
     print(args.out)
     return 0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import sys
 from dataclasses import MISSING, asdict, dataclass, fields
 
 
@@ -92,15 +94,33 @@ class TrainConfig:
         ns = p.parse_args(argv)
         values = {}
         if ns.config:
-            with open(ns.config) as fh:
-                values.update(json.load(fh))
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            p.error(f"unknown keys in {ns.config}: {sorted(unknown)}")
+            try:
+                with open(ns.config) as fh:
+                    loaded = json.load(fh)
+            except (OSError, json.JSONDecodeError) as e:
+                p.error(f"--config {ns.config}: not a readable JSON file ({e})")
+            if not isinstance(loaded, dict):
+                p.error(f"--config {ns.config} expected a JSON object of config values, got {type(loaded).__name__}")
+            unknown = set(loaded) - {f.name for f in fields(cls)}
+            if unknown:
+                p.error(f"unknown keys in {ns.config}: {sorted(unknown)}")
+            for f in fields(cls):  # the file's values get the CLI's types: "false" is False, "100" is 100
+                if f.name in loaded:
+                    try:
+                        values[f.name] = _typed(f.default, loaded[f.name])
+                    except (TypeError, ValueError, argparse.ArgumentTypeError):
+                        p.error(f"--config {ns.config}: {f.name} expected {type(f.default).__name__}, got "
+                                f"{loaded[f.name]!r}")
         values.update({k: v for k, v in vars(ns).items() if k != "config" and v is not None})
         cfg = cls(**values)
         if cfg.task not in ("train", "pretrain"):
             p.error(f"--task expected 'train' or 'pretrain', got {cfg.task!r}")
+        bad = range_errors(cfg)
+        if bad:
+            p.error("; ".join(bad))
+        if cfg.warmup >= cfg.steps:
+            print(f"warning: --warmup {cfg.warmup} >= --steps {cfg.steps}: the learning rate never reaches --lr",
+                  file=sys.stderr)
         from training.loop import check_loop_options
 
         try:
@@ -137,6 +157,49 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def _typed(default, value):
+    """A config file's ``value`` as the type of the field whose default is ``default`` (as the CLI parses it)."""
+    if isinstance(default, bool):
+        return value if isinstance(value, bool) else _bool(str(value))
+    if isinstance(default, int):
+        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+            raise ValueError(value)
+        return int(value)
+    if isinstance(default, float):
+        if isinstance(value, bool):
+            raise ValueError(value)
+        return float(value)
+    if not isinstance(value, str):
+        raise TypeError(value)
+    return value
+
+
+def range_errors(cfg: TrainConfig) -> list[str]:
+    """One message per setting out of its range (types are the CLI's; the schedule's own checks are
+    ``training.loop.check_loop_options``)."""
+    from pointmap.model import PRESETS
+
+    out = []
+    if cfg.preset not in PRESETS:
+        out.append(f"--preset expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
+    at_least = {"batch_size": 1, "steps": 1, "log_every": 1, "ckpt_every": 1, "eval_every": 1, "eval_pairs": 1,
+                "n_corr": 1, "warmup": 0, "decay_steps": 0, "workers": 0, "threads": 0, "desc_stem": 0}
+    out += [f"--{k} expected >= {v}, got {getattr(cfg, k)}" for k, v in at_least.items() if getattr(cfg, k) < v]
+    if cfg.size < 16 or (cfg.size != 224 and cfg.size % 16):
+        out.append(f"--size expected 224 or a multiple of 16, got {cfg.size}")
+    positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature")
+    out += [f"--{k} expected a finite value > 0, got {getattr(cfg, k)}" for k in positive
+            if not 0 < getattr(cfg, k) < math.inf]
+    nonneg = ("min_lr", "weight_decay", "max_rotation", "max_minutes")
+    out += [f"--{k} expected a finite value >= 0, got {getattr(cfg, k)}" for k in nonneg
+            if not 0 <= getattr(cfg, k) < math.inf]
+    if cfg.min_lr > cfg.lr:
+        out.append(f"--min_lr expected <= --lr ({cfg.lr}), got {cfg.min_lr}")
+    if not 0 < cfg.mask_ratio < 1:
+        out.append(f"--mask_ratio expected a fraction in (0, 1), got {cfg.mask_ratio}")
+    return out
 
 
 def _bool(s: str) -> bool:

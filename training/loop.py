@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import os
 import random
@@ -286,16 +287,30 @@ class Logger:
                     w.writeheader()
                     w.writerows(rows)
         self._fields[kind] = fields
-        new = not path.exists()
-        with open(path, "a", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=fields)
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=fields)
+        if not path.exists():
+            w.writeheader()
+        w.writerow(row)
+        append_line(path, buf.getvalue().encode())
         if self.tb is not None:
             for k, v in values.items():
                 self.tb.add_scalar(f"{kind}/{k}", v, step)
             self.tb.flush()
+
+
+def append_line(path: Path, data: bytes) -> None:
+    """Append ``data`` (whole lines) to ``path`` in one write, after cutting a torn last line a killed run may
+    have left (a CSV row without its newline), so every line in the file is one that was written whole."""
+    with open(path, "ab+") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        if size:
+            fh.seek(max(0, size - 65536))
+            tail = fh.read()
+            if not tail.endswith(b"\n"):
+                cut = tail.rfind(b"\n")
+                fh.truncate(size - len(tail) + cut + 1 if cut >= 0 else (0 if size <= 65536 else size))
+        fh.write(data)
 
 
 # -- the loop -------------------------------------------------------------------------------------
@@ -325,7 +340,15 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     last = out / "last.pt"
     if cfg.resume and last.exists():
         ck = load_checkpoint(last)
-        model.load_state_dict(ck["model"])
+        if ck.get("kind") not in (None, cfg.task):
+            raise CheckpointError(f"{last} is a {ck.get('kind')!r} checkpoint and this run is {cfg.task!r}: use a new "
+                                  "--out, or --resume false to start over in this one")
+        try:
+            model.load_state_dict(ck["model"])
+        except RuntimeError as e:  # torch lists every missing / unexpected / mis-shaped key
+            first = str(e).strip().splitlines()[0]
+            raise CheckpointError(f"{last} holds another architecture than this run's ({first[:160]}): use a new "
+                                  "--out, or --resume false to start over in this one") from None
         saved_names = ck.get("optimizer_names")
         if saved_names is not None and saved_names != _group_names(model, optimizer):
             # other groups (e.g. --grown_lr turned on or off): Adam's moments follow their parameters by name

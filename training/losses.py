@@ -3,15 +3,31 @@ InfoNCE matching on descriptors (MASt3R). Pure functions of tensors; batches fol
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
+from pointmap.errors import ShapeError
 from pointmap.geometry.cameras import depth_to_points_cam, invert_rigid, transform_points
 from pointmap.matching import cell_descriptors
 
 
+def _check_descriptors(desc1, desc2, corr, temperature: float, name: str) -> None:
+    """ShapeError unless desc1 [B, H1, W1, D], desc2 [B, H2, W2, D], corr [B, H1, W1, 2] and temperature > 0."""
+    if desc1.ndim != 4 or desc2.ndim != 4 or desc1.shape[0] != desc2.shape[0] or desc1.shape[-1] != desc2.shape[-1]:
+        raise ShapeError(f"{name} expected desc1 [B, H1, W1, D] and desc2 [B, H2, W2, D], got {list(desc1.shape)} "
+                         f"and {list(desc2.shape)}")
+    if tuple(corr.shape) != (*desc1.shape[:3], 2):
+        raise ShapeError(f"{name} expected corr {[*desc1.shape[:3], 2]} (view 1's grid), got {list(corr.shape)}")
+    if not 0 < temperature < math.inf:
+        raise ShapeError(f"{name} expected a temperature > 0, got {temperature}")
+
+
 def patchify(img: torch.Tensor, patch: int) -> torch.Tensor:
     """[B, 3, H, W] -> [B, N, patch*patch*3] in row-major patch order (matches the token order)."""
+    if img.ndim != 4 or img.shape[2] % patch or img.shape[3] % patch:
+        raise ShapeError(f"patchify expected [B, C, H, W] with H and W multiples of {patch}, got {list(img.shape)}")
     B, C, H, W = img.shape
     x = img.reshape(B, C, H // patch, patch, W // patch, patch)
     return x.permute(0, 2, 4, 3, 5, 1).reshape(B, (H // patch) * (W // patch), patch * patch * C)
@@ -24,6 +40,10 @@ def completion_loss(pred_patches: torch.Tensor, img: torch.Tensor, mask: torch.T
     pred_patches [B, N, p*p*3]; img [B, 3, H, W]; mask [B, N] bool, True = masked (to reconstruct).
     """
     target = patchify(img, patch)
+    if tuple(pred_patches.shape) != tuple(target.shape) or tuple(mask.shape) != tuple(target.shape[:2]):
+        raise ShapeError(f"completion_loss expected pred_patches {list(target.shape)} and mask "
+                         f"{list(target.shape[:2])} for img {list(img.shape)}, got {list(pred_patches.shape)} and "
+                         f"{list(mask.shape)}")
     mean = target.mean(-1, keepdim=True)
     var = target.var(-1, keepdim=True)
     target = (target - mean) / (var + eps).sqrt()
@@ -132,6 +152,9 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
     each view-1 pixel in view 2, NaN where not co-visible. Up to ``n_corr`` correspondences per pair.
     Returns (loss, accuracy of the argmax match) averaged over pairs that have >= 8 correspondences.
     """
+    _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
+    if isinstance(n_corr, bool) or not isinstance(n_corr, int) or n_corr < 1:
+        raise ShapeError(f"matching_loss expected n_corr >= 1, got {n_corr!r}")
     B, H1, W1, _ = desc1.shape
     H2, W2 = desc2.shape[1:3]
     losses, accs = [], []
@@ -185,6 +208,7 @@ def patch_matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Te
     Returns (loss, top-1 accuracy of the forward direction) over pairs with >= 4 co-visible cells; the
     accuracy is NaN when no pair has them.
     """
+    _check_descriptors(desc1, desc2, corr, temperature, "patch_matching_loss")
     B, H1, W1, D = desc1.shape
     H2, W2 = desc2.shape[1:3]
     if H1 % patch or W1 % patch or H2 % patch or W2 % patch:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import os
 
 import numpy as np
 from torch.utils.data import Dataset
@@ -48,9 +49,19 @@ class PairMix(Dataset):
 
 def open_pairs(spec: str, **kwargs):
     """``PairDataset`` of one root, or a ``PairMix`` of a comma-separated list of roots."""
+    if isinstance(spec, os.PathLike):
+        spec = os.fspath(spec)
+    if not isinstance(spec, str):
+        raise ValueError(f"--data expected shard directories (a path, or paths joined by commas), got "
+                         f"{type(spec).__name__}")
     roots = [r for r in spec.split(",") if r]
     if not roots:
         raise ValueError(f"--data expected one or more shard directories, got {spec!r}")
+    resolved = [os.path.realpath(r) for r in roots]
+    twice = sorted({r for r, p in zip(roots, resolved) if resolved.count(p) > 1})
+    if twice:
+        raise ValueError(f"--data names the same directory more than once ({', '.join(twice)}): its pairs would "
+                         "count twice")
     sets = [PairDataset(r, **kwargs) for r in roots]
     return sets[0] if len(sets) == 1 else PairMix(sets)
 

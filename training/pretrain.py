@@ -9,6 +9,7 @@ import sys
 
 import torch
 
+from pointmap.errors import PointmapError
 from pointmap.model import PRESETS
 from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
@@ -44,15 +45,30 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
     return {"completion_loss": sum(losses) / max(len(losses), 1)}
 
 
+# settings of pointmap training that pretraining would ignore: refused when set, rather than dropped silently
+TRAIN_ONLY = ("init", "init_heads", "conf_reset", "metric", "match_weight", "n_corr", "max_rotation", "grey_p",
+              "flip_p", "temperature", "coarse_weight", "coarse_temperature", "attn_weight", "pose_head", "desc_stem",
+              "pose_weight", "pose_dir_weight", "attn_heads", "alpha")
+
+
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
-    model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
-    train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train", crop_link=cfg.crop_link)
-    eval_fn = None
-    if cfg.eval_data:
-        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
-        eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
-    result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
+    ignored = [f"--{k}" for k in TRAIN_ONLY if getattr(cfg, k) != getattr(TrainConfig, k)]
+    if ignored:
+        print(f"error: {', '.join(ignored)} set pointmap training (python -m training.train); cross-view completion "
+              "pretraining starts from scratch and would ignore them", file=sys.stderr)
+        return 2
+    try:
+        model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
+        train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train", crop_link=cfg.crop_link)
+        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all") if cfg.eval_data else None
+        eval_fn = None
+        if eval_set is not None:
+            eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
+        result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
+    except (ValueError, OSError, PointmapError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
     return 0
 

@@ -24,11 +24,18 @@ from training.loop import load_checkpoint
 
 
 def last_eval(path: Path) -> dict:
-    if not path.exists():
-        return {}
-    with open(path) as fh:
+    """The last row of a run's ``eval.csv`` as numbers; ValueError (one line) for a file that is missing, empty or
+    not such a CSV."""
+    if not path.is_file():
+        raise ValueError(f"--metrics expected a run's eval.csv, got {str(path)!r}, which is not a file")
+    with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")} if rows else {}
+    if not rows or "step" not in rows[-1]:
+        raise ValueError(f"--metrics {path}: expected an eval.csv with a header and at least one row")
+    try:
+        return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")}
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"--metrics {path}: its last row is not all numbers ({e})") from None
 
 
 def average_checkpoints(paths) -> dict:
@@ -83,13 +90,14 @@ def main(argv=None) -> int:
         ck = average_checkpoints(a.ckpt)
         model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
         load_state_strict(model, ck["model"], source=a.ckpt[-1])
-    except (CheckpointError, OSError) as e:
+        metrics = last_eval(Path(a.metrics)) if a.metrics else {}
+    except (CheckpointError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
-                  "heldout_metrics": last_eval(Path(a.metrics)) if a.metrics else {}, "note": a.note,
+                  "heldout_metrics": metrics, "note": a.note,
                   **({"averaged_steps": ck["averaged_steps"]} if len(a.ckpt) > 1 else {}),
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from pointmap.checkpoint import load_model, load_state_strict, load_trunk, official_to_ours
-from pointmap.errors import CheckpointError
+from pointmap.errors import CheckpointError, PointmapError
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
@@ -268,19 +268,23 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
 
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(argv)
+    if cfg.task != "train":
+        print("error: --task pretrain is python -m training.pretrain's (cross-view completion); training.train "
+              "trains pointmaps + matching", file=sys.stderr)
+        return 2
     try:
         model = build_model(cfg)
         check_model_options(cfg, model)
         lr_scale = grown_lr_scale(cfg, model)
-    except (ValueError, CheckpointError) as e:
+        train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
+                                              crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p),
+                                 cfg.max_rotation)
+        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all") if cfg.eval_data else None
+    except (ValueError, OSError, PointmapError) as e:  # bad flags, --init or --data: one line, before any step
         print(f"error: {e}", file=sys.stderr)
         return 2
-    train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
-                                          crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p),
-                             cfg.max_rotation)
     eval_fn = None
-    if cfg.eval_data:
-        eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all")
+    if eval_set is not None:
         eval_fn = lambda m: evaluate_pairs(m, eval_set, cfg.eval_pairs)  # noqa: E731
     if lr_scale:
         print(f"--grown_lr {cfg.grown_lr}: {len(lr_scale)} tensors (the output projections of the blocks grown from "

@@ -104,3 +104,13 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
     for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
+
+
+def test_the_ga_benchmark_refuses_a_missing_set_and_an_impossible_size_before_running(scenes_and_model, tmp_path,
+                                                                                      capsys):
+    data, model_path = scenes_and_model
+    for flags, message in [(["--data", str(data), str(tmp_path / "nowhere")], "error:"),
+                           (["--data", str(data), "--size", "100"], "--size expected 224 or a multiple of 16")]:
+        with pytest.raises(SystemExit) as e:
+            main(["--model", str(model_path), *flags])
+        assert e.value.code == 2 and message in capsys.readouterr().err

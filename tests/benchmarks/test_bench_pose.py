@@ -28,3 +28,15 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
         rot, direction = errors(est.numpy(), gt)
         assert float(rows[name][5]) == pytest.approx(rot, abs=0.051)
         assert float(rows[name][6]) == pytest.approx(direction, abs=0.051)
+
+
+def test_the_pose_benchmark_refuses_missing_data_an_impossible_size_and_no_pairs_in_one_line(scenes_and_model,
+                                                                                             tmp_path, capsys):
+    data, model_path = scenes_and_model
+    for flags, message in [(["--data", str(tmp_path / "nowhere")], "error:"),
+                           (["--data", str(data), "--size", "100"], "--size expected 224 or a multiple of 16"),
+                           (["--data", str(data), "--pairs", "0"], "--pairs expected >= 1, got 0")]:
+        with pytest.raises(SystemExit) as e:
+            main(["--model", str(model_path), *flags])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and "Traceback" not in err

@@ -111,3 +111,5 @@ def test_preview_writes_a_contact_sheet_of_a_shard(tiny_pairs, tmp_path):
     img = cv2.imread(str(out))
     assert img is not None and img.shape[0] >= 2 * 160 and img.shape[1] >= 7 * 160
     assert preview_main([str(tmp_path / "missing.tar"), "-o", str(out)]) == 2
+    assert preview_main([str(tiny_pairs / "shard-000000.tar"), "-o", str(tmp_path / "sheet.txt")]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sheet.png"]  # nothing half-written beside it

@@ -648,3 +648,83 @@ def test_a_run_from_a_grown_model_records_its_growth_in_every_checkpoint(tmp_pat
         ck = torch.load(tmp_path / "run" / name, weights_only=True)
         assert ck["extra"] == {"grown_from": [{"enc_depth": 2, "dec_depth": 4}]}, name
     assert build_model(dataclasses.replace(cfg, init=str(tmp_path / "run" / "last.pt"))).growth == model.growth
+
+
+@pytest.mark.parametrize("flags,message", [
+    (["--batch_size", "0"], "--batch_size expected >= 1, got 0"),
+    (["--log_every", "0"], "--log_every expected >= 1, got 0"),
+    (["--steps", "-5"], "--steps expected >= 1, got -5"),
+    (["--temperature", "0"], "--temperature expected a finite value > 0, got 0.0"),
+    (["--lr", "-1"], "--lr expected a finite value > 0, got -1.0"),
+    (["--preset", "nope"], "--preset expected one of"),
+    (["--mask_ratio", "1.5"], "--mask_ratio expected a fraction in (0, 1), got 1.5"),
+    (["--size", "100"], "--size expected 224 or a multiple of 16, got 100"),
+    (["--min_lr", "1"], "--min_lr expected <= --lr"),
+])
+def test_settings_out_of_their_range_are_refused_on_the_command_line_in_one_line(capsys, flags, message):
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", *flags])
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_a_config_file_gets_the_command_lines_types_and_a_bad_one_is_refused_in_one_line(tmp_path, capsys):
+    import json
+
+    (tmp_path / "c.json").write_text(json.dumps({"data": "x", "pose_head": "false", "steps": "100", "lr": 1}))
+    cfg = TrainConfig.from_args(["--config", str(tmp_path / "c.json")])
+    assert cfg.pose_head is False and cfg.steps == 100 and cfg.lr == 1.0
+    for text, message in [("[1, 2]", "expected a JSON object"), ("{not json", "not a readable JSON file"),
+                          ('{"steps": "many"}', "steps expected int, got 'many'")]:
+        (tmp_path / "bad.json").write_text(text)
+        with pytest.raises(SystemExit):
+            TrainConfig.from_args(["--data", "x", "--config", str(tmp_path / "bad.json")])
+        assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--data", "x", "--config", str(tmp_path / "missing.json")])
+    assert "not a readable JSON file" in capsys.readouterr().err
+
+
+def test_missing_data_or_init_and_a_pretraining_task_end_the_training_command_in_one_line(tmp_path, capsys):
+    from training.train import main
+
+    for flags, message in [(["--data", str(tmp_path / "nowhere")], "error:"),
+                           (["--data", "x", "--init", str(tmp_path / "missing.pt")], "error:"),
+                           (["--data", "x", "--task", "pretrain"], "is python -m training.pretrain's")]:
+        assert main(["--preset", "test", "--out", str(tmp_path / "run"), *flags]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_pretraining_refuses_the_flags_of_pointmap_training_it_would_ignore(tmp_path, capsys):
+    from training.pretrain import main
+
+    assert main(["--data", "x", "--preset", "test", "--init", "x.pt", "--match_weight", "5"]) == 2
+    assert "--init, --match_weight set pointmap training" in capsys.readouterr().err
+
+
+def test_resuming_into_another_architecture_or_task_is_refused_in_one_line(tmp_path):
+    from pointmap.errors import CheckpointError
+
+    run(tmp_path, 1)
+    cfg = config(tmp_path, 2)
+    with pytest.raises(CheckpointError, match="holds another architecture than this run's"):
+        fit(cfg, PointmapNet(PRESETS["test"].replace(enc_depth=3)), PlanePairs(6), collate, make_step(cfg))
+    with pytest.raises(CheckpointError, match="is a 'train' checkpoint and this run is 'pretrain'"):
+        fit(dataclasses.replace(cfg, task="pretrain"), PointmapNet(PRESETS["test"]), PlanePairs(6), collate,
+            make_step(cfg))
+
+
+def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(tmp_path):
+    import csv
+
+    from training.loop import Logger
+
+    log = Logger(tmp_path, True)
+    log.log("eval", 500, {"RRA15": 10.0})
+    with open(tmp_path / "eval.csv", "a") as fh:
+        fh.write("600,17958")  # a row cut mid-write
+    Logger(tmp_path, True).log("eval", 700, {"RRA15": 12.0})
+    with open(tmp_path / "eval.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["step"] for r in rows] == ["500", "700"] and rows[1]["RRA15"] == "12.0"

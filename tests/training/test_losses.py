@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 import pointmap as pm
@@ -291,3 +292,23 @@ def test_the_direction_term_of_the_pose_loss_measures_the_translation_angle_and_
     a, _ = pose_loss(T0, pred, v1, still)
     b, d = pose_loss(T0, pred, v1, still, dir_weight=2.0)
     assert float(a) == float(b) and "pose_dir_deg" not in d
+
+
+def test_the_losses_refuse_inputs_that_would_give_a_wrong_value_or_a_deep_error():
+    from pointmap.errors import ShapeError
+    from training.losses import completion_loss, matching_loss, patch_matching_loss
+
+    d = torch.nn.functional.normalize(torch.randn(1, 16, 16, 8), dim=-1)
+    corr = torch.rand(1, 16, 16, 2) * 15
+    for kw, message in [({"n_corr": 0}, "n_corr >= 1"), ({"temperature": 0.0}, "temperature > 0"),
+                        ({"temperature": -0.1}, "temperature > 0")]:
+        with pytest.raises(ShapeError, match=message):
+            matching_loss(d, d, corr, **kw)
+    with pytest.raises(ShapeError, match="corr \\[1, 16, 16, 2\\] \\(view 1's grid\\), got \\[1, 8, 8, 2\\]"):
+        matching_loss(d, d, corr[:, :8, :8])
+    with pytest.raises(ShapeError, match="desc1 \\[B, H1, W1, D\\]"):
+        matching_loss(d[0], d[0], corr[0])
+    with pytest.raises(ShapeError, match="temperature > 0"):
+        patch_matching_loss(d, d, corr, patch=8, temperature=0.0)
+    with pytest.raises(ShapeError, match="H and W multiples of 16"):
+        completion_loss(torch.zeros(1, 4, 768), torch.zeros(1, 3, 40, 40), torch.ones(1, 4, dtype=torch.bool), 16)

@@ -80,3 +80,16 @@ def test_the_growth_history_a_run_records_ships_in_the_provenance(tmp_path):
         assert main(["--ckpt", str(tmp_path / f"{name}.pt"), "--out", str(tmp_path / f"{name}.safetensors")]) == 0
     assert pm.load_model(tmp_path / "g.safetensors").provenance["grown_from"] == [{"enc_depth": 1, "dec_depth": 2}]
     assert pm.load_model(tmp_path / "p.safetensors").provenance["grown_from"] == []  # never grown, and it says so
+
+
+def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_one_line(tmp_path, capsys):
+    ck = tmp_path / "a.pt"
+    _checkpoint(ck, 0, 100)
+    (tmp_path / "bad.csv").write_text("step,RRA15\n100,lots\n")
+    for metrics, message in [(tmp_path / "nope.csv", "which is not a file"), (tmp_path / "bad.csv",
+                                                                               "its last row is not all numbers")]:
+        assert main(["--ckpt", str(ck), "--name", "x", "--metrics", str(metrics), "--out",
+                     str(tmp_path / "x.safetensors")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.safetensors").exists()
