@@ -18,6 +18,24 @@ log = logging.getLogger("pointmap")
 DEFAULT_MODEL = "small"
 
 
+def check_size_graph_budget(args) -> None:
+    """``--size``, ``--graph`` and ``--splat-budget`` (where the command has them), checked before any model loads."""
+    size = getattr(args, "size", None)
+    if size is not None and (size < 16 or (size != 224 and size % 16)):
+        raise PointmapError(f"--size expected 224 or a multiple of 16 (e.g. 512), got {size}")
+    graph = getattr(args, "graph", "auto")
+    if graph != "auto":
+        from pointmap.pairs import make_pairs
+
+        try:  # the name's syntax (how many images it suits is checked with the images)
+            make_pairs(10_000 if graph.startswith("oneref") else 64, graph)
+        except PointmapError as e:
+            raise PointmapError(f"--graph: {e}") from None
+    budget = getattr(args, "splat_budget", None)
+    if budget is not None and not (math.isfinite(budget) and budget >= 0):
+        raise PointmapError(f"--splat-budget expected seconds >= 0 (0: no limit), got {budget}")
+
+
 def _model_and_size(name: str, size: int | None):
     from pointmap.checkpoint import load_model, model_input_size
 
@@ -52,6 +70,7 @@ def cmd_pair(args) -> int:
     from pointmap.io_pair import write_pair_outputs
 
     writable_dir(Path(args.out))
+    check_size_graph_budget(args)
     focal = None if args.focal is None else parse_focals(args.focal, 2)
     model, size = _model_and_size(args.model, args.size)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
@@ -101,6 +120,11 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
     without images."""
     from pointmap.video import extract_frames, is_video
 
+    stems = [Path(i).stem for i in items if is_video(Path(i))]
+    clash = sorted({s for s in stems if stems.count(s) > 1})
+    if clash:  # frames are named <stem>_<index>.png in one folder
+        raise PointmapError(f"videos named {clash} more than once: their frames would overwrite each other in "
+                            f"{frames_dir}; give them different file names")
     out = []
     for item in items:
         p = Path(item)
@@ -196,6 +220,7 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
 def cmd_reconstruct(args) -> int:
     # every argument is checked before the model runs: nothing fails after minutes of inference
     formats = parse_export(args.export)
+    check_size_graph_budget(args)
     if args.conf_percentile is not None and not 0 <= args.conf_percentile < 100:
         raise PointmapError(f"--conf-percentile expected a percentile in [0, 100), got {args.conf_percentile}")
     if args.min_conf is not None and not math.isfinite(args.min_conf):
@@ -333,6 +358,7 @@ def cmd_splat(args) -> int:
     from pointmap.splat import run as run_splat
 
     npz = reconstruction_npz(args.recon)
+    check_size_graph_budget(args)
     if args.test_align_steps < 0:
         raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
     recon = load_npz(npz)

@@ -117,11 +117,24 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
         or pointmaps; uses ``pm.match``)
     """
+    from pointmap.align.sparse import SparseConfig
     from pointmap.checkpoint import model_input_size
     from pointmap.images import crop_to_common, load_images
     from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs
 
+    if align is not None and not isinstance(align, AlignConfig):
+        raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
+    if not isinstance(refine, (bool, SparseConfig)):
+        raise PointmapError(f"refine expected True, False or a SparseConfig, got {type(refine).__name__}")
+    if min_conf is not None and (isinstance(min_conf, bool) or not isinstance(min_conf, (int, float))
+                                 or not math.isfinite(min_conf)):
+        raise PointmapError(f"min_conf expected a finite confidence (or None), got {min_conf!r}")
+    if conf_percentile is not None and (isinstance(conf_percentile, bool) or not isinstance(conf_percentile, (int, float))
+                                        or not 0 <= conf_percentile < 100):
+        raise PointmapError(f"conf_percentile expected a percentile in [0, 100) (or None), got {conf_percentile!r}")
+    if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
+        paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
     cfg = align or AlignConfig(quiet=quiet)
     size = model_input_size(model) if size is None else size
     views = load_images(paths_or_arrays, size=size)

@@ -428,3 +428,19 @@ def test_an_output_path_that_is_a_file_is_refused_before_the_model_is_even_loade
     # the model named does not exist: the -o error shows the folder was checked first
     assert main([command, *args, "-o", str(tmp_path / "taken" / "sub"), "--model", "no_such_model"]) == 2
     assert "-o expected a folder to write into, got" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--size", "17"], "--size expected 224 or a multiple of 16"),
+    (["--graph", "swin-0"], "--graph: swin-0: window must be >= 1"),
+    (["--graph", "bogus"], "--graph: unknown graph 'bogus'"),
+    (["--splat", "--splat-budget", "-5"], "--splat-budget expected seconds >= 0"),
+])
+def test_size_graph_and_splat_budget_are_refused_before_the_model_even_for_each_folder(tiny, tmp_path, capsys, extra,
+                                                                                       message):
+    _, folder = tiny
+    for scene_flags in ([str(folder)], [str(tmp_path), "--each-folder"]):
+        if "--each-folder" in scene_flags:
+            (tmp_path / "scene").mkdir(exist_ok=True)
+        assert main(["reconstruct", *scene_flags, "-o", str(tmp_path / "o"), "--model", "no_such_model", *extra]) == 2
+        assert message in capsys.readouterr().err

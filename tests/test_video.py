@@ -76,3 +76,15 @@ def test_a_video_that_states_no_frame_count_is_counted_frame_by_frame(tmp_path, 
     assert cv2.VideoCapture(str(video)).get(cv2.CAP_PROP_FRAME_COUNT) <= 0
     assert count_frames(video) == 17
     assert len(extract_frames(video, tmp_path / "f", max_frames=5)) == 5  # stride 4 from the counted 17
+
+
+def test_two_videos_of_one_file_name_are_refused_before_their_frames_overwrite_each_other(tmp_path):
+    from pointmap.cli import expand_images
+    from pointmap.errors import PointmapError
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a, b = _video(tmp_path / "a" / "walk.avi", n=6), _video(tmp_path / "b" / "walk.avi", n=6, seed=1)
+    with pytest.raises(PointmapError, match="videos named \\['walk'\\] more than once"):
+        expand_images([str(a), str(b)], tmp_path / "frames", stride=2)
+    assert not (tmp_path / "frames").exists()

@@ -14,14 +14,27 @@ def focal_from_pointmap(pts_cam: torch.Tensor, valid: torch.Tensor | None = None
     The principal point defaults to the image centre ((W-1)/2, (H-1)/2 in our integer-centre pixel
     convention; the official code uses (W/2, H/2) with half-integer centres: the same point). Starts
     from the least-squares focal and refines the L1 (Weiszfeld) estimate, so outlier pixels do
-    not pull it. Returns [B] focals in pixels of this pointmap's resolution.
+    not pull it. Returns [B] focals in pixels of this pointmap's resolution; NaN for an image without a single
+    usable pixel (finite, in front of the camera, inside ``valid``).
     """
-    if pts_cam.ndim != 4 or pts_cam.shape[-1] != 3:
-        raise ShapeError(f"pts_cam expected [B, H, W, 3], got {list(pts_cam.shape)}")
+    if not isinstance(pts_cam, torch.Tensor) or pts_cam.ndim != 4 or pts_cam.shape[-1] != 3:
+        raise ShapeError(f"pts_cam expected a [B, H, W, 3] tensor, got "
+                         f"{list(pts_cam.shape) if isinstance(pts_cam, torch.Tensor) else type(pts_cam).__name__}")
     B, H, W, _ = pts_cam.shape
     dtype = pts_cam.dtype
+    if valid is not None and (not isinstance(valid, torch.Tensor) or valid.dtype != torch.bool
+                              or tuple(valid.shape) != (B, H, W)):
+        raise ShapeError(f"valid expected a bool [{B}, {H}, {W}] tensor, got "
+                         f"{(valid.dtype, list(valid.shape)) if isinstance(valid, torch.Tensor) else type(valid).__name__}")
+    if weights is not None and tuple(getattr(weights, "shape", ())) != (B, H, W):
+        raise ShapeError(f"weights expected [{B}, {H}, {W}], got {list(getattr(weights, 'shape', ()))}")
     if pp is None:
         pp = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=dtype, device=pts_cam.device).expand(B, 2)
+    else:
+        pp = torch.as_tensor(pp, dtype=dtype, device=pts_cam.device)
+        pp = pp.expand(B, 2) if tuple(pp.shape) == (2,) else pp
+        if tuple(pp.shape) != (B, 2):
+            raise ShapeError(f"pp expected (cx, cy) or [{B}, 2], got {list(pp.shape)}")
     v, u = torch.meshgrid(torch.arange(H, dtype=dtype, device=pts_cam.device),
                           torch.arange(W, dtype=dtype, device=pts_cam.device), indexing="ij")
     p = torch.stack([u, v], -1)[None] - pp[:, None, None, :]  # [B, H, W, 2]
@@ -40,4 +53,4 @@ def focal_from_pointmap(pts_cam: torch.Tensor, valid: torch.Tensor | None = None
         resid = (p - f[:, None, None] * r).norm(dim=-1)
         w = w0 / resid.clamp_min(1e-8)
         f = (w[..., None] * r * p).sum((1, 2)) / (w[..., None] * r * r).sum((1, 2)).clamp_min(1e-12)
-    return f
+    return torch.where(w0.sum(-1) > 0, f, torch.full_like(f, float("nan")))

@@ -23,6 +23,11 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
         raise ShapeError(f"src and dst expected the same [B, N, 3] shape, got {list(src.shape)} and {list(dst.shape)}")
     if weights is None:
         weights = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device)
+    if tuple(weights.shape) != tuple(src.shape[:-1]):
+        raise ShapeError(f"weights expected {list(src.shape[:-1])}, got {list(weights.shape)}")
+    if not (bool(torch.isfinite(src).all()) and bool(torch.isfinite(dst).all()) and bool(torch.isfinite(weights).all())):
+        raise ShapeError("weighted_procrustes expected finite src, dst and weights, got NaN or inf (mask such points "
+                         "out with a zero weight instead)")
     w = weights.clamp_min(0)
     wsum = w.sum(-1, keepdim=True).clamp_min(eps)
     wn = (w / wsum).unsqueeze(-1)  # [B, N, 1]

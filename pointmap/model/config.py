@@ -57,6 +57,26 @@ class ModelConfig:
             raise CheckpointError(f"invalid model config: expected positive integer sizes and finite positive ratios "
                                   f"(desc_dim, desc_stem >= 0), got {', '.join(bad)}")
         errors = []
+        for name in ("img_mean", "img_std"):
+            v = getattr(self, name)
+            if not (isinstance(v, (tuple, list)) and len(v) == 3 and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+                errors.append(f"{name} expected 3 finite numbers (one per colour channel), got {v!r}")
+        if not errors and min(self.img_std) <= 0:
+            errors.append(f"img_std expected positive values, got {self.img_std!r}")
+        dims = self.dpt_layer_dims
+        if not (isinstance(dims, (tuple, list)) and len(dims) == 4 and all(
+                isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in dims)):
+            errors.append(f"dpt_layer_dims expected 4 positive integers, got {dims!r}")
+        for name in ("dpt_feature_dim", "dpt_last_dim"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                errors.append(f"{name} expected a positive integer, got {v!r}")
+        for name in ("two_confs", "metric", "pose_head"):
+            if not isinstance(getattr(self, name), bool):
+                errors.append(f"{name} expected true or false, got {getattr(self, name)!r}")
+        if "dpt" in self.head and self.patch_size != 16:
+            errors.append(f"a DPT head needs patch_size 16 (its upsampling is built for it), got {self.patch_size}")
         if self.head not in HEADS:
             errors.append(f"head expected one of {HEADS}, got {self.head!r}")
         if self.enc_dim % self.enc_heads or (self.enc_dim // self.enc_heads) % 4:

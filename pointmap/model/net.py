@@ -95,7 +95,13 @@ class PointmapNet(nn.Module):
             raise ShapeError(f"{name} expected [B, 3, H, W] with H, W positive multiples of {p}, got {shape}")
         if not img.is_floating_point():
             raise ShapeError(f"{name} expected a float tensor in [0, 1], got dtype {img.dtype}")
-        if not torch.jit.is_tracing() and not torch.compiler.is_compiling() and img.numel():
+        if torch.jit.is_tracing() or torch.compiler.is_compiling():
+            return
+        ref = next(iter(self.parameters()), None) if isinstance(self, nn.Module) else None  # (ONNX runs borrow this)
+        if ref is not None and (img.dtype != ref.dtype or img.device != ref.device):
+            raise ShapeError(f"{name} expected the model's {ref.dtype} on {ref.device}, got {img.dtype} on "
+                             f"{img.device} (img.to(model's dtype and device))")
+        if img.numel():
             lo, hi = float(img.min()), float(img.max())
             if not (lo >= -1e-3 and hi <= 1 + 1e-3):  # also catches NaN
                 raise ShapeError(f"{name} expected values in [0, 1], got range [{lo:.3g}, {hi:.3g}]")
@@ -103,6 +109,7 @@ class PointmapNet(nn.Module):
     # -- stages ------------------------------------------------------------------------------------
     def encode(self, img: torch.Tensor) -> Encoded:
         """[B, 3, H, W] in [0, 1] -> Encoded (tokens after enc_norm; the descriptor stem's features)."""
+        self.check_images("img", img)
         p = self.cfg.patch_size
         h, w = img.shape[-2] // p, img.shape[-1] // p
         img = (img - self.img_mean) / self.img_std
@@ -145,6 +152,12 @@ class PointmapNet(nn.Module):
 
     def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
         """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""
+        for name, enc in (("enc1", enc1), ("enc2", enc2)):
+            if not isinstance(enc, Encoded) or enc.tokens.ndim != 3 or enc.tokens.shape[-1] != self.cfg.enc_dim \
+                    or enc.tokens.shape[1] != enc.grid[0] * enc.grid[1]:
+                got = (f"tokens {list(enc.tokens.shape)}" if isinstance(enc, Encoded) else type(enc).__name__)
+                raise ShapeError(f"{name} expected this model's encode() output (tokens [B, h*w, {self.cfg.enc_dim}]), "
+                                 f"got {got}")
         if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
             raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
         tok1, tok2 = self.decode(enc1, enc2)

@@ -124,6 +124,8 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
 
     if not isinstance(recon, Reconstruction):
         raise ShapeError(f"run expects a pointmap Reconstruction, got {type(recon).__name__}")
+    if time_budget is not None and not (isinstance(time_budget, (int, float)) and 0 < time_budget < math.inf):
+        raise ShapeError(f"time_budget expected seconds > 0 (None: no limit), got {time_budget!r}")
     if orbit and Path(orbit).suffix.lower() not in (".gif", ".mp4"):  # checked before minutes of fitting
         raise ShapeError(f"orbit expected a file name ending in .gif or .mp4 (or '' for none), got {orbit!r}")
     if isinstance(orbit_frames, bool) or not isinstance(orbit_frames, int) or orbit_frames < 0:

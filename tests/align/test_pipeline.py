@@ -175,3 +175,30 @@ def test_known_cameras_that_alignment_would_refuse_are_refused_before_the_infere
     with pytest.raises(PointmapError, match=message):
         reconstruct(None, images, size=48, quiet=True, **kwargs)
     assert "shapes" not in calls
+
+
+@pytest.mark.parametrize("kw,message", [
+    ({"conf_percentile": 150}, "conf_percentile expected a percentile in \\[0, 100\\)"),
+    ({"min_conf": float("nan")}, "min_conf expected a finite confidence"),
+    ({"min_conf": "3"}, "min_conf expected a finite confidence"),
+    ({"align": {"niter": 3}}, "align expected an AlignConfig"),
+    ({"refine": "no"}, "refine expected True, False or a SparseConfig"),
+])
+def test_reconstruct_refuses_its_options_before_the_inference(fake_stack, kw, message):
+    _, images, calls = fake_stack
+    calls["stop"] = True  # the stand-in inference would stop the run: the refusal must come first
+    with pytest.raises(PointmapError, match=message):
+        reconstruct(None, images, size=48, quiet=True, **kw)
+    assert "pairs" not in calls
+
+
+def test_photographs_given_as_an_iterator_keep_their_files_for_the_exports(fake_stack, tmp_path):
+    import cv2
+
+    _, images, _ = fake_stack
+    paths = []
+    for k, im in enumerate(images):
+        paths.append(tmp_path / f"p{k}.png")
+        cv2.imwrite(str(paths[-1]), im[..., ::-1])
+    recon = reconstruct(None, iter(paths), size=48, align=AlignConfig(quiet=True), quiet=True)
+    assert recon.info["sources"] == [str(p.resolve()) for p in paths]

@@ -99,3 +99,29 @@ def test_rotation_projection_of_a_batch_equals_one_matrix_at_a_time():
     assert batched.shape == (5, 3, 3) and torch.allclose(batched, single, atol=1e-12)
     assert torch.allclose(batched @ batched.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12)
     assert torch.allclose(torch.det(batched), torch.ones(5, dtype=torch.float64), atol=1e-12)
+
+
+def test_the_focal_of_an_image_without_a_usable_pixel_is_nan_and_bad_arguments_are_refused():
+    from pointmap.errors import ShapeError
+    from pointmap.geometry import focal_from_pointmap
+
+    pts = torch.rand(2, 8, 8, 3) + 0.5
+    pts[1, ..., 2] = -1.0  # every point of image 1 behind its camera
+    f = focal_from_pointmap(pts)
+    assert math.isfinite(float(f[0])) and math.isnan(float(f[1]))
+    with pytest.raises(ShapeError, match="valid expected a bool \\[2, 8, 8\\] tensor"):
+        focal_from_pointmap(pts, torch.ones(2, 8, 8))
+    with pytest.raises(ShapeError, match="pp expected \\(cx, cy\\) or \\[2, 2\\]"):
+        focal_from_pointmap(pts, pp=torch.zeros(3))
+    assert torch.allclose(focal_from_pointmap(pts[:1], pp=(3.5, 3.5)), f[:1])  # the centre, given as a tuple
+
+
+def test_procrustes_refuses_nan_points_and_weights_of_another_shape():
+    from pointmap.errors import ShapeError
+    from pointmap.geometry.procrustes import weighted_procrustes
+
+    src = torch.rand(10, 3)
+    with pytest.raises(ShapeError, match="finite src, dst and weights"):
+        weighted_procrustes(src, torch.full((10, 3), float("nan")))
+    with pytest.raises(ShapeError, match="weights expected \\[1, 10\\]"):
+        weighted_procrustes(src, src, torch.ones(9))

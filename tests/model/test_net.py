@@ -263,3 +263,35 @@ def test_a_stem_model_refuses_encodings_without_local_features():
 def test_invalid_descriptor_stems_are_refused_by_the_config(kw):
     with pytest.raises(pm.CheckpointError, match="desc_stem"):
         pm.PRESETS["test"].replace(**kw)
+
+
+def test_images_of_another_dtype_than_the_models_are_refused_naming_both(tiny_model):
+    x = torch.rand(1, 3, 32, 32)
+    with pytest.raises(pm.ShapeError, match="img1 expected the model's torch.float32 on cpu, got torch.float64"):
+        tiny_model(x.double(), x.double())
+
+
+def test_the_stages_check_what_they_are_given(tiny_model):
+    with pytest.raises(pm.ShapeError, match="positive multiples of 16, got \\[1, 3, 30, 30\\]"):
+        tiny_model.encode(torch.rand(1, 3, 30, 30))
+    with pytest.raises(pm.ShapeError, match="values in \\[0, 1\\]"):
+        tiny_model.encode(torch.full((1, 3, 32, 32), float("nan")))
+    x = torch.rand(1, 3, 32, 32)
+    with pytest.raises(pm.ShapeError, match="enc1 expected this model's encode\\(\\) output .*got Tensor"):
+        tiny_model.decode_pair(x, x)
+    other = PointmapNet(pm.PRESETS["test"].replace(enc_dim=64, enc_heads=2)).eval()
+    with pytest.raises(pm.ShapeError, match="tokens \\[B, h\\*w, 32\\]"):
+        tiny_model.decode_pair(other.encode(x), other.encode(x))
+
+
+@pytest.mark.parametrize("kw,message", [
+    (dict(head="dpt", desc_dim=0, patch_size=8), "a DPT head needs patch_size 16"),
+    (dict(img_std=(0, 0, 0)), "img_std expected positive values"),
+    (dict(img_mean=(0.5, 0.5)), "img_mean expected 3 finite numbers"),
+    (dict(dpt_layer_dims=(8, 16, 24)), "dpt_layer_dims expected 4 positive integers"),
+    (dict(dpt_feature_dim=0), "dpt_feature_dim expected a positive integer"),
+    (dict(two_confs="no"), "two_confs expected true or false"),
+])
+def test_configs_the_model_cannot_build_or_would_run_wrong_are_refused(kw, message):
+    with pytest.raises(pm.CheckpointError, match=message):
+        pm.PRESETS["test"].replace(**kw)
