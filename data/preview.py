@@ -116,12 +116,13 @@ def main(argv=None) -> int:
     except ShardError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from pointmap.atomic import atomic_path
+    from data.shards import write_atomic
 
-    try:
-        with atomic_path(args.out) as tmp:  # the suffix picks the format; nothing half-written is left
-            if not cv2.imwrite(str(tmp), sheet[..., ::-1]):
-                raise OSError("OpenCV cannot write this file type")
+    try:  # encoded in memory (the suffix picks the format), then written whole: nothing half-written is left
+        ok, buf = cv2.imencode(Path(args.out).suffix or ".png", sheet[..., ::-1])
+        if not ok:
+            raise OSError("OpenCV cannot encode this file type")
+        write_atomic(Path(args.out), buf.tobytes())
     except (OSError, cv2.error) as e:
         print(f"error: could not write {args.out} ({str(e).strip().splitlines()[0] if str(e).strip() else e})",
               file=sys.stderr)
