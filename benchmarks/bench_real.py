@@ -133,7 +133,7 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
                          errors(pm.refine_pose_with_matches(ours, m, k1, k2).numpy(), gt)))
         to_u8 = lambda v: (v.img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         rows.append(("SIFT+E (known K)", errors(sift_pose(to_u8(v1), to_u8(v2), k1, k2), gt)))
-        focal_err = abs(float(focal_from_prediction(pred)[0]) - k1[0, 0]) / k1[0, 0]
+        focal_err = abs(float(focal_from_prediction(pred)[0].nan_to_num(0.0)) - k1[0, 0]) / k1[0, 0]  # none: 100%
     rows.append(("no rotation", (errors(np.eye(4), gt)[0], float("nan"))))
     return rows, focal_err, (v1, v2, pred)
 

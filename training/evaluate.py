@@ -204,7 +204,7 @@ def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     if pts_cam.ndim != 4 or pts_cam.shape[-1] != 3 or K.shape != (pts_cam.shape[0], 3, 3):
         raise ValueError(f"pts_cam [B, H, W, 3] and K [B, 3, 3] expected, got {list(pts_cam.shape)} and "
                          f"{list(K.shape)}")
-    f = focal_from_pointmap(pts_cam.float()).double()
+    f = focal_from_pointmap(pts_cam.float()).double().nan_to_num(0.0)  # no estimate counts as a 100% error
     return (f / K[:, 0, 0].double() - 1).abs()
 
 

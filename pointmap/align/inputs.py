@@ -48,10 +48,18 @@ def parse_views(views) -> ViewInfo:
         dup = {nm: ks for nm, ks in seen.items() if len(ks) > 1}
         warnings.warn(f"duplicate image names {dup}; COLMAP export needs unique names, so later ones get "
                       "a suffix", stacklevel=3)
+        taken = set(names)
         for nm, ks in dup.items():
-            for r, k in enumerate(ks[1:], 1):
+            r = 0
+            for k in ks[1:]:
                 stem, dot, ext = nm.rpartition(".")
-                names[k] = f"{stem}_{r}.{ext}" if dot else f"{nm}_{r}"
+                while True:  # a suffix no other image has (x/a.png, y/a.png beside a real a_1.png)
+                    r += 1
+                    new = f"{stem}_{r}.{ext}" if dot else f"{nm}_{r}"
+                    if new not in taken:
+                        break
+                names[k] = new
+                taken.add(new)
     _warn_duplicate_images(images)
     return ViewInfo(images, shapes, torch.tensor(mfo, dtype=torch.float64), sizes, names)
 

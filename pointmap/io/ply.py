@@ -11,8 +11,11 @@ from pointmap.io.atomic import atomic_open
 def _points(xyz, rgb, conf):
     """(xyz [M, 3] float32, rgb [M, 3] uint8, conf [M] float32 or None) checked; ShapeError for anything else."""
     xyz, rgb = np.asarray(xyz), np.asarray(rgb)
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.issubdtype(xyz.dtype, np.number):
-        raise ShapeError(f"xyz expected [M, 3] numbers, got {list(xyz.shape)} of {xyz.dtype}")
+    if xyz.ndim < 1 or xyz.shape[-1] != 3 or not np.issubdtype(xyz.dtype, np.number):
+        raise ShapeError(f"xyz expected [M, 3] (or [..., 3]) numbers, got {list(xyz.shape)} of {xyz.dtype}")
+    if rgb.shape == xyz.shape:  # maps [..., 3] of points and colours: one row per point
+        rgb = rgb.reshape(-1, 3)
+    xyz = xyz.reshape(-1, 3)
     if not np.isfinite(xyz).all():
         raise ShapeError(f"xyz expected finite points, got {int((~np.isfinite(xyz).all(1)).sum())} with NaN or inf")
     if rgb.shape != xyz.shape:
@@ -20,25 +23,26 @@ def _points(xyz, rgb, conf):
     if rgb.dtype == np.uint8:
         pass
     elif np.issubdtype(rgb.dtype, np.floating) and rgb.size and np.isfinite(rgb).all() and \
-            rgb.min() >= 0 and rgb.max() <= 1:
-        rgb = (rgb * 255).round().astype(np.uint8)
+            rgb.min() >= 0 and rgb.max() <= 255:
+        rgb = (rgb * (255 if rgb.max() <= 1 else 1)).round().astype(np.uint8)  # [0, 1] floats, or 0..255 ones
     elif np.issubdtype(rgb.dtype, np.integer) and (not rgb.size or (rgb.min() >= 0 and rgb.max() <= 255)):
         rgb = rgb.astype(np.uint8)
     elif rgb.size:
-        raise ShapeError(f"rgb expected uint8 colours (or integers in 0..255, or floats in [0, 1]), got {rgb.dtype} "
+        raise ShapeError(f"rgb expected uint8 colours (or numbers in 0..255, or floats in [0, 1]), got {rgb.dtype} "
                          f"in [{rgb.min()}, {rgb.max()}]")
     else:
         rgb = rgb.astype(np.uint8)
     if conf is not None:
-        conf = np.asarray(conf, dtype=np.float32)
+        conf = np.asarray(conf, dtype=np.float32).reshape(-1)
         if conf.shape != (len(xyz),):
             raise ShapeError(f"conf expected [{len(xyz)}] (one per point), got {list(conf.shape)}")
     return xyz.astype(np.float32), rgb, conf
 
 
 def write_ply(path, xyz: np.ndarray, rgb: np.ndarray, conf: np.ndarray | None = None):
-    """Points ``xyz`` [M, 3] (finite), colours ``rgb`` [M, 3] (uint8, integers in 0..255 or floats in [0, 1]) and
-    an optional ``conf`` [M] as a binary PLY, written atomically. ShapeError for anything else."""
+    """Points ``xyz`` [M, 3] or [..., 3] (finite), colours ``rgb`` of the same shape (uint8, numbers in 0..255, or
+    floats all in [0, 1], which are scaled) and an optional ``conf`` (one per point) as a binary PLY, written
+    atomically. ShapeError for anything else."""
     xyz, rgb, conf = _points(xyz, rgb, conf)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
     if conf is not None:

@@ -98,7 +98,7 @@ class PointmapNet(nn.Module):
         if torch.jit.is_tracing() or torch.compiler.is_compiling():
             return
         ref = next(iter(self.parameters()), None) if isinstance(self, nn.Module) else None  # (ONNX runs borrow this)
-        if ref is not None and (img.dtype != ref.dtype or img.device != ref.device):
+        if ref is not None and (torch.promote_types(img.dtype, ref.dtype) != ref.dtype or img.device != ref.device):
             raise ShapeError(f"{name} expected the model's {ref.dtype} on {ref.device}, got {img.dtype} on "
                              f"{img.device} (img.to(model's dtype and device))")
         if img.numel():
@@ -110,6 +110,9 @@ class PointmapNet(nn.Module):
     def encode(self, img: torch.Tensor) -> Encoded:
         """[B, 3, H, W] in [0, 1] -> Encoded (tokens after enc_norm; the descriptor stem's features)."""
         self.check_images("img", img)
+        return self._encode(img)
+
+    def _encode(self, img: torch.Tensor) -> Encoded:
         p = self.cfg.patch_size
         h, w = img.shape[-2] // p, img.shape[-1] // p
         img = (img - self.img_mean) / self.img_std
@@ -169,9 +172,9 @@ class PointmapNet(nn.Module):
         if img1.shape[0] != img2.shape[0]:
             raise ShapeError(f"img1 and img2 need the same batch size, got {img1.shape[0]} and {img2.shape[0]}")
         if img1.shape[-2:] == img2.shape[-2:]:
-            both = self.encode(torch.cat([img1, img2], dim=0))
+            both = self._encode(torch.cat([img1, img2], dim=0))  # checked above
             B = img1.shape[0]
             enc1, enc2 = both[:B], both[B:]
         else:
-            enc1, enc2 = self.encode(img1), self.encode(img2)
+            enc1, enc2 = self._encode(img1), self._encode(img2)
         return self.decode_pair(enc1, enc2)

@@ -126,6 +126,16 @@ def test_plain_tensor_views_get_default_names_and_a_nan_image_is_refused(scene):
         global_align(tensors, preds, config=QUIET)
 
 
+def test_repeated_names_get_suffixes_no_other_image_has(scene):
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    views = views_of(scene)
+    for v, name in zip(views, ["x/a.png", "y/a.png", "a_1.png", "b.png"]):
+        v.name = name.split("/")[-1]
+    with pytest.warns(UserWarning, match="duplicate image names"):
+        recon = global_align(views, preds, config=QUIET)
+    assert recon.names == ["a.png", "a_2.png", "a_1.png", "b.png"]
+
+
 def test_a_prediction_entry_that_is_not_a_prediction_is_refused_naming_its_pair(scene):
     preds = gt_preds(scene, complete_pairs(4), seed=1)
     preds[(1, 2)] = preds[(1, 2)].as_dict()

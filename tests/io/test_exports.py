@@ -528,6 +528,9 @@ def test_write_ply_refuses_points_and_colours_it_would_write_wrong_and_scales_fl
     xyz = np.arange(12, dtype=np.float32).reshape(4, 3)
     write_ply(tmp_path / "f.ply", xyz, np.full((4, 3), 0.5))
     assert read_ply(tmp_path / "f.ply")["red"].tolist() == [128] * 4  # floats in [0, 1] scaled, not cast to 0
+    write_ply(tmp_path / "g.ply", xyz.reshape(2, 2, 3), np.full((2, 2, 3), 200.0), np.ones((2, 2)))  # maps, 0..255
+    g = read_ply(tmp_path / "g.ply")
+    assert g["red"].tolist() == [200] * 4 and np.array_equal(np.stack([g["x"], g["y"], g["z"]], -1), xyz)
     for args, message in [((np.zeros((6, 2)), np.zeros((6, 3), np.uint8)), "xyz expected \\[M, 3\\]"),
                           ((xyz, np.zeros((3, 3), np.uint8)), "rgb expected \\[4, 3\\] \\(one colour per point\\)"),
                           ((xyz, np.full((4, 3), 300)), "rgb expected uint8 colours .*in \\[300, 300\\]"),

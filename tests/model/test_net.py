@@ -269,6 +269,10 @@ def test_images_of_another_dtype_than_the_models_are_refused_naming_both(tiny_mo
     x = torch.rand(1, 3, 32, 32)
     with pytest.raises(pm.ShapeError, match="img1 expected the model's torch.float32 on cpu, got torch.float64"):
         tiny_model(x.double(), x.double())
+    with torch.inference_mode():  # lower precisions promote to the model's: as before, they run
+        half = tiny_model(x.half(), x.half()).pts1_cam1
+        full = tiny_model(x.half().float(), x.half().float()).pts1_cam1
+    assert torch.equal(half, full)
 
 
 def test_the_stages_check_what_they_are_given(tiny_model):

@@ -325,3 +325,14 @@ def test_the_evaluate_command_refuses_a_checkpoint_missing_its_training_config_a
     with pytest.raises(SystemExit):
         main(["--model", str(weights), "--data", str(tmp_path), "--size", "0"])
     assert "--size expected 224 or a multiple of 16, got 0" in capsys.readouterr().err
+
+
+def test_a_view_whose_focal_cannot_be_estimated_counts_as_a_full_error_not_as_missing():
+    from training.evaluate import focal_error
+
+    pts = torch.rand(2, 8, 8, 3) + 0.5
+    pts[1, ..., 2] = -1.0  # no point in front of the camera: no estimate
+    K = torch.eye(3).repeat(2, 1, 1) * 10
+    K[:, 2, 2] = 1
+    err = focal_error(pts, K)
+    assert math.isfinite(float(err[0])) and float(err[1]) == 1.0
