@@ -25,10 +25,10 @@ def check_size_graph_budget(args) -> None:
         raise PointmapError(f"--size expected 224 or a multiple of 16 (e.g. 512), got {size}")
     graph = getattr(args, "graph", "auto")
     if graph != "auto":
-        from pointmap.pairs import make_pairs
+        from pointmap.pairs import parse_graph
 
         try:  # the name's syntax (how many images it suits is checked with the images)
-            make_pairs(10_000 if graph.startswith("oneref") else 64, graph)
+            parse_graph(graph)
         except PointmapError as e:
             raise PointmapError(f"--graph: {e}") from None
     budget = getattr(args, "splat_budget", None)

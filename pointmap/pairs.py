@@ -12,6 +12,29 @@ from pointmap.errors import GraphError
 GRAPHS = "complete, swin-K, logwin-K, oneref-I (swin/logwin take a '-noncyclic' suffix)"
 
 
+def parse_graph(graph: str) -> tuple[str, int | None, bool]:
+    """(kind, K, cyclic) of a graph name (``GRAPHS``: ``complete`` has no K); GraphError for a name that is none of
+    them. Whether it suits a number of images (``oneref-I``'s reference index) is ``make_pairs``' check."""
+    if not isinstance(graph, str):
+        raise GraphError(f"graph expected a name (one of: {GRAPHS}), got {type(graph).__name__} {graph!r}")
+    parts = graph.split("-")
+    kind = parts[0]
+    cyclic = not (len(parts) == 3 and parts[2] == "noncyclic")
+    if (len(parts) == 3 and parts[2] != "noncyclic") or len(parts) > 3:
+        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    if kind == "complete" and len(parts) == 1:
+        return kind, None, cyclic
+    if kind in ("swin", "logwin", "oneref") and len(parts) >= 2:
+        try:
+            k = int(parts[1])
+        except ValueError:
+            raise GraphError(f"graph {graph!r}: {parts[1]!r} is not an integer") from None
+        if kind != "oneref" and k < 1:
+            raise GraphError(f"{kind}-{k}: window must be >= 1")
+        return kind, k, cyclic
+    raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+
+
 def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
     """Unordered pairs of a named graph over ``n`` images, sorted, without duplicates.
 
@@ -24,40 +47,24 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
     n = int(n)
     if n < 2:
         raise GraphError(f"a pair graph needs at least 2 images, got {n}")
-    if not isinstance(graph, str):
-        raise GraphError(f"graph expected a name (one of: {GRAPHS}), got {type(graph).__name__} {graph!r}")
-    parts = graph.split("-")
-    kind = parts[0]
-    cyclic = not (len(parts) == 3 and parts[2] == "noncyclic")
-    if (len(parts) == 3 and parts[2] != "noncyclic") or len(parts) > 3:
-        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    kind, k, cyclic = parse_graph(graph)
+    if kind == "complete":
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    if kind == "oneref":
+        if not 0 <= k < n:
+            raise GraphError(f"oneref-{k}: reference index out of range for {n} images")
+        return sorted({(min(k, j), max(k, j)) for j in range(n) if j != k})
     edges: set[tuple[int, int]] = set()
-    if kind == "complete" and len(parts) == 1:
-        edges = {(i, j) for i in range(n) for j in range(i + 1, n)}
-    elif kind in ("swin", "logwin", "oneref") and len(parts) >= 2:
-        try:
-            k = int(parts[1])
-        except ValueError:
-            raise GraphError(f"graph {graph!r}: {parts[1]!r} is not an integer") from None
-        if kind == "oneref":
-            if not 0 <= k < n:
-                raise GraphError(f"oneref-{k}: reference index out of range for {n} images")
-            edges = {(min(k, j), max(k, j)) for j in range(n) if j != k}
-        else:
-            if k < 1:
-                raise GraphError(f"{kind}-{k}: window must be >= 1")
-            steps = range(1, k + 1) if kind == "swin" else [2**e for e in range(k)]
-            for i in range(n):
-                for s in steps:
-                    j = i + s
-                    if j >= n:
-                        if not cyclic:
-                            continue
-                        j %= n
-                    if i != j:
-                        edges.add((min(i, j), max(i, j)))
-    else:
-        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    steps = range(1, k + 1) if kind == "swin" else [2**e for e in range(k)]
+    for i in range(n):
+        for s in steps:
+            j = i + s
+            if j >= n:
+                if not cyclic:
+                    continue
+                j %= n
+            if i != j:
+                edges.add((min(i, j), max(i, j)))
     return sorted(edges)
 
 
