@@ -20,8 +20,10 @@ DEFAULT_MODEL = "small"
 
 def check_size_graph_budget(args) -> None:
     """``--size``, ``--graph`` and ``--splat-budget`` (where the command has them), checked before any model loads."""
+    from pointmap.images import is_input_size
+
     size = getattr(args, "size", None)
-    if size is not None and (size < 16 or (size != 224 and size % 16)):
+    if size is not None and not is_input_size(size):
         raise PointmapError(f"--size expected 224 or a multiple of 16 (e.g. 512), got {size}")
     graph = getattr(args, "graph", "auto")
     if graph != "auto":

@@ -41,6 +41,12 @@ class View:
         return tuple(self.img.shape[-2:])
 
 
+def is_input_size(size) -> bool:
+    """Whether ``size`` is an input size ``load_images`` takes: 224 (the official 224 models' crop), or a multiple of
+    the patch size (16) from one patch up."""
+    return isinstance(size, int) and not isinstance(size, bool) and size >= PATCH and (size == 224 or size % PATCH == 0)
+
+
 def _as_list(paths_or_arrays, caller: str):
     """One image (a path, an array or a PIL image) as a list of one; an iterable as it is; ImageError otherwise."""
     from PIL import Image
@@ -158,7 +164,7 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) ->
         (torch.Size([3, 384, 512]), (640, 480))
     """
     paths_or_arrays = _as_list(paths_or_arrays, "load_images")
-    if not isinstance(size, int) or size < PATCH or (size != 224 and size % PATCH):
+    if not is_input_size(size):
         raise ImageError(f"size expected 224 or a multiple of {PATCH} (e.g. 512), got {size!r}")
     views = []
     for i, src in enumerate(paths_or_arrays):

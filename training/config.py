@@ -179,6 +179,7 @@ def _typed(default, value):
 def range_errors(cfg: TrainConfig) -> list[str]:
     """One message per setting out of its range (types are the CLI's; the schedule's own checks are
     ``training.loop.check_loop_options``)."""
+    from pointmap.images import is_input_size
     from pointmap.model import PRESETS
 
     out = []
@@ -187,7 +188,7 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     at_least = {"batch_size": 1, "steps": 1, "log_every": 1, "ckpt_every": 1, "eval_every": 1, "eval_pairs": 1,
                 "n_corr": 1, "warmup": 0, "decay_steps": 0, "workers": 0, "threads": 0, "desc_stem": 0}
     out += [f"--{k} expected >= {v}, got {getattr(cfg, k)}" for k, v in at_least.items() if getattr(cfg, k) < v]
-    if cfg.size < 16 or (cfg.size != 224 and cfg.size % 16):
+    if not is_input_size(cfg.size):
         out.append(f"--size expected 224 or a multiple of 16, got {cfg.size}")
     positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature")
     out += [f"--{k} expected a finite value > 0, got {getattr(cfg, k)}" for k in positive

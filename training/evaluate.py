@@ -412,6 +412,7 @@ def main(argv=None) -> int:
     from pathlib import Path
 
     import pointmap as pm
+    from pointmap.images import is_input_size
     from training.mix import open_pairs
 
     p = argparse.ArgumentParser(description=main.__doc__)
@@ -433,7 +434,7 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
     if a.pairs < 1:
         p.error(f"--pairs expected >= 1, got {a.pairs}")
-    if a.size is not None and (a.size < 16 or (a.size != 224 and a.size % 16)):
+    if a.size is not None and not is_input_size(a.size):
         p.error(f"--size expected 224 or a multiple of 16, got {a.size}")
     set_name = a.set or Path(a.data).resolve().name
     if a.per_pair is not None:
