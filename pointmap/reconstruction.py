@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ShapeError
-from pointmap.geometry.cameras import depth_to_points_world, similarity_on_cam2world
+from pointmap.geometry.cameras import depth_to_points_world, is_rigid, similarity_on_cam2world
 
 _REQUIRED = ("images", "cam2world", "K", "depth_z", "conf")
 
@@ -92,11 +92,7 @@ class Reconstruction:
             bad = sorted({int(i) for i in (f <= 0).any(-1).nonzero().flatten()})
             raise ShapeError(f"K expected focal lengths fx, fy > 0, got K[{bad[0]}] = {self.K[bad[0]].tolist()}"
                              f"{f' (views {bad})' if len(bad) > 1 else ''}")
-        R = self.cam2world[:, :3, :3].double()
-        eye = torch.eye(3, dtype=torch.float64)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
-        rigid = ((R @ R.transpose(-1, -2) - eye).abs().amax((-1, -2)) < 1e-3) & (torch.det(R) > 0) & \
-                ((self.cam2world[:, 3].double() - bottom).abs().amax(-1) < 1e-6)
+        rigid = is_rigid(self.cam2world)
         if not bool(rigid.all()):
             k = int((~rigid).nonzero()[0])
             raise ShapeError(f"cam2world expected rigid [R t; 0 0 0 1] matrices (R a rotation), got "

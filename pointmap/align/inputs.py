@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ConventionError, GraphError, ShapeError
+from pointmap.geometry.cameras import is_rigid
 from pointmap.reconstruction import K_to_map
 
 
@@ -151,15 +152,10 @@ def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
         if tuple(mask.shape) != (n,):
             raise ShapeError(f"pose_mask expected [{n}] bool, got {list(mask.shape)}")
         out = {i: T[i] for i in range(n) if mask[i]}
-    for i, T in out.items():
-        if not 0 <= i < n:
-            raise ShapeError(f"cam2world: image index {i} outside 0..{n - 1}")
+    for i, T in out.items():  # indices are in range: dict keys were checked by _image_index
         if tuple(T.shape) != (4, 4):
             raise ShapeError(f"cam2world[{i}] expected [4, 4], got {list(T.shape)}")
-        Td = T.double()
-        R = Td[:3, :3]
-        if (R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or torch.det(R) < 0.99 \
-                or (Td[3] - torch.tensor([0, 0, 0, 1.0], dtype=torch.float64)).abs().max() > 1e-6:
+        if not bool(is_rigid(T)):
             raise ConventionError(f"cam2world[{i}] is not a rigid transform (rotation must be orthonormal "
                                   "with det +1, last row 0 0 0 1); pass OpenCV camera-to-world matrices")
     return out

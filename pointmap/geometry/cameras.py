@@ -87,6 +87,17 @@ def invert_rigid(T: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
+    """[...] bool: whether each [..., 4, 4] ``T`` is a rigid transform [R t; 0 0 0 1]: R^T R within ``atol`` of the
+    identity with det +1 (>= 0.99), the last row within 1e-6 of (0, 0, 0, 1)."""
+    Td = T.double()
+    R = Td[..., :3, :3]
+    eye = torch.eye(3, dtype=torch.float64, device=T.device)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=T.device)
+    return (((R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2)) <= atol) & (torch.det(R) >= 0.99)
+            & ((Td[..., 3, :] - bottom).abs().amax(-1) <= 1e-6))
+
+
 def similarity_on_cam2world(cam2world: torch.Tensor, scale: float, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Cameras [..., 4, 4] (cam2world) after the world moves by x -> scale * R x + t: orientations R @ R_c,
     centres scale * R c + t (the camera frames themselves are not scaled)."""
