@@ -36,20 +36,31 @@ def check_shape(name: str, tensor, expected: tuple, *, hint: str = "") -> None:
 
     ``expected`` holds ints (exact), None (any size) or strings (named sizes that must agree
     across the dims sharing a name within this call). Example: ``check_shape("K", K, (None, 3, 3))``.
+    A leading ``...`` allows any number of leading dims: ``check_shape("R", R, (..., 3, 3))``.
     """
-    shape = tuple(getattr(tensor, "shape", ()))
+    if not hasattr(tensor, "shape"):
+        raise ShapeError(f"{name} expected an array or tensor {_fmt(expected)}{hint}, got {type(tensor).__name__}")
+    shape = tuple(tensor.shape)
+    if expected and expected[0] is Ellipsis:
+        expected = expected[1:]
+        if len(shape) < len(expected):
+            raise ShapeError(f"{name} expected {_fmt((..., *expected))}{hint}, got {list(shape)}")
+        shape = shape[len(shape) - len(expected):]
+        fmt = _fmt((..., *expected))
+    else:
+        fmt = _fmt(expected)
     if len(shape) != len(expected):
-        raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+        raise ShapeError(f"{name} expected {fmt}{hint}, got {list(tensor.shape)}")
     named: dict[str, int] = {}
     for size, want in zip(shape, expected):
         if want is None:
             continue
         if isinstance(want, str):
             if named.setdefault(want, size) != size:
-                raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+                raise ShapeError(f"{name} expected {fmt}{hint}, got {list(tensor.shape)}")
         elif size != want:
-            raise ShapeError(f"{name} expected {_fmt(expected)}{hint}, got {list(shape)}")
+            raise ShapeError(f"{name} expected {fmt}{hint}, got {list(tensor.shape)}")
 
 
 def _fmt(expected: tuple) -> str:
-    return "[" + ", ".join("*" if e is None else str(e) for e in expected) + "]"
+    return "[" + ", ".join("..." if e is Ellipsis else "*" if e is None else str(e) for e in expected) + "]"

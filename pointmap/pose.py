@@ -176,10 +176,10 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
 
 def _own_onto_other(own, conf_own, other, conf_other, keep: float):
     """(s, R, t) float64 of the confidence-weighted Procrustes taking a view's own-frame pointmap onto its
-    pointmap in the other camera's frame (same pixels), or None with fewer than 3 usable pixels."""
+    pointmap in the other camera's frame (same pixels), or None with fewer than 3 usable pixels (or no weight)."""
     w = conf_other.detach().float().cpu() * conf_own.detach().float().cpu()
     mask = _conf_mask(w, other, keep) & torch.isfinite(own).all(-1)
-    if mask.sum() < 3:
+    if mask.sum() < 3 or not bool(w[mask].sum() > 0):
         return None
     return weighted_procrustes(own[mask].double(), other[mask].double(), w[mask].double())
 

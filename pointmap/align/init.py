@@ -75,6 +75,15 @@ def own_maps(n_images: int, stack: EdgeStack) -> list[int]:
     return own
 
 
+def _procrustes(src, dst, w, what: str):
+    """weighted_procrustes of one problem, refused (GraphError) when it has no weighted pixel."""
+    s, R, t = weighted_procrustes(src, dst, w)
+    if not bool(torch.isfinite(s)):
+        raise GraphError(f"{what} has no pixel with a positive confidence weight to place it by (its confidences "
+                         "all map to weight 0 under the alignment's conf_transform, or its points are invalid)")
+    return s, R, t
+
+
 def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
     """Initial cam2world, depth (at the stack's pixels) and edge similarities; intrinsics as given [N]."""
     n = stack.uv.shape[0]
@@ -92,7 +101,7 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         e = own[m]
         own_pts = stack.pred_i[e].to(dt)
         w = stack.w_i[e].to(dt) * w_target
-        s, R, t = weighted_procrustes(own_pts, target, w)
+        s, R, t = _procrustes(own_pts, target, w, f"image {m}'s own pointmap")
         cam2world[m, :3, :3] = R
         cam2world[m, :3, 3] = t
         depth[m] = (s * own_pts[:, 2]).clamp_min(1e-8)
@@ -116,7 +125,7 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         m = j if k == i else i
         pred_k, w_k = (stack.pred_i[e], stack.w_i[e]) if k == i else (stack.pred_j[e], stack.w_j[e])
         pred_m, w_m = (stack.pred_j[e], stack.w_j[e]) if k == i else (stack.pred_i[e], stack.w_i[e])
-        s, R, t = weighted_procrustes(pred_k.to(dt), pts_world[k], w_k.to(dt))
+        s, R, t = _procrustes(pred_k.to(dt), pts_world[k], w_k.to(dt), f"pair ({i}, {j})'s pointmap of image {k}")
         target = s * pred_m.to(dt) @ R.T + t
         place(m, target, w_m.to(dt))
 

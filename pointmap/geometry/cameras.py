@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, check_shape
 
 
 def pixel_grid(height: int, width: int, *, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -63,6 +63,8 @@ def project(pts_cam: torch.Tensor, K: torch.Tensor, eps: float = 1e-8):
 
     K is broadcast over the point dims like ``transform_points``.
     """
+    check_shape("pts_cam", pts_cam, (..., 3))
+    check_shape("K", K, (..., 3, 3))
     z = pts_cam[..., 2]
     extra = pts_cam.ndim - K.ndim + 1
     Kb = K
@@ -77,6 +79,7 @@ def project(pts_cam: torch.Tensor, K: torch.Tensor, eps: float = 1e-8):
 
 def invert_rigid(T: torch.Tensor) -> torch.Tensor:
     """Inverse of rigid transforms [..., 4, 4] (rotation + translation, no scale)."""
+    check_shape("T", T, (..., 4, 4))
     R = T[..., :3, :3]
     t = T[..., :3, 3:]
     out = torch.zeros_like(T)
@@ -90,6 +93,7 @@ def invert_rigid(T: torch.Tensor) -> torch.Tensor:
 def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
     """[...] bool: whether each [..., 4, 4] ``T`` is a rigid transform [R t; 0 0 0 1]: R^T R within ``atol`` of the
     identity with det +1 (>= 0.99), the last row within 1e-6 of (0, 0, 0, 1)."""
+    check_shape("T", T, (..., 4, 4))
     Td = T.double()
     R = Td[..., :3, :3]
     eye = torch.eye(3, dtype=torch.float64, device=T.device)
@@ -101,6 +105,9 @@ def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
 def similarity_on_cam2world(cam2world: torch.Tensor, scale: float, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Cameras [..., 4, 4] (cam2world) after the world moves by x -> scale * R x + t: orientations R @ R_c,
     centres scale * R c + t (the camera frames themselves are not scaled)."""
+    check_shape("cam2world", cam2world, (..., 4, 4))
+    check_shape("R", R, (3, 3))
+    check_shape("t", t, (3,))
     out = cam2world.clone()
     out[..., :3, :3] = R @ cam2world[..., :3, :3]
     out[..., :3, 3] = scale * cam2world[..., :3, 3] @ R.T + t
@@ -109,6 +116,7 @@ def similarity_on_cam2world(cam2world: torch.Tensor, scale: float, R: torch.Tens
 
 def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
     """K of an image resized by (sx, sy), pixel centres at integers (u' + 0.5 = sx (u + 0.5))."""
+    check_shape("K", K, (..., 3, 3))
     K = K.clone()
     K[..., 0, 0] *= sx
     K[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
@@ -119,6 +127,7 @@ def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
 
 def crop_intrinsics(K: torch.Tensor, left: float, top: float) -> torch.Tensor:
     """K after cropping ``left`` columns and ``top`` rows off the image."""
+    check_shape("K", K, (..., 3, 3))
     K = K.clone()
     K[..., 0, 2] -= left
     K[..., 1, 2] -= top

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, check_shape
 
 
 def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = None,
                         *, with_scale: bool = True, eps: float = 1e-9):
     """Find (s, R, t) minimising sum_i w_i ||s R src_i + t - dst_i||^2.
 
-    src, dst: [B, N, 3] (or [N, 3]); weights: [B, N] (or [N]), non-negative.
+    src, dst: [B, N, 3] (or [N, 3]); weights: [B, N] (or [N]), non-negative (negative ones count as 0).
     Returns s [B], R [B, 3, 3], t [B, 3] (unbatched inputs give unbatched outputs).
     The result is a proper rotation (det = +1), with the reflection fix of Umeyama (1991).
+    A problem with no weight (no point, or every weight 0) has no answer: its s, R and t are NaN.
     """
+    if not (isinstance(src, torch.Tensor) and isinstance(dst, torch.Tensor)) or src.ndim not in (2, 3):
+        raise ShapeError(f"src and dst expected [B, N, 3] or [N, 3] tensors, got "
+                         f"{list(src.shape) if hasattr(src, 'shape') else type(src).__name__}")
     unbatched = src.ndim == 2
     if unbatched:
         src, dst = src[None], dst[None]
@@ -47,6 +51,12 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
     else:
         s = torch.ones(src.shape[0], dtype=src.dtype, device=src.device)
     t = mu_d - s.unsqueeze(-1) * (R @ mu_s.unsqueeze(-1)).squeeze(-1)
+    empty = w.sum(-1) <= 0
+    if bool(empty.any()):
+        nan = torch.tensor(float("nan"), dtype=s.dtype, device=s.device)
+        s = torch.where(empty, nan, s)
+        R = torch.where(empty[:, None, None], nan, R)
+        t = torch.where(empty[:, None], nan, t)
     if unbatched:
         return s[0], R[0], t[0]
     return s, R, t
@@ -54,6 +64,8 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
 
 def to_matrix(s: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Build [..., 4, 4] similarity matrices from scale [...], rotation [..., 3, 3], translation [..., 3]."""
+    check_shape("R", R, (..., 3, 3))
+    check_shape("t", t, (..., 3))
     T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
     T[..., :3, :3] = s[..., None, None] * R
     T[..., :3, 3] = t

@@ -6,9 +6,12 @@ import math
 
 import torch
 
+from pointmap.errors import check_shape
+
 
 def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     """Angle in radians of rotations [..., 3, 3], numerically safe near 0 and pi."""
+    check_shape("R", R, (..., 3, 3))
     trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
     cos = ((trace - 1) / 2).clamp(-1.0, 1.0)
     # atan2 form is accurate for small angles, where acos loses precision.
@@ -20,6 +23,7 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
 def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
     """The rotation nearest to a [..., 3, 3] matrix in Frobenius norm (SVD, det fixed to +1), batched over the
     leading dimensions. Applied to a sum of rotations it is their chordal mean."""
+    check_shape("M", M, (..., 3, 3))
     U, _, Vh = torch.linalg.svd(M)
     d = torch.sign(torch.det(U @ Vh))
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
@@ -28,11 +32,15 @@ def project_to_rotation(M: torch.Tensor) -> torch.Tensor:
 
 def relative_rotation_error_deg(R_pred: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
     """Geodesic distance in degrees between rotations [..., 3, 3]."""
+    check_shape("R_pred", R_pred, (..., 3, 3))
+    check_shape("R_gt", R_gt, (..., 3, 3))
     return torch.rad2deg(rotation_angle(R_pred.transpose(-1, -2) @ R_gt))
 
 
 def translation_angle_deg(t_pred: torch.Tensor, t_gt: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """Angle in degrees between translation directions [..., 3] (scale-free, as RTA uses)."""
+    check_shape("t_pred", t_pred, (..., 3))
+    check_shape("t_gt", t_gt, (..., 3))
     a = t_pred / t_pred.norm(dim=-1, keepdim=True).clamp_min(eps)
     b = t_gt / t_gt.norm(dim=-1, keepdim=True).clamp_min(eps)
     return torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1.0, 1.0)))
@@ -40,6 +48,7 @@ def translation_angle_deg(t_pred: torch.Tensor, t_gt: torch.Tensor, eps: float =
 
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues: [..., 3] -> [..., 3, 3]; smooth at zero (differentiable)."""
+    check_shape("axis_angle", axis_angle, (..., 3))
     theta2 = (axis_angle * axis_angle).sum(-1, keepdim=True)
     theta = torch.sqrt(theta2.clamp_min(1e-24))
     small = theta2 < 1e-8
@@ -55,6 +64,7 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """Exponential of se(3) twists [..., 6] = (rho, phi) -> [..., 4, 4] rigid transforms."""
+    check_shape("xi", xi, (..., 6))
     rho, phi = xi[..., :3], xi[..., 3:]
     R = axis_angle_to_matrix(phi)
     theta2 = (phi * phi).sum(-1, keepdim=True)[..., None]
@@ -77,6 +87,8 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 def random_rotation(generator: torch.Generator | None = None, max_angle: float = math.pi,
                     dtype=torch.float64) -> torch.Tensor:
     """A random rotation [3, 3] with angle uniform in [0, max_angle] about a uniform axis."""
+    if not 0 <= max_angle <= math.pi:
+        raise ValueError(f"max_angle expected radians in [0, pi], got {max_angle!r}")
     axis = torch.randn(3, generator=generator, dtype=dtype)
     axis = axis / axis.norm()
     angle = torch.rand((), generator=generator, dtype=dtype) * max_angle

@@ -141,3 +141,16 @@ def test_a_prediction_entry_that_is_not_a_prediction_is_refused_naming_its_pair(
     preds[(1, 2)] = preds[(1, 2)].as_dict()
     with pytest.raises(ShapeError, match="preds\\[\\(1, 2\\)\\] expected a PairPrediction"):
         global_align(views_of(scene), preds, config=QUIET)
+
+
+def test_an_image_whose_weighted_pixels_never_overlap_its_placing_pair_is_refused_by_the_mst_init(scene):
+    """Each view is confident only on its top half in its own pair and only on its bottom half in the other: the
+    spanning-tree init has no pixel to place the second image by, and says so instead of placing it at scale 0."""
+    preds = gt_preds(scene, [(0, 1), (1, 0)], seed=1)
+    h = preds[(0, 1)].conf1.shape[1]
+    for p in preds.values():
+        p.conf1[:, h // 2:] = 1.0  # weight 0 under log
+        p.conf2[:, :h // 2] = 1.0
+    views = views_of(scene)[:2]
+    with pytest.raises(GraphError, match="no pixel with a positive confidence weight"):
+        global_align(views, preds, config=AlignConfig(quiet=True, niter=5, conf_transform="log", init="mst"))

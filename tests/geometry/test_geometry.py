@@ -125,3 +125,61 @@ def test_procrustes_refuses_nan_points_and_weights_of_another_shape():
         weighted_procrustes(src, torch.full((10, 3), float("nan")))
     with pytest.raises(ShapeError, match="weights expected \\[1, 10\\]"):
         weighted_procrustes(src, src, torch.ones(9))
+
+
+def test_the_rotation_and_camera_helpers_refuse_tensors_of_the_wrong_trailing_shape():
+    from pointmap.errors import ShapeError
+    from pointmap.geometry import (
+        axis_angle_to_matrix,
+        crop_intrinsics,
+        invert_rigid,
+        project,
+        rotation_angle,
+        scale_intrinsics,
+        se3_exp,
+        to_matrix,
+        translation_angle_deg,
+    )
+    from pointmap.geometry.cameras import is_rigid, similarity_on_cam2world
+    from pointmap.geometry.rotations import project_to_rotation
+
+    cases = [(lambda: rotation_angle(torch.eye(4)), r"R expected \[\.\.\., 3, 3\], got \[4, 4\]"),
+             (lambda: project_to_rotation(torch.ones(3)), r"M expected \[\.\.\., 3, 3\], got \[3\]"),
+             (lambda: translation_angle_deg(torch.ones(2, 4), torch.ones(2, 3)), r"t_pred expected \[\.\.\., 3\]"),
+             (lambda: axis_angle_to_matrix(torch.ones(4)), r"axis_angle expected \[\.\.\., 3\], got \[4\]"),
+             (lambda: se3_exp(torch.zeros(2, 3)), r"xi expected \[\.\.\., 6\], got \[2, 3\]"),
+             (lambda: invert_rigid(torch.eye(3)), r"T expected \[\.\.\., 4, 4\]"),
+             (lambda: is_rigid(torch.eye(3)), r"T expected \[\.\.\., 4, 4\]"),
+             (lambda: project(torch.ones(5, 2), torch.eye(3)), r"pts_cam expected \[\.\.\., 3\]"),
+             (lambda: scale_intrinsics(torch.eye(4), 2.0, 2.0), r"K expected \[\.\.\., 3, 3\]"),
+             (lambda: crop_intrinsics([[1.0]], 1, 1), r"K expected an array or tensor"),
+             (lambda: similarity_on_cam2world(torch.eye(4), 1.0, torch.eye(4), torch.zeros(3)),
+              r"R expected \[3, 3\]"),
+             (lambda: to_matrix(torch.ones(()), torch.eye(3), torch.zeros(4)), r"t expected \[\.\.\., 3\]")]
+    for call, message in cases:
+        with pytest.raises(ShapeError, match=message):
+            call()
+    with pytest.raises(ValueError, match=r"max_angle expected radians in \[0, pi\]"):
+        random_rotation(max_angle=-0.1)
+    # the right shapes, batched, still pass
+    assert rotation_angle(torch.eye(3).expand(2, 5, 3, 3)).shape == (2, 5)
+    assert se3_exp(torch.zeros(7, 6)).shape == (7, 4, 4)
+
+
+def test_procrustes_without_any_weight_answers_nan_for_that_problem_only():
+    g = torch.Generator().manual_seed(0)
+    src = torch.randn(3, 20, 3, generator=g, dtype=torch.float64)
+    R = random_rotation(g)
+    dst = 2.0 * src @ R.T + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    w = torch.ones(3, 20, dtype=torch.float64)
+    w[1] = 0.0
+    s, R_est, t = weighted_procrustes(src, dst, w)
+    assert torch.isnan(s[1]) and torch.isnan(R_est[1]).all() and torch.isnan(t[1]).all()
+    for b in (0, 2):
+        assert torch.allclose(s[b], torch.tensor(2.0, dtype=torch.float64)) and torch.allclose(R_est[b], R)
+    s0, R0, t0 = weighted_procrustes(src[0, :0], dst[0, :0])  # no point at all
+    assert torch.isnan(s0) and torch.isnan(R0).all() and torch.isnan(t0).all()
+    from pointmap.errors import ShapeError
+
+    with pytest.raises(ShapeError, match=r"src and dst expected \[B, N, 3\] or \[N, 3\] tensors, got \[3\]"):
+        weighted_procrustes(torch.ones(3), torch.ones(3))
