@@ -51,9 +51,7 @@ def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="c
     for idx in by_shape.values():
         for s in range(0, len(idx), batch_size):
             chunk = idx[s: s + batch_size]
-            batch = torch.stack([imgs[k] for k in chunk]).to(device)
-            model.check_images("images", batch)
-            enc = model.encode(batch)
+            enc = model.encode(torch.stack([imgs[k] for k in chunk]).to(device))  # encode checks the batch
             for b, k in enumerate(chunk):
                 encoded[k] = enc[b: b + 1]
             if progress is not None:

@@ -234,19 +234,19 @@ class OnnxPointmapModel:
             outs = self._run(FULL_GRAPH, {"img1": self._np(img1), "img2": self._np(img2)}, self._out_names)
             return self._prediction(outs)
         if img1.shape[-2:] == img2.shape[-2:]:  # one encoder run for both views, as PointmapNet does
-            both = self.encode(torch.cat([img1, img2], dim=0))
+            both = self._encode(torch.cat([img1, img2], dim=0))  # checked above
             B = img1.shape[0]
             return self.decode_pair(both[:B], both[B:])
-        return self.decode_pair(self.encode(img1), self.encode(img2))
+        return self.decode_pair(self._encode(img1), self._encode(img2))
 
     def encode(self, img: torch.Tensor):
-        """[B, 3, H, W] in [0, 1] -> Encoded(tokens [B, h*w, enc_dim], grid (h, w)), h = H / patch.
+        """[B, 3, H, W] in [0, 1] -> Encoded(tokens [B, h*w, enc_dim], grid (h, w)), h = H / patch; checked with
+        ``check_images`` as PointmapNet.encode is. For a single-graph export this defers the work to
+        ``decode_pair``."""
+        self.check_images("img", img)
+        return self._encode(img)
 
-        Inputs are not range-checked here (as PointmapNet.encode); callers check with ``check_images``.
-        For a single-graph export this defers the work to ``decode_pair``."""
-        if not isinstance(img, torch.Tensor) or img.ndim != 4:
-            got = list(img.shape) if isinstance(img, torch.Tensor) else type(img).__name__
-            raise ShapeError(f"img expected [B, 3, H, W], got {got}")
+    def _encode(self, img: torch.Tensor):
         p = self.cfg.patch_size
         grid = (int(img.shape[-2]) // p, int(img.shape[-1]) // p)
         if not self.split:

@@ -83,6 +83,29 @@ def test_input_errors_identical_to_pytorch(make, split_export, test_model):
     assert str(ours.value) == str(theirs.value)
 
 
+BAD_IMAGES = [
+    lambda: torch.rand(3, 64, 64),                                # missing batch dim
+    lambda: torch.rand(1, 3, 60, 64),                             # not a multiple of 16
+    lambda: torch.zeros(1, 3, 64, 64, dtype=torch.uint8),         # uint8
+    lambda: torch.rand(1, 3, 64, 64) * 255,                       # [0, 255] range
+    lambda: torch.full((1, 3, 64, 64), float("nan")),             # NaN
+    lambda: [[0.5]],                                              # not a tensor
+]
+
+
+@pytest.mark.parametrize("kind", ["full", "split"])
+@pytest.mark.parametrize("make", BAD_IMAGES)
+def test_encode_refuses_what_the_pytorch_encoder_refuses_with_the_same_message(kind, make, full_export,
+                                                                               split_export, test_model):
+    runner = pm.load_model(full_export if kind == "full" else split_export)
+    img = make()
+    with pytest.raises(ShapeError) as ours:
+        runner.encode(img)
+    with pytest.raises(ShapeError) as theirs:
+        test_model.encode(img)
+    assert str(ours.value) == str(theirs.value)
+
+
 @pytest.mark.parametrize("kind", ["full", "split"])
 def test_predict_pairs_runs_unchanged(kind, full_export, split_export, test_model):
     runner = pm.load_model(full_export if kind == "full" else split_export)
