@@ -6,6 +6,8 @@ reading the source.
 
 from __future__ import annotations
 
+import numbers
+
 
 class PointmapError(Exception):
     """Base class of every error this library raises on purpose."""
@@ -29,6 +31,16 @@ class ImageError(PointmapError, ValueError):
 
 class GraphError(PointmapError, ValueError):
     """A pair graph is unusable (disconnected, too few images, unknown graph name)."""
+
+
+def is_int(x) -> bool:
+    """An integer (Python or NumPy), not a bool: the test every count, size and index argument passes."""
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+
+def is_number(x) -> bool:
+    """A real number (Python or NumPy, int or float), not a bool; inf and NaN pass (range checks are the caller's)."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
 
 
 def check_shape(name: str, tensor, expected: tuple, *, hint: str = "") -> None:

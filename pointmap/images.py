@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pointmap.errors import ImageError
+from pointmap.errors import ImageError, is_int
 
 PATCH = 16
 
@@ -44,7 +44,7 @@ class View:
 def is_input_size(size) -> bool:
     """Whether ``size`` is an input size ``load_images`` takes: 224 (the official 224 models' crop), or a multiple of
     the patch size (16) from one patch up."""
-    return isinstance(size, int) and not isinstance(size, bool) and size >= PATCH and (size == 224 or size % PATCH == 0)
+    return is_int(size) and size >= PATCH and (size == 224 or size % PATCH == 0)
 
 
 def _as_list(paths_or_arrays, caller: str):

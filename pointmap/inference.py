@@ -6,13 +6,12 @@
 from __future__ import annotations
 
 import logging
-import numbers
 from collections import defaultdict
 
 import torch
 from tqdm.auto import tqdm
 
-from pointmap.errors import CheckpointError, GraphError, ShapeError
+from pointmap.errors import CheckpointError, GraphError, ShapeError, is_int
 from pointmap.images import View
 from pointmap.prediction import PairPrediction
 
@@ -76,13 +75,13 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
         raise GraphError("predict_pairs needs at least one pair")
     for p in pairs:
         if (not isinstance(p, (tuple, list)) or len(p) != 2
-                or not all(isinstance(k, numbers.Integral) and not isinstance(k, bool) for k in p)):
+                or not all(is_int(k) for k in p)):
             raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
     pairs = [(int(i), int(j)) for i, j in pairs]
     for i, j in pairs:
         if not (0 <= i < n and 0 <= j < n) or i == j:
             raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+    if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     if not (hasattr(model, "decode_pair") and callable(model)):
         raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")

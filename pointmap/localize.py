@@ -12,12 +12,11 @@ a view paired with its own reference frame scored lower than with a neighbour on
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass, replace
 
 import torch
 
-from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.errors import GraphError, PointmapError, ShapeError, is_int
 from pointmap.images import View, load_images
 from pointmap.reconstruction import K_to_map, K_to_original, Reconstruction
 
@@ -147,13 +146,10 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
                              f"finite with positive focals, got {K.tolist() if K.numel() <= 9 else list(K.shape)}")
     refs_views = reference_views(recon)
     if refs is None:
-        if not isinstance(n_refs, int) or n_refs < 1:
+        if not (is_int(n_refs) and n_refs >= 1):
             raise PointmapError(f"n_refs expected an int >= 1, got {n_refs!r}")
         refs = rank_references(model, refs_views, queries, n_refs, device=device)
-    def is_index(k):
-        return isinstance(k, numbers.Integral) and not isinstance(k, bool)
-
-    refs = [[int(r)] if is_index(r) else [int(k) if is_index(k) else k for k in r] if hasattr(r, "__iter__") else r
+    refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r] if hasattr(r, "__iter__") else r
             for r in refs]
     if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
                                                                      for k in r) for r in refs):

@@ -5,9 +5,7 @@ Pairs are unordered ``(i, j)`` with ``i < j``; inference runs both orders of eac
 
 from __future__ import annotations
 
-import numbers
-
-from pointmap.errors import GraphError
+from pointmap.errors import GraphError, is_int
 
 GRAPHS = "complete, swin-K, logwin-K, oneref-I (swin/logwin take a '-noncyclic' suffix)"
 
@@ -42,7 +40,7 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
         >>> make_pairs(4, "swin-1-noncyclic")
         [(0, 1), (1, 2), (2, 3)]
     """
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral):
+    if not is_int(n):
         raise GraphError(f"a pair graph expected a number of images (an int), got {type(n).__name__} {n!r}")
     n = int(n)
     if n < 2:

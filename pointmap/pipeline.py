@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
-from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.errors import GraphError, PointmapError, ShapeError, is_number
 from pointmap.io.points import confidence_mask
 
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
@@ -127,11 +127,9 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     if not isinstance(refine, (bool, SparseConfig)):
         raise PointmapError(f"refine expected True, False or a SparseConfig, got {type(refine).__name__}")
-    if min_conf is not None and (isinstance(min_conf, bool) or not isinstance(min_conf, (int, float))
-                                 or not math.isfinite(min_conf)):
+    if min_conf is not None and not (is_number(min_conf) and math.isfinite(min_conf)):
         raise PointmapError(f"min_conf expected a finite confidence (or None), got {min_conf!r}")
-    if conf_percentile is not None and (isinstance(conf_percentile, bool) or not isinstance(conf_percentile, (int, float))
-                                        or not 0 <= conf_percentile < 100):
+    if conf_percentile is not None and not (is_number(conf_percentile) and 0 <= conf_percentile < 100):
         raise PointmapError(f"conf_percentile expected a percentile in [0, 100) (or None), got {conf_percentile!r}")
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pointmap.atomic import atomic_path
-from pointmap.errors import ImageError
+from pointmap.errors import ImageError, is_int
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 
@@ -41,9 +41,9 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     video = Path(video)
     if not video.is_file():
         raise ImageError(f"video not found: {video}")
-    if stride is not None and (not isinstance(stride, int) or stride < 1):
+    if stride is not None and not (is_int(stride) and stride >= 1):
         raise ImageError(f"stride expected a positive integer, got {stride!r}")
-    if not isinstance(max_frames, int) or max_frames < 2:
+    if not (is_int(max_frames) and max_frames >= 2):
         raise ImageError(f"max_frames expected an integer >= 2, got {max_frames!r}")
     out_dir = Path(out_dir)
     paths: list[Path] = []

@@ -43,7 +43,7 @@ def test_missing_and_undecodable_videos_and_bad_strides_are_refused(tmp_path):
     with pytest.raises(ImageError, match="junk.mp4"):
         extract_frames(tmp_path / "junk.mp4", tmp_path / "f")
     video = _video(tmp_path / "v.avi", n=3)
-    for bad in (0, -2, 1.5):
+    for bad in (0, -2, 1.5, True):
         with pytest.raises(ImageError, match="stride expected a positive integer"):
             extract_frames(video, tmp_path / "f", stride=bad)
 

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from pointmap.checkpoint import CheckpointError, load_model, save_model
+from pointmap.errors import is_int
 from pointmap.model import PointmapNet
 
 SILENT = ("attn.proj", "cross_attn.proj", "mlp.fc2")  # a new block's output projections, zeroed at growth
@@ -102,7 +103,7 @@ def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int |
     enc_depth = cfg.enc_depth if enc_depth is None else enc_depth
     dec_depth = cfg.dec_depth if dec_depth is None else dec_depth
     for name, d in (("enc_depth", enc_depth), ("dec_depth", dec_depth)):
-        if isinstance(d, bool) or not isinstance(d, int):
+        if not is_int(d):
             raise ValueError(f"{name} expected an int, got {d!r}")
     if enc_depth < cfg.enc_depth or dec_depth < cfg.dec_depth:
         raise ValueError(f"growth only: expected enc_depth >= {cfg.enc_depth} and dec_depth >= {cfg.dec_depth}, "

@@ -8,7 +8,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 from pointmap.geometry.cameras import depth_to_points_cam, invert_rigid, transform_points
 from pointmap.matching import cell_descriptors
 
@@ -153,7 +153,7 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
     Returns (loss, accuracy of the argmax match) averaged over pairs that have >= 8 correspondences.
     """
     _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
-    if isinstance(n_corr, bool) or not isinstance(n_corr, int) or n_corr < 1:
+    if not (is_int(n_corr) and n_corr >= 1):
         raise ShapeError(f"matching_loss expected n_corr >= 1, got {n_corr!r}")
     B, H1, W1, _ = desc1.shape
     H2, W2 = desc2.shape[1:3]

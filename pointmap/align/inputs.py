@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import numbers
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from pointmap.errors import ConventionError, GraphError, ShapeError
+from pointmap.errors import ConventionError, GraphError, ShapeError, is_int
 from pointmap.geometry.cameras import is_rigid
 from pointmap.reconstruction import K_to_map
 
@@ -89,7 +88,7 @@ def _as_tensor(x, name: str) -> torch.Tensor:
 
 def _image_index(i, n: int, name: str) -> int:
     """A dict key of known K / poses as an image index; ShapeError for a non-integer or out-of-range one."""
-    if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+    if not is_int(i):
         raise ShapeError(f"{name}: keys expected integer image indices, got {type(i).__name__} {i!r}")
     if not 0 <= int(i) < n:
         raise ShapeError(f"{name}: image index {i} outside 0..{n - 1}")

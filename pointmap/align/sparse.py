@@ -11,14 +11,13 @@ The dense depth maps are then rescaled per image by the median depth change of t
 from __future__ import annotations
 
 import math
-import numbers
 import time
 from dataclasses import asdict, dataclass, replace
 
 import torch
 
 from pointmap.align.gauge import anchor_to_first
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import K_to_original, Reconstruction
 
@@ -40,17 +39,15 @@ class SparseConfig:
 
     def __post_init__(self) -> None:
         bad = []
-        if isinstance(self.niter, bool) or not isinstance(self.niter, int) or self.niter < 1:
+        if not (is_int(self.niter) and self.niter >= 1):
             bad.append(f"niter expected an int >= 1, got {self.niter!r}")
-        if self.robust_px is not None and not (isinstance(self.robust_px, (int, float)) and
-                                               0 < self.robust_px < math.inf):
+        if self.robust_px is not None and not (is_number(self.robust_px) and 0 < self.robust_px < math.inf):
             bad.append(f"robust_px expected pixels > 0 (None: automatic), got {self.robust_px!r}")
-        if not (isinstance(self.depth_prior, (int, float)) and 0 <= self.depth_prior < math.inf):
+        if not (is_number(self.depth_prior) and 0 <= self.depth_prior < math.inf):
             bad.append(f"depth_prior expected a weight >= 0, got {self.depth_prior!r}")
-        if not (isinstance(self.min_score, (int, float)) and math.isfinite(self.min_score)):
+        if not (is_number(self.min_score) and math.isfinite(self.min_score)):
             bad.append(f"min_score expected a finite score, got {self.min_score!r}")
-        if isinstance(self.max_matches_per_pair, bool) or not isinstance(self.max_matches_per_pair, int) \
-                or self.max_matches_per_pair < 1:
+        if not (is_int(self.max_matches_per_pair) and self.max_matches_per_pair >= 1):
             bad.append(f"max_matches_per_pair expected an int >= 1, got {self.max_matches_per_pair!r}")
         if bad:
             raise ShapeError("SparseConfig: " + "; ".join(bad))
@@ -76,7 +73,7 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
     if not isinstance(matches, dict):
         raise ShapeError(f"matches expected a dict {{(i, j): matches}}, got {type(matches).__name__}")
     for key in matches:
-        if not (isinstance(key, tuple) and len(key) == 2 and all(isinstance(k, numbers.Integral) and 0 <= k < n for k in key)):
+        if not (isinstance(key, tuple) and len(key) == 2 and all(is_int(k) and 0 <= k < n for k in key)):
             raise ShapeError(f"matches keys expected (i, j) image indices in 0..{n - 1}, got {key!r}")
     g = torch.Generator().manual_seed(seed)
     I, J, A, B, S = [], [], [], [], []

@@ -17,7 +17,6 @@ that a 2-6 view scene fits in about two minutes; with CUDA it uses InstantSplat'
 from __future__ import annotations
 
 import math
-import numbers
 import time
 from dataclasses import dataclass, field, replace
 
@@ -25,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.geometry.cameras import invert_rigid, scale_intrinsics
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
@@ -119,11 +118,8 @@ LR_KEYS = ("means", "sh_dc", "opacity", "scales", "quats")
 def _check_fit_options(*, steps, max_side, coarse_frac, lr, pose_lr, ssim_weight, densify_every, densify_grad,
                        time_budget) -> None:
     """ShapeError (one line) for a ``fit`` option out of its range (None means "the default" where allowed)."""
-    def is_int(x):
-        return isinstance(x, numbers.Integral) and not isinstance(x, bool)
-
     def is_num(x):
-        return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+        return is_number(x) and math.isfinite(x)
 
     bad = []
     if steps is not None and not (is_int(steps) and steps >= 0):

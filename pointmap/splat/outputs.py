@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from pointmap.atomic import atomic_path, write_bytes
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
 
@@ -124,14 +124,13 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
 
     if not isinstance(recon, Reconstruction):
         raise ShapeError(f"run expects a pointmap Reconstruction, got {type(recon).__name__}")
-    if time_budget is not None and not (isinstance(time_budget, (int, float)) and 0 < time_budget < math.inf):
+    if time_budget is not None and not (is_number(time_budget) and 0 < time_budget < math.inf):
         raise ShapeError(f"time_budget expected seconds > 0 (None: no limit), got {time_budget!r}")
     if orbit and Path(orbit).suffix.lower() not in (".gif", ".mp4"):  # checked before minutes of fitting
         raise ShapeError(f"orbit expected a file name ending in .gif or .mp4 (or '' for none), got {orbit!r}")
-    if isinstance(orbit_frames, bool) or not isinstance(orbit_frames, int) or orbit_frames < 0:
+    if not (is_int(orbit_frames) and orbit_frames >= 0):
         raise ShapeError(f"orbit_frames expected an int >= 0, got {orbit_frames!r}")
-    if max_gaussians is not None and (isinstance(max_gaussians, bool) or not isinstance(max_gaussians, int)
-                                      or max_gaussians < 1):
+    if max_gaussians is not None and not (is_int(max_gaussians) and max_gaussians >= 1):
         raise ShapeError(f"max_gaussians expected an int >= 1 (None: the budget's), got {max_gaussians!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -127,8 +127,9 @@ def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
         localize(None, recon, queries, refs=[[1], [2]], K=torch.eye(4), quiet=True)
     with pytest.raises(PointmapError, match="non-empty list of images"):
         localize(None, recon, [], quiet=True)
-    with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
-        localize(None, recon, queries, n_refs=0, quiet=True)
+    for bad in (0, True):  # (a bool is not a count)
+        with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
+            localize(None, recon, queries, n_refs=bad, quiet=True)
 
 
 def test_references_are_ranked_by_encoder_similarity_so_a_copy_of_a_view_finds_that_view():

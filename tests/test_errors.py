@@ -1,0 +1,30 @@
+"""The shared argument tests of pointmap.errors: what counts as an int or a number, and trailing-shape checks."""
+
+import numpy as np
+import pytest
+import torch
+
+from pointmap.errors import ShapeError, check_shape, is_int, is_number
+
+
+def test_an_int_is_a_python_or_numpy_integer_and_never_a_bool_or_a_float():
+    assert is_int(3) and is_int(np.int64(3)) and is_int(np.uint8(0)) and is_int(-1)
+    assert not any(is_int(x) for x in (True, False, np.bool_(True), 3.0, "3", None, torch.tensor(3)))
+
+
+def test_a_number_is_any_real_but_a_bool_and_leaves_range_checks_to_the_caller():
+    assert all(is_number(x) for x in (3, 2.5, np.float32(0.5), np.int16(-2), float("inf"), float("nan")))
+    assert not any(is_number(x) for x in (True, np.bool_(False), "1.0", None, 1j))
+
+
+def test_check_shape_with_a_leading_ellipsis_checks_only_the_trailing_dims():
+    check_shape("R", torch.zeros(3, 3), (..., 3, 3))
+    check_shape("R", np.zeros((2, 5, 3, 3)), (..., 3, 3))
+    with pytest.raises(ShapeError, match=r"R expected \[\.\.\., 3, 3\], got \[2, 3, 4\]"):
+        check_shape("R", torch.zeros(2, 3, 4), (..., 3, 3))
+    with pytest.raises(ShapeError, match=r"R expected \[\.\.\., 3, 3\], got \[3\]"):
+        check_shape("R", torch.zeros(3), (..., 3, 3))
+    with pytest.raises(ShapeError, match=r"R expected an array or tensor \[\.\.\., 3, 3\], got list"):
+        check_shape("R", [[1.0]], (..., 3, 3))
+    with pytest.raises(ShapeError, match=r"K expected \[\*, 3, 3\], got \[3, 3\]"):  # fixed rank as before
+        check_shape("K", torch.zeros(3, 3), (None, 3, 3))
