@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ShapeError
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
 from pointmap.geometry.rotations import project_to_rotation
@@ -223,11 +224,12 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
 
 
 def _check_focals(name: str, K: torch.Tensor) -> None:
-    """ShapeError unless every [3, 3] of ``K`` [B, 3, 3] is finite with positive focals (a user's intrinsics)."""
-    ok = torch.isfinite(K).all(-1).all(-1) & (K[:, 0, 0] > 0) & (K[:, 1, 1] > 0)
+    """ShapeError unless every [3, 3] of ``K`` [B, 3, 3] is finite pinhole intrinsics with positive focals (a user's
+    intrinsics)."""
+    ok = is_pinhole_K(K)
     if not bool(ok.all()):
         b = int((~ok).nonzero()[0])
-        raise ShapeError(f"{name} expected finite intrinsics with positive focals, got {K[b].tolist()}"
+        raise ShapeError(f"{name} expected finite intrinsics with positive focals ({K_LAYOUT}), got {K[b].tolist()}"
                          f"{f' (batch item {b})' if K.shape[0] > 1 else ''}")
 
 

@@ -8,7 +8,13 @@ import numpy as np
 import torch
 
 from pointmap.errors import ShapeError
-from pointmap.geometry.cameras import depth_to_points_world, is_rigid, similarity_on_cam2world
+from pointmap.geometry.cameras import (
+    K_LAYOUT,
+    depth_to_points_world,
+    is_pinhole_K,
+    is_rigid,
+    similarity_on_cam2world,
+)
 
 _REQUIRED = ("images", "cam2world", "K", "depth_z", "conf")
 
@@ -87,10 +93,11 @@ class Reconstruction:
             raise ShapeError(f"masks expected [{n}, {h}, {w}], got {list(self.masks.shape)}")
         if self.masks is not None and self.masks.dtype != torch.bool:
             raise ShapeError(f"masks expected dtype bool (True: keep the pixel), got {self.masks.dtype}")
-        f = torch.stack([self.K[:, 0, 0], self.K[:, 1, 1]], -1)
-        if not bool((f > 0).all()):
-            bad = sorted({int(i) for i in (f <= 0).any(-1).nonzero().flatten()})
-            raise ShapeError(f"K expected focal lengths fx, fy > 0, got K[{bad[0]}] = {self.K[bad[0]].tolist()}"
+        pinhole = is_pinhole_K(self.K)
+        if not bool(pinhole.all()):
+            bad = [int(i) for i in (~pinhole).nonzero().flatten()]
+            raise ShapeError(f"K expected finite pinhole intrinsics {K_LAYOUT} with fx, fy > 0, got "
+                             f"K[{bad[0]}] = {self.K[bad[0]].tolist()}"
                              f"{f' (views {bad})' if len(bad) > 1 else ''}")
         rigid = is_rigid(self.cam2world)
         if not bool(rigid.all()):

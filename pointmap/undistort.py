@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pointmap.errors import PointmapError
+from pointmap.geometry.cameras import is_pinhole_K
 
 # camera model -> its coefficients in order (COLMAP's and nerfstudio's names)
 MODELS = {
@@ -81,8 +82,7 @@ class Distortion:
 def _check_K(K, size) -> np.ndarray:
     K = np.asarray(K, np.float64)
     w, h = size
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 \
-            or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
+    if K.shape != (3, 3) or not bool(is_pinhole_K(K)):
         raise PointmapError(f"K expected a finite [3, 3] matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive "
                             f"focal lengths, got {K.tolist()}")
     if not (isinstance(w, (int, np.integer)) and isinstance(h, (int, np.integer)) and w > 1 and h > 1):

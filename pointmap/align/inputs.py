@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ConventionError, GraphError, ShapeError, is_int
-from pointmap.geometry.cameras import is_rigid
+from pointmap.geometry.cameras import is_pinhole_K, is_rigid
 from pointmap.reconstruction import K_to_map
 
 
@@ -122,10 +122,9 @@ def parse_known_K(K, n: int, info: ViewInfo):
         k = k.double()
         if tuple(k.shape) != (3, 3):
             raise ShapeError(f"K[{i}] expected [3, 3], got {list(k.shape)}")
-        if k[0, 0] <= 0 or k[1, 1] <= 0 or abs(float(k[2, 2]) - 1) > 1e-6 or float(k[1, 0]) != 0 \
-                or float(k[2, 0]) != 0 or float(k[2, 1]) != 0:
-            raise ConventionError(f"K[{i}] expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels with positive "
-                                  f"focals (a transposed K puts cx, cy in the bottom row), got {k.tolist()}")
+        if not bool(is_pinhole_K(k)):
+            raise ConventionError(f"K[{i}] expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels, finite with "
+                                  f"positive focals (a transposed K puts cx, cy in the bottom row), got {k.tolist()}")
         Km = K_to_map(k, info.map_from_original[i])
         fx[i], fy[i], cx[i], cy[i] = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
     return per, known, fx, fy, cx, cy

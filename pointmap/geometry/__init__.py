@@ -6,6 +6,7 @@ from pointmap.geometry.cameras import (
     depth_to_points_world,
     intrinsics,
     invert_rigid,
+    is_pinhole_K,
     pixel_grid,
     project,
     scale_intrinsics,
@@ -24,7 +25,7 @@ from pointmap.geometry.rotations import (
 
 __all__ = [
     "axis_angle_to_matrix", "crop_intrinsics", "depth_to_points_cam", "depth_to_points_world",
-    "focal_from_pointmap", "intrinsics", "invert_rigid", "pixel_grid", "project", "random_rotation",
+    "focal_from_pointmap", "intrinsics", "invert_rigid", "is_pinhole_K", "pixel_grid", "project", "random_rotation",
     "relative_rotation_error_deg", "rotation_angle", "scale_intrinsics", "se3_exp", "to_matrix",
     "transform_points", "translation_angle_deg", "weighted_procrustes",
 ]

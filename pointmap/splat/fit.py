@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from pointmap.errors import ShapeError, is_int, is_number
-from pointmap.geometry.cameras import invert_rigid, scale_intrinsics
+from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, scale_intrinsics
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
@@ -106,8 +106,8 @@ def _check_pose(T, name) -> torch.Tensor:
 
 def _check_K(K) -> torch.Tensor:
     K = torch.as_tensor(K, dtype=torch.float32)
-    if tuple(K.shape) != (3, 3) or not bool(torch.isfinite(K).all()) or not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise ShapeError(f"K expected finite [3, 3] intrinsics with positive focals, got "
+    if tuple(K.shape) != (3, 3) or not bool(is_pinhole_K(K)):
+        raise ShapeError(f"K expected finite [3, 3] intrinsics with positive focals ({K_LAYOUT}), got "
                          f"{list(K.shape) if tuple(K.shape) != (3, 3) else K.tolist()}")
     return K
 

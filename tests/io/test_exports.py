@@ -479,7 +479,9 @@ def _fields(**change):
     ({"names": ["a.png"]}, "names expected 2 non-empty strings"),
     ({"names": ["a.png", "a.png"]}, "names expected to be unique .*\\['a.png'\\]"),
     ({"masks": torch.ones(2, 24, 32)}, "masks expected dtype bool"),
-    ({"K": torch.zeros(2, 3, 3)}, "K expected focal lengths fx, fy > 0"),
+    ({"K": torch.zeros(2, 3, 3)}, "K expected finite pinhole intrinsics .* with fx, fy > 0, got K\\[0\\]"),
+    ({"K": torch.tensor([[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [15.5, 11.5, 1.0]]).expand(2, 3, 3)},
+     "K expected finite pinhole intrinsics"),  # transposed
     ({"cam2world": torch.zeros(2, 4, 4)}, "cam2world expected rigid"),
     ({"cam2world": 2 * torch.eye(4).repeat(2, 1, 1)}, "cam2world expected rigid"),
     ({"depth_z": -torch.ones(2, 24, 32)}, "depth_z expected values >= 0"),
