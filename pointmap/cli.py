@@ -221,12 +221,11 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
 
 def cmd_reconstruct(args) -> int:
     # every argument is checked before the model runs: nothing fails after minutes of inference
+    from pointmap.io.points import check_conf_filter
+
     formats = parse_export(args.export)
     check_size_graph_budget(args)
-    if args.conf_percentile is not None and not 0 <= args.conf_percentile < 100:
-        raise PointmapError(f"--conf-percentile expected a percentile in [0, 100), got {args.conf_percentile}")
-    if args.min_conf is not None and not math.isfinite(args.min_conf):
-        raise PointmapError(f"--min-conf expected a finite confidence, got {args.min_conf}")
+    check_conf_filter(args.min_conf, args.conf_percentile, ("--min-conf", "--conf-percentile"))
     if args.max_points < 0 or args.colmap_points < 0:
         raise PointmapError(f"--max-points and --colmap-points expected >= 0 (0: all), got {args.max_points} and "
                             f"{args.colmap_points}")

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
-from pointmap.errors import GraphError, PointmapError, ShapeError, is_number
-from pointmap.io.points import confidence_mask
+from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.io.points import check_conf_filter, confidence_mask
 
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
 ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
@@ -127,10 +127,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     if not isinstance(refine, (bool, SparseConfig)):
         raise PointmapError(f"refine expected True, False or a SparseConfig, got {type(refine).__name__}")
-    if min_conf is not None and not (is_number(min_conf) and math.isfinite(min_conf)):
-        raise PointmapError(f"min_conf expected a finite confidence (or None), got {min_conf!r}")
-    if conf_percentile is not None and not (is_number(conf_percentile) and 0 <= conf_percentile < 100):
-        raise PointmapError(f"conf_percentile expected a percentile in [0, 100) (or None), got {conf_percentile!r}")
+    check_conf_filter(min_conf, conf_percentile)
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
     cfg = align or AlignConfig(quiet=quiet)

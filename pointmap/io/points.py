@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from pointmap.errors import ShapeError, is_number
+
+
+def check_conf_filter(min_conf, percentile, names=("min_conf", "conf_percentile")) -> None:
+    """ShapeError (a ValueError) unless ``min_conf`` is None or a finite number and ``percentile`` None or a number
+    in [0, 100); ``names`` are what the messages call them (the CLI's flags, the API's arguments)."""
+    if min_conf is not None and not (is_number(min_conf) and math.isfinite(min_conf)):
+        raise ShapeError(f"{names[0]} expected a finite confidence, got {min_conf!r}")
+    if percentile is not None and not (is_number(percentile) and 0 <= percentile < 100):
+        raise ShapeError(f"{names[1]} expected a percentile in [0, 100), got {percentile!r}")
 
 
 def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
@@ -14,12 +26,11 @@ def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
     official demos use 3 for DUSt3R and 1.5 for MASt3R). ``percentile`` in [0, 100): relative, keep
     conf >= that percentile of all finite confidences (50 keeps the most confident half). Both may be
     combined (a pixel must pass both)."""
+    check_conf_filter(min_conf, percentile, ("min_conf", "percentile"))
     keep = torch.isfinite(conf)
     if min_conf is not None:
         keep &= conf > min_conf
     if percentile is not None:
-        if not 0 <= percentile < 100:
-            raise ValueError(f"conf percentile expected in [0, 100), got {percentile}")
         vals = conf[torch.isfinite(conf)].double()
         if vals.numel():
             thr = float(np.percentile(vals.numpy(), percentile))

@@ -149,13 +149,18 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert target.read_bytes() == b"old" and len(list(tmp_path.iterdir())) == 1
 
 
-def test_confidence_thresholds():
+def test_confidence_thresholds_keep_what_they_say_and_refuse_a_nan_threshold_that_would_keep_nothing():
     conf = torch.arange(1, 101, dtype=torch.float32).reshape(1, 10, 10)
     assert int(confidence_mask(conf, min_conf=50).sum()) == 50
     assert int(confidence_mask(conf, percentile=90).sum()) == 10  # >= the 90th percentile (90.1)
     assert int(confidence_mask(conf, min_conf=95, percentile=50).sum()) == 5
-    with pytest.raises(ValueError, match="percentile"):
+    with pytest.raises(ValueError, match=r"percentile expected a percentile in \[0, 100\), got 100"):
         confidence_mask(conf, percentile=100)
+    for bad in (float("nan"), True, "3"):
+        with pytest.raises(ValueError, match="min_conf expected a finite confidence"):
+            confidence_mask(conf, min_conf=bad)
+    with pytest.raises(ValueError, match="min_conf expected a finite confidence"):
+        select_points(make_recon(n=2), min_conf=float("nan"))
 
 
 def test_quaternion_matches_rotation():
