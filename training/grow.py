@@ -117,7 +117,7 @@ def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int |
     if "dpt" in cfg.head and dec_depth != cfg.dec_depth:
         raise ValueError(f"a {cfg.head!r} head reads intermediate decoder layers; deepening its decoder would "
                          "change what they hold (only the encoder can grow)")
-    grown = PointmapNet(cfg.replace(enc_depth=enc_depth, dec_depth=dec_depth))
+    grown = PointmapNet(cfg.replace(enc_depth=int(enc_depth), dec_depth=int(dec_depth)))
     src = copy.deepcopy(model).float()
     src.enc_blocks = _deepen(src.enc_blocks, enc_depth)
     src.dec_blocks = _deepen(src.dec_blocks, dec_depth)

@@ -11,20 +11,20 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
                         *, with_scale: bool = True, eps: float = 1e-9):
     """Find (s, R, t) minimising sum_i w_i ||s R src_i + t - dst_i||^2.
 
-    src, dst: [B, N, 3] (or [N, 3]); weights: [B, N] (or [N]), non-negative (negative ones count as 0).
-    Returns s [B], R [B, 3, 3], t [B, 3] (unbatched inputs give unbatched outputs).
+    src, dst: [..., N, 3] (any leading batch dims, or none); weights: [..., N], non-negative (negative ones count
+    as 0). Returns s [...], R [..., 3, 3], t [..., 3].
     The result is a proper rotation (det = +1), with the reflection fix of Umeyama (1991).
     A problem with no weight (no point, or every weight 0) has no answer: its s, R and t are NaN.
     """
-    if not (isinstance(src, torch.Tensor) and isinstance(dst, torch.Tensor)) or src.ndim not in (2, 3):
-        raise ShapeError(f"src and dst expected [B, N, 3] or [N, 3] tensors, got "
+    if not (isinstance(src, torch.Tensor) and isinstance(dst, torch.Tensor)) or src.ndim < 2:
+        raise ShapeError(f"src and dst expected [..., N, 3] tensors, got "
                          f"{list(src.shape) if hasattr(src, 'shape') else type(src).__name__}")
     unbatched = src.ndim == 2
     if unbatched:
         src, dst = src[None], dst[None]
         weights = None if weights is None else weights[None]
     if src.shape != dst.shape or src.shape[-1] != 3:
-        raise ShapeError(f"src and dst expected the same [B, N, 3] shape, got {list(src.shape)} and {list(dst.shape)}")
+        raise ShapeError(f"src and dst expected the same [..., N, 3] shape, got {list(src.shape)} and {list(dst.shape)}")
     if weights is None:
         weights = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device)
     if tuple(weights.shape) != tuple(src.shape[:-1]):
@@ -49,14 +49,14 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
         var_s = (wn * xs * xs).sum((-1, -2)).clamp_min(eps)
         s = (S * torch.diagonal(D, dim1=-2, dim2=-1)).sum(-1) / var_s
     else:
-        s = torch.ones(src.shape[0], dtype=src.dtype, device=src.device)
+        s = torch.ones(src.shape[:-2], dtype=src.dtype, device=src.device)
     t = mu_d - s.unsqueeze(-1) * (R @ mu_s.unsqueeze(-1)).squeeze(-1)
     empty = w.sum(-1) <= 0
     if bool(empty.any()):
         nan = torch.tensor(float("nan"), dtype=s.dtype, device=s.device)
         s = torch.where(empty, nan, s)
-        R = torch.where(empty[:, None, None], nan, R)
-        t = torch.where(empty[:, None], nan, t)
+        R = torch.where(empty[..., None, None], nan, R)
+        t = torch.where(empty[..., None], nan, t)
     if unbatched:
         return s[0], R[0], t[0]
     return s, R, t

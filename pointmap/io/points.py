@@ -13,7 +13,12 @@ from pointmap.errors import ShapeError, is_number
 
 def check_conf_filter(min_conf, percentile, names=("min_conf", "conf_percentile")) -> None:
     """ShapeError (a ValueError) unless ``min_conf`` is None or a finite number and ``percentile`` None or a number
-    in [0, 100); ``names`` are what the messages call them (the CLI's flags, the API's arguments)."""
+    in [0, 100) (a 0-d tensor or array counts as its number); ``names`` are what the messages call them (the CLI's
+    flags, the API's arguments)."""
+    def scalar(x):
+        return x.item() if getattr(x, "ndim", None) == 0 and hasattr(x, "item") else x
+
+    min_conf, percentile = scalar(min_conf), scalar(percentile)
     if min_conf is not None and not (is_number(min_conf) and math.isfinite(min_conf)):
         raise ShapeError(f"{names[0]} expected a finite confidence, got {min_conf!r}")
     if percentile is not None and not (is_number(percentile) and 0 <= percentile < 100):

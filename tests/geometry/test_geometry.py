@@ -181,8 +181,10 @@ def test_procrustes_without_any_weight_answers_nan_for_that_problem_only():
     assert torch.isnan(s0) and torch.isnan(R0).all() and torch.isnan(t0).all()
     from pointmap.errors import ShapeError
 
-    with pytest.raises(ShapeError, match=r"src and dst expected \[B, N, 3\] or \[N, 3\] tensors, got \[3\]"):
+    with pytest.raises(ShapeError, match=r"src and dst expected \[\.\.\., N, 3\] tensors, got \[3\]"):
         weighted_procrustes(torch.ones(3), torch.ones(3))
+    s2, R2, t2 = weighted_procrustes(src.reshape(1, 3, 20, 3), dst.reshape(1, 3, 20, 3), w.reshape(1, 3, 20))
+    assert s2.shape == (1, 3) and R2.shape == (1, 3, 3, 3) and torch.isnan(s2[0, 1]) and torch.allclose(s2[0, 0], s[0])
 
 
 def test_pinhole_intrinsics_are_finite_with_positive_focals_and_a_0_0_1_bottom_row_and_a_transposed_K_is_not():

@@ -156,7 +156,8 @@ def test_confidence_thresholds_keep_what_they_say_and_refuse_a_nan_threshold_tha
     assert int(confidence_mask(conf, min_conf=95, percentile=50).sum()) == 5
     with pytest.raises(ValueError, match=r"percentile expected a percentile in \[0, 100\), got 100"):
         confidence_mask(conf, percentile=100)
-    for bad in (float("nan"), True, "3"):
+    assert int(confidence_mask(conf, min_conf=torch.tensor(50.0), percentile=np.float32(0)).sum()) == 50
+    for bad in (float("nan"), True, "3", torch.tensor([3.0])):
         with pytest.raises(ValueError, match="min_conf expected a finite confidence"):
             confidence_mask(conf, min_conf=bad)
     with pytest.raises(ValueError, match="min_conf expected a finite confidence"):

@@ -1,5 +1,6 @@
 """training.grow: a deepened model computes what the original did, and its new blocks can learn."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -71,6 +72,7 @@ def test_growth_refuses_shrinking_no_change_and_a_dpt_decoder_with_the_reason():
         deepen(_model(), enc_depth=2)
     with pytest.raises(ValueError, match="expected an int"):
         deepen(_model(), enc_depth=2.7)
+    assert deepen(_model(), enc_depth=np.int64(3)).cfg.enc_depth == 3  # a NumPy int is an int
     with pytest.raises(ValueError, match="intermediate decoder layers"):
         deepen(PointmapNet(PRESETS["test"]), dec_depth=6)
 
