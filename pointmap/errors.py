@@ -52,15 +52,11 @@ def check_shape(name: str, tensor, expected: tuple, *, hint: str = "") -> None:
     """
     if not hasattr(tensor, "shape"):
         raise ShapeError(f"{name} expected an array or tensor {_fmt(expected)}{hint}, got {type(tensor).__name__}")
-    shape = tuple(tensor.shape)
-    if expected and expected[0] is Ellipsis:
+    shape, fmt = tuple(tensor.shape), _fmt(expected)
+    if expected and expected[0] is Ellipsis:  # compare the trailing dims only (too few fail the length test below)
         expected = expected[1:]
-        if len(shape) < len(expected):
-            raise ShapeError(f"{name} expected {_fmt((..., *expected))}{hint}, got {list(shape)}")
-        shape = shape[len(shape) - len(expected):]
-        fmt = _fmt((..., *expected))
-    else:
-        fmt = _fmt(expected)
+        if len(shape) >= len(expected):
+            shape = shape[len(shape) - len(expected):]
     if len(shape) != len(expected):
         raise ShapeError(f"{name} expected {fmt}{hint}, got {list(tensor.shape)}")
     named: dict[str, int] = {}
