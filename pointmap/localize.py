@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from pointmap.errors import GraphError, PointmapError, ShapeError, is_int
-from pointmap.geometry.cameras import is_pinhole_K
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 from pointmap.images import View, load_images
 from pointmap.reconstruction import K_to_map, K_to_original, Reconstruction
 
@@ -142,7 +142,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         K = torch.as_tensor(K, dtype=torch.float64)
         K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
         if tuple(K.shape) != (m, 3, 3) or not bool(is_pinhole_K(K).all()):
-            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]], "
+            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, "
                              f"finite with positive focals, got {K.tolist() if K.numel() <= 9 else list(K.shape)}")
     refs_views = reference_views(recon)
     if refs is None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pointmap.errors import PointmapError
-from pointmap.geometry.cameras import is_pinhole_K
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 
 # camera model -> its coefficients in order (COLMAP's and nerfstudio's names)
 MODELS = {
@@ -83,7 +83,7 @@ def _check_K(K, size) -> np.ndarray:
     K = np.asarray(K, np.float64)
     w, h = size
     if K.shape != (3, 3) or not bool(is_pinhole_K(K)):
-        raise PointmapError(f"K expected a finite [3, 3] matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive "
+        raise PointmapError(f"K expected a finite [3, 3] matrix {K_LAYOUT} with positive "
                             f"focal lengths, got {K.tolist()}")
     if not (isinstance(w, (int, np.integer)) and isinstance(h, (int, np.integer)) and w > 1 and h > 1):
         raise PointmapError(f"size expected (width, height) in pixels, got {size}")

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ConventionError, GraphError, ShapeError, is_int
-from pointmap.geometry.cameras import is_pinhole_K, is_rigid
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid
 from pointmap.reconstruction import K_to_map
 
 
@@ -123,7 +123,7 @@ def parse_known_K(K, n: int, info: ViewInfo):
         if tuple(k.shape) != (3, 3):
             raise ShapeError(f"K[{i}] expected [3, 3], got {list(k.shape)}")
         if not bool(is_pinhole_K(k)):
-            raise ConventionError(f"K[{i}] expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in pixels, finite with "
+            raise ConventionError(f"K[{i}] expected {K_LAYOUT} in pixels, finite with "
                                   f"positive focals (a transposed K puts cx, cy in the bottom row), got {k.tolist()}")
         Km = K_to_map(k, info.map_from_original[i])
         fx[i], fy[i], cx[i], cy[i] = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
