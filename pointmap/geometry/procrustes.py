@@ -19,10 +19,6 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
     if not (isinstance(src, torch.Tensor) and isinstance(dst, torch.Tensor)) or src.ndim < 2:
         raise ShapeError(f"src and dst expected [..., N, 3] tensors, got "
                          f"{list(src.shape) if hasattr(src, 'shape') else type(src).__name__}")
-    unbatched = src.ndim == 2
-    if unbatched:
-        src, dst = src[None], dst[None]
-        weights = None if weights is None else weights[None]
     if src.shape != dst.shape or src.shape[-1] != 3:
         raise ShapeError(f"src and dst expected the same [..., N, 3] shape, got {list(src.shape)} and {list(dst.shape)}")
     if weights is None:
@@ -34,12 +30,12 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
                          "out with a zero weight instead)")
     w = weights.clamp_min(0)
     wsum = w.sum(-1, keepdim=True).clamp_min(eps)
-    wn = (w / wsum).unsqueeze(-1)  # [B, N, 1]
+    wn = (w / wsum).unsqueeze(-1)  # [..., N, 1]
     mu_s = (wn * src).sum(-2)
     mu_d = (wn * dst).sum(-2)
     xs = src - mu_s.unsqueeze(-2)
     xd = dst - mu_d.unsqueeze(-2)
-    cov = (wn * xd).transpose(-1, -2) @ xs  # [B, 3, 3] = sum w d s^T
+    cov = (wn * xd).transpose(-1, -2) @ xs  # [..., 3, 3] = sum w d s^T
     U, S, Vh = torch.linalg.svd(cov)
     d = torch.sign(torch.det(U @ Vh))
     d = torch.where(d == 0, torch.ones_like(d), d)
@@ -57,8 +53,6 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
         s = torch.where(empty, nan, s)
         R = torch.where(empty[..., None, None], nan, R)
         t = torch.where(empty[..., None], nan, t)
-    if unbatched:
-        return s[0], R[0], t[0]
     return s, R, t
 
 

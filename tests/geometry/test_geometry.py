@@ -123,7 +123,7 @@ def test_procrustes_refuses_nan_points_and_weights_of_another_shape():
     src = torch.rand(10, 3)
     with pytest.raises(ShapeError, match="finite src, dst and weights"):
         weighted_procrustes(src, torch.full((10, 3), float("nan")))
-    with pytest.raises(ShapeError, match="weights expected \\[1, 10\\]"):
+    with pytest.raises(ShapeError, match="weights expected \\[10\\], got \\[9\\]"):
         weighted_procrustes(src, src, torch.ones(9))
 
 
