@@ -4,6 +4,7 @@ encoder-cached N-image inference against naive per-pair encoding (as the officia
     python benchmarks/bench_inference.py --presets small dust3r_224_linear --sizes 224 512 --runs 5
     python benchmarks/bench_inference.py --official /path/to/dust3r   # adds the official model, same run
     python benchmarks/bench_inference.py --presets small --sizes 160 512 --desc-stem 24   # + a stem row per preset
+    python benchmarks/bench_inference.py --presets --models small --sizes 224   # the shipped file's own architecture
 
 Prints markdown tables; results are recorded in docs/benchmarks.md.
 """
@@ -15,6 +16,7 @@ import functools
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
@@ -57,10 +59,32 @@ def variants(presets, desc_stem: int = 0):
             yield f"{name} + desc_stem {desc_stem}", cfg.replace(desc_stem=desc_stem)
 
 
-def bench_pairs(presets, sizes, runs, ceiling, official=None, desc_stem: int = 0):
-    rows = []
+def load_models(names) -> dict:
+    """Each name or path of --models loaded once (``pm.load_model``); CheckpointError for one that is not a
+    PointmapNet file (an ONNX export is timed by benchmarks/bench_onnx.py)."""
+    models = {}
+    for name in names:
+        model = pm.load_model(name)
+        if not isinstance(model, pm.PointmapNet):
+            raise pm.CheckpointError(f"--models expected a PointmapNet checkpoint or shipped name, got {name!r} "
+                                     f"({type(model).__name__}; time ONNX exports with benchmarks/bench_onnx.py)")
+        models[name] = model
+    return models
+
+
+def candidates(presets, models: dict, desc_stem: int = 0):
+    """(label, a model factory, is a preset) for every row: the presets with random weights, then the loaded files."""
     for name, cfg in variants(presets, desc_stem):
-        model = pm.PointmapNet(cfg).eval()
+        yield name, functools.partial(lambda c: pm.PointmapNet(c).eval(), cfg), True
+    for name, model in models.items():
+        cfg = model.cfg
+        yield f"{Path(name).name} (file: {cfg.enc_depth} / {cfg.dec_depth} blocks)", lambda m=model: m, False
+
+
+def bench_pairs(presets, sizes, runs, ceiling, official=None, desc_stem: int = 0, models=None):
+    rows = []
+    for name, make, is_preset in candidates(presets, models or {}, desc_stem):
+        model = make()
         for size in sizes:
             H, W = SHAPES[size]
             a, b = torch.rand(1, 3, H, W), torch.rand(1, 3, H, W)
@@ -70,7 +94,7 @@ def bench_pairs(presets, sizes, runs, ceiling, official=None, desc_stem: int = 0
                 t = median_time(fn, runs)
             rows.append((name, f"{H}x{W}", t, flops / 1e9, flops / t / 1e9, 100 * flops / t / 1e9 / ceiling))
             print(f"  {name} {H}x{W}: {t:.3f} s", file=sys.stderr, flush=True)
-            if official and name.startswith(("dust3r", "mast3r")):
+            if official and is_preset and name.startswith(("dust3r", "mast3r")):
                 t_off = official_time(official, name, H, W, runs)
                 rows.append((f"official {name}", f"{H}x{W}", t_off, flops / 1e9, flops / t_off / 1e9,
                              100 * flops / t_off / 1e9 / ceiling))
@@ -105,10 +129,12 @@ def official_time(path, name, H, W, runs):
         return median_time(lambda: net(v1, v2), runs)
 
 
-def bench_cache(preset, size, counts, runs):
+def bench_cache(preset, size, counts, runs, models=None):
     """Complete graph over N images: our path (encoder once per image, batched decoders) vs naive
-    per-pair forward of both orders (every image re-encoded in every pair, as the official inference)."""
-    model = pm.PointmapNet(pm.PRESETS[preset]).eval()
+    per-pair forward of both orders (every image re-encoded in every pair, as the official inference).
+    ``preset``: one of ``models`` (loaded files, taken first) or a preset name (random weights)."""
+    models = models or {}
+    model = models[preset] if preset in models else pm.PointmapNet(pm.PRESETS[preset]).eval()
     H, W = SHAPES[size]
     print(f"\n| N images ({preset}, {H}x{W}, complete graph) | directed pairs | cached s | naive per-pair s | speed-up |")
     print("|---|---|---|---|---|")
@@ -131,31 +157,45 @@ def bench_cache(preset, size, counts, runs):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--presets", nargs="+", default=["small", "dust3r_224_linear"])
+    p.add_argument("--presets", nargs="*", default=["small", "dust3r_224_linear"],
+                   help="presets timed with random weights (none: --presets with no name)")
+    p.add_argument("--models", nargs="+", default=[],
+                   help="model files or shipped names (e.g. small) timed with their own architecture")
     p.add_argument("--sizes", nargs="+", type=int, default=[224, 512])
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--cache-preset", default="small")
-    p.add_argument("--cache-counts", nargs="+", type=int, default=[2, 4, 8, 16])
+    p.add_argument("--cache-preset", default="small",
+                   help="the model of the N-image table: a preset, or one of --models (which it means when both)")
+    p.add_argument("--cache-counts", nargs="*", type=int, default=[2, 4, 8, 16],
+                   help="image counts of the N-image table (none: no table)")
     p.add_argument("--official", default=None, help="path to an official dust3r checkout (with croco) to compare")
     p.add_argument("--quick", action="store_true", help="small preset only, 3 runs, N up to 8")
     p.add_argument("--desc-stem", type=int, default=0,
                    help="also time each descriptor preset with a descriptor stem of this many channels")
     a = p.parse_args(argv)
     if a.quick:
-        a.presets, a.runs, a.cache_counts, a.sizes = ["small"], 3, [2, 4, 8], [224]
+        a.presets, a.runs, a.cache_counts, a.sizes = ["small"] if a.presets else [], 3, [2, 4, 8], [224]
     if set(a.sizes) - set(SHAPES):
         p.error(f"--sizes expected sizes among {sorted(SHAPES)}, got {sorted(set(a.sizes) - set(SHAPES))}")
     if set(a.presets) - set(pm.PRESETS):
         p.error(f"--presets expected names among {sorted(pm.PRESETS)}, got {sorted(set(a.presets) - set(pm.PRESETS))}")
-    if a.runs < 1 or a.threads < 1 or min(a.cache_counts) < 2:
+    if a.cache_preset not in a.models and a.cache_preset not in pm.PRESETS:
+        p.error(f"--cache-preset expected a preset among {sorted(pm.PRESETS)} or one of --models, got {a.cache_preset!r}")
+    if a.runs < 1 or a.threads < 1 or min(a.cache_counts, default=2) < 2:
         p.error(f"--runs and --threads expected >= 1 and --cache-counts >= 2, got {a.runs}, {a.threads}, "
                 f"{a.cache_counts}")
+    if not a.presets and not a.models:
+        p.error("expected at least one of --presets and --models, got neither")
+    try:
+        models = load_models(a.models)
+    except pm.CheckpointError as e:
+        p.error(str(e))
     torch.set_num_threads(a.threads)
     ceiling = matmul_ceiling()
     print(f"threads: {a.threads}; float32 matmul ceiling (2048^3): {ceiling:.1f} GFLOP/s")
-    bench_pairs(a.presets, a.sizes, a.runs, ceiling, a.official, a.desc_stem)
-    bench_cache(a.cache_preset, a.sizes[0], a.cache_counts, max(1, a.runs // 2))
+    bench_pairs(a.presets, a.sizes, a.runs, ceiling, a.official, a.desc_stem, models)
+    if a.cache_counts:
+        bench_cache(a.cache_preset, a.sizes[0], a.cache_counts, max(1, a.runs // 2), models)
     return 0
 
 
