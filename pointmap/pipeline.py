@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from pointmap.io.points import check_conf_filter, confidence_mask
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
 ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
 FUSE_SECONDS_PER_EDGE_PIXEL = 1.2e-7
+STAGE_NAMES = {"inference": "inference", "alignment": "alignment", "epipolar": "pose refinement on matches",
+               "sparse": "sparse refinement"}  # info["pipeline"]["seconds"]'s keys, as the report names them
 INFER_SECONDS_PER_PAIR_512_LARGE = 66.0   # official-size DUSt3R 512 DPT on this CPU (anchors-spec 5.6)
 LARGE_MODEL_PARAMS = 571e6
 
@@ -156,16 +159,28 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     user_masks = masks_to_maps(masks, views) if masks is not None else None  # refused now, not after inference
+    seconds = {}  # each stage's measured wall time, beside the estimate
+    clock = time.perf_counter()
+
+    def lap(stage):
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[stage] = round(now - clock, 3)
+        clock = now
+
     preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet)
+    lap("inference")
     if user_masks is not None:
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}
     recon = global_align(views, preds, K=K, cam2world=cam2world, config=cfg, pose_mask=pose_mask)
+    lap("alignment")
     if epipolar:
         from pointmap.align.epipolar import refine_epipolar
 
         ecfg = epipolar if isinstance(epipolar, EpipolarConfig) else \
             EpipolarConfig(patch=int(getattr(getattr(model, "cfg", None), "patch_size", 16)))
         recon = refine_epipolar(views, preds, recon, config=ecfg, align=cfg)
+        lap("epipolar")
         rep = recon.info["epipolar"]
         if not quiet:
             if rep["applied"]:
@@ -190,6 +205,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
             (list(K) if isinstance(K, dict) else ())
         recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
                                fixed_intrinsics=fixed_K)
+        lap("sparse")
     keep = confidence_mask(recon.conf, min_conf, conf_percentile)
     if user_masks is not None:
         keep &= user_masks
@@ -199,7 +215,11 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
                              for src in paths_or_arrays]
     recon.info["pipeline"] = {"size": size, "graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine),
-                              "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False))}
+                              "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False)),
+                              "seconds": seconds}
+    if not quiet:
+        print("pointmap: took " + ", ".join(f"{STAGE_NAMES[k]} {_fmt_s(v)}" for k, v in seconds.items()),
+              file=sys.stderr)
     return recon
 
 
@@ -214,4 +234,4 @@ def _mask_pred(pred, m1, m2):
 
 
 def _fmt_s(s: float) -> str:
-    return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
+    return f"{s:.1f} s" if s < 10 else f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"

@@ -2,6 +2,7 @@
 ground truth of the analytic scene."""
 
 import sys
+import time
 import types
 
 import numpy as np
@@ -75,6 +76,27 @@ def test_with_descriptors_the_poses_are_refined_on_matches_unless_turned_off(fak
     assert not torch.equal(plain.cam2world, recon.cam2world)
     with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
         reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar="yes")
+
+
+def test_with_descriptors_reconstruct_records_and_reports_each_stages_wall_time(fake_stack, capsys, monkeypatch):
+    sc, images, _ = fake_stack
+    inference = sys.modules["pointmap.inference"]
+    fast = inference.predict_pairs
+
+    def slow(*args, **kw):  # inference that takes a known 0.3 s at least
+        time.sleep(0.3)
+        return fast(*args, **kw)
+
+    monkeypatch.setattr(inference, "predict_pairs", slow)
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
+    seconds = recon.info["pipeline"]["seconds"]
+    assert list(seconds) == ["inference", "alignment", "epipolar"]  # the stages that ran, in their order
+    assert 0.3 <= seconds["inference"] < 30 and all(v > 0 for v in seconds.values())
+    err = capsys.readouterr().err
+    assert f"took inference {seconds['inference']:.1f} s, alignment {seconds['alignment']:.1f} s, pose refinement " \
+           f"on matches {seconds['epipolar']:.1f} s" in err
+    quiet = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=False, quiet=True)
+    assert list(quiet.info["pipeline"]["seconds"]) == ["inference", "alignment"] and "took" not in capsys.readouterr().err
 
 
 def test_reconstruct_masks_and_percentile(fake_stack):
