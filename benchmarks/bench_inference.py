@@ -68,14 +68,14 @@ def load_models(names) -> dict:
         if not isinstance(model, pm.PointmapNet):
             raise pm.CheckpointError(f"--models expected a PointmapNet checkpoint or shipped name, got {name!r} "
                                      f"({type(model).__name__}; time ONNX exports with benchmarks/bench_onnx.py)")
-        models[name] = model
+        models[name] = model.requires_grad_(False)  # FLOP counting hooks trip on parameters that need grad
     return models
 
 
 def candidates(presets, models: dict, desc_stem: int = 0):
     """(label, a model factory, is a preset) for every row: the presets with random weights, then the loaded files."""
     for name, cfg in variants(presets, desc_stem):
-        yield name, functools.partial(lambda c: pm.PointmapNet(c).eval(), cfg), True
+        yield name, functools.partial(lambda c: pm.PointmapNet(c).eval().requires_grad_(False), cfg), True
     for name, model in models.items():
         cfg = model.cfg
         yield f"{Path(name).name} (file: {cfg.enc_depth} / {cfg.dec_depth} blocks)", lambda m=model: m, False

@@ -13,6 +13,14 @@ def model_file(tmp_path_factory, test_model):
     return pm.save_model(test_model, tmp_path_factory.mktemp("bench_inference") / "tiny.safetensors")
 
 
+@pytest.fixture(scope="module")
+def pose_head_file(tmp_path_factory):
+    """A tiny model with the shipped model's extras: the pose head (its learnt queries are parameters) and a stem."""
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"].replace(pose_head=True, desc_stem=4))
+    return pm.save_model(model, tmp_path_factory.mktemp("bench_inference") / "posehead.safetensors")
+
+
 def test_a_model_file_is_timed_with_its_own_architecture_and_counted_in_flops(model_file, test_model, capsys):
     assert main(["--presets", "--models", str(model_file), "--sizes", "160", "--runs", "1", "--threads", "1",
                  "--cache-preset", str(model_file), "--cache-counts", "2"]) == 0
@@ -39,3 +47,10 @@ def test_the_benchmark_refuses_a_missing_model_and_an_empty_request_before_timin
     with pytest.raises(SystemExit):
         main(["--presets", "test", "--cache-preset", "nonesuch"])
     assert "--cache-preset expected" in capsys.readouterr().err
+
+
+def test_a_model_with_a_pose_head_and_a_stem_is_timed_and_counted(pose_head_file, capsys):
+    assert main(["--presets", "--models", str(pose_head_file), "--sizes", "160", "--runs", "1", "--threads", "1",
+                 "--cache-counts"]) == 0
+    assert re.search(r"\| posehead\.safetensors \(file: \d+ / \d+ blocks\) \| 160x160 \| [0-9.]+ \| [0-9.]*[1-9][0-9.]* \|",
+                     capsys.readouterr().out)
