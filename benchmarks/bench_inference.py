@@ -60,8 +60,8 @@ def variants(presets, desc_stem: int = 0):
 
 
 def load_models(names) -> dict:
-    """Each name or path of --models loaded once (``pm.load_model``); CheckpointError for one that is not a
-    PointmapNet file (an ONNX export is timed by benchmarks/bench_onnx.py)."""
+    """Each name or path of --models loaded once (``pm.load_model``), its parameters frozen; CheckpointError for one
+    that is not a PointmapNet file (an ONNX export is timed by benchmarks/bench_onnx.py)."""
     models = {}
     for name in names:
         model = pm.load_model(name)
@@ -75,7 +75,7 @@ def load_models(names) -> dict:
 def candidates(presets, models: dict, desc_stem: int = 0):
     """(label, a model factory, is a preset) for every row: the presets with random weights, then the loaded files."""
     for name, cfg in variants(presets, desc_stem):
-        yield name, functools.partial(lambda c: pm.PointmapNet(c).eval().requires_grad_(False), cfg), True
+        yield name, lambda c=cfg: pm.PointmapNet(c).eval().requires_grad_(False), True
     for name, model in models.items():
         cfg = model.cfg
         yield f"{Path(name).name} (file: {cfg.enc_depth} / {cfg.dec_depth} blocks)", lambda m=model: m, False

@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import pointmap as pm  # noqa: E402
-from pointmap.errors import is_int  # noqa: E402
-from pointmap.geometry import relative_rotation_error_deg  # noqa: E402
+from benchmarks.bench_inference import load_models  # noqa: E402
+from benchmarks.bench_pose import errors  # noqa: E402
 
 SCENE_SEED = 31_337_500  # beside the demo scenes' range (data.demo_scenes.DEMO_SEED), never used for training
 KINDS = ("room", "cluster", "courtyard")
@@ -51,12 +51,13 @@ def render_views(n: int, kind: str, size: int, seed: int = SCENE_SEED):
 
 
 def rra15(cam2world_pred: torch.Tensor, cam2world_gt: np.ndarray) -> float:
-    """Share (%) of camera pairs whose relative rotation is within 15 degrees of the truth."""
+    """Share (%) of camera pairs i < j whose relative rotation is within 15 degrees of the truth (``bench_pose.errors``
+    on the pair's relative pose, as ``bench_ga`` scores aligned cameras)."""
     gt = torch.as_tensor(cam2world_gt, dtype=torch.float64)
     pred = cam2world_pred.to(torch.float64)
-    errs = [float(relative_rotation_error_deg(pred[i, :3, :3].T @ pred[j, :3, :3], gt[i, :3, :3].T @ gt[j, :3, :3]))
+    errs = [errors((torch.linalg.inv(pred[i]) @ pred[j]).numpy(), (torch.linalg.inv(gt[i]) @ gt[j]).numpy())[0]
             for i, j in itertools.combinations(range(len(gt)), 2)]
-    return 100.0 * float(np.mean(np.asarray(errs) <= 15.0))
+    return 100.0 * float(np.mean(np.asarray(errs) < 15.0))
 
 
 def run(model, images, gt, counts, size, epipolar: bool) -> list[dict]:
@@ -98,16 +99,14 @@ def main(argv=None) -> int:
     if not a.counts or min(a.counts) < 2:
         p.error(f"--counts expected image counts >= 2, got {a.counts}")
     for flag, v, low in (("--render-size", a.render_size, 32), ("--threads", a.threads, 1)):
-        if not is_int(v) or v < low:
+        if v < low:  # argparse has made them ints
             p.error(f"{flag} expected an int >= {low}, got {v}")
     if a.size is not None and (a.size < 16 or a.size % 16):
         p.error(f"--size expected a multiple of 16 (>= 16), got {a.size}")
     try:
-        model = pm.load_model(a.model)
+        model = load_models([a.model])[a.model]  # a PointmapNet, or the one-line reason it is not
     except pm.CheckpointError as e:
         p.error(str(e))
-    if not isinstance(model, pm.PointmapNet):
-        p.error(f"--model expected a PointmapNet checkpoint or shipped name, got {a.model!r} ({type(model).__name__})")
     torch.set_num_threads(a.threads)
     counts = sorted(set(a.counts))
     images, gt = render_views(max(counts), a.scene, a.render_size)
