@@ -71,6 +71,8 @@ class TrainConfig:
     max_minutes: float = 0.0       # stop (after a checkpoint) when this wall time is spent; 0 = no limit
     decay_by_time: bool = False    # wsd + --max_minutes: the stable phase ends when the minutes left fit just the
                                    # decay at the pace measured so far (--steps is then an upper bound)
+    decay_ckpts: bool = False      # wsd: also keep each checkpoint written inside the decay as out/decay_<step>.pt
+                                   # (full, resumable checkpoints; `training.ship --ckpt` averages them)
     keep_decay: bool = True        # resuming a --decay_by_time run: finish the decay a previous leg placed (false:
                                    # forget it and place a new one, e.g. when that leg measured its pace while
                                    # other jobs loaded the machine and so started the decay too early)

@@ -4,6 +4,9 @@
 
 Several checkpoints of one run (``--ckpt A.pt B.pt C.pt``) ship their weight average (uniform, in float64):
 checkpoint averaging, which evens out the step-to-step wander of a model's answers along the end of a run.
+A model file (``.safetensors``, e.g. the shipped model a run was fine-tuned from) may be among them, and
+``--weights`` sets each input's share: the weights of a fine-tuned run interpolated towards its start (WiSE-FT,
+Wortsman et al. 2022), for instance ``--ckpt small.safetensors decay_*.pt --weights 4 1 1 1 1``.
 
 The provenance stored with the weights (steps, image size, data, held-out metrics, command) is what
 ``pm.load_model(name).provenance`` and docs/models.md report.
@@ -13,12 +16,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import sys
 from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import WEIGHTS_DIR, CheckpointError, load_state_strict, save_model
+from pointmap.checkpoint import WEIGHTS_DIR, CheckpointError, load_own, load_state_strict, save_model
 from pointmap.model import ModelConfig, PointmapNet
 from training.loop import load_checkpoint
 
@@ -38,39 +42,71 @@ def last_eval(path: Path) -> dict:
         raise ValueError(f"--metrics {path}: its last row is not all numbers ({e})") from None
 
 
-def average_checkpoints(paths) -> dict:
-    """The last of ``paths``'s training checkpoints with its model weights replaced by the uniform average of all
-    of them (floating tensors averaged in float64 and cast back; any other tensor must be equal in all) and
-    ``averaged_steps`` set to their steps. CheckpointError when they are not 'train' checkpoints of one
-    architecture with the same tensors."""
+def _load_input(path: Path) -> dict:
+    """A training checkpoint as ``load_checkpoint`` reads it, or a model file (``.safetensors``, dequantized to
+    float32) in the same shape: ``model``, ``model_config``, ``step`` (its provenance's steps) and ``kind``
+    'model'."""
+    if path.suffix != ".safetensors":
+        return load_checkpoint(path)
+    if not path.is_file():
+        raise CheckpointError(f"model file not found: {path}")
+    model = load_own(path)
+    return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model",
+            "step": int((model.provenance or {}).get("steps", 0))}
+
+
+def average_checkpoints(paths, weights=None) -> dict:
+    """The last training checkpoint of ``paths`` with its model weights replaced by the average of all of them
+    (floating tensors averaged in float64 with ``weights``, uniform by default, and cast back; any other tensor
+    must be equal in all) and ``averaged_steps`` set to the training checkpoints' steps. ``paths`` may include
+    model files (``.safetensors``); ``averaged`` lists every input with its share. CheckpointError when there is
+    no training checkpoint, when they are not 'train' checkpoints or model files of one architecture with the same
+    tensors, or for weights that are not one non-negative number per input with a positive sum."""
     paths = [Path(p) for p in paths]
     if not paths:
         raise CheckpointError("expected at least one checkpoint to average, got none")
-    cks = [load_checkpoint(p) for p in paths]
+    if weights is None:
+        weights = [1.0] * len(paths)
+    weights = [float(w) for w in weights]
+    if len(weights) != len(paths):
+        raise CheckpointError(f"expected one weight per checkpoint ({len(paths)}), got {len(weights)}")
+    if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
+        raise CheckpointError(f"expected non-negative finite weights with a positive sum, got {weights}")
+    cks = [_load_input(p) for p in paths]
     for p, ck in zip(paths, cks):
-        if ck.get("kind") != "train":
-            raise CheckpointError(f"{p} is a {ck.get('kind')!r} checkpoint; expected supervised ('train') ones")
+        if ck.get("kind") not in ("train", "model"):
+            raise CheckpointError(f"{p} is a {ck.get('kind')!r} checkpoint; expected supervised ('train') ones "
+                                  "or model files")
         if ck["model_config"] != cks[0]["model_config"]:
             raise CheckpointError(f"{p} has another architecture than {paths[0]}: model configs differ in "
                                   f"{sorted(k for k in ck['model_config'] if ck['model_config'][k] != cks[0]['model_config'].get(k))}")
         if set(ck["model"]) != set(cks[0]["model"]):
             raise CheckpointError(f"{p} holds other tensors than {paths[0]}: "
                                   f"{sorted(set(ck['model']) ^ set(cks[0]['model']))[:5]}")
-    out = dict(cks[-1])
+    trained = [i for i, ck in enumerate(cks) if ck["kind"] == "train"]
+    if not trained:
+        raise CheckpointError("expected at least one training checkpoint (.pt) among the inputs, whose run the "
+                              f"shipped file records; got only model files: {[str(p) for p in paths]}")
+    base = cks[trained[-1]]
+    total = sum(weights)
+    shares = [w / total for w in weights]
     avg = {}
-    for k, last in cks[-1]["model"].items():
+    for k, last in base["model"].items():
         vals = [ck["model"][k] for ck in cks]
         if any(v.shape != last.shape for v in vals):
             raise CheckpointError(f"tensor {k} has shapes {sorted({tuple(v.shape) for v in vals})} across the "
                                   "checkpoints; expected one")
         if last.is_floating_point():
-            avg[k] = (sum(v.double() for v in vals) / len(vals)).to(last.dtype)
+            avg[k] = sum(s * v.double() for s, v in zip(shares, vals)).to(last.dtype)
         elif all(torch.equal(v, last) for v in vals):
             avg[k] = last
         else:
             raise CheckpointError(f"non-floating tensor {k} differs across the checkpoints; cannot average it")
+    out = dict(base)
     out["model"] = avg
-    out["averaged_steps"] = [int(ck["step"]) for ck in cks]
+    out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
+    out["averaged"] = [{"source": p.name, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
+                       for p, ck, s in zip(paths, cks, shares)]
     return out
 
 
@@ -78,6 +114,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--ckpt", required=True, nargs="+",
                    help="a training checkpoint, or several of one run to ship their weight average")
+    p.add_argument("--weights", nargs="+", type=float, default=None,
+                   help="one non-negative share per --ckpt (normalised to sum 1; default: uniform)")
     p.add_argument("--name", default="small")
     p.add_argument("--metrics", default=None, help="eval.csv of the run (its last row is recorded)")
     p.add_argument("--note", default="")
@@ -87,7 +125,7 @@ def main(argv=None) -> int:
                         "pointmap.checkpoint.save_model)")
     a = p.parse_args(argv)
     try:
-        ck = average_checkpoints(a.ckpt)
+        ck = average_checkpoints(a.ckpt, a.weights)
         model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
         load_state_strict(model, ck["model"], source=a.ckpt[-1])
         metrics = last_eval(Path(a.metrics)) if a.metrics else {}
@@ -98,13 +136,14 @@ def main(argv=None) -> int:
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   "heldout_metrics": metrics, "note": a.note,
-                  **({"averaged_steps": ck["averaged_steps"]} if len(a.ckpt) > 1 else {}),
+                  **({"averaged_steps": ck["averaged_steps"], "averaged": ck["averaged"]} if len(a.ckpt) > 1 else {}),
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
     out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
     path = save_model(model, out, provenance=provenance, dtype=torch.float16 if a.dtype == "fp16" else "int8")
-    avg = f", the average of steps {ck['averaged_steps']}" if len(a.ckpt) > 1 else ""
+    avg = (", the average of " + ", ".join(f"{d['source']} (step {d['step']}, share {d['share']:.3g})"
+                                           for d in ck["averaged"])) if len(a.ckpt) > 1 else ""
     print(f"{path} ({path.stat().st_size / 1e6:.1f} MB), step {ck['step']}{avg}")
     return 0
 

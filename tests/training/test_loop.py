@@ -126,6 +126,17 @@ def test_a_wsd_run_saves_its_stable_checkpoint_and_a_longer_run_resumes_from_it_
     assert lrs[9] < 2e-4 and abs(lrs[10] - TrainConfig.min_lr) < 1e-12
 
 
+def test_a_wsd_run_with_decay_ckpts_keeps_each_checkpoint_of_its_decay_and_only_those(tmp_path):
+    run(tmp_path / "a", 8, schedule="wsd", decay_steps=3, ckpt_every=2, decay_ckpts=True)
+    kept = sorted((tmp_path / "a").glob("decay_*.pt"), key=lambda p: int(p.stem.split("_")[1]))
+    assert [p.name for p in kept] == ["decay_6.pt", "decay_8.pt"]  # step 4 is stable; 6 and 8 decay (5-8)
+    last = torch.load(tmp_path / "a" / "last.pt", weights_only=True)
+    eight = torch.load(kept[-1], weights_only=True)
+    assert eight["step"] == 8 and all(torch.equal(v, last["model"][k]) for k, v in eight["model"].items())
+    run(tmp_path / "b", 8, schedule="wsd", decay_steps=3, ckpt_every=2)  # off by default
+    assert not list((tmp_path / "b").glob("decay_*.pt"))
+
+
 def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_path):
     straight = run(tmp_path / "a", 4)
     run(tmp_path / "b", 2)

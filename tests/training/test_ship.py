@@ -93,3 +93,38 @@ def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_o
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_a_model_file_averages_with_checkpoints_at_the_shares_weights_give_as_by_hand(tmp_path):
+    start = _checkpoint(tmp_path / "s.pt", seed=0, step=50)
+    assert main(["--ckpt", str(tmp_path / "s.pt"), "--out", str(tmp_path / "start.safetensors")]) == 0  # fp16
+    tuned = [_checkpoint(tmp_path / f"{i}.pt", seed=i + 1, step=100 * (i + 1)) for i in range(2)]
+    inputs = [str(tmp_path / "start.safetensors"), str(tmp_path / "0.pt"), str(tmp_path / "1.pt")]
+    ck = average_checkpoints(inputs, weights=[2, 1, 1])
+    assert ck["step"] == 200 and ck["averaged_steps"] == [100, 200]
+    assert [(d["kind"], d["share"]) for d in ck["averaged"]] == [("model", 0.5), ("train", 0.25), ("train", 0.25)]
+    for k, v in start.state_dict().items():  # the reference: the model file read back as float, then by hand
+        if v.is_floating_point():
+            by_hand = (2 * v.half().double() + tuned[0].state_dict()[k].double()
+                       + tuned[1].state_dict()[k].double()) / 4
+            torch.testing.assert_close(ck["model"][k].double(), by_hand, rtol=1e-6, atol=1e-7)
+    assert main(["--ckpt", *inputs, "--weights", "2", "1", "1", "--out", str(tmp_path / "w.safetensors")]) == 0
+    back = pm.load_model(tmp_path / "w.safetensors").provenance
+    assert back["steps"] == 200 and [d["source"] for d in back["averaged"]] == ["start.safetensors", "0.pt", "1.pt"]
+
+
+def test_averaging_refuses_bad_weights_and_model_files_alone_in_one_line(tmp_path, capsys):
+    _checkpoint(tmp_path / "a.pt", seed=0, step=1)
+    _checkpoint(tmp_path / "b.pt", seed=1, step=2)
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m.safetensors")]) == 0
+    two = [str(tmp_path / "a.pt"), str(tmp_path / "b.pt")]
+    for weights, message in [(["1"], "one weight per checkpoint"), (["1", "-1"], "non-negative"),
+                             (["0", "0"], "positive sum"), (["1", "nan"], "non-negative finite")]:
+        assert main(["--ckpt", *two, "--weights", *weights, "--out", str(tmp_path / "x.safetensors")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(pm.CheckpointError, match="at least one training checkpoint"):
+        average_checkpoints([tmp_path / "m.safetensors", tmp_path / "m.safetensors"])
+    with pytest.raises(pm.CheckpointError, match="model file not found"):
+        average_checkpoints([tmp_path / "a.pt", tmp_path / "gone.safetensors"])
+    assert not (tmp_path / "x.safetensors").exists()
