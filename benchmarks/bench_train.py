@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -39,7 +40,7 @@ def synthetic_batch(B, H, W):
 def time_modes(model, step, batch, a) -> list:
     """(parameters, GFLOP count, mode, median s/step, first step s, first loss) per mode (eager / compiled,
     float32 / bf16 autocast) of one model's training step."""
-    with FlopCounterMode(display=False) as fc:
+    with sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as fc:  # attention counted as matmuls
         loss, _ = step(model, batch, 0)
         loss.backward()
     flops = fc.get_total_flops()

@@ -3,6 +3,7 @@ global_align -> refine_epipolar [-> refine_matches]), with a cost estimate print
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -20,8 +21,12 @@ ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
 FUSE_SECONDS_PER_EDGE_PIXEL = 1.2e-7
 STAGE_NAMES = {"inference": "inference", "alignment": "alignment", "epipolar": "pose refinement on matches",
                "sparse": "sparse refinement"}  # info["pipeline"]["seconds"]'s keys, as the report names them
-INFER_SECONDS_PER_PAIR_512_LARGE = 66.0   # official-size DUSt3R 512 DPT on this CPU (anchors-spec 5.6)
-LARGE_MODEL_PARAMS = 571e6
+# Inference: the network's FLOPs (counted by torch on the meta device) at a CPU rate that grows with the width.
+# Both anchors measured on 2 threads of the 2-core VM (docs/benchmarks.md): the shipped `small` (256-wide encoder)
+# in `reconstruct`, 71 GFLOP/s at 4, 8 and 16 images (bench_pipeline.py, session 39); the official-size
+# dust3r_512_dpt (1024-wide), 184 GFLOP/s over 8 images (bench_inference.py, session 2).
+CPU_GFLOPS_AT_256 = 71.0
+CPU_GFLOPS_WIDTH_EXPONENT = math.log(184.0 / 71.0) / math.log(1024 / 256)
 
 
 def auto_graph(n_images: int, sequential: bool = False) -> str:
@@ -34,10 +39,35 @@ def auto_graph(n_images: int, sequential: bool = False) -> str:
     return f"{graph}-noncyclic" if sequential else graph
 
 
+@functools.lru_cache(maxsize=16)
+def inference_gflop(cfg, hw: tuple) -> tuple[float, float]:
+    """(GFLOP to encode one image, GFLOP to decode one ordered pair and run its heads) of a model of ``cfg`` on
+    ``hw`` images, counted by torch's FlopCounterMode on a copy built on the meta device: no weights, no compute
+    (about a second for the official-size model)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from pointmap.model import PointmapNet
+
+    with torch.device("meta"):
+        net = PointmapNet(cfg).requires_grad_(False)
+    img = torch.empty(1, 3, *hw, device="meta")
+    with FlopCounterMode(display=False) as fc:
+        enc = net._encode(img)  # encode() checks the pixel range, which meta tensors do not hold
+    per_image = fc.get_total_flops()
+    with FlopCounterMode(display=False) as fc:
+        net.decode_pair(enc, enc)
+    return per_image / 1e9, fc.get_total_flops() / 1e9
+
+
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
                   device: str = "cpu", align_runs: int = 1) -> dict:
-    """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``align_runs``: dense
-    alignments run (2 with the pose refinement on matches, whose depth re-fit is a second one)."""
+    """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``model``: anything
+    with a ``cfg`` (a PointmapNet or an ONNX export; None: the official-size dust3r_512_dpt). Inference counts
+    each image encoded once and each pair decoded in both orders, as ``predict_pairs`` runs them, at a CPU rate
+    measured on 2 threads. ``align_runs``: dense alignments run (2 with the pose refinement on matches, whose
+    depth re-fit is a second one)."""
+    from pointmap.model import PRESETS, ModelConfig
+
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs
@@ -47,14 +77,18 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
         P_opt = math.ceil(h / stride) * math.ceil(w / stride)
     else:
         P_opt = P
-    params = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else LARGE_MODEL_PARAMS
-    per_pair = INFER_SECONDS_PER_PAIR_512_LARGE * (params / LARGE_MODEL_PARAMS) * (P / (512 * 384))
+    arch = getattr(model, "cfg", None)
+    arch = arch if isinstance(arch, ModelConfig) else PRESETS["dust3r_512_dpt"]
+    p = arch.patch_size
+    per_image, per_pair = inference_gflop(arch, (max(p, h // p * p), max(p, w // p * p)))
+    rate = CPU_GFLOPS_AT_256 * (arch.enc_dim / 256) ** CPU_GFLOPS_WIDTH_EXPONENT
     if str(device).startswith("cuda"):
-        per_pair /= 100.0
+        rate *= 100.0
+    infer_s = (n_images * per_image + 2 * n_pairs * per_pair) / rate
     preds_bytes = E * P * 4 * 8            # two pointmaps + two confidences, float32
     stack_bytes = E * P_opt * 4 * 8
     chunk_bytes = min(cfg.max_chunk_pixels, E * P_opt) * 4 * 40
-    return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": per_pair * n_pairs,
+    return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": infer_s,
             "align_seconds": align_runs * (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
                                            + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters)),
             "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}

@@ -130,6 +130,49 @@ def test_auto_graph_and_estimates():
     assert twice["align_seconds"] == pytest.approx(2 * small["align_seconds"])
 
 
+def test_the_flops_counted_on_the_meta_device_equal_those_of_a_real_forward():
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from pointmap.model import PRESETS, PointmapNet
+    from pointmap.pipeline import inference_gflop
+
+    cfg = PRESETS["test"]
+    torch.manual_seed(0)
+    net = PointmapNet(cfg).eval().requires_grad_(False)
+    img = torch.rand(1, 3, 32, 48)
+    # the reference: a real encode and decode on real weights, attention in plain matmuls (the CPU's fused
+    # attention kernel is not counted by FlopCounterMode; on the meta device attention decomposes into them)
+    with sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as fc:
+        enc = net.encode(img)
+    per_image = fc.get_total_flops()
+    with sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as fc:
+        net.decode_pair(enc, enc)
+    assert inference_gflop(cfg, (32, 48)) == pytest.approx((per_image / 1e9, fc.get_total_flops() / 1e9), rel=1e-9)
+    assert per_image > 0 and fc.get_total_flops() > 0
+
+
+def test_the_inference_estimate_counts_each_image_encoded_once_and_each_pair_decoded_both_ways():
+    from pointmap.model import PRESETS
+    from pointmap.pipeline import CPU_GFLOPS_AT_256, inference_gflop
+
+    cfg = PRESETS["small"]
+
+    class Exported:  # an ONNX export carries its architecture as ``cfg`` and has no parameters
+        pass
+
+    exported = Exported()
+    exported.cfg = cfg
+    per_image, per_pair = inference_gflop(cfg, (224, 224))
+    for n, pairs in [(4, 6), (16, 48)]:
+        got = estimate_cost(n, pairs, (224, 224), exported)["inference_seconds"]
+        assert got == pytest.approx((n * per_image + 2 * pairs * per_pair) / CPU_GFLOPS_AT_256)
+    large = estimate_cost(4, 6, (384, 512))["inference_seconds"]  # no model: the official-size one
+    assert large > 100 * estimate_cost(4, 6, (224, 224), exported)["inference_seconds"]
+    assert estimate_cost(4, 6, (224, 224), exported, device="cuda")["inference_seconds"] == pytest.approx(
+        estimate_cost(4, 6, (224, 224), exported)["inference_seconds"] / 100)
+
+
 def test_single_image_is_a_clear_error(fake_stack):
     from pointmap.errors import GraphError
 

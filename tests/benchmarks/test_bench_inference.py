@@ -54,3 +54,11 @@ def test_a_model_with_a_pose_head_and_a_stem_is_timed_and_counted(pose_head_file
                  "--cache-counts"]) == 0
     assert re.search(r"\| posehead\.safetensors \(file: \d+ / \d+ blocks\) \| 160x160 \| [0-9.]+ \| [0-9.]*[1-9][0-9.]* \|",
                      capsys.readouterr().out)
+
+
+def test_the_flop_count_includes_attention_as_its_two_matmuls():
+    from benchmarks.bench_inference import flops_of
+
+    q, k, v = (torch.rand(1, 2, 50, 16) for _ in range(3))
+    attention = flops_of(lambda: torch.nn.functional.scaled_dot_product_attention(q, k, v))
+    assert attention == 2 * (2 * 2 * 50 * 50 * 16)  # q k^T and (softmax) v, 2 heads, multiply-adds as 2
