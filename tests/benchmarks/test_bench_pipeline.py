@@ -17,12 +17,13 @@ def test_each_image_count_gets_a_row_of_estimated_and_measured_times_and_its_acc
     assert main(["--model", str(model_file), "--counts", "3", "2", "--render-size", "64", "--size", "64",
                  "--threads", "1"]) == 0
     out = capsys.readouterr().out
-    rows = re.findall(r"^\| (\d+) \| complete \| (\d+) \| ([0-9.]+) / ([0-9.]+) \| ([0-9.]+) / ([0-9.]+) \| ([0-9.]+) \| "
-                      r"(\d+)% \|$", out, re.M)
+    rows = re.findall(r"^\| (\d+) \| complete \| (\d+) \| ([0-9.]+) / ([0-9.]+) \| ([0-9.]+) / ([0-9.]+) \(([0-9.]+)\) \| "
+                      r"([0-9.]+) \| (\d+)% \|$", out, re.M)
     assert [(r[0], r[1]) for r in rows] == [("2", "1"), ("3", "3")], out  # counts sorted; n (n - 1) / 2 pairs
     for r in rows:
-        inf_est, inf, al_est, al, total = map(float, r[2:7])
+        inf_est, inf, al_est, al, epi, total = map(float, r[2:8])
         assert inf_est >= 0 and al_est >= 0 and 0 < inf + al <= total + 0.1  # a tiny model's estimates round to 0
+        assert 0 <= epi <= al  # the refinement is part of the alignment column
 
 
 def test_the_views_are_rendered_alike_each_time_and_the_accuracy_counts_camera_pairs():
