@@ -107,8 +107,8 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, lr_scale: dict[str,
 
 
 def check_loop_options(cfg: TrainConfig) -> None:
-    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--amp``, ``--crop_link``, ``--grey_p`` or
-    ``--flip_p`` that cannot run as configured."""
+    """ValueError (one line) for a schedule, ``--decay_by_time``, ``--decay_ckpts``, ``--amp``, ``--crop_link``,
+    ``--grey_p`` or ``--flip_p`` that cannot run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
@@ -120,6 +120,9 @@ def check_loop_options(cfg: TrainConfig) -> None:
         raise ValueError("--decay_by_time true needs --schedule wsd and --max_minutes > 0 (the decay is placed so "
                          f"that it ends when the minutes run out), got --schedule {cfg.schedule} "
                          f"--max_minutes {cfg.max_minutes}")
+    if cfg.decay_ckpts and cfg.schedule != "wsd":
+        raise ValueError(f"--decay_ckpts true keeps the checkpoints of a wsd decay; it needs --schedule wsd, got "
+                         f"--schedule {cfg.schedule}")
     if not 0 <= cfg.crop_link <= 1:
         raise ValueError(f"--crop_link expected a probability in [0, 1], got {cfg.crop_link}")
     if not 0 <= cfg.grey_p <= 1:

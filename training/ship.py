@@ -51,8 +51,20 @@ def _load_input(path: Path) -> dict:
     if not path.is_file():
         raise CheckpointError(f"model file not found: {path}")
     model = load_own(path)
-    return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model",
-            "step": int((model.provenance or {}).get("steps", 0))}
+    prov = model.provenance if isinstance(model.provenance, dict) else {}
+    try:
+        step = int(prov.get("steps", 0))
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{path}: its provenance's steps expected a whole number, got "
+                              f"{prov.get('steps')!r}") from None
+    return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model", "step": step}
+
+
+def _config(ck: dict, path: Path) -> ModelConfig:
+    try:
+        return ModelConfig.from_dict(ck["model_config"])
+    except (CheckpointError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path} has a model config that is not one: {e}") from None
 
 
 def average_checkpoints(paths, weights=None) -> dict:
@@ -67,7 +79,10 @@ def average_checkpoints(paths, weights=None) -> dict:
         raise CheckpointError("expected at least one checkpoint to average, got none")
     if weights is None:
         weights = [1.0] * len(paths)
-    weights = [float(w) for w in weights]
+    try:
+        weights = [float(w) for w in weights]
+    except (TypeError, ValueError):
+        raise CheckpointError(f"expected one number per checkpoint as weights, got {weights!r}") from None
     if len(weights) != len(paths):
         raise CheckpointError(f"expected one weight per checkpoint ({len(paths)}), got {len(weights)}")
     if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
@@ -77,9 +92,11 @@ def average_checkpoints(paths, weights=None) -> dict:
         if ck.get("kind") not in ("train", "model"):
             raise CheckpointError(f"{p} is a {ck.get('kind')!r} checkpoint; expected supervised ('train') ones "
                                   "or model files")
-        if ck["model_config"] != cks[0]["model_config"]:
+        # compared as ModelConfigs: a model file's config has every field, an older checkpoint's only its own
+        here, first = _config(ck, p).to_dict(), _config(cks[0], paths[0]).to_dict()
+        if here != first:
             raise CheckpointError(f"{p} has another architecture than {paths[0]}: model configs differ in "
-                                  f"{sorted(k for k in ck['model_config'] if ck['model_config'][k] != cks[0]['model_config'].get(k))}")
+                                  f"{sorted(k for k in here if here[k] != first[k])}")
         if set(ck["model"]) != set(cks[0]["model"]):
             raise CheckpointError(f"{p} holds other tensors than {paths[0]}: "
                                   f"{sorted(set(ck['model']) ^ set(cks[0]['model']))[:5]}")
@@ -87,7 +104,9 @@ def average_checkpoints(paths, weights=None) -> dict:
     if not trained:
         raise CheckpointError("expected at least one training checkpoint (.pt) among the inputs, whose run the "
                               f"shipped file records; got only model files: {[str(p) for p in paths]}")
-    base = cks[trained[-1]]
+    # the run the file records: the latest training state with a share (not the last argument: a shell sorts
+    # decay_10000.pt before decay_9000.pt)
+    base = cks[max((i for i in trained if weights[i] > 0), default=trained[-1], key=lambda i: int(cks[i]["step"]))]
     total = sum(weights)
     shares = [w / total for w in weights]
     avg = {}
@@ -105,7 +124,7 @@ def average_checkpoints(paths, weights=None) -> dict:
     out = dict(base)
     out["model"] = avg
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
-    out["averaged"] = [{"source": p.name, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
+    out["averaged"] = [{"source": f"{p.parent.name}/{p.name}" if p.parent.name else p.name, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
                        for p, ck, s in zip(paths, cks, shares)]
     return out
 

@@ -135,6 +135,8 @@ def test_a_wsd_run_with_decay_ckpts_keeps_each_checkpoint_of_its_decay_and_only_
     assert eight["step"] == 8 and all(torch.equal(v, last["model"][k]) for k, v in eight["model"].items())
     run(tmp_path / "b", 8, schedule="wsd", decay_steps=3, ckpt_every=2)  # off by default
     assert not list((tmp_path / "b").glob("decay_*.pt"))
+    with pytest.raises(ValueError, match="--decay_ckpts true keeps the checkpoints of a wsd decay"):
+        run(tmp_path / "c", 8, decay_ckpts=True)  # a cosine run has no decay phase to keep
 
 
 def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_path):
@@ -471,10 +473,13 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
 
     monkeypatch.setattr(loop, "save_checkpoint", keep_every_checkpoint)
     out = tmp_path / "run"
-    model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1)
+    model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1,
+                decay_ckpts=True)
     rows = list(csv.DictReader(open(out / "train.csv")))
     end = int(rows[-1]["step"])
     assert 20 < end < 400, end                      # ended by the clock, long before the --steps bound
+    kept = sorted(int(p.stem.split("_")[1]) for p in out.glob("decay_*.pt"))
+    assert kept == list(range(end - 5, end + 1))    # --decay_ckpts: the decay the clock placed, every checkpoint
     lr = {int(r["step"]): float(r["lr"]) for r in rows}  # the rate of the update after each logged step
     assert lr[end - 7] == pytest.approx(2e-4)       # stable until the decay
     assert 1e-6 < lr[end - 6] < 2e-4                # the decay's first update

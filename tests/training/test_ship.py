@@ -110,7 +110,8 @@ def test_a_model_file_averages_with_checkpoints_at_the_shares_weights_give_as_by
             torch.testing.assert_close(ck["model"][k].double(), by_hand, rtol=1e-6, atol=1e-7)
     assert main(["--ckpt", *inputs, "--weights", "2", "1", "1", "--out", str(tmp_path / "w.safetensors")]) == 0
     back = pm.load_model(tmp_path / "w.safetensors").provenance
-    assert back["steps"] == 200 and [d["source"] for d in back["averaged"]] == ["start.safetensors", "0.pt", "1.pt"]
+    assert back["steps"] == 200 and [d["source"].split("/")[-1] for d in back["averaged"]] == [
+        "start.safetensors", "0.pt", "1.pt"]
 
 
 def test_averaging_refuses_bad_weights_and_model_files_alone_in_one_line(tmp_path, capsys):
@@ -127,4 +128,27 @@ def test_averaging_refuses_bad_weights_and_model_files_alone_in_one_line(tmp_pat
         average_checkpoints([tmp_path / "m.safetensors", tmp_path / "m.safetensors"])
     with pytest.raises(pm.CheckpointError, match="model file not found"):
         average_checkpoints([tmp_path / "a.pt", tmp_path / "gone.safetensors"])
+    with pytest.raises(pm.CheckpointError, match="one number per checkpoint"):
+        average_checkpoints(two, weights=["x", 1])
+
+
+def test_the_shipped_file_records_the_latest_step_whatever_order_the_shell_gives_the_checkpoints(tmp_path):
+    for step in (9000, 9500, 10000):
+        _checkpoint(tmp_path / f"decay_{step}.pt", seed=step, step=step)
+    in_text_order = sorted(str(p) for p in tmp_path.glob("decay_*.pt"))  # decay_10000.pt comes first
+    ck = average_checkpoints(in_text_order)
+    assert ck["step"] == 10000 and sorted(ck["averaged_steps"]) == [9000, 9500, 10000]
+    assert average_checkpoints(in_text_order, weights=[0, 1, 1])["step"] == 9500  # a state with no share is not it
+
+
+def test_an_older_checkpoint_without_the_newer_config_fields_averages_with_a_model_file(tmp_path):
+    _checkpoint(tmp_path / "a.pt", seed=0, step=1)
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m.safetensors")]) == 0
+    old = torch.load(tmp_path / "a.pt", weights_only=True)
+    for k in ("pose_head", "desc_stem"):  # fields added to ModelConfig later, at their defaults
+        old["model_config"].pop(k)
+    torch.save(old, tmp_path / "old.pt")
+    ck = average_checkpoints([tmp_path / "m.safetensors", tmp_path / "old.pt"])
+    assert ck["step"] == 1 and [d["source"] for d in ck["averaged"]] == [f"{tmp_path.name}/m.safetensors",
+                                                                          f"{tmp_path.name}/old.pt"]
     assert not (tmp_path / "x.safetensors").exists()
