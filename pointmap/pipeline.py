@@ -78,8 +78,7 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     else:
         P_opt = P
     arch = getattr(model, "cfg", None)
-    # from_dict turns list fields into tuples: the FLOP count is cached per (config, size)
-    arch = ModelConfig.from_dict(arch.to_dict()) if isinstance(arch, ModelConfig) else PRESETS["dust3r_512_dpt"]
+    arch = arch if isinstance(arch, ModelConfig) else PRESETS["dust3r_512_dpt"]
     p = arch.patch_size
     per_image, per_pair = inference_gflop(arch, (max(p, h // p * p), max(p, w // p * p)))
     rate = CPU_GFLOPS_AT_256 * (arch.enc_dim / 256) ** CPU_GFLOPS_WIDTH_EXPONENT

@@ -452,7 +452,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if rank == 0 and (step % cfg.ckpt_every == 0 or ending):
             t_ckpt = time.time()
             save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
-            if cfg.decay_ckpts and cfg.schedule == "wsd" and step > cfg.steps - cfg.decay_steps:
+            if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps:  # wsd only (check_loop_options)
                 save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
             ckpt_seconds = time.time() - t_ckpt
         if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):

@@ -68,9 +68,9 @@ def _config(ck: dict, path: Path) -> ModelConfig:
 
 
 def average_checkpoints(paths, weights=None) -> dict:
-    """The last training checkpoint of ``paths`` with its model weights replaced by the average of all of them
-    (floating tensors averaged in float64 with ``weights``, uniform by default, and cast back; any other tensor
-    must be equal in all) and ``averaged_steps`` set to the training checkpoints' steps. ``paths`` may include
+    """The latest training checkpoint of ``paths`` (the highest step among those with a share) with its model
+    weights replaced by the average of all of them (floating tensors averaged in float64 with ``weights``,
+    uniform by default, and cast back; any other tensor must be equal in all) and ``averaged_steps`` set to the training checkpoints' steps. ``paths`` may include
     model files (``.safetensors``); ``averaged`` lists every input with its share. CheckpointError when there is
     no training checkpoint, when they are not 'train' checkpoints or model files of one architecture with the same
     tensors, or for weights that are not one non-negative number per input with a positive sum."""
@@ -88,12 +88,13 @@ def average_checkpoints(paths, weights=None) -> dict:
     if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
         raise CheckpointError(f"expected non-negative finite weights with a positive sum, got {weights}")
     cks = [_load_input(p) for p in paths]
+    first = _config(cks[0], paths[0]).to_dict()
     for p, ck in zip(paths, cks):
         if ck.get("kind") not in ("train", "model"):
             raise CheckpointError(f"{p} is a {ck.get('kind')!r} checkpoint; expected supervised ('train') ones "
                                   "or model files")
         # compared as ModelConfigs: a model file's config has every field, an older checkpoint's only its own
-        here, first = _config(ck, p).to_dict(), _config(cks[0], paths[0]).to_dict()
+        here = _config(ck, p).to_dict()
         if here != first:
             raise CheckpointError(f"{p} has another architecture than {paths[0]}: model configs differ in "
                                   f"{sorted(k for k in here if here[k] != first[k])}")
@@ -124,8 +125,8 @@ def average_checkpoints(paths, weights=None) -> dict:
     out = dict(base)
     out["model"] = avg
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
-    out["averaged"] = [{"source": f"{p.parent.name}/{p.name}" if p.parent.name else p.name, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
-                       for p, ck, s in zip(paths, cks, shares)]
+    out["averaged"] = [{"source": f"{p.parent.name}/{p.name}" if p.parent.name else p.name, "kind": ck["kind"],
+                        "step": int(ck["step"]), "share": round(s, 6)} for p, ck, s in zip(paths, cks, shares)]
     return out
 
 

@@ -45,6 +45,9 @@ class ModelConfig:
                                   # descriptor head fuses into its output (0: none, as the official heads)
 
     def __post_init__(self) -> None:
+        for name in ("img_mean", "img_std", "dpt_layer_dims", "depth_mode", "conf_mode", "desc_conf_mode"):
+            if isinstance(getattr(self, name), list):  # tuples, as annotated: a config is hashable and compares equal
+                object.__setattr__(self, name, tuple(getattr(self, name)))
         sizes = ("enc_dim", "enc_depth", "enc_heads", "dec_dim", "dec_depth", "dec_heads", "patch_size", "desc_dim",
                  "desc_stem")
         bad = [f"{n}={getattr(self, n)!r}" for n in sizes

@@ -169,6 +169,7 @@ def test_the_inference_estimate_counts_each_image_encoded_once_and_each_pair_dec
         assert got == pytest.approx((n * per_image + 2 * pairs * per_pair) / CPU_GFLOPS_AT_256)
     listed = Exported()  # a config built by hand with lists where from_dict makes tuples
     listed.cfg = cfg.replace(img_mean=list(cfg.img_mean))
+    assert listed.cfg == cfg and hash(listed.cfg) == hash(cfg)  # ModelConfig keeps its tuple fields as tuples
     assert estimate_cost(4, 6, (224, 224), listed)["inference_seconds"] == pytest.approx(
         estimate_cost(4, 6, (224, 224), exported)["inference_seconds"])
     large = estimate_cost(4, 6, (384, 512))["inference_seconds"]  # no model: the official-size one
