@@ -3,8 +3,8 @@
 Renders one scene (the data engine, the demo scenes' camera; a seed range never trained on) with as many views as
 the largest ``--counts``, then runs ``pm.reconstruct`` on its first N views for each N (the default graph: complete
 up to 12 images) and prints one markdown row per N: pairs, inference and alignment time (estimated and measured;
-alignment includes the pose refinement on matches, which the estimate counts as a second dense run, with the
-refinement's own share in parentheses), the total, and
+alignment includes the pose refinement on matches, which the estimate counts per pair and coarse cell plus its
+depth re-fit as a second dense run, with the refinement's own share in parentheses), the total, and
 the aligned cameras' accuracy against the truth (RRA@15 over every camera pair), so a time is that of a working
 reconstruction. The estimate is the baseline the measurement is compared with in the same run.
 

@@ -26,6 +26,10 @@ STAGE_NAMES = {"inference": "inference", "alignment": "alignment", "epipolar": "
 # in `reconstruct`, 71 GFLOP/s at 4, 8 and 16 images (bench_pipeline.py, session 39); the official-size
 # dust3r_512_dpt (1024-wide), 184 GFLOP/s over 8 images (bench_inference.py, session 2).
 CPU_GFLOPS_AT_256 = 71.0
+# The pose refinement on matches (refine_epipolar before its depth re-fit): coarse matching and the pose fit, per
+# pair and per coarse cell (196 at 224 px); the shipped `small` on 4-16 views of three rendered scenes, 0.030-0.075
+# s per pair at 224 px (/tmp measurement of session 41, docs/benchmarks.md's bench_pipeline section).
+EPIPOLAR_SECONDS_PER_PAIR_CELL = 0.055 / 196
 CPU_GFLOPS_WIDTH_EXPONENT = math.log(184.0 / 71.0) / math.log(1024 / 256)
 
 
@@ -60,14 +64,18 @@ def inference_gflop(cfg, hw: tuple) -> tuple[float, float]:
 
 
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
-                  device: str = "cpu", align_runs: int = 1) -> dict:
+                  device: str = "cpu", epipolar=False) -> dict:
     """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``model``: anything
     with a ``cfg`` (a PointmapNet or an ONNX export; None: the official-size dust3r_512_dpt). Inference counts
     each image encoded once and each pair decoded in both orders, as ``predict_pairs`` runs them, at a CPU rate
-    measured on 2 threads. ``align_runs``: dense alignments run (2 with the pose refinement on matches, whose
-    depth re-fit is a second one)."""
+    measured on 2 threads. ``epipolar``: False, True or an ``EpipolarConfig``, as ``reconstruct`` takes it; for a
+    model with descriptors, the alignment time then includes the pose refinement on matches (per pair and coarse
+    cell) and its depth re-fit (a second dense alignment, unless the config's ``refit_depth`` is off)."""
+    from pointmap.align.epipolar import EpipolarConfig
     from pointmap.model import PRESETS, ModelConfig
 
+    if not isinstance(epipolar, (bool, EpipolarConfig)):
+        raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs
@@ -85,12 +93,18 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     if str(device).startswith("cuda"):
         rate *= 100.0
     infer_s = (n_images * per_image + 2 * n_pairs * per_pair) / rate
+    dense_s = (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
+               + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters))
+    align_s = dense_s
+    if epipolar and arch.desc_dim > 0:  # refine_epipolar skips a model without descriptors
+        ecfg = epipolar if isinstance(epipolar, EpipolarConfig) else EpipolarConfig(patch=p)
+        align_s += EPIPOLAR_SECONDS_PER_PAIR_CELL * n_pairs * max(1, h // ecfg.patch) * max(1, w // ecfg.patch)
+        align_s += dense_s if ecfg.refit_depth else 0.0
     preds_bytes = E * P * 4 * 8            # two pointmaps + two confidences, float32
     stack_bytes = E * P_opt * 4 * 8
     chunk_bytes = min(cfg.max_chunk_pixels, E * P_opt) * 4 * 40
     return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": infer_s,
-            "align_seconds": align_runs * (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
-                                           + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters)),
+            "align_seconds": align_s,
             "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}
 
 
@@ -186,8 +200,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
-    refit = bool(epipolar) and getattr(epipolar, "refit_depth", True)  # the pose refinement's depth re-fit
-    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, align_runs=2 if refit else 1)
+    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar)
     if not quiet:
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "

@@ -586,7 +586,8 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     K = K_to_original(K_map, recon.map_from_original.double()).float()
     for k in known_K:
         K[k] = recon.K[k]
-    report = {"applied": True, **fit, "threshold_px": thr, "config": asdict(cfg)}
+    report = {"applied": True, **fit, "threshold_px": thr, "config": asdict(cfg),
+              "fit_seconds": time.perf_counter() - t0}  # matching and the pose fit, before the depth re-fit
     if cfg.refit_depth:
         acfg = align or AlignConfig(**{**rep.get("config", {}), "quiet": True})
         out = global_align(views, preds, K=K, cam2world=new.float(), config=acfg)

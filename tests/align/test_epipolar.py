@@ -177,6 +177,7 @@ def test_the_stage_fits_the_matches_better_and_refits_the_depths_to_its_poses(mi
     assert out.info["align_refit"]["known_pose_indices"] == list(range(n))
     assert np.median(np.abs(out.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1)) < 0.02  # the own-frame maps' focals
     assert torch.equal(out.cam2world[0], recon.cam2world[0])  # the world stays camera 0's frame
+    assert 0 < rep["fit_seconds"] < rep["seconds"]  # the matching and fit timed apart from the depth re-fit
     kept = refine_epipolar(views, preds, recon, config=dataclasses.replace(cfg, refit_depth=False))
     assert torch.equal(kept.depth_z, recon.depth_z) and torch.allclose(kept.cam2world, out.cam2world, atol=1e-5)
     pts_refit = out.pts_world[out.depth_z > 0]

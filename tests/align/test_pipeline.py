@@ -126,8 +126,32 @@ def test_auto_graph_and_estimates():
     small = estimate_cost(10, 30, (384, 512))
     big = estimate_cost(100, 400, (384, 512))
     assert big["align_seconds"] > small["align_seconds"] > 0 and big["memory_gb"] > small["memory_gb"] > 0
-    twice = estimate_cost(10, 30, (384, 512), align_runs=2)  # the pose refinement's depth re-fit aligns again
-    assert twice["align_seconds"] == pytest.approx(2 * small["align_seconds"])
+
+
+def test_the_alignment_estimate_adds_the_pose_refinement_on_matches_for_a_model_with_descriptors():
+    from pointmap.align.epipolar import EpipolarConfig
+    from pointmap.errors import PointmapError
+    from pointmap.model import PRESETS
+    from pointmap.pipeline import EPIPOLAR_SECONDS_PER_PAIR_CELL
+
+    class Exported:  # anything with a ``cfg``
+        def __init__(self, cfg):
+            self.cfg = cfg
+
+    with_desc = Exported(PRESETS["small"])
+    assert with_desc.cfg.desc_dim > 0
+    for pairs in (6, 48):
+        dense = estimate_cost(8, pairs, (224, 224), with_desc)["align_seconds"]
+        fit = EPIPOLAR_SECONDS_PER_PAIR_CELL * pairs * 14 * 14  # 196 coarse cells of 16 px at 224 px
+        assert estimate_cost(8, pairs, (224, 224), with_desc, epipolar=True)["align_seconds"] == pytest.approx(
+            2 * dense + fit)  # the fit, then the depths re-fitted: a second dense alignment
+        no_refit = estimate_cost(8, pairs, (224, 224), with_desc, epipolar=EpipolarConfig(refit_depth=False))
+        assert no_refit["align_seconds"] == pytest.approx(dense + fit)
+    # refine_epipolar skips a model without descriptors (the default official-size dust3r_512_dpt has none)
+    assert PRESETS["dust3r_512_dpt"].desc_dim == 0
+    assert estimate_cost(4, 6, (384, 512), epipolar=True) == estimate_cost(4, 6, (384, 512))
+    with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
+        estimate_cost(4, 6, (224, 224), with_desc, epipolar="yes")
 
 
 def test_the_flops_counted_on_the_meta_device_equal_those_of_a_real_forward():
