@@ -7,6 +7,7 @@ Runs single-process or under ``torchrun`` (DDP: gloo on CPU, nccl on GPU).
 
 from __future__ import annotations
 
+import collections
 import csv
 import dataclasses
 import io
@@ -156,30 +157,35 @@ class DecayByTime:
     """``--decay_by_time``: places a wsd run's end (``cfg.steps``) so that its decay ends as ``--max_minutes`` runs
     out. The stable phase has a constant learning rate, so where it ends is free until the decay starts: at every
     step after warmup the decay starts when the seconds left (less ``reserve``: the last evaluation's and
-    checkpoint's durations) fit no more than ``decay_steps`` + 2 steps at the pace of this process since its
-    ``warm``-th step (compilation excluded, evaluations and checkpoints included). From then on the end is fixed,
+    checkpoint's durations) fit no more than ``decay_steps`` + 2 steps at the pace of this process. The pace is the
+    mean duration of the last ``window`` steps (from its ``warm``-th step on, so compilation is excluded;
+    evaluations and checkpoints included), each counted as at most 4 times their median, and it is read only once
+    ``min_steps`` durations are in: a stall of the process (``kill -STOP``, a suspended machine) is one long step,
+    which read alone as the pace once started a decay 500 steps early (session 41). From then on the end is fixed,
     and saved with every checkpoint, so a resumed run finishes the same decay. ``--steps`` stays an upper bound."""
 
-    def __init__(self, cfg: TrainConfig, start: int, t0: float, warm: int = 20) -> None:
-        self.cfg, self.start, self.t0, self.warm = cfg, start, t0, warm
-        self.mark = None  # (step, time) the pace is measured from
+    def __init__(self, cfg: TrainConfig, start: int, t0: float, warm: int = 20, window: int = 200,
+                 min_steps: int = 5) -> None:
+        self.cfg, self.start, self.t0, self.warm, self.min_steps = cfg, start, t0, warm, min_steps
+        self.times = collections.deque(maxlen=window + 1)  # the clock at the last window + 1 updates since warm
 
     def decaying(self, step: int) -> bool:
         return step >= self.cfg.steps - self.cfg.decay_steps
 
+    def pace(self) -> float:
+        """Seconds per step: the window's mean step, each step counted as at most 4 times the median one."""
+        steps = np.diff(np.asarray(self.times, dtype=np.float64))
+        return float(np.minimum(steps, 4.0 * np.median(steps)).mean())
+
     def update(self, step: int, now: float, reserve: float = 0.0) -> bool:
         """Move the end for the state after ``step`` updates; True when the decay starts at this call."""
-        if self.decaying(step) or step < self.cfg.warmup:
+        if self.decaying(step) or step < self.cfg.warmup or step - self.start < self.warm:
             return False
-        if self.mark is None:
-            if step - self.start >= self.warm:
-                self.mark = (step, now)
+        self.times.append(now)
+        if len(self.times) <= self.min_steps:
             return False
-        if step == self.mark[0]:
-            return False
-        pace = (now - self.mark[1]) / (step - self.mark[0])
         left = self.cfg.max_minutes * 60 - (now - self.t0) - reserve
-        if left > (self.cfg.decay_steps + 2) * pace:
+        if left > (self.cfg.decay_steps + 2) * self.pace():
             return False
         self.cfg.steps = step + self.cfg.decay_steps
         return True

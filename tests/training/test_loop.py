@@ -458,6 +458,31 @@ def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay
     assert not any(DecayByTime(late, 0, 0.0, warm=5).update(s, 30.0 + s) for s in range(1, 500))  # not in warmup
 
 
+def test_a_stall_of_the_process_does_not_start_the_decay_by_time_early(tmp_path):
+    from training.loop import DecayByTime
+
+    cfg = dataclasses.replace(config(tmp_path, 100_000), schedule="wsd", decay_steps=10, max_minutes=10.0,
+                              decay_by_time=True)
+    clock = DecayByTime(cfg, start=0, t0=0.0, warm=5)
+
+    def t(s):  # 30 s of compilation, then 1 s per step, and the process stopped for 120 s after step 5 (kill -STOP)
+        return 30.0 + (s - 1) + (120.0 if s > 5 else 0.0)
+
+    started = [s for s in range(1, 1000) if clock.update(s, t(s))]
+    # the decay starts when 600 - t(s) s fit 12 steps of 1 s (the stall, counted as 4 steps while in the window,
+    # has left it by then): at s = 439. Read from the stalled step alone, the pace was 121 s and the decay started
+    # at step 6
+    assert started == [439] and clock.pace() == pytest.approx(1.0)
+    early = DecayByTime(dataclasses.replace(cfg, steps=100_000), start=0, t0=0.0, warm=5)
+    assert not any(early.update(s, t(s)) for s in range(1, 12))
+    assert 1.0 < early.pace() <= 1.6  # the stall counted as 4 steps of the first 6
+    # a machine that really slows down moves the pace: 3 s per step for the window's length
+    slow = DecayByTime(dataclasses.replace(cfg, steps=100_000), start=0, t0=0.0, warm=5, window=50)
+    for s in range(5, 100):
+        slow.update(s, 30.0 + s + 2.0 * max(0, s - 40))
+    assert slow.pace() == pytest.approx(3.0)
+
+
 def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_keeps_that_end(tmp_path, monkeypatch):
     import csv
 
