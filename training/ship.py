@@ -125,9 +125,21 @@ def average_checkpoints(paths, weights=None) -> dict:
     out = dict(base)
     out["model"] = avg
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
-    out["averaged"] = [{"source": f"{p.parent.name}/{p.name}" if p.parent.name else p.name, "kind": ck["kind"],
-                        "step": int(ck["step"]), "share": round(s, 6)} for p, ck, s in zip(paths, cks, shares)]
+    out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
+                       for src, ck, s in zip(_sources(paths), cks, shares)]
     return out
+
+
+def _sources(paths) -> list[str]:
+    """Each input's name with its parent folder, and as many folders above as tell different files apart (two runs'
+    ``train/decay_1100.pt`` are ``run_a/train/decay_1100.pt`` and ``run_b/train/decay_1100.pt``)."""
+    parts = [Path(p).resolve().parts for p in paths]
+    distinct = len(set(parts))
+    for k in range(2, max(len(q) for q in parts) + 1):
+        names = ["/".join(q[-k:]).lstrip("/") for q in parts]
+        if len(set(names)) == distinct:
+            return names
+    return [str(Path(*q)) for q in parts]
 
 
 def main(argv=None) -> int:

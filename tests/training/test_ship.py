@@ -141,6 +141,17 @@ def test_the_shipped_file_records_the_latest_step_whatever_order_the_shell_gives
     assert average_checkpoints(in_text_order, weights=[0, 1, 1])["step"] == 9500  # a state with no share is not it
 
 
+def test_the_provenance_tells_apart_inputs_of_the_same_name_from_two_runs(tmp_path):
+    for run, seed in (("run_a", 0), ("run_b", 1)):
+        (tmp_path / run / "train").mkdir(parents=True)
+        _checkpoint(tmp_path / run / "train" / "decay_100.pt", seed=seed, step=100)
+    paths = [tmp_path / run / "train" / "decay_100.pt" for run in ("run_a", "run_b")]
+    ck = average_checkpoints(paths)
+    assert [d["source"] for d in ck["averaged"]] == ["run_a/train/decay_100.pt", "run_b/train/decay_100.pt"]
+    twice = average_checkpoints([paths[0], paths[0]])  # one file given twice stays one short name
+    assert [d["source"] for d in twice["averaged"]] == ["train/decay_100.pt"] * 2
+
+
 def test_an_older_checkpoint_without_the_newer_config_fields_averages_with_a_model_file(tmp_path):
     _checkpoint(tmp_path / "a.pt", seed=0, step=1)
     assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m.safetensors")]) == 0
