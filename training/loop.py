@@ -161,8 +161,9 @@ class DecayByTime:
     mean duration of the last ``window`` steps (from its ``warm``-th step on, so compilation is excluded;
     evaluations and checkpoints included), each counted as at most 4 times their median, and it is read only once
     ``min_steps`` durations are in: a stall of the process (``kill -STOP``, a suspended machine) is one long step,
-    which read alone as the pace once started a decay 500 steps early (session 41). From then on the end is fixed,
-    and saved with every checkpoint, so a resumed run finishes the same decay. ``--steps`` stays an upper bound."""
+    which, read alone as the pace, once started a 105-minute leg's decay at its 21st step (session 41). From then
+    on the end is fixed, and saved with every checkpoint, so a resumed run finishes the same decay. ``--steps``
+    stays an upper bound."""
 
     def __init__(self, cfg: TrainConfig, start: int, t0: float, warm: int = 20, window: int = 200,
                  min_steps: int = 5) -> None:
