@@ -7,7 +7,8 @@
 Prints one markdown row per figure (docs/models.md, "How good it is") and one column per card, then the
 totals a ship decision rests on: pairs with a rotation within 15 degrees over the synthetic card sets
 (``eval_s424242`` + ``eval_p4_s434343`` + ``bench_s525252``: 478 pairs; and with ``eval_cam_s464646`` when every
-card has it) and the same for translation. A figure a card lacks (a skipped section, an older card without a
+card has it) and the same for translation, for the pointmaps' own pose and for the pipeline's; last, the sum of
+those four counts over all four sets (the count proposed in session 41, docs/training-log.md). A figure a card lacks (a skipped section, an older card without a
 metric) shows as "-". Nothing here runs a model: it reads what the card script printed.
 """
 
@@ -145,6 +146,7 @@ def compare(cards: list[dict], names: list[str]) -> str:
         row("motorcycle: focal error %", [c["moto_focal"] for c in cards], "{:.1f}")
         row("motorcycle: depth AbsRel", [c["moto_absrel"] for c in cards], "{:.3f}")
         row("motorcycle: depth Pearson r", [c["moto_r"] for c in cards], "{:.2f}")
+    every_set = {}  # (pose, metric) -> each card's total over all four sets
     for pose, bench, suffix in (("", "bench", ""), (", the pipeline's pose", "bench_pair", "_pair")):
         for metric, i, key in (("rotation", 1, "RRA15"), ("translation", 2, "RTA15")):
             for sets in (EVAL_SETS[:2], EVAL_SETS):
@@ -157,10 +159,18 @@ def compare(cards: list[dict], names: list[str]) -> str:
                     good = c[bench]["all"][0] * c[bench]["all"][i] / 100
                     good += sum(c["eval"][s]["pairs"] * c["eval"][s][key + suffix] / 100 for s in sets)
                     totals.append((round(good), pairs))
+                if sets == EVAL_SETS:
+                    every_set[(pose, metric)] = totals
                 if all(t is None for t in totals):
                     continue
                 label = f"{metric} within 15 deg{pose}, pairs over {' + '.join(sets)} + bench_s525252"
                 rows.append(f"| {label} | {' | '.join('-' if t is None else f'{t[0]} / {t[1]}' for t in totals)} |")
+    # the count proposed in session 41 (docs/training-log.md): the pose a user receives counts beside the pointmaps'
+    ship = [None if any(t[k] is None for t in every_set.values()) else sum(t[k][0] for t in every_set.values())
+            for k in range(len(cards))]
+    if any(v is not None for v in ship):
+        rows.append("| rotations + directions within 15 deg, own pointmaps' pose + the pipeline's, pairs over all "
+                    f"four sets | {' | '.join('-' if v is None else str(v) for v in ship)} |")
     return "\n".join(rows)
 
 

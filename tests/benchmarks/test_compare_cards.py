@@ -101,3 +101,20 @@ def test_the_pipelines_pose_rows_are_read_and_totalled_apart_and_missing_on_olde
     assert "| real rig, the pipeline's pose: dir err | - | 43.4 |" in table
     assert "| rotation within 15 deg, pairs over eval_s424242 + eval_p4_s434343 + bench_s525252 | 220 / 400 | " \
            "220 / 400 |" in table
+
+
+def test_the_last_row_sums_rotations_and_directions_of_both_poses_over_all_four_sets():
+    def with_pipeline(card):
+        card = card.replace('"pairs": 100.0,', '"pairs": 100.0, "RRA15_pair": 52.0, "RTA15_pair": 20.0,')
+        card = card.replace('"pairs": 50.0,', '"pairs": 50.0, "RRA15_pair": 40.0, "RTA15_pair": 30.0,')
+        return card.replace("| all | 200 | sift+E", "| all | 200 | model + own matches (no K) | 51% | 12% | 14.0 | 40.0 |"
+                                                    "\n| all | 200 | sift+E")
+
+    full = parse_card(with_pipeline(_card(50.0, 70.0, 50, cam=60.0)))
+    no_cam = parse_card(with_pipeline(_card(50.0, 70.0, 50)))
+    table = compare([full, no_cam], ["full", "no_cam"])
+    # pointmaps: rotations 50 + 70 + 30 + 100, directions 10 + 10 + 5 + 16; pipeline: rotations 52 + 52 + 20 + 102,
+    # directions 20 + 20 + 15 + 24; the card without eval_cam_s464646 has no such count
+    assert "| rotations + directions within 15 deg, own pointmaps' pose + the pipeline's, pairs over all four sets " \
+           f"| {250 + 41 + 226 + 79} | - |" in table
+    assert "all four sets" not in compare([no_cam], ["no_cam"])
