@@ -8,8 +8,9 @@ Prints one markdown row per figure (docs/models.md, "How good it is") and one co
 totals a ship decision rests on: pairs with a rotation within 15 degrees over the synthetic card sets
 (``eval_s424242`` + ``eval_p4_s434343`` + ``bench_s525252``: 478 pairs; and with ``eval_cam_s464646`` when every
 card has it) and the same for translation, for the pointmaps' own pose and for the pipeline's; last, the sum of
-those four counts over all four sets (the count proposed in session 41, docs/training-log.md). A figure a card lacks (a skipped section, an older card without a
-metric) shows as "-". Nothing here runs a model: it reads what the card script printed.
+those four counts over all four sets (the count proposed in session 41, docs/training-log.md). A figure a card
+lacks (a skipped section, an older card without a metric) shows as "-". Nothing here runs a model: it reads what
+the card script printed.
 """
 
 from __future__ import annotations

@@ -26,11 +26,11 @@ STAGE_NAMES = {"inference": "inference", "alignment": "alignment", "epipolar": "
 # in `reconstruct`, 71 GFLOP/s at 4, 8 and 16 images (bench_pipeline.py, session 39); the official-size
 # dust3r_512_dpt (1024-wide), 184 GFLOP/s over 8 images (bench_inference.py, session 2).
 CPU_GFLOPS_AT_256 = 71.0
+CPU_GFLOPS_WIDTH_EXPONENT = math.log(184.0 / 71.0) / math.log(1024 / 256)
 # The pose refinement on matches (refine_epipolar before its depth re-fit): coarse matching and the pose fit, per
 # pair and per coarse cell (196 at 224 px); the shipped `small` on 4-16 views of three rendered scenes, 0.030-0.075
 # s per pair at 224 px (/tmp measurement of session 41, docs/benchmarks.md's bench_pipeline section).
 EPIPOLAR_SECONDS_PER_PAIR_CELL = 0.055 / 196
-CPU_GFLOPS_WIDTH_EXPONENT = math.log(184.0 / 71.0) / math.log(1024 / 256)
 
 
 def auto_graph(n_images: int, sequential: bool = False) -> str:
@@ -196,10 +196,9 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
     from pointmap.align.epipolar import EpipolarConfig
 
-    if not isinstance(epipolar, (bool, EpipolarConfig)):
-        raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
+    # also refuses an epipolar that is not True, False or an EpipolarConfig, before any inference
     cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar)
     if not quiet:
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "

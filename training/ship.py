@@ -70,8 +70,9 @@ def _config(ck: dict, path: Path) -> ModelConfig:
 def average_checkpoints(paths, weights=None) -> dict:
     """The latest training checkpoint of ``paths`` (the highest step among those with a share) with its model
     weights replaced by the average of all of them (floating tensors averaged in float64 with ``weights``,
-    uniform by default, and cast back; any other tensor must be equal in all) and ``averaged_steps`` set to the training checkpoints' steps. ``paths`` may include
-    model files (``.safetensors``); ``averaged`` lists every input with its share. CheckpointError when there is
+    uniform by default, and cast back; any other tensor must be equal in all) and ``averaged_steps`` set to the
+    training checkpoints' steps. ``paths`` may include model files (``.safetensors``); ``averaged`` lists every
+    input with its share. CheckpointError when there is
     no training checkpoint, when they are not 'train' checkpoints or model files of one architecture with the same
     tensors, or for weights that are not one non-negative number per input with a positive sum."""
     paths = [Path(p) for p in paths]
@@ -135,11 +136,11 @@ def _sources(paths) -> list[str]:
     ``train/decay_1100.pt`` are ``run_a/train/decay_1100.pt`` and ``run_b/train/decay_1100.pt``)."""
     parts = [Path(p).resolve().parts for p in paths]
     distinct = len(set(parts))
-    for k in range(2, max(len(q) for q in parts) + 1):
+    for k in range(2, max(len(q) for q in parts) + 1):  # at the longest, the whole paths: distinct as the files
         names = ["/".join(q[-k:]).lstrip("/") for q in parts]
         if len(set(names)) == distinct:
-            return names
-    return [str(Path(*q)) for q in parts]
+            break
+    return names
 
 
 def main(argv=None) -> int:
