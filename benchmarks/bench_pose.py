@@ -125,13 +125,14 @@ def main(argv=None) -> int:
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
-        per_pair.append(PairResult(idx, *errors(ours, gt), true_rot))
         cm = hybrid = own = None
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
             m = pm.match_coarse(pred, model.cfg.patch_size)
             cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[m])[0].numpy()
             hybrid = pm.refine_pose_with_matches(torch.from_numpy(ours), m, v1["K"].double(), v2["K"].double()).numpy()
             own = pm.pair_pose(pred, rev, patch=model.cfg.patch_size, pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
+        per_pair.append(PairResult(idx, *errors(ours, gt), true_rot,
+                                   *(errors(own, gt) if own is not None else (float("nan"),) * 2)))
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
         rows = [("model", ours), ("model + own matches (no K)", own), ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),

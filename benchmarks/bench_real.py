@@ -138,6 +138,13 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
     return rows, focal_err, (v1, v2, pred)
 
 
+def _pair_result(k: int, rows, true_rot: float) -> PairResult:
+    """Pair ``k``'s per-pair row from ``pose_rows``'s rows: the pose from the model's own pointmaps (rows[0]) and,
+    when the model has descriptors, the pipeline's (NaN otherwise)."""
+    pipeline = dict(rows).get("model + own matches (no K)", (float("nan"),) * 2)
+    return PairResult(k, *rows[0][1], true_rot, *pipeline)
+
+
 def skimage_data_dir() -> Path | None:
     """scikit-image's bundled data folder (holding the Middlebury motorcycle pair), or None when it is not installed.
     Found without importing scikit-image."""
@@ -233,7 +240,7 @@ def main(argv=None) -> int:
         im2 = cv2.cvtColor(cv2.undistort(right, K2, D2), cv2.COLOR_GRAY2RGB)
         rows, ferr, _ = pose_rows(model, im1, im2, gt, size, K1, K2)
         focal_err.append(ferr)
-        per_pair.append(PairResult(k, *rows[0][1], true_rot))  # rows[0]: the model from its own pointmaps
+        per_pair.append(_pair_result(k, rows, true_rot))
         for name, e in rows:
             res.setdefault(("stereo rig", name), []).append(e)
 
@@ -244,7 +251,7 @@ def main(argv=None) -> int:
     rows, _, (v1, v2, pred) = pose_rows(model, rgb[0], rgb[1], gt_rect, size)
     for name, e in rows:
         res.setdefault(("aloe (rectified)", name), []).append(e)
-    rectified = [PairResult(0, *rows[0][1], 0.0)]
+    rectified = [_pair_result(0, rows, 0.0)]
 
     shape = tuple(pred.pts1_cam1.shape[1:3])
     gt_disp = _resample(disp, v1, shape)

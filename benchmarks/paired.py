@@ -7,7 +7,8 @@ by ``--per-pair CSV`` of ``python -m training.evaluate``, ``benchmarks/bench_pos
 writes one per alignment method) on
 (set, pair) and prints, per set and over all sets:
 
-- for rotation and translation direction within ``--tol`` degrees: the pairs each model gets and the other
+- for rotation and translation direction within ``--tol`` degrees (of the pose from the pointmaps and, where both
+  files hold it, of the pose the pipeline reports, ``pm.pair_pose``): the pairs each model gets and the other
   misses (the discordant pairs) and McNemar's exact two-sided p-value (binomial on the discordant pairs: the
   chance of a split at least this uneven if the two models were equally good);
 - for the errors themselves: the median of B's error minus A's over the pairs, the pairs where B is lower /
@@ -29,7 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from training.evaluate import PER_PAIR_HEADER  # noqa: E402
+from training.evaluate import PER_PAIR_HEADER, PER_PAIR_HEADER_V1  # noqa: E402
 
 
 class PairedError(ValueError):
@@ -37,14 +38,15 @@ class PairedError(ValueError):
 
 
 def read_per_pair(path) -> dict:
-    """{(set, pair): (rot_err, dir_err, true_rot)} of a per-pair CSV; PairedError for anything else."""
+    """{(set, pair): (rot_err, dir_err, true_rot, pair_rot_err, pair_dir_err)} of a per-pair CSV (a file written
+    before the pipeline's columns existed reads them as NaN); PairedError for anything else."""
     path = Path(path)
     try:
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError) as e:
         raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
-    if not rows or tuple(rows[0]) != PER_PAIR_HEADER:
+    if not rows or tuple(rows[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
         raise PairedError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)}, got "
                           f"{','.join(rows[0]) if rows else 'an empty file'}")
     out = {}
@@ -52,13 +54,12 @@ def read_per_pair(path) -> dict:
         if not r:
             continue
         try:
-            if len(r) != len(PER_PAIR_HEADER):
+            if len(r) != len(rows[0]):
                 raise ValueError(f"{len(r)} fields")
             key = (r[0], int(r[1]))
-            vals = tuple(float(x) for x in r[2:])
+            vals = tuple(float(x) for x in r[2:]) + (math.nan,) * (len(PER_PAIR_HEADER) - len(r))
         except ValueError as e:
-            raise PairedError(f"{path}, line {n}: expected set,pair,rot_err,dir_err,true_rot, got {','.join(r)!r} "
-                              f"({e})") from e
+            raise PairedError(f"{path}, line {n}: expected {','.join(rows[0])}, got {','.join(r)!r} ({e})") from e
         if key in out:
             raise PairedError(f"{path}, line {n}: pair {key[1]} of set {key[0]!r} appears twice")
         out[key] = vals
@@ -96,8 +97,10 @@ def compare_errors(a: list, b: list, tol: float) -> dict:
 
 
 def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
-    """({(set, "rotation" | "direction"): compare_errors(...)} over the pairs both files hold, per set and
-    for the set "all"; [notes on pairs held by one file only]). PairedError when no pair is shared."""
+    """({(set, error): compare_errors(...)} over the pairs both files hold, per set and for the set "all";
+    [notes on pairs held by one file only]). PairedError when no pair is shared. The errors: "rotation" and
+    "direction" of the pose from the pointmaps, then "pipeline rotation" and "pipeline direction" (the pose
+    ``pm.pair_pose`` reports) for the sets where both files hold them."""
     if any(k[0] == "all" for k in (*a, *b)):
         raise PairedError("a set named 'all' clashes with the pooled row; rename it")
     shared = sorted(set(a) & set(b))
@@ -113,8 +116,10 @@ def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
     out = {}
     for s in sorted({k[0] for k in shared}) + ["all"]:
         keys = [k for k in shared if s == "all" or k[0] == s]
-        for col, what in ((0, "rotation"), (1, "direction")):
-            out[(s, what)] = compare_errors([a[k][col] for k in keys], [b[k][col] for k in keys], tol)
+        for col, what in ((0, "rotation"), (1, "direction"), (3, "pipeline rotation"), (4, "pipeline direction")):
+            r = compare_errors([a[k][col] for k in keys], [b[k][col] for k in keys], tol)
+            if col < 3 or r["pairs"]:
+                out[(s, what)] = r
     return out, notes
 
 

@@ -25,15 +25,20 @@ def _depth_scale(p: torch.Tensor, g: torch.Tensor):
 
 class PairResult(NamedTuple):
     """One pair's two-view pose result: its index in the held-out set, the rotation error and the translation
-    direction error (degrees; a pose not found counts 180 for both, a direction not defined is NaN) and the
-    true rotation angle between the two cameras (degrees; NaN when unknown)."""
+    direction error of the pose from the model's pointmaps (degrees; a pose not found counts 180 for both, a
+    direction not defined is NaN), the true rotation angle between the two cameras (degrees; NaN when unknown),
+    and the same two errors of the pose the pipeline reports (``pointmap.pose.pair_pose``: refined on the
+    model's own matches; NaN for a model without descriptors or a tool that does not compute it)."""
     pair: int
     rot_err: float
     dir_err: float
     true_rot: float
+    pair_rot_err: float = float("nan")
+    pair_dir_err: float = float("nan")
 
 
-PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot")
+PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot", "pair_rot_err", "pair_dir_err")
+PER_PAIR_HEADER_V1 = PER_PAIR_HEADER[:5]  # files written before session 42 (no pipeline pose): read as NaN
 
 
 def _per_pair_rows_kept(path, set_name: str) -> list:
@@ -50,10 +55,11 @@ def _per_pair_rows_kept(path, set_name: str) -> list:
         return []
     with open(path, newline="") as f:
         old = list(csv.reader(f))
-    if not old or tuple(old[0]) != PER_PAIR_HEADER:
+    if not old or tuple(old[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
         raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)}, got "
                          f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
-    return [r for r in old[1:] if r and r[0] != set_name]
+    pad = ["nan"] * (len(PER_PAIR_HEADER) - len(old[0]))  # an older file's rows gain the pipeline's columns
+    return [r + pad for r in old[1:] if r and r[0] != set_name]
 
 
 def check_per_pair(path, set_name: str) -> None:
@@ -77,8 +83,7 @@ def write_per_pair(path, set_name: str, rows) -> None:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(PER_PAIR_HEADER)
     w.writerows(kept)
-    w.writerows([set_name, int(r.pair), repr(float(r.rot_err)), repr(float(r.dir_err)), repr(float(r.true_rot))]
-                for r in rows)
+    w.writerows([set_name, int(r.pair), *(repr(float(v)) for v in r[1:])] for r in rows)
     with atomic_open(path, "w") as f:
         f.write(buf.getvalue())
 
@@ -252,7 +257,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
-    rot_p, tr_p = [], []  # pair_pose: refined on its matches with its own focals (what the pipeline reports)
+    rot_p, tr_p = {}, {}  # pair_pose: refined on its matches with its own focals (what the pipeline reports), by index
     order = []  # the dataset index of each entry of rot_err / tr_err / angle_gt (batches regroup by shape)
     focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
     n = min(n_pairs, len(dataset))
@@ -312,10 +317,11 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
                     rot_r.append(r)
                     tr_r.append(t)
                     r, t = _pose_errors(pair_pose(pred[b], pred_rev[b], patch=patch, pose=cam2world_pred[b:b + 1], matches=[m])[0], cam2world_gt[b])
-                    rot_p.append(r)
-                    tr_p.append(t)
+                    rot_p[group[b][0]], tr_p[group[b][0]] = r, t
     if per_pair is not None:
-        per_pair += sorted(PairResult(k, r, t, a) for k, r, t, a in zip(order, rot_err, tr_err, angle_gt))
+        nan = float("nan")
+        per_pair += sorted(PairResult(k, r, t, a, rot_p.get(k, nan), tr_p.get(k, nan))
+                           for k, r, t, a in zip(order, rot_err, tr_err, angle_gt))
     rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
@@ -336,8 +342,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
                 "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m),
                 "RRA15_refined": 100 * sum(r < 15 for r in rot_r) / len(rot_r),
                 "RTA15_refined": 100 * sum(t < 15 for t in tr_r) / len(tr_r),
-                "RRA15_pair": 100 * sum(r < 15 for r in rot_p) / len(rot_p),
-                "RTA15_pair": 100 * sum(t < 15 for t in tr_p) / len(tr_p)} if rot_m else {}),
+                "RRA15_pair": 100 * sum(r < 15 for r in rot_p.values()) / len(rot_p),
+                "RTA15_pair": 100 * sum(t < 15 for t in tr_p.values()) / len(tr_p)} if rot_m else {}),
             "pairs": float(len(rot))}
 
 

@@ -3,6 +3,7 @@ import torch
 
 import pointmap as pm
 from benchmarks.bench_pose import errors, main
+from benchmarks.paired import read_per_pair
 
 
 def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_the_same_pair(scenes_and_model,
@@ -10,7 +11,9 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
     from data.datasets import PairDataset
 
     data, model_path = scenes_and_model
-    assert main(["--data", str(data), "--model", str(model_path), "--pairs", "1", "--size", "64", "--threads", "1"]) == 0
+    csv = data.parent / "bench_pose_pairs.csv"
+    assert main(["--data", str(data), "--model", str(model_path), "--pairs", "1", "--size", "64", "--threads", "1",
+                 "--per-pair", str(csv)]) == 0
     rows = {}
     for line in capsys.readouterr().out.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
@@ -28,6 +31,9 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
         rot, direction = errors(est.numpy(), gt)
         assert float(rows[name][5]) == pytest.approx(rot, abs=0.051)
         assert float(rows[name][6]) == pytest.approx(direction, abs=0.051)
+        # the per-pair file holds both poses' errors: the pointmaps' in columns 0-1, the pipeline's in 3-4
+        col = 0 if name == "model" else 3
+        assert read_per_pair(csv)[(data.name, 0)][col:col + 2] == pytest.approx((rot, direction), abs=1e-6)
 
 
 def test_the_pose_benchmark_refuses_missing_data_an_impossible_size_and_no_pairs_in_one_line(scenes_and_model,

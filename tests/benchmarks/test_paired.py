@@ -1,4 +1,5 @@
 import itertools
+import math
 
 import pytest
 
@@ -45,7 +46,10 @@ def test_per_pair_files_round_trip_keep_other_sets_and_replace_a_rewritten_set(t
     write_per_pair(f, "eval_a", [PairResult(0, 4.0, 41.0, 10.0)])  # replaces eval_a's two rows
     rows = read_per_pair(f)
     assert set(rows) == {("eval_a", 0), ("real_rig", 0)}
-    assert rows[("eval_a", 0)] == (4.0, 41.0, 10.0) and rows[("real_rig", 0)] == (7.0, 25.0, 0.3)
+    assert rows[("eval_a", 0)][:3] == (4.0, 41.0, 10.0) and rows[("real_rig", 0)][:3] == (7.0, 25.0, 0.3)
+    assert all(math.isnan(v) for v in rows[("eval_a", 0)][3:])  # no pipeline pose given: NaN
+    write_per_pair(f, "eval_a", [PairResult(0, 4.0, 41.0, 10.0, 2.0, 12.5)])
+    assert read_per_pair(f)[("eval_a", 0)] == (4.0, 41.0, 10.0, 2.0, 12.5)
     for bad in ("a,b", "all", ""):
         with pytest.raises(ValueError, match="without commas"):
             write_per_pair(f, bad, [])
@@ -105,3 +109,36 @@ def test_the_paired_command_fails_in_one_line_on_files_without_shared_pairs(tmp_
     assert "cannot read" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([str(a), str(a), "--tol", "0"])
+
+
+def test_files_written_before_the_pipeline_columns_read_as_nan_and_gain_them_when_a_set_is_rewritten(tmp_path):
+    old = tmp_path / "old.csv"
+    old.write_text("set,pair,rot_err,dir_err,true_rot\neval_a,0,1.0,2.0,3.0\nreal_rig,0,4.0,5.0,6.0\n")
+    rows = read_per_pair(old)
+    assert rows[("eval_a", 0)][:3] == (1.0, 2.0, 3.0) and math.isnan(rows[("eval_a", 0)][3])
+    write_per_pair(old, "eval_a", [PairResult(0, 1.5, 2.5, 3.0, 0.5, 9.0)])  # the file moves to the new header
+    assert old.read_text().splitlines()[0] == "set,pair,rot_err,dir_err,true_rot,pair_rot_err,pair_dir_err"
+    rows = read_per_pair(old)
+    assert rows[("eval_a", 0)] == (1.5, 2.5, 3.0, 0.5, 9.0)
+    assert rows[("real_rig", 0)][:3] == (4.0, 5.0, 6.0) and math.isnan(rows[("real_rig", 0)][4])
+    bad = tmp_path / "bad.csv"  # a row with the old width under the new header is malformed
+    bad.write_text("set,pair,rot_err,dir_err,true_rot,pair_rot_err,pair_dir_err\neval_a,0,1,2,3\n")
+    with pytest.raises(PairedError, match="line 2"):
+        read_per_pair(bad)
+
+
+def test_the_pipeline_pose_is_compared_only_on_the_sets_where_both_files_hold_it(tmp_path, capsys):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    write_per_pair(a, "eval_a", [PairResult(k, 5.0, 60.0, 20.0, 30.0, 50.0) for k in range(6)])
+    write_per_pair(a, "real_rig", [PairResult(k, 5.0, 20.0, 0.3) for k in range(2)])  # no pipeline pose
+    write_per_pair(b, "eval_a", [PairResult(k, 5.0, 60.0, 20.0, 3.0, 50.0) for k in range(6)])
+    write_per_pair(b, "real_rig", [PairResult(k, 5.0, 20.0, 0.3, 1.0, 1.0) for k in range(2)])
+    res, _ = paired(read_per_pair(a), read_per_pair(b))
+    r = res[("eval_a", "pipeline rotation")]
+    assert (r["pairs"], r["a_hits"], r["b_hits"], r["b_only"]) == (6, 0, 6, 6)
+    assert r["mcnemar_p"] == pytest.approx(2 / 64)
+    assert res[("eval_a", "rotation")]["b_only"] == 0  # the pointmaps' pose is the same in both
+    assert ("real_rig", "pipeline rotation") not in res  # A lacks it there
+    assert res[("all", "pipeline rotation")]["pairs"] == 6
+    assert main([str(a), str(b), "--names", "old", "new"]) == 0
+    assert "| eval_a | pipeline rotation | 6 | 0 | 6 | 0 | 6 | 0.0312 | -27.0 | 6 / 0 | 0.0312 |" in capsys.readouterr().out

@@ -58,6 +58,9 @@ def test_per_pair_results_come_back_in_dataset_order_and_match_each_pair_evaluat
         evaluate_pairs(model, torch.utils.data.Subset(data, [k]), n_pairs=1, per_pair=alone)
         assert rows[k].rot_err == pytest.approx(alone[0].rot_err, abs=1e-3)
         assert rows[k].dir_err == pytest.approx(alone[0].dir_err, abs=1e-3)
+        assert rows[k].pair_rot_err == pytest.approx(alone[0].pair_rot_err, abs=1e-3)  # the pipeline's pose
+        assert rows[k].pair_dir_err == pytest.approx(alone[0].pair_dir_err, abs=1e-3, nan_ok=True)
+        assert math.isfinite(rows[k].pair_rot_err)  # the test preset has descriptors: the pipeline's pose exists
         assert rows[k].true_rot == pytest.approx(0.0, abs=1e-3)  # PlanePairs only translate
 
 
@@ -85,6 +88,9 @@ def test_the_evaluate_command_reports_held_out_metrics_of_saved_weights(tmp_path
     rows = read_per_pair(tmp_path / "pairs.csv")  # one row per evaluated pair, under the data folder's name
     assert sorted(rows) == [("eval", k) for k in range(int(out["pairs"]))]
     assert 100 * sum(r[0] < 15 for r in rows.values()) / len(rows) == pytest.approx(out["RRA15"], abs=0.01)
+    # the pipeline's pose (pm.pair_pose) per pair: the card's RRA15_pair / RTA15_pair counted from the rows
+    assert 100 * sum(r[3] < 15 for r in rows.values()) / len(rows) == pytest.approx(out["RRA15_pair"], abs=0.01)
+    assert 100 * sum(r[4] < 15 for r in rows.values()) / len(rows) == pytest.approx(out["RTA15_pair"], abs=0.01)
     # a per-pair file that cannot be written is refused before the evaluation, not after it
     (tmp_path / "notes.csv").write_text("name,value\n")
     assert main(["--model", str(weights), "--data", str(tmp_path / "eval"), "--per-pair",
