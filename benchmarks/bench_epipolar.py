@@ -15,7 +15,11 @@ the analytic Jacobian, the depths re-fitted) next to the dense alignment before 
 with 8-degree pose noise per pass, 2% depth noise and descriptors of the world points (tests/align/align_scene.py);
 ``--seeds`` gives more scenes, ``--cheirality off one on`` runs the stage without its cheirality residuals, with them
 in one descent (session 33's stage) and with them in two descents (the default) on the same alignment. Outside
-``--stage``, ``--cheirality`` takes its first value.
+``--stage``, each ``--cheirality`` mode runs with each ``--jacobians`` on the same inputs, and several ``--seeds``
+give several rings and starts, with a summary of the failed starts (the worst rotation above ``--fail-deg``):
+
+    nice .venv/bin/python benchmarks/bench_epipolar.py --sizes 8 --window 2 --hw 48 64 --outliers 0.1 \\
+        --rot-deg 15 --centre 0.3 --seeds $(seq 0 15) --jacobians analytic --cheirality off one on
 """
 
 from __future__ import annotations
@@ -104,7 +108,11 @@ def main(argv=None) -> None:
                     "always runs with one BLAS thread")
     ap.add_argument("--stage", action="store_true", help="time the whole stage (refine_epipolar) after global_align")
     ap.add_argument("--init", default="averaging", choices=INITS, help="--stage: the alignment's start")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="--stage: scene seeds (one scene per seed)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0],
+                    help="scene seeds: one scene (--stage) or one ring and start (the fit alone) per seed")
+    ap.add_argument("--fail-deg", type=float, default=5.0,
+                    help="the fit alone over several --seeds: a start counts as failed when its worst rotation after "
+                    "the fit exceeds this (degrees)")
     ap.add_argument("--cheirality", nargs="+", default=["on"], choices=["on", "one", "off"],
                     help="the fit's cheirality residuals: on (the default: two descents), one (one descent, session "
                     "33), off (before session 33), or several")
@@ -123,40 +131,59 @@ def main(argv=None) -> None:
     if args.stage:
         run_stage(args.sizes, h, w, args.window, args.init, args.seeds, args.cheirality)
         return
+    methods = [(mode, jac) for mode in args.cheirality for jac in args.jacobians]
     rows = []
     for n in args.sizes:
-        gt, start, (I, J, r1, r2, scale), n_pairs = ring_matches(n, h, w, args.window, args.outliers,
-                                                                 args.rot_deg, args.centre)
-        row = {"n": n, "pairs": n_pairs, "matches": len(I), "start": worst_errors(start[:, :3, :3], start[:, :3, 3], gt)}
-        for jac in args.jacobians:
-            t = time.perf_counter()
-            R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
-                                    keep_scale=True, jac=jac, cheirality=args.cheirality[0] != "off",
-                                    second_descent=args.cheirality[0] == "on")
-            row[jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt), len(rep["mirrored_pairs"]))
-        rows.append(row)
-        print(row, file=sys.stderr, flush=True)
+        for seed in args.seeds:
+            gt, start, (I, J, r1, r2, scale), n_pairs = ring_matches(n, h, w, args.window, args.outliers,
+                                                                     args.rot_deg, args.centre, seed=seed)
+            row = {"n": n, "seed": seed, "pairs": n_pairs, "matches": len(I),
+                   "start": worst_errors(start[:, :3, :3], start[:, :3, 3], gt)}
+            for mode, jac in methods:
+                t = time.perf_counter()
+                R, C, rep = solve_poses(start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, scale, held=[0],
+                                        keep_scale=True, jac=jac, cheirality=mode != "off", second_descent=mode == "on")
+                row[mode, jac] = (time.perf_counter() - t, rep["evaluations"], *worst_errors(R, C, gt),
+                                  len(rep["mirrored_pairs"]))
+            rows.append(row)
+            print(row, file=sys.stderr, flush=True)
     print(f"\nmaps {h}x{w}, cyclic window {args.window}, {args.outliers:.0%} outliers, start {args.rot_deg} deg / "
           f"{args.centre} off, one BLAS thread; errors: worst over consecutive images' relative poses\n")
-    head = "| images | pairs | matches | start: worst rot / median dir / worst dir (deg) |"
-    rule = "|---|---|---|---|"
-    for jac in args.jacobians:
-        head += f" {jac}: time (s) | evaluations | worst rot / median dir / worst dir | pairs reversed |"
+    name = (lambda mode, jac: jac) if len(args.cheirality) == 1 else (lambda mode, jac: f"{mode}, {jac}")
+    head = "| images | seed | pairs | matches | start: worst rot / median dir / worst dir (deg) |"
+    rule = "|---|---|---|---|---|"
+    for m in methods:
+        head += f" {name(*m)}: time (s) | evaluations | worst rot / median dir / worst dir | pairs reversed |"
         rule += "---|---|---|---|"
-    if len(args.jacobians) == 2:
+    speedup = len(methods) == 2 and len(args.cheirality) == 1
+    if speedup:
         head += f" speed-up ({args.jacobians[0]} / {args.jacobians[1]}) |"
         rule += "---|"
     print(head)
     print(rule)
     for r in rows:
-        line = f"| {r['n']} | {r['pairs']} | {r['matches']} | {' / '.join(f'{e:.2f}' for e in r['start'])} |"
-        for jac in args.jacobians:
-            secs, evals, rot, dir_med, dir_max, mirrored = r[jac]
+        line = f"| {r['n']} | {r['seed']} | {r['pairs']} | {r['matches']} | {' / '.join(f'{e:.2f}' for e in r['start'])} |"
+        for m in methods:
+            secs, evals, rot, dir_med, dir_max, mirrored = r[m]
             line += f" {secs:.2f} | {evals} | {rot:.3f} / {dir_med:.3f} / {dir_max:.3f} | {mirrored} |"
-        if len(args.jacobians) == 2:
-            line += f" {r[args.jacobians[0]][0] / max(r[args.jacobians[1]][0], 1e-9):.1f}x |"
+        if speedup:
+            line += f" {r[methods[0]][0] / max(r[methods[1]][0], 1e-9):.1f}x |"
         print(line)
-
+    if len(args.seeds) > 1:  # several starts: how often each method fails, per image count
+        print(f"\nstarts whose worst rotation after the fit exceeds {args.fail_deg:g} degrees (failed), the worst "
+              f"rotation of the others, and the median time\n")
+        print("| images | method | starts | failed (their worst rotations) | worst rotation of the others | median time (s) |")
+        print("|---|---|---|---|---|---|")
+        for n in args.sizes:
+            mine = [r for r in rows if r["n"] == n]
+            for m in methods:
+                rots = [r[m][2] for r in mine]
+                bad = sorted(x for x in rots if x > args.fail_deg)
+                good = [x for x in rots if x <= args.fail_deg]
+                print(f"| {n} | {name(*m)} | {len(rots)} | {len(bad)} ({', '.join(f'{x:.1f}' for x in bad) or '-'}) | "
+                      f"{max(good):.2f} | {np.median([r[m][0] for r in mine]):.2f} |" if good else
+                      f"| {n} | {name(*m)} | {len(rots)} | {len(bad)} ({', '.join(f'{x:.1f}' for x in bad)}) | - | "
+                      f"{np.median([r[m][0] for r in mine]):.2f} |")
 
 if __name__ == "__main__":
     main()
