@@ -64,13 +64,17 @@ def inference_gflop(cfg, hw: tuple) -> tuple[float, float]:
 
 
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
-                  device: str = "cpu", epipolar=False) -> dict:
+                  device: str = "cpu", epipolar=False, refine=False) -> dict:
     """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``model``: anything
     with a ``cfg`` (a PointmapNet or an ONNX export; None: the official-size dust3r_512_dpt). Inference counts
     each image encoded once and each pair decoded in both orders, as ``predict_pairs`` runs them, at a CPU rate
     measured on 2 threads. ``epipolar``: False, True or an ``EpipolarConfig``, as ``reconstruct`` takes it; for a
     model with descriptors, the alignment time then includes the pose refinement on matches (per pair and coarse
-    cell) and its depth re-fit (a second dense alignment, unless the config's ``refit_depth`` is off)."""
+    cell) and its depth re-fit (a second dense alignment, unless the config's ``refit_depth`` is off).
+    Memory counts the predictions ``reconstruct`` keeps (``predictions_gb``: both pointmaps and confidences of every
+    directed pair in float32, and, for a model with descriptors when ``epipolar`` or ``refine`` will match on
+    them, both descriptor maps and their confidences: 2 x (desc_dim + 1) more floats per pixel, 6x the pointmaps'
+    share at MASt3R's desc_dim 24), the alignment's subsampled stack and its chunked work, and the images."""
     from pointmap.align.epipolar import EpipolarConfig
     from pointmap.model import PRESETS, ModelConfig
 
@@ -100,11 +104,13 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
         ecfg = epipolar if isinstance(epipolar, EpipolarConfig) else EpipolarConfig(patch=p)
         align_s += EPIPOLAR_SECONDS_PER_PAIR_CELL * n_pairs * max(1, h // ecfg.patch) * max(1, w // ecfg.patch)
         align_s += dense_s if ecfg.refit_depth else 0.0
-    preds_bytes = E * P * 4 * 8            # two pointmaps + two confidences, float32
+    kept = 8 + (2 * (arch.desc_dim + 1) if arch.desc_dim > 0 and (epipolar or refine) else 0)
+    preds_bytes = E * P * 4 * kept         # two pointmaps + two confidences (+ descriptors), float32
     stack_bytes = E * P_opt * 4 * 8
     chunk_bytes = min(cfg.max_chunk_pixels, E * P_opt) * 4 * 40
     return {"pairs": n_pairs, "directed_edges": E, "inference_seconds": infer_s,
             "align_seconds": align_s,
+            "predictions_gb": preds_bytes / 1e9,
             "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}
 
 
@@ -199,7 +205,7 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     graph = auto_graph(n) if graph == "auto" else graph
     pairs = make_pairs(n, graph)
     # also refuses an epipolar that is not True, False or an EpipolarConfig, before any inference
-    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar)
+    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine)
     if not quiet:
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
               f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
@@ -214,7 +220,9 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
         seconds[stage] = round(now - clock, 3)
         clock = now
 
-    preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet)
+    # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
+    preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
+                          keep_desc=bool(epipolar) or bool(refine))
     lap("inference")
     if user_masks is not None:
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}

@@ -154,6 +154,38 @@ def test_the_alignment_estimate_adds_the_pose_refinement_on_matches_for_a_model_
         estimate_cost(4, 6, (224, 224), with_desc, epipolar="yes")
 
 
+@pytest.mark.parametrize("stages", [{}, {"epipolar": True}, {"refine": True}])
+def test_the_memory_estimate_counts_the_bytes_of_the_predictions_the_inference_keeps(stages):
+    from pointmap.inference import predict_pairs
+    from pointmap.model import PRESETS, PointmapNet
+
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"]).eval()
+    assert model.cfg.desc_dim > 0
+    images = [torch.rand(3, 32, 48) for _ in range(3)]
+    pairs = [(0, 1), (1, 2)]
+    keep_desc = bool(stages)  # as reconstruct keeps them: only for a stage that matches on descriptors
+    preds = predict_pairs(model, images, pairs, keep_desc=keep_desc, quiet=True)
+    kept = sum(t.nbytes for p in preds.values() for t in vars(p).values() if isinstance(t, torch.Tensor))
+    est = estimate_cost(3, len(pairs), (32, 48), model, **stages)
+    assert est["predictions_gb"] * 1e9 == pytest.approx(kept, rel=1e-9)
+    assert est["memory_gb"] > est["predictions_gb"]
+    # a MASt3R-size model with its descriptors kept: 8 + 2 x 25 floats per pixel against 8 without
+    mast3r = type("Exported", (), {"cfg": PRESETS["mast3r_512"]})()
+    with_desc = estimate_cost(100, 400, (384, 512), mast3r, epipolar=True)["predictions_gb"]
+    assert with_desc == pytest.approx(58 / 8 * estimate_cost(100, 400, (384, 512), mast3r)["predictions_gb"])
+
+
+@pytest.mark.parametrize("stages,keep", [({"epipolar": False}, False), ({}, True),
+                                         ({"epipolar": False, "refine": True}, True)])
+def test_reconstruct_keeps_descriptors_only_for_a_stage_that_matches_on_them(fake_stack, stages, keep):
+    _, images, calls = fake_stack
+    calls["stop"] = True
+    with pytest.raises(StopIteration):
+        reconstruct(None, images, size=48, quiet=True, **stages)
+    assert calls["kw"]["keep_desc"] is keep
+
+
 def test_the_flops_counted_on_the_meta_device_equal_those_of_a_real_forward():
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
