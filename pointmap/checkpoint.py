@@ -417,7 +417,7 @@ def load_model(src, device="cpu", **kwargs):
     if path.suffix == ".onnx" or (path.is_dir() and any(path.glob("*.onnx"))):
         from pointmap.runtime.onnx import load_onnx
 
-        return load_onnx(path, **kwargs)
+        return load_onnx(path, device=device, **kwargs)  # a GPU device selects onnxruntime's GPU providers
     if path.is_dir():
         raise CheckpointError(f"{path} is a directory without an .onnx export")
     if path.suffix == ".safetensors":

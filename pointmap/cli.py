@@ -38,10 +38,38 @@ def check_size_graph_budget(args) -> None:
         raise PointmapError(f"--splat-budget expected seconds >= 0 (0: no limit), got {budget}")
 
 
-def _model_and_size(name: str, size: int | None):
+def resolve_device(text: str) -> str:
+    """``--device``: auto (CUDA, then Apple's MPS, then the CPU, whichever torch can use first), cpu, cuda, cuda:N
+    or mps. A device torch cannot use here is refused now, before any model loads."""
+    import re
+
+    import torch
+
+    name = str(text).strip().lower()
+    cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    mps = getattr(torch.backends, "mps", None)
+    has_mps = bool(mps is not None and mps.is_available())
+    if name == "auto":
+        return "cuda" if cuda else "mps" if has_mps else "cpu"
+    if name == "cpu":
+        return name
+    if name == "cuda" or re.fullmatch(r"cuda:\d+", name):
+        k = int(name.split(":")[1]) if ":" in name else 0
+        if k >= cuda:
+            raise PointmapError(f"--device {text}: torch sees {cuda} CUDA device(s) here"
+                                f"{'' if cuda else ' (torch.cuda.is_available() is False)'}; use --device cpu or auto")
+        return name
+    if name == "mps":
+        if not has_mps:
+            raise PointmapError(f"--device mps: torch's MPS backend is not available here; use --device cpu or auto")
+        return name
+    raise PointmapError(f"--device expected auto, cpu, cuda, cuda:N or mps, got {text!r}")
+
+
+def _model_and_size(name: str, size: int | None, device: str = "cpu"):
     from pointmap.checkpoint import load_model, model_input_size
 
-    model = load_model(name)
+    model = load_model(name, device=device)
     return model, size if size is not None else model_input_size(model)
 
 
@@ -74,9 +102,9 @@ def cmd_pair(args) -> int:
     writable_dir(Path(args.out))
     check_size_graph_budget(args)
     focal = None if args.focal is None else parse_focals(args.focal, 2)
-    model, size = _model_and_size(args.model, args.size)
+    model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
-                               focal=focal)
+                               focal=focal, device=args.device)
     for p in paths:
         print(p)
     print(pair_summary(Path(args.out) / "pair.npz"))
@@ -237,7 +265,7 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
-        model, size = _model_and_size(args.model, args.size)
+        model, size = _model_and_size(args.model, args.size, args.device)
         return reconstruct_scene(model, size, args, scene, formats)
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
@@ -251,7 +279,7 @@ def cmd_reconstruct(args) -> int:
                     if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
-    model, size = _model_and_size(args.model, args.size)  # loaded once for every scene
+    model, size = _model_and_size(args.model, args.size, args.device)  # loaded once for every scene
     failed = []
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
@@ -330,7 +358,7 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
-                        epipolar=not args.no_epipolar, quiet=args.quiet)
+                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device)
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
@@ -369,7 +397,7 @@ def cmd_splat(args) -> int:
         from pointmap.localize import query_views
 
         every = query_views(recon, expand_images(args.test))
-        model = load_model(args.model)
+        model = load_model(args.model, device=args.device)
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch
@@ -379,7 +407,7 @@ def cmd_splat(args) -> int:
         from pointmap.splat.outputs import evaluate_views
 
         refined = result.get("recon_refined")
-        loc = localize(model, recon if refined is None else refined, every, quiet=args.quiet)
+        loc = localize(model, recon if refined is None else refined, every, quiet=args.quiet, device=args.device)
         posed = [k for k, r in enumerate(loc.ref) if r >= 0]
         if len(posed) < len(every):
             print(f"pointmap: {len(every) - len(posed)} test view(s) could not be localized and are left out: "
@@ -409,7 +437,8 @@ def cmd_localize(args) -> int:
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     recon = load_npz(npz)
-    loc = localize(load_model(args.model), recon, images, K=K, n_refs=args.n_refs, quiet=args.quiet)
+    loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
+                   quiet=args.quiet, device=args.device)
     rows = [{"name": name, "reference": None, "cam2world": None, "K": None, "confidence": None, "scale": None}
             if loc.ref[k] < 0 else  # not posed: null, not NaN (strict JSON)
             {"name": name, "reference": recon.names[loc.ref[k]], "cam2world": loc.cam2world[k].tolist(),
@@ -429,7 +458,7 @@ def cmd_localize(args) -> int:
 def cmd_demo(args) -> int:
     from pointmap.demo import run_demo
 
-    return run_demo(writable_dir(Path(args.out)), model_name=args.model, quiet=args.quiet)
+    return run_demo(writable_dir(Path(args.out)), model_name=args.model, quiet=args.quiet, device=args.device)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -546,6 +575,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("-o", "--out", default="demo_out")
     d.add_argument("--model", default=DEFAULT_MODEL)
     d.set_defaults(fn=cmd_demo)
+    for cmd in (a, r, s, loc, d):  # every command that runs the network
+        cmd.add_argument("--device", default="auto", help="where the network runs: auto (CUDA, then MPS, then the "
+                         "CPU: the first torch can use; default), cpu, cuda, cuda:N or mps. The alignment and the "
+                         "splat fit run on the CPU")
     return p
 
 
@@ -554,6 +587,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     try:
+        args.device = resolve_device(args.device)  # before anything runs: a missing GPU is one line, not a traceback
         return args.fn(args)
     except PointmapError as e:
         print(f"pointmap: error: {e}", file=sys.stderr)

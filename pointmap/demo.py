@@ -33,7 +33,7 @@ def gt_depth_on_map(depth_orig: np.ndarray, transform, shape) -> np.ndarray:
     return depth_orig[v[:, None], u[None, :]]
 
 
-def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False) -> dict:
+def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False, device="cpu") -> dict:
     """Pairwise predictions on one scene: relative pose, focal and depth errors against the ground truth."""
     from pointmap.geometry.focal import focal_from_pointmap
     from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
@@ -48,7 +48,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
     paths = sorted(scene.glob("view-*.png"))
     views = load_images(paths, size=size)
     pairs = make_pairs(len(views))
-    preds = predict_pairs(model, views, pairs, quiet=quiet)
+    preds = predict_pairs(model, views, pairs, quiet=quiet, device=device)
     rows = []
     out.mkdir(parents=True, exist_ok=True)
     d_gts = [gt_depth_on_map(gt["depth_z"][k].astype(np.float32), v.map_from_original, v.shape)
@@ -83,17 +83,17 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
             "patch": model.cfg.patch_size}
 
 
-def run_demo(out: Path, model_name: str = "small", quiet: bool = False) -> int:
+def run_demo(out: Path, model_name: str = "small", quiet: bool = False, device="cpu") -> int:
     from pointmap.checkpoint import load_model, model_input_size
 
     scenes = demo_scenes()
     if not scenes:
         raise PointmapError(f"no demo scenes found in {SCENES_DIR} (render them: python -m data.demo_scenes)")
-    model = load_model(model_name)
+    model = load_model(model_name, device=device)
     size = model_input_size(model, default=224)
     all_rows, aligned, depth_ranges = [], {}, {}
     for scene in scenes:
-        res = evaluate_scene(model, scene, out / scene.name, size, quiet)
+        res = evaluate_scene(model, scene, out / scene.name, size, quiet, device)
         all_rows += res["rows"]
         depth_ranges[scene.name] = res["depth_range"]
         aligned[scene.name] = align_scene(res, out / scene.name, quiet)

@@ -63,13 +63,14 @@ def write_png(path: Path, rgb: np.ndarray) -> Path:
 
 
 def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet: bool = False,
-                       focal: tuple | None = None) -> list[Path]:
+                       focal: tuple | None = None, device="cpu") -> list[Path]:
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
 
     The pose is ``pointmap.pose.pair_pose``: the pointmaps' pose refined on the model's own matches (rotation and
     translation direction; models with descriptors) with each view's focal from its own pointmap, or with
     ``focal``: the known focal lengths (f1, f2) in ORIGINAL pixels (principal points at the image centres), which
-    are then stored instead of the estimated ones."""
+    are then stored instead of the estimated ones. ``device``: where the model runs (it must already be there,
+    ``pm.load_model(..., device=)``); the outputs come back to the CPU."""
     import trimesh
 
     from pointmap.images import load_images
@@ -82,11 +83,11 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
         if len(focal) != 2 or not all(np.isfinite(f) and f > 0 for f in focal):
             raise ShapeError(f"focal expected two positive focal lengths in pixels, got {focal}")
     views = load_images([path1, path2], size=size)
-    img1, img2 = views[0].img[None], views[1].img[None]
+    img1, img2 = views[0].img[None].to(device), views[1].img[None].to(device)
     with torch.inference_mode():
         pred = model(img1, img2)
         pred_rev = model(img2, img1)
-    pred, pred_rev = pred.map(lambda t: t.float()), pred_rev.map(lambda t: t.float())
+    pred, pred_rev = pred.map(lambda t: t.float().cpu()), pred_rev.map(lambda t: t.float().cpu())
     m = match(pred)
     patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
     if focal is None:

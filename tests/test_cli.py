@@ -444,3 +444,68 @@ def test_size_graph_and_splat_budget_are_refused_before_the_model_even_for_each_
             (tmp_path / "scene").mkdir(exist_ok=True)
         assert main(["reconstruct", *scene_flags, "-o", str(tmp_path / "o"), "--model", "no_such_model", *extra]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_the_device_resolves_to_what_torch_can_use_and_a_missing_gpu_is_refused_with_the_way_out(monkeypatch):
+    from pointmap.cli import resolve_device
+    from pointmap.errors import PointmapError
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu" and resolve_device(" CPU ") == "cpu"
+    for name, message in [("cuda", "torch sees 0 CUDA device(s) here (torch.cuda.is_available() is False); use "
+                                   "--device cpu or auto"),
+                          ("cuda:1", "torch sees 0 CUDA device(s)"), ("mps", "MPS backend is not available"),
+                          ("tpu", "--device expected auto, cpu, cuda, cuda:N or mps, got 'tpu'"),
+                          ("cuda:x", "got 'cuda:x'")]:
+        with pytest.raises(PointmapError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            resolve_device(name)
+    # a machine with one GPU: auto takes it, cuda:0 is it, cuda:1 does not exist
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("auto") == "cuda" and resolve_device("cuda:0") == "cuda:0"
+    with pytest.raises(PointmapError, match="torch sees 1 CUDA device"):
+        resolve_device("cuda:1")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # no CUDA, but Apple's MPS
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    assert resolve_device("auto") == "mps"
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "pair", "localize", "splat", "demo"])
+def test_a_device_torch_cannot_use_is_refused_in_one_line_before_the_model_loads(tiny, tmp_path, capsys, monkeypatch,
+                                                                                command):
+    import pointmap.checkpoint
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    weights, folder = tiny
+    images = [str(folder / "a.jpg"), str(folder / "c.png")]
+    args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path), *images], "splat": [str(tmp_path)],
+            "demo": []}[command]
+    assert main([command, *args, "-o", str(tmp_path / "out"), "--model", str(weights), "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pointmap: error: --device cuda: torch sees 0 CUDA device(s)") and err.count("\n") == 1
+
+
+def test_the_device_reaches_the_model_the_inference_and_the_pair_outputs(tiny, tmp_path, monkeypatch):
+    import pointmap.checkpoint
+    import pointmap.io_pair
+    import pointmap.pipeline
+
+    weights, folder = tiny
+    seen = {}
+    real_load, real_recon, real_pair = (pointmap.checkpoint.load_model, pointmap.pipeline.reconstruct,
+                                        pointmap.io_pair.write_pair_outputs)
+    monkeypatch.setattr(pointmap.checkpoint, "load_model",
+                        lambda *a, **k: seen.setdefault("load", []).append(k.get("device")) or real_load(*a, **k))
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct",
+                        lambda *a, **k: seen.setdefault("recon", []).append(k.get("device")) or real_recon(*a, **k))
+    monkeypatch.setattr(pointmap.io_pair, "write_pair_outputs",
+                        lambda *a, **k: seen.setdefault("pair", []).append(k.get("device")) or real_pair(*a, **k))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), "--size",
+                 "64", "--export", "npz", "--device", "auto"]) == 0
+    assert main(["--quiet", "pair", str(folder / "a.jpg"), str(folder / "c.png"), "-o", str(tmp_path / "p"),
+                 "--model", str(weights), "--size", "64", "--device", "cpu"]) == 0
+    assert seen == {"load": ["cpu", "cpu"], "recon": ["cpu"], "pair": ["cpu"]}  # auto: the CPU on this machine
