@@ -61,7 +61,7 @@ def resolve_device(text: str) -> str:
         return name
     if name == "mps":
         if not has_mps:
-            raise PointmapError(f"--device mps: torch's MPS backend is not available here; use --device cpu or auto")
+            raise PointmapError("--device mps: torch's MPS backend is not available here; use --device cpu or auto")
         return name
     raise PointmapError(f"--device expected auto, cpu, cuda, cuda:N or mps, got {text!r}")
 
