@@ -61,11 +61,11 @@ def rra15(cam2world_pred: torch.Tensor, cam2world_gt: np.ndarray) -> float:
     return 100.0 * float(np.mean(np.asarray(errs) < 15.0))
 
 
-def run(model, images, gt, counts, size, epipolar: bool) -> list[dict]:
+def run(model, images, gt, counts, size, epipolar: bool, graphs=("auto",)) -> list[dict]:
     rows = []
-    for n in counts:
+    for n, graph in itertools.product(counts, graphs):
         t = time.perf_counter()
-        recon = pm.reconstruct(model, images[:n], size=size, epipolar=epipolar, quiet=True,
+        recon = pm.reconstruct(model, images[:n], graph=graph, size=size, epipolar=epipolar, quiet=True,
                                align=pm.AlignConfig(quiet=True))
         total = time.perf_counter() - t
         info = recon.info["pipeline"]
@@ -75,7 +75,7 @@ def run(model, images, gt, counts, size, epipolar: bool) -> list[dict]:
                      "align_est": est["align_seconds"], "align": sec["alignment"] + sec.get("epipolar", 0.0),
                      "epipolar": sec.get("epipolar", 0.0),
                      "total": total, "rra15": rra15(recon.cam2world, gt[:n])})
-        print(f"  {n} images: {total:.1f} s", file=sys.stderr, flush=True)
+        print(f"  {n} images, {info['graph']}: {total:.1f} s", file=sys.stderr, flush=True)
     return rows
 
 
@@ -99,6 +99,11 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=None, help="network input size (default: the model's own)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--epipolar", choices=("on", "off"), default="on", help="the pose refinement on matches")
+    p.add_argument("--graphs", nargs="+", default=["auto"],
+                   help="pair graphs, each run on every count (auto, complete, logwin-3, retrieval-3, ...)")
+    p.add_argument("--shuffle", type=int, default=None, metavar="SEED",
+                   help="put the rendered views in a random order first (photos in no particular order: the file "
+                   "order no longer follows the camera path)")
     a = p.parse_args(argv)
     if not a.counts or min(a.counts) < 2:
         p.error(f"--counts expected image counts >= 2, got {a.counts}")
@@ -107,6 +112,14 @@ def main(argv=None) -> int:
             p.error(f"{flag} expected an int >= {low}, got {v}")
     if a.size is not None and (a.size < 16 or a.size % 16):
         p.error(f"--size expected a multiple of 16 (>= 16), got {a.size}")
+    from pointmap.pairs import parse_graph
+
+    for g in a.graphs:
+        try:
+            if g != "auto":
+                parse_graph(g)
+        except pm.GraphError as e:
+            p.error(f"--graphs: {e}")
     try:
         model = load_models([a.model])[a.model]  # a PointmapNet, or the one-line reason it is not
     except pm.CheckpointError as e:
@@ -114,10 +127,13 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     counts = sorted(set(a.counts))
     images, gt = render_views(max(counts), a.scene, a.render_size)
+    if a.shuffle is not None:
+        order = np.random.default_rng(a.shuffle).permutation(len(images))
+        images, gt = [images[k] for k in order], gt[order]
     print(f"model {a.model} ({model.cfg.enc_depth} / {model.cfg.dec_depth} blocks); {a.scene} scene, "
           f"{images[0].shape[1]}x{images[0].shape[0]} photographs; {a.threads} threads; pose refinement on matches "
-          f"{a.epipolar}")
-    print(table(run(model, images, gt, counts, a.size, a.epipolar == "on")))
+          f"{a.epipolar}" + ("" if a.shuffle is None else f"; views shuffled (seed {a.shuffle})"))
+    print(table(run(model, images, gt, counts, a.size, a.epipolar == "on", a.graphs)))
     return 0
 
 

@@ -498,7 +498,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--out", required=True)
     r.add_argument("--model", default=DEFAULT_MODEL)
     r.add_argument("--size", type=int, default=None)
-    r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I")
+    r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I, retrieval-K (each "
+                   "image with its K most similar by the encoder: photos in no particular order)")
     r.add_argument("--export", default="ply,glb,colmap,npz",
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
                         "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), tum (trajectory.txt), npz (reconstruction.npz, which "

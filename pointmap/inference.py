@@ -59,6 +59,21 @@ def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="c
 
 
 @torch.inference_mode()
+def pooled_tokens(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
+    """[N, D] unit vectors: each image's mean encoder token (a global descriptor for retrieval; views: Views or
+    [3, H, W] tensors)."""
+    enc = encode_views(model, _as_images(views), batch_size, device)
+    return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1).cpu() for e in enc]), dim=-1)
+
+
+def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
+    """[N, N] cosine similarity of the images' mean encoder tokens (``pooled_tokens``): what the ``retrieval-K``
+    graph (``pointmap.pairs.pairs_from_similarity``) pairs by, and what ``localize`` ranks references by."""
+    p = pooled_tokens(model, views, batch_size, device)
+    return p @ p.T
+
+
+@torch.inference_mode()
 def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", keep_desc: bool = True,
                   store_dtype=None, quiet: bool = False) -> dict[tuple[int, int], PairPrediction]:
     """Predict every pair in both orders.

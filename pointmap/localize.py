@@ -73,13 +73,9 @@ def query_views(recon: Reconstruction, images) -> list[View]:
 @torch.inference_mode()
 def rank_references(model, refs: list[View], queries: list[View], n_refs: int, *, device="cpu") -> list[list[int]]:
     """For each query, the ``n_refs`` reference indices whose mean encoder token is most similar (cosine)."""
-    from pointmap.inference import encode_views
+    from pointmap.inference import pooled_tokens
 
-    def pooled(views):
-        enc = encode_views(model, [v.img for v in views], device=device)
-        return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1) for e in enc]), dim=-1)
-
-    sim = pooled(queries) @ pooled(refs).T
+    sim = pooled_tokens(model, queries, device=device) @ pooled_tokens(model, refs, device=device).T
     return sim.topk(min(n_refs, len(refs)), dim=1).indices.tolist()
 
 

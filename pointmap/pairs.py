@@ -1,4 +1,4 @@
-"""Pair graphs over N images: complete, swin-k, logwin-k, oneref-i; connectivity check.
+"""Pair graphs over N images: complete, swin-k, logwin-k, oneref-i, retrieval-k; connectivity check.
 
 Pairs are unordered ``(i, j)`` with ``i < j``; inference runs both orders of each.
 """
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pointmap.errors import GraphError, is_int
 
-GRAPHS = "complete, swin-K, logwin-K, oneref-I (swin/logwin take a '-noncyclic' suffix)"
+GRAPHS = "complete, swin-K, logwin-K, oneref-I, retrieval-K (swin/logwin take a '-noncyclic' suffix)"
 
 
 def parse_graph(graph: str) -> tuple[str, int | None, bool]:
@@ -22,13 +22,15 @@ def parse_graph(graph: str) -> tuple[str, int | None, bool]:
         raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
     if kind == "complete" and len(parts) == 1:
         return kind, None, cyclic
-    if kind in ("swin", "logwin", "oneref") and len(parts) >= 2:
+    if kind == "retrieval" and len(parts) == 3:
+        raise GraphError(f"graph {graph!r}: retrieval pairs by similarity, not by order (no '-noncyclic')")
+    if kind in ("swin", "logwin", "oneref", "retrieval") and len(parts) >= 2:
         try:
             k = int(parts[1])
         except ValueError:
             raise GraphError(f"graph {graph!r}: {parts[1]!r} is not an integer") from None
         if kind != "oneref" and k < 1:
-            raise GraphError(f"{kind}-{k}: window must be >= 1")
+            raise GraphError(f"{kind}-{k}: {'neighbours' if kind == 'retrieval' else 'window'} must be >= 1")
         return kind, k, cyclic
     raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
 
@@ -46,6 +48,9 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
     if n < 2:
         raise GraphError(f"a pair graph needs at least 2 images, got {n}")
     kind, k, cyclic = parse_graph(graph)
+    if kind == "retrieval":
+        raise GraphError(f"{graph}: the pairs come from the images' similarity, not from their count: use "
+                         f"pm.reconstruct(..., graph={graph!r}) or pairs_from_similarity(sim, {k})")
     if kind == "complete":
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
     if kind == "oneref":
@@ -63,6 +68,43 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
                 j %= n
             if i != j:
                 edges.add((min(i, j), max(i, j)))
+    return sorted(edges)
+
+
+def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
+    """The ``retrieval-K`` graph: each image paired with its ``k`` most similar others, plus the maximum spanning tree
+    of the similarity so that the graph is connected whatever the scores (unordered photo collections, where the
+    file order says nothing about overlap). ``sim``: [N, N] symmetric scores (e.g. ``image_similarity``), higher =
+    more alike; the diagonal is ignored. Sorted unordered pairs; ties go to the lower index. GraphError otherwise."""
+    import torch
+
+    sim = torch.as_tensor(sim, dtype=torch.float64)
+    if sim.ndim != 2 or sim.shape[0] != sim.shape[1] or sim.shape[0] < 2:
+        raise GraphError(f"sim expected an [N, N] similarity of N >= 2 images, got shape {list(sim.shape)}")
+    if not bool(torch.isfinite(sim).all()):
+        raise GraphError("sim holds NaN or infinite scores")
+    if not (is_int(k) and k >= 1):
+        raise GraphError(f"k expected an int >= 1 (neighbours per image), got {k!r}")
+    n = sim.shape[0]
+    s = (sim + sim.T) / 2
+    s.fill_diagonal_(-torch.inf)
+    edges: set[tuple[int, int]] = set()
+    order = torch.argsort(-s, dim=1, stable=True)
+    for i in range(n):
+        for j in order[i, : min(int(k), n - 1)].tolist():
+            edges.add((min(i, j), max(i, j)))
+    # Prim's maximum spanning tree: the most similar link from the connected part to each image outside it
+    inside = torch.zeros(n, dtype=torch.bool)
+    inside[0] = True
+    best, link = s[0].clone(), torch.zeros(n, dtype=torch.long)
+    for _ in range(n - 1):
+        cand = torch.where(inside, torch.full_like(best, -torch.inf), best)
+        j = int(torch.argmax(cand))
+        edges.add((min(j, int(link[j])), max(j, int(link[j]))))
+        inside[j] = True
+        closer = s[j] > best
+        best = torch.where(closer, s[j], best)
+        link = torch.where(closer, torch.full_like(link, j), link)
     return sorted(edges)
 
 

@@ -158,7 +158,9 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
                 epipolar=True, quiet: bool = False, device: str = "cpu"):
     """Photos to a Reconstruction.
 
-    graph: "auto" (see ``auto_graph``) or any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...)
+    graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
+        "retrieval-K": each image with the K others most alike by the encoder's pooled tokens, plus the spanning
+        tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order)
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
         Images of different sizes or orientations are centre-cropped to the largest shape they all contain
         (``crop_to_common``; reported unless ``quiet``)
@@ -203,7 +205,13 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     from pointmap.align.epipolar import EpipolarConfig
 
     graph = auto_graph(n) if graph == "auto" else graph
-    pairs = make_pairs(n, graph)
+    if str(graph).startswith("retrieval"):  # pairs by the images' similarity (an unordered photo collection)
+        from pointmap.inference import image_similarity
+        from pointmap.pairs import pairs_from_similarity, parse_graph
+
+        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), parse_graph(graph)[1])
+    else:
+        pairs = make_pairs(n, graph)
     # also refuses an epipolar that is not True, False or an EpipolarConfig, before any inference
     cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine)
     if not quiet:

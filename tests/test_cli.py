@@ -509,3 +509,22 @@ def test_the_device_reaches_the_model_the_inference_and_the_pair_outputs(tiny, t
     assert main(["--quiet", "pair", str(folder / "a.jpg"), str(folder / "c.png"), "-o", str(tmp_path / "p"),
                  "--model", str(weights), "--size", "64", "--device", "cpu"]) == 0
     assert seen == {"load": ["cpu", "cpu"], "recon": ["cpu"], "pair": ["cpu"]}  # auto: the CPU on this machine
+
+
+def test_a_retrieval_graph_pairs_the_photographs_by_similarity_end_to_end(tiny, tmp_path, monkeypatch):
+    import pointmap.inference
+    import pointmap.pairs
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    seen = []
+    real = pointmap.pairs.pairs_from_similarity
+    monkeypatch.setattr(pointmap.pairs, "pairs_from_similarity", lambda sim, k: seen.append((sim, k)) or real(sim, k))
+    out = tmp_path / "r"
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--export", "npz", "--graph", "retrieval-1"]) == 0
+    (sim, k), = seen
+    assert k == 1 and sim.shape == (3, 3)  # the three photographs' similarity, from the model itself
+    expected = real(sim, 1)
+    info = load_npz(out / "reconstruction.npz").info["pipeline"]
+    assert info["graph"] == "retrieval-1" and info["pairs"] == len(expected) >= 2

@@ -69,3 +69,26 @@ def test_pairs_that_are_not_index_pairs_a_fractional_batch_size_and_a_non_model_
         pm.predict_pairs(tiny_model, views(2), [(0, 1)], batch_size=2.5, quiet=True)
     with pytest.raises(pm.CheckpointError, match="expected a model .*got NoneType"):
         pm.predict_pairs(None, views(2), [(0, 1)], quiet=True)
+
+
+def test_image_similarity_is_the_cosine_of_each_images_mean_token_encoded_alone(tiny_model):
+    from pointmap.inference import image_similarity
+
+    vs = views(4, [(48, 64), (48, 64), (64, 48), (48, 64)])
+    sim = image_similarity(tiny_model, vs, batch_size=3)
+    assert sim.shape == (4, 4) and torch.allclose(sim, sim.T, atol=1e-6)
+    with torch.inference_mode():  # the slow reference: one image at a time, the cosine written out
+        pooled = [tiny_model.encode(v.img[None]).tokens[0].float().mean(0) for v in vs]
+    for i in range(4):
+        for j in range(4):
+            ref = float(pooled[i] @ pooled[j] / (pooled[i].norm() * pooled[j].norm()))
+            assert float(sim[i, j]) == pytest.approx(ref, abs=1e-5)
+
+
+def test_predictions_and_pooled_tokens_carry_no_autograd_graph(tiny_model):
+    from pointmap.inference import pooled_tokens
+
+    assert any(p.requires_grad for p in tiny_model.parameters())  # a model straight from training or load_model
+    preds = pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True)
+    assert not any(t.requires_grad for p in preds.values() for t in vars(p).values() if isinstance(t, torch.Tensor))
+    assert not pooled_tokens(tiny_model, views(2)).requires_grad

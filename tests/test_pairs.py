@@ -23,7 +23,8 @@ def test_oneref_links_everything_to_the_reference():
     assert pm.make_pairs(4, "oneref-2") == [(0, 2), (1, 2), (2, 3)]
 
 
-@pytest.mark.parametrize("graph", ["star", "swin", "swin-x", "oneref-9", "swin-0", "swin-2-cyclic"])
+@pytest.mark.parametrize("graph", ["star", "swin", "swin-x", "oneref-9", "swin-0", "swin-2-cyclic", "retrieval-0",
+                                   "retrieval-2-noncyclic", "retrieval"])
 def test_unknown_or_malformed_graphs_are_refused(graph):
     with pytest.raises(pm.GraphError):
         pm.make_pairs(5, graph)
@@ -46,3 +47,71 @@ def test_numpy_image_counts_are_taken_and_other_types_are_refused_naming_them():
         pm.make_pairs(3.0)
     with pytest.raises(pm.GraphError, match="graph expected a name .*got int 5"):
         pm.make_pairs(3, 5)
+
+
+def _max_spanning_weight(n, pairs, s):
+    """Kruskal's maximum spanning tree over ``pairs`` (the slow reference): its total similarity, or None when the
+    pairs do not connect the n images."""
+    parent = list(range(n))
+
+    def find(a):
+        while parent[a] != a:
+            a = parent[a]
+        return a
+
+    total, used = 0.0, 0
+    for i, j in sorted(pairs, key=lambda p: -s[p[0], p[1]]):
+        a, b = find(i), find(j)
+        if a != b:
+            parent[a] = b
+            total, used = total + s[i, j], used + 1
+    return total if used == n - 1 else None
+
+
+def test_the_retrieval_graph_holds_each_images_nearest_and_a_maximum_spanning_tree_of_the_similarity():
+    from pointmap.pairs import pairs_from_similarity
+
+    rng = np.random.default_rng(0)
+    for n, k in [(2, 1), (5, 1), (7, 2), (9, 3), (12, 1)]:
+        x = rng.normal(size=(n, 6))
+        s = x @ x.T
+        pairs = pairs_from_similarity(s, k)
+        assert pairs == sorted(set(pairs)) and all(i < j for i, j in pairs)
+        everything = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        # its best spanning tree is as good as the complete graph's: a maximum spanning tree is in it
+        assert _max_spanning_weight(n, pairs, s) == pytest.approx(_max_spanning_weight(n, everything, s))
+        for i in range(n):  # each image's k most similar others
+            others = sorted((j for j in range(n) if j != i), key=lambda j: -s[i, j])[:k]
+            assert all((min(i, j), max(i, j)) in pairs for j in others)
+        assert len(pairs) <= k * n + n - 1
+        assert pairs_from_similarity(s, k) == pairs  # deterministic
+
+
+def test_two_groups_of_alike_images_are_paired_within_each_group_and_joined_once():
+    from pointmap.pairs import pairs_from_similarity
+
+    s = np.full((6, 6), 0.1)
+    s[:3, :3] = s[3:, 3:] = 0.9
+    s[2, 4] = s[4, 2] = 0.3  # the best link between the groups
+    pairs = pairs_from_similarity(s, 2)
+    assert pairs == [(0, 1), (0, 2), (1, 2), (2, 4), (3, 4), (3, 5), (4, 5)]
+    pm.check_connected(6, pairs)
+
+
+@pytest.mark.parametrize("sim,k,message", [
+    (np.ones((3, 2)), 1, r"an \[N, N\] similarity of N >= 2 images, got shape \[3, 2\]"),
+    (np.ones((1, 1)), 1, "N >= 2"),
+    (np.array([[1.0, np.nan], [np.nan, 1.0]]), 1, "NaN or infinite"),
+    (np.eye(3), 0, "k expected an int >= 1"),
+    (np.eye(3), 1.5, "k expected an int >= 1"),
+])
+def test_the_retrieval_graph_refuses_a_similarity_it_cannot_use(sim, k, message):
+    from pointmap.pairs import pairs_from_similarity
+
+    with pytest.raises(pm.GraphError, match=message):
+        pairs_from_similarity(sim, k)
+
+
+def test_a_retrieval_graph_cannot_be_made_from_a_count_alone():
+    with pytest.raises(pm.GraphError, match="from the images' similarity"):
+        pm.make_pairs(8, "retrieval-3")

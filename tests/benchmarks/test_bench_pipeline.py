@@ -26,6 +26,19 @@ def test_each_image_count_gets_a_row_of_estimated_and_measured_times_and_its_acc
         assert epi <= al  # the refinement's share (it rounds to 0.00 on these 64-px images)
 
 
+def test_several_graphs_run_on_each_count_of_the_views_in_a_shuffled_order(model_file, capsys):
+    assert main(["--model", str(model_file), "--counts", "4", "--render-size", "64", "--size", "64", "--threads", "1",
+                 "--graphs", "swin-1", "retrieval-1", "--shuffle", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "views shuffled (seed 3)" in out
+    rows = re.findall(r"^\| 4 \| ([a-z0-9-]+) \| (\d+) \|", out, re.M)
+    assert [g for g, _ in rows] == ["swin-1", "retrieval-1"]
+    assert int(rows[0][1]) == 4 and 3 <= int(rows[1][1]) <= 4  # a 4-cycle; each image's nearest + the tree
+    with pytest.raises(SystemExit):
+        main(["--model", str(model_file), "--graphs", "bogus"])
+    assert "--graphs: unknown graph 'bogus'" in capsys.readouterr().err
+
+
 def test_the_views_are_rendered_alike_each_time_and_the_accuracy_counts_camera_pairs():
     images, gt = render_views(3, "room", 64)
     again, gt2 = render_views(3, "room", 64)
