@@ -71,18 +71,25 @@ def test_pairs_that_are_not_index_pairs_a_fractional_batch_size_and_a_non_model_
         pm.predict_pairs(None, views(2), [(0, 1)], quiet=True)
 
 
-def test_image_similarity_is_the_cosine_of_each_images_mean_token_encoded_alone(tiny_model):
+def test_image_similarity_is_the_share_of_mutual_nearest_tokens_counted_one_by_one(tiny_model):
     from pointmap.inference import image_similarity
 
     vs = views(4, [(48, 64), (48, 64), (64, 48), (48, 64)])
     sim = image_similarity(tiny_model, vs, batch_size=3)
-    assert sim.shape == (4, 4) and torch.allclose(sim, sim.T, atol=1e-6)
-    with torch.inference_mode():  # the slow reference: one image at a time, the cosine written out
-        pooled = [tiny_model.encode(v.img[None]).tokens[0].float().mean(0) for v in vs]
+    assert sim.shape == (4, 4) and torch.equal(sim, sim.T) and torch.equal(sim.diagonal(), torch.ones(4, dtype=sim.dtype))
+    with torch.inference_mode():  # the slow reference: each image encoded alone, every token's nearest by a loop
+        toks = [tiny_model.encode(v.img[None]).tokens[0].float() for v in vs]
+
+    def nearest(t, others):
+        return [max(range(len(others)), key=lambda q: float(torch.cosine_similarity(t[p], others[q], dim=0)))
+                for p in range(len(t))]
+
     for i in range(4):
-        for j in range(4):
-            ref = float(pooled[i] @ pooled[j] / (pooled[i].norm() * pooled[j].norm()))
-            assert float(sim[i, j]) == pytest.approx(ref, abs=1e-5)
+        for j in range(i + 1, 4):
+            ij, ji = nearest(toks[i], toks[j]), nearest(toks[j], toks[i])
+            mutual = sum(ji[q] == p for p, q in enumerate(ij))
+            assert float(sim[i, j]) == pytest.approx(mutual / min(len(toks[i]), len(toks[j])))
+    assert 0 <= float(sim.min()) and float(sim.max()) <= 1
 
 
 def test_predictions_and_pooled_tokens_carry_no_autograd_graph(tiny_model):
