@@ -11,6 +11,10 @@ card has it) and the same for translation, for the pointmaps' own pose and for t
 those four counts over all four sets (the count proposed in session 41, docs/training-log.md). A figure a card
 lacks (a skipped section, an older card without a metric) shows as "-". Nothing here runs a model: it reads what
 the card script printed.
+
+A card before session 42 printed ``bench_s525252``'s shares in whole percents, so its counts there can be a pair
+off. ``--per-pair A.csv B.csv ...`` (the card's fourth argument, one file per card, in the same order) adds the
+same sum counted pair by pair from those files, exact ("-" for a file without the pipeline's columns).
 """
 
 from __future__ import annotations
@@ -175,20 +179,46 @@ def compare(cards: list[dict], names: list[str]) -> str:
     return "\n".join(rows)
 
 
+def exact_count(per_pair: dict, tol: float = 15.0) -> int | None:
+    """The session-42 ship count from a per-pair file (``paired.read_per_pair``): rotations + directions within
+    ``tol`` of the pointmaps' pose and of the pipeline's over the four card sets; None when the file lacks a set or
+    the pipeline's errors."""
+    keys = [k for k in per_pair if k[0] in EVAL_SETS + ("bench_s525252",)]
+    if {k[0] for k in keys} != set(EVAL_SETS + ("bench_s525252",)):
+        return None
+    if any(math.isnan(per_pair[k][3]) for k in keys):
+        return None
+    return sum(int(per_pair[k][c] < tol) for k in keys for c in (0, 1, 3, 4))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("cards", nargs="+", help="outputs of benchmarks/model_card.sh")
     p.add_argument("--names", nargs="+", help="column names (default: the file names)")
+    p.add_argument("--per-pair", nargs="+", default=None, metavar="CSV",
+                   help="each card's per-pair file (model_card.sh's fourth argument), in the cards' order: the last "
+                   "row's count again, exact")
     a = p.parse_args(argv)
     names = a.names or [Path(c).stem for c in a.cards]
     if len(names) != len(a.cards):
         p.error(f"--names expected {len(a.cards)} names (one per card), got {len(names)}")
+    if a.per_pair is not None and len(a.per_pair) != len(a.cards):
+        p.error(f"--per-pair expected {len(a.cards)} files (one per card), got {len(a.per_pair)}")
     try:
         cards = [parse_card(Path(c).read_text()) for c in a.cards]
-    except (OSError, ValueError) as e:  # CardError, or a figure that is not a number
+        counts = None
+        if a.per_pair is not None:
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+            from benchmarks.paired import read_per_pair
+
+            counts = [exact_count(read_per_pair(f)) for f in a.per_pair]
+    except (OSError, ValueError) as e:  # CardError, PairedError, or a figure that is not a number
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(compare(cards, names))
+    if counts is not None:
+        print("| the same, counted pair by pair from the per-pair files (exact) | "
+              f"{' | '.join('-' if v is None else str(v) for v in counts)} |")
     return 0
 
 

@@ -118,3 +118,31 @@ def test_the_last_row_sums_rotations_and_directions_of_both_poses_over_all_four_
     assert "| rotations + directions within 15 deg, own pointmaps' pose + the pipeline's, pairs over all four sets " \
            f"| {250 + 41 + 226 + 79} | - |" in table
     assert "all four sets" not in compare([no_cam], ["no_cam"])
+
+
+def test_the_exact_count_from_per_pair_files_counts_both_poses_over_the_four_sets_only(tmp_path, capsys):
+    from benchmarks.compare_cards import exact_count
+    from benchmarks.paired import read_per_pair
+    from training.evaluate import PairResult, write_per_pair
+
+    f = tmp_path / "pairs.csv"
+    sets = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646", "bench_s525252")
+    for s in sets:  # per set: a pair with all four within 15, one with the rotations only, one with none
+        write_per_pair(f, s, [PairResult(0, 1.0, 2.0, 5.0, 3.0, 4.0), PairResult(1, 14.9, 40.0, 5.0, 10.0, 15.0),
+                              PairResult(2, 80.0, float("nan"), 5.0, 90.0, 100.0)])
+    write_per_pair(f, "real_rig", [PairResult(0, 1.0, 1.0, 5.0, 1.0, 1.0)])  # not a card set: not counted
+    assert exact_count(read_per_pair(f)) == 4 * (4 + 2)
+    old = tmp_path / "old.csv"  # a file without the pipeline's columns, or without a set, has no count
+    old.write_text("set,pair,rot_err,dir_err,true_rot\n" + "".join(f"{s},0,1,2,3\n" for s in sets))
+    assert exact_count(read_per_pair(old)) is None
+    short = tmp_path / "short.csv"
+    write_per_pair(short, "eval_s424242", [PairResult(0, 1.0, 2.0, 5.0, 3.0, 4.0)])
+    assert exact_count(read_per_pair(short)) is None
+    card = tmp_path / "card.txt"
+    card.write_text(_card(50.0, 70.0, 50, cam=60.0))
+    assert main([str(card), str(card), "--per-pair", str(f), str(old)]) == 0
+    assert capsys.readouterr().out.rstrip().endswith(
+        "| the same, counted pair by pair from the per-pair files (exact) | 24 | - |")
+    with pytest.raises(SystemExit):
+        main([str(card), str(card), "--per-pair", str(f)])
+    assert "--per-pair expected 2 files" in capsys.readouterr().err
