@@ -263,17 +263,20 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--cameras and --focal both give intrinsics: use one")
     if args.known_poses and args.cameras is None:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
+    if args.pairs is not None and args.graph != "auto":
+        raise PointmapError(f"--pairs and --graph {args.graph} both choose the pairs: use one")
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
         return reconstruct_scene(model, size, args, scene, formats)
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
-    if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks)) or \
+    if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks, args.pairs)) or \
             (args.focal is not None and "," in args.focal):
-        raise PointmapError("--each-folder takes --cameras and --masks relative to each scene folder (e.g. "
-                            "--cameras sparse/0, --masks masks): an absolute path or per-image --focal would apply "
-                            "one scene's cameras or masks to every scene (a single --focal for all is accepted)")
+        raise PointmapError("--each-folder takes --cameras, --masks and --pairs relative to each scene folder (e.g. "
+                            "--cameras sparse/0, --masks masks, --pairs pairs.txt): an absolute path or per-image "
+                            "--focal would apply one scene's cameras, masks or pairs to every scene (a single --focal "
+                            "for all is accepted)")
     out_root = writable_dir(Path(args.out)).resolve()
     scenes = sorted(d for d in Path(args.images[0]).iterdir()  # hidden, __MACOSX-like and the output skipped
                     if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
@@ -283,7 +286,8 @@ def cmd_reconstruct(args) -> int:
     failed = []
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
-        own = argparse.Namespace(**{**vars(args), **{k: str(scene / getattr(args, k)) for k in ("cameras", "masks")
+        own = argparse.Namespace(**{**vars(args), **{k: str(scene / getattr(args, k)) for k in ("cameras", "masks",
+                                                                                              "pairs")
                                                       if getattr(args, k) is not None}})  # the scene's own files
         try:
             reconstruct_scene(model, size, own, prepare_scene(own, [str(scene)], Path(args.out) / scene.name),
@@ -313,6 +317,43 @@ def writable_dir(out: Path, flag: str = "-o") -> Path:
     return out
 
 
+def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
+    """``--pairs FILE``: one pair of photographs per line, two names separated by white space (the pairs format of
+    hloc and COLMAP's custom matching; blank lines and lines starting with # are skipped). A name is an image's path
+    as given or found, its path from the folder it was read from, or its file name when that is unique. Returns
+    index pairs into ``images`` (``pm.reconstruct`` checks that they connect every image); PointmapError naming
+    the line otherwise."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise PointmapError(f"--pairs expected a text file of image name pairs, got {path!r} ({e})") from None
+    found: dict[str, set] = {}
+    for k, img in enumerate(images):
+        p = Path(img)
+        tails = {"/".join(p.parts[-d:]) for d in range(1, len(p.parts) + 1)}  # "b.jpg", "photos/b.jpg", ...
+        for key in tails | {str(img), p.as_posix(), p.resolve().as_posix()}:
+            found.setdefault(key, set()).add(k)
+    index = {key: next(iter(ks)) for key, ks in found.items() if len(ks) == 1}  # an ambiguous name names nothing
+    names = [Path(i).name for i in images]
+    pairs = []
+    for no, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        parts = text.split()
+        if len(parts) != 2:
+            raise PointmapError(f"--pairs {path}, line {no}: expected two image names, got {text!r}")
+        missing = [q for q in parts if q not in index]
+        if missing:
+            what = "names several" if len(found.get(missing[0], ())) > 1 else "is none"
+            raise PointmapError(f"--pairs {path}, line {no}: {missing[0]!r} {what} of the {len(images)} photographs "
+                                f"(a path, or a file name that only one has, e.g. {names[0]!r})")
+        pairs.append((index[parts[0]], index[parts[1]]))
+    if not pairs:
+        raise PointmapError(f"--pairs {path}: no pairs in the file")
+    return pairs
+
+
 def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     """A scene's inputs (files, folders, a video) read and checked without the model: the image paths, the pair
     graph, known K / poses (``--cameras``, ``--focal``) and masks, for ``reconstruct_scene``."""
@@ -329,6 +370,10 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
         graph = auto_graph(len(images), sequential=True)
+    if args.pairs is not None:  # the user's own pairs (e.g. a retrieval's), checked now: indices and connectivity
+        from pointmap.pairs import pairs_from_list
+
+        graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images]))
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
@@ -500,6 +545,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--size", type=int, default=None)
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I, retrieval-K (each "
                    "image with its K most similar by the encoder: photos in no particular order)")
+    r.add_argument("--pairs", default=None, metavar="FILE",
+                   help="the pairs to run, one per line: two image names (hloc / COLMAP pairs format; a path or a "
+                   "unique file name), e.g. from a retrieval; instead of --graph")
     r.add_argument("--export", default="ply,glb,colmap,npz",
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
                         "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), tum (trajectory.txt), npz (reconstruction.npz, which "

@@ -108,6 +108,29 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
     return sorted(edges)
 
 
+def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
+    """A pair graph given as (i, j) index pairs (e.g. from an external retrieval): sorted unordered pairs without
+    duplicates ((j, i) is (i, j)), each index in 0..n-1 and i != j, connecting all ``n`` images; GraphError naming
+    the first bad pair or the components otherwise."""
+    if not is_int(n) or int(n) < 2:
+        raise GraphError(f"a pair graph needs at least 2 images, got {n!r}")
+    n = int(n)
+    if isinstance(pairs, (str, bytes)) or not hasattr(pairs, "__iter__"):
+        raise GraphError(f"pairs expected a list of (i, j) image index pairs, got {type(pairs).__name__}")
+    out = set()
+    for p in pairs:
+        if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):
+            raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
+        i, j = int(p[0]), int(p[1])
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
+        out.add((min(i, j), max(i, j)))
+    if not out:
+        raise GraphError("pairs expected at least one (i, j) pair, got none")
+    check_connected(n, out)
+    return sorted(out)
+
+
 def components(n: int, pairs) -> list[list[int]]:
     """Connected components of the pair graph (lists of image indices, largest first)."""
     parent = list(range(n))

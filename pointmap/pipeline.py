@@ -152,7 +152,7 @@ def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> No
         check_one_camera(info.original_sizes, info.map_from_original, K_known, fx)
 
 
-def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None = None, batch_size: int = 8,
+def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None, batch_size: int = 8,
                 K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
                 conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
                 epipolar=True, quiet: bool = False, device: str = "cpu"):
@@ -160,7 +160,8 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
 
     graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
         "retrieval-K": each image with the K others most alike by the encoder's pooled tokens, plus the spanning
-        tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order)
+        tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order), or
+        a list of (i, j) image index pairs (``pairs_from_list``: connected; recorded as the graph "given")
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
         Images of different sizes or orientations are centre-cropped to the largest shape they all contain
         (``crop_to_common``; reported unless ``quiet``)
@@ -204,13 +205,18 @@ def reconstruct(model, paths_or_arrays, graph: str = "auto", *, size: int | None
     check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
     from pointmap.align.epipolar import EpipolarConfig
 
-    graph = auto_graph(n) if graph == "auto" else graph
-    if str(graph).startswith("retrieval"):  # pairs by the images' similarity (an unordered photo collection)
+    if not isinstance(graph, str):  # the caller's own pairs (e.g. an external retrieval's)
+        from pointmap.pairs import pairs_from_list
+
+        pairs, graph = pairs_from_list(n, graph), "given"
+    elif graph.startswith("retrieval"):  # pairs by the images' similarity (an unordered photo collection)
         from pointmap.inference import image_similarity
         from pointmap.pairs import pairs_from_similarity, parse_graph
 
-        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), parse_graph(graph)[1])
+        k = parse_graph(graph)[1]  # the name checked before the encoder runs
+        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), k)
     else:
+        graph = auto_graph(n) if graph == "auto" else graph
         pairs = make_pairs(n, graph)
     # also refuses an epipolar that is not True, False or an EpipolarConfig, before any inference
     cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine)

@@ -309,7 +309,7 @@ def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one
     assert main(["reconstruct", str(folder / "a.jpg"), "--each-folder", "-o", str(out)]) == 2
     assert "--each-folder expected one folder whose sub-folders are scenes" in capsys.readouterr().err
     assert main(["reconstruct", str(scenes), "--each-folder", "-o", str(out), "--masks", str(folder)]) == 2
-    assert "takes --cameras and --masks relative to each scene folder" in capsys.readouterr().err
+    assert "takes --cameras, --masks and --pairs relative to each scene folder" in capsys.readouterr().err
 
 
 def test_each_folder_reads_every_scenes_own_cameras_and_masks_and_its_images_folder(tiny, tmp_path, capsys):
@@ -528,3 +528,57 @@ def test_a_retrieval_graph_pairs_the_photographs_by_similarity_end_to_end(tiny, 
     expected = real(sim, 1)
     info = load_npz(out / "reconstruction.npz").info["pipeline"]
     assert info["graph"] == "retrieval-1" and info["pairs"] == len(expected) >= 2
+
+
+def test_a_pairs_file_names_the_pairs_by_path_or_unique_file_name_and_reconstruct_runs_exactly_them(tiny, tmp_path,
+                                                                                                   monkeypatch):
+    import pointmap.pipeline
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"# from a retrieval\n\na.jpg b.PNG\n{folder / 'c.png'} photos/b.PNG\n  b.PNG a.jpg  \n")
+    seen = []
+    real = pointmap.pipeline.reconstruct
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["graph"]) or real(*a, **k))
+    out = tmp_path / "r"
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--export", "npz", "--pairs", str(pairs)]) == 0
+    # the folder's images sorted by name: a.jpg, b.PNG, c.png; (b, a) is (a, b)
+    assert seen == [[(0, 1), (1, 2)]]
+    info = load_npz(out / "reconstruction.npz").info["pipeline"]
+    assert info["graph"] == "given" and info["pairs"] == 2
+
+
+@pytest.mark.parametrize("text,extra,message", [
+    ("a.jpg zzz.png\n", [], "line 1: 'zzz.png' is none of the 3 photographs"),
+    ("a.jpg b.PNG c.png\n", [], "line 1: expected two image names, got 'a.jpg b.PNG c.png'"),
+    ("# nothing\n", [], "no pairs in the file"),
+    ("a.jpg b.PNG\n", [], "the pair graph is disconnected: 2 components"),  # c.png in no pair
+    ("a.jpg a.jpg\n", [], "invalid pair (0, 0)"),
+    ("a.jpg b.PNG\n", ["--graph", "complete"], "--pairs and --graph complete both choose the pairs"),
+])
+def test_a_pairs_file_that_cannot_be_used_is_refused_by_line_before_the_model_loads(tiny, tmp_path, capsys,
+                                                                                    monkeypatch, text, extra, message):
+    import pointmap.checkpoint
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    weights, folder = tiny
+    (tmp_path / "pairs.txt").write_text(text)
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights),
+                 "--pairs", str(tmp_path / "pairs.txt"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+
+
+def test_a_file_name_two_photographs_share_is_refused_as_ambiguous(tmp_path):
+    from pointmap.cli import pairs_from_file
+    from pointmap.errors import PointmapError
+
+    (tmp_path / "p.txt").write_text("x/a.jpg y/a.jpg\n")
+    assert pairs_from_file(str(tmp_path / "p.txt"), ["s/x/a.jpg", "s/y/a.jpg"]) == [(0, 1)]
+    (tmp_path / "p.txt").write_text("a.jpg y/a.jpg\n")
+    with pytest.raises(PointmapError, match="'a.jpg' names several of the 2 photographs"):
+        pairs_from_file(str(tmp_path / "p.txt"), ["s/x/a.jpg", "s/y/a.jpg"])
+    with pytest.raises(PointmapError, match="--pairs expected a text file"):
+        pairs_from_file(str(tmp_path / "missing.txt"), ["a.jpg"])

@@ -38,7 +38,10 @@ def fake_stack(monkeypatch, request):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
 
     inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs}
-    for name, fns in (("pointmap.pairs", {"make_pairs": make_pairs}), ("pointmap.inference", inference),
+    from pointmap.pairs import pairs_from_list
+
+    pairs_module = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list}
+    for name, fns in (("pointmap.pairs", pairs_module), ("pointmap.inference", inference),
                       ("pointmap.matching", {"match": match, "match_coarse": match_coarse})):
         mod = types.ModuleType(name)
         mod.__dict__.update(fns)
@@ -328,3 +331,19 @@ def test_photographs_given_as_an_iterator_keep_their_files_for_the_exports(fake_
         cv2.imwrite(str(paths[-1]), im[..., ::-1])
     recon = reconstruct(None, iter(paths), size=48, align=AlignConfig(quiet=True), quiet=True)
     assert recon.info["sources"] == [str(p.resolve()) for p in paths]
+
+
+def test_a_given_list_of_pairs_is_run_as_given_and_a_disconnected_one_is_refused_before_the_inference(fake_stack):
+    from pointmap.errors import GraphError
+
+    sc, images, calls = fake_stack
+    recon = reconstruct(None, images, graph=[(1, 0), (1, 2), (2, 3), (4, 3), (0, 1)], size=48, quiet=True,
+                        epipolar=False)
+    assert calls["pairs"] == [(0, 1), (1, 2), (2, 3), (3, 4)]  # unordered, deduplicated, sorted
+    assert recon.info["pipeline"]["graph"] == "given" and recon.info["pipeline"]["pairs"] == 4
+    calls.pop("pairs")
+    for bad, message in [([(0, 1), (2, 3), (3, 4)], "disconnected: 2 components"), ([(0, 5)], "invalid pair"),
+                         ([], "at least one"), ([(0, 1, 2)], "expected")]:
+        with pytest.raises(GraphError, match=message):
+            reconstruct(None, images, graph=bad, size=48, quiet=True)
+    assert "pairs" not in calls  # refused before any inference
