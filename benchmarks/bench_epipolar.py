@@ -178,7 +178,7 @@ def main(argv=None) -> None:
             mine = [r for r in rows if r["n"] == n]
             for m in methods:
                 rots = [r[m][2] for r in mine]
-                bad = sorted(x for x in rots if x > args.fail_deg)
+                bad = sorted((x for x in rots if not x <= args.fail_deg), key=lambda x: (x == x, x))  # NaN: failed
                 good = [x for x in rots if x <= args.fail_deg]
                 print(f"| {n} | {name(*m)} | {len(rots)} | {len(bad)} ({', '.join(f'{x:.1f}' for x in bad) or '-'}) | "
                       f"{max(good):.2f} | {np.median([r[m][0] for r in mine]):.2f} |" if good else

@@ -47,7 +47,8 @@ def read_per_pair(path) -> dict:
     except (OSError, UnicodeDecodeError) as e:
         raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
     if not rows or tuple(rows[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
-        raise PairedError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)}, got "
+        raise PairedError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)} (or {','.join(PER_PAIR_HEADER_V1)}),"
+                          f" got "
                           f"{','.join(rows[0]) if rows else 'an empty file'}")
     out = {}
     for n, r in enumerate(rows[1:], start=2):

@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from pointmap.errors import ImageError, PointmapError
+from pointmap.errors import GraphError, ImageError, PointmapError
 
 log = logging.getLogger("pointmap")
 DEFAULT_MODEL = "small"
@@ -327,14 +327,21 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
         lines = Path(path).read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise PointmapError(f"--pairs expected a text file of image name pairs, got {path!r} ({e})") from None
-    found: dict[str, set] = {}
+    exact: dict[str, int] = {}  # a photograph's own path, as given and resolved, names it first
+    found: dict[str, set] = {}  # then any tail of its path: "b.jpg", "photos/b.jpg", ...
     for k, img in enumerate(images):
-        p = Path(img)
-        tails = {"/".join(p.parts[-d:]) for d in range(1, len(p.parts) + 1)}  # "b.jpg", "photos/b.jpg", ...
-        for key in tails | {str(img), p.as_posix(), p.resolve().as_posix()}:
-            found.setdefault(key, set()).add(k)
-    index = {key: next(iter(ks)) for key, ks in found.items() if len(ks) == 1}  # an ambiguous name names nothing
-    names = [Path(i).name for i in images]
+        p = Path(os.path.normpath(img))
+        for key in (p.as_posix(), p.resolve().as_posix()):
+            exact.setdefault(key, k)
+        for d in range(1, len(p.parts) + 1):
+            found.setdefault("/".join(p.parts[-d:]), set()).add(k)
+    index = {key: next(iter(ks)) for key, ks in found.items() if len(ks) == 1}  # an ambiguous tail names nothing
+    index.update(exact)
+
+    def lookup(name: str):
+        return index.get(Path(os.path.normpath(name)).as_posix())
+
+    hint = min((key for key, k in index.items() if k == 0), key=len)  # the shortest name of the first photograph
     pairs = []
     for no, line in enumerate(lines, start=1):
         text = line.strip()
@@ -343,12 +350,16 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
         parts = text.split()
         if len(parts) != 2:
             raise PointmapError(f"--pairs {path}, line {no}: expected two image names, got {text!r}")
-        missing = [q for q in parts if q not in index]
+        missing = [q for q in parts if lookup(q) is None]
         if missing:
-            what = "names several" if len(found.get(missing[0], ())) > 1 else "is none"
+            what = ("names several" if len(found.get(Path(os.path.normpath(missing[0])).as_posix(), ())) > 1
+                    else "is none")
             raise PointmapError(f"--pairs {path}, line {no}: {missing[0]!r} {what} of the {len(images)} photographs "
-                                f"(a path, or a file name that only one has, e.g. {names[0]!r})")
-        pairs.append((index[parts[0]], index[parts[1]]))
+                                f"(a path, or a tail of one that only one has, e.g. {hint!r})")
+        i, j = lookup(parts[0]), lookup(parts[1])
+        if i == j:
+            raise PointmapError(f"--pairs {path}, line {no}: a photograph paired with itself ({text!r})")
+        pairs.append((i, j))
     if not pairs:
         raise PointmapError(f"--pairs {path}: no pairs in the file")
     return pairs
@@ -373,7 +384,10 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     if args.pairs is not None:  # the user's own pairs (e.g. a retrieval's), checked now: indices and connectivity
         from pointmap.pairs import pairs_from_list
 
-        graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images]))
+        try:
+            graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images]))
+        except GraphError as e:  # e.g. pairs that leave a photograph out: said with the file's name
+            raise PointmapError(f"--pairs {args.pairs}: {e}") from None
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
@@ -627,7 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
     for cmd in (a, r, s, loc, d):  # every command that runs the network
         cmd.add_argument("--device", default="auto", help="where the network runs: auto (CUDA, then MPS, then the "
                          "CPU: the first torch can use; default), cpu, cuda, cuda:N or mps. The alignment and the "
-                         "splat fit run on the CPU")
+                         "splat fit run on the CPU (splat uses it only with --test)")
     return p
 
 
@@ -636,7 +650,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     try:
-        args.device = resolve_device(args.device)  # before anything runs: a missing GPU is one line, not a traceback
+        if args.cmd != "splat" or args.test:  # the commands that run the network (splat only with --test)
+            args.device = resolve_device(args.device)  # before anything runs: a missing GPU is one line
         return args.fn(args)
     except PointmapError as e:
         print(f"pointmap: error: {e}", file=sys.stderr)

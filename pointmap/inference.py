@@ -60,8 +60,8 @@ def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="c
 
 @torch.inference_mode()
 def pooled_tokens(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
-    """[N, D] unit vectors: each image's mean encoder token (a global descriptor for retrieval; views: Views or
-    [3, H, W] tensors)."""
+    """[N, D] unit vectors: each image's mean encoder token, a global descriptor (``localize`` ranks references by
+    its cosine; views: Views or [3, H, W] tensors)."""
     enc = encode_views(model, _as_images(views), batch_size, device)
     return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1).cpu() for e in enc]), dim=-1)
 
@@ -74,7 +74,8 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.T
     0.52 / 0.51) better than the cosine of the mean tokens ``localize`` ranks references by (0.21 / 0.23 / 0.27;
     docs/alignment.md). Images of different shapes compare too (their token counts differ)."""
     enc = encode_views(model, _as_images(views), batch_size, device)
-    toks = [torch.nn.functional.normalize(e.tokens[0].float(), dim=-1) for e in enc]
+    toks = [torch.nn.functional.normalize(e.tokens[0].float().cpu(), dim=-1) for e in enc]  # off the GPU
+    del enc
     n = len(toks)
     sim = torch.eye(n, dtype=torch.float64)
     for i in range(n):

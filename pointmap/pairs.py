@@ -109,7 +109,8 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
 
 
 def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
-    """A pair graph given as (i, j) index pairs (e.g. from an external retrieval): sorted unordered pairs without
+    """A pair graph given as (i, j) index pairs (a list, or an [M, 2] integer array or tensor, e.g. from an external
+    retrieval): sorted unordered pairs without
     duplicates ((j, i) is (i, j)), each index in 0..n-1 and i != j, connecting all ``n`` images; GraphError naming
     the first bad pair or the components otherwise."""
     if not is_int(n) or int(n) < 2:
@@ -117,6 +118,10 @@ def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
     n = int(n)
     if isinstance(pairs, (str, bytes)) or not hasattr(pairs, "__iter__"):
         raise GraphError(f"pairs expected a list of (i, j) image index pairs, got {type(pairs).__name__}")
+    if hasattr(pairs, "tolist") and hasattr(pairs, "shape"):  # an [M, 2] integer array or tensor (a retrieval's top-k)
+        if len(pairs.shape) != 2 or pairs.shape[1] != 2:
+            raise GraphError(f"pairs expected an [M, 2] array of image indices, got shape {list(pairs.shape)}")
+        pairs = pairs.tolist()
     out = set()
     for p in pairs:
         if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):

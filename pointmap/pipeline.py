@@ -19,8 +19,8 @@ from pointmap.io.points import check_conf_filter, confidence_mask
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
 ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
 FUSE_SECONDS_PER_EDGE_PIXEL = 1.2e-7
-STAGE_NAMES = {"inference": "inference", "alignment": "alignment", "epipolar": "pose refinement on matches",
-               "sparse": "sparse refinement"}  # info["pipeline"]["seconds"]'s keys, as the report names them
+STAGE_NAMES = {"retrieval": "pair retrieval", "inference": "inference", "alignment": "alignment",
+               "epipolar": "pose refinement on matches", "sparse": "sparse refinement"}  # info["pipeline"]["seconds"]'s keys, as the report names them
 # Inference: the network's FLOPs (counted by torch on the meta device) at a CPU rate that grows with the width.
 # Both anchors measured on 2 threads of the 2-core VM (docs/benchmarks.md): the shipped `small` (256-wide encoder)
 # in `reconstruct`, 71 GFLOP/s at 4, 8 and 16 images (bench_pipeline.py, session 39); the official-size
@@ -63,14 +63,28 @@ def inference_gflop(cfg, hw: tuple) -> tuple[float, float]:
     return per_image / 1e9, fc.get_total_flops() / 1e9
 
 
+def check_stages(epipolar, refine) -> None:
+    """PointmapError unless ``epipolar`` is True, False or an ``EpipolarConfig`` and ``refine`` True, False or a
+    ``SparseConfig`` (``reconstruct``'s stage arguments, checked before any inference)."""
+    from pointmap.align.epipolar import EpipolarConfig
+    from pointmap.align.sparse import SparseConfig
+
+    if not isinstance(epipolar, (bool, EpipolarConfig)):
+        raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
+    if not isinstance(refine, (bool, SparseConfig)):
+        raise PointmapError(f"refine expected True, False or a SparseConfig, got {type(refine).__name__}")
+
+
 def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config: AlignConfig | None = None,
-                  device: str = "cpu", epipolar=False, refine=False) -> dict:
+                  device: str = "cpu", epipolar=False, refine=False, retrieval: bool = False) -> dict:
     """Rough time (s) and peak memory (GB) of inference and alignment, before running them. ``model``: anything
     with a ``cfg`` (a PointmapNet or an ONNX export; None: the official-size dust3r_512_dpt). Inference counts
     each image encoded once and each pair decoded in both orders, as ``predict_pairs`` runs them, at a CPU rate
     measured on 2 threads. ``epipolar``: False, True or an ``EpipolarConfig``, as ``reconstruct`` takes it; for a
     model with descriptors, the alignment time then includes the pose refinement on matches (per pair and coarse
     cell) and its depth re-fit (a second dense alignment, unless the config's ``refit_depth`` is off).
+    ``retrieval`` (the ``retrieval-K`` graph): inference also counts its similarity, each image encoded once more
+    and every image pair's patch tokens compared (``image_similarity``).
     Memory counts the predictions ``reconstruct`` keeps (``predictions_gb``: both pointmaps and confidences of every
     directed pair in float32, and, for a model with descriptors when ``epipolar`` or ``refine`` will match on
     them, both descriptor maps and their confidences: 2 x (desc_dim + 1) more floats per pixel, 6x the pointmaps'
@@ -78,8 +92,7 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     from pointmap.align.epipolar import EpipolarConfig
     from pointmap.model import PRESETS, ModelConfig
 
-    if not isinstance(epipolar, (bool, EpipolarConfig)):
-        raise PointmapError(f"epipolar expected True, False or an EpipolarConfig, got {type(epipolar).__name__}")
+    check_stages(epipolar, refine)
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs
@@ -96,7 +109,11 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     rate = CPU_GFLOPS_AT_256 * (arch.enc_dim / 256) ** CPU_GFLOPS_WIDTH_EXPONENT
     if str(device).startswith("cuda"):
         rate *= 100.0
-    infer_s = (n_images * per_image + 2 * n_pairs * per_pair) / rate
+    gflop = n_images * per_image + 2 * n_pairs * per_pair
+    if retrieval:  # the images encoded again, and T x T token products of D per image pair
+        tokens = max(1, h // p) * max(1, w // p)
+        gflop += n_images * per_image + 2 * tokens * tokens * arch.enc_dim * n_images * (n_images - 1) / 2 / 1e9
+    infer_s = gflop / rate
     dense_s = (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
                + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters))
     align_s = dense_s
@@ -159,8 +176,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     """Photos to a Reconstruction.
 
     graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
-        "retrieval-K": each image with the K others most alike by the encoder's pooled tokens, plus the spanning
-        tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order), or
+        "retrieval-K": each image with the K others most alike by their encoder tokens (``image_similarity``: the
+        share that are mutual nearest neighbours), plus the spanning tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order), or
         a list of (i, j) image index pairs (``pairs_from_list``: connected; recorded as the graph "given")
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
         Images of different sizes or orientations are centre-cropped to the largest shape they all contain
@@ -177,16 +194,17 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
         or pointmaps; uses ``pm.match``)
     """
-    from pointmap.align.sparse import SparseConfig
     from pointmap.checkpoint import model_input_size
+    from pointmap.errors import ShapeError, is_int
     from pointmap.images import crop_to_common, load_images
     from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs
 
     if align is not None and not isinstance(align, AlignConfig):
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
-    if not isinstance(refine, (bool, SparseConfig)):
-        raise PointmapError(f"refine expected True, False or a SparseConfig, got {type(refine).__name__}")
+    check_stages(epipolar, refine)
+    if not (is_int(batch_size) and batch_size >= 1):
+        raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     check_conf_filter(min_conf, conf_percentile)
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
@@ -205,25 +223,6 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     check_known_inputs(views, K, cam2world, pose_mask, cfg.shared_focal)  # refused now, not after inference
     from pointmap.align.epipolar import EpipolarConfig
 
-    if not isinstance(graph, str):  # the caller's own pairs (e.g. an external retrieval's)
-        from pointmap.pairs import pairs_from_list
-
-        pairs, graph = pairs_from_list(n, graph), "given"
-    elif graph.startswith("retrieval"):  # pairs by the images' similarity (an unordered photo collection)
-        from pointmap.inference import image_similarity
-        from pointmap.pairs import pairs_from_similarity, parse_graph
-
-        k = parse_graph(graph)[1]  # the name checked before the encoder runs
-        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), k)
-    else:
-        graph = auto_graph(n) if graph == "auto" else graph
-        pairs = make_pairs(n, graph)
-    # also refuses an epipolar that is not True, False or an EpipolarConfig, before any inference
-    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine)
-    if not quiet:
-        print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
-              f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
-              f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     user_masks = masks_to_maps(masks, views) if masks is not None else None  # refused now, not after inference
     seconds = {}  # each stage's measured wall time, beside the estimate
     clock = time.perf_counter()
@@ -234,6 +233,27 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         seconds[stage] = round(now - clock, 3)
         clock = now
 
+    retrieval = isinstance(graph, str) and graph.startswith("retrieval")
+    if not isinstance(graph, str):  # the caller's own pairs (e.g. an external retrieval's)
+        from pointmap.pairs import pairs_from_list
+
+        pairs, graph = pairs_from_list(n, graph), "given"
+    elif retrieval:  # pairs by the images' similarity (an unordered photo collection)
+        from pointmap.inference import image_similarity
+        from pointmap.pairs import pairs_from_similarity, parse_graph
+
+        k = parse_graph(graph)[1]  # the name checked before the encoder runs
+        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), k)
+        lap("retrieval")
+    else:
+        graph = auto_graph(n) if graph == "auto" else graph
+        pairs = make_pairs(n, graph)
+    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine, retrieval)
+    if not quiet:
+        print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
+              f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
+              f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
+    clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
     preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
                           keep_desc=bool(epipolar) or bool(refine))
@@ -281,7 +301,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None
                              for src in paths_or_arrays]
-    recon.info["pipeline"] = {"size": size, "graph": graph, "pairs": len(pairs), "estimate": cost, "min_conf": min_conf,
+    recon.info["pipeline"] = {"size": size, "graph": graph, "pairs": len(pairs), "pair_list": [list(p) for p in pairs],
+                              "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine),
                               "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False)),
                               "seconds": seconds}

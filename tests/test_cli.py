@@ -480,35 +480,76 @@ def test_a_device_torch_cannot_use_is_refused_in_one_line_before_the_model_loads
     monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
     weights, folder = tiny
     images = [str(folder / "a.jpg"), str(folder / "c.png")]
-    args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path), *images], "splat": [str(tmp_path)],
-            "demo": []}[command]
+    args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path), *images],
+            "splat": [str(tmp_path), "--test", images[0]], "demo": []}[command]
     assert main([command, *args, "-o", str(tmp_path / "out"), "--model", str(weights), "--device", "cuda"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("pointmap: error: --device cuda: torch sees 0 CUDA device(s)") and err.count("\n") == 1
 
 
-def test_the_device_reaches_the_model_the_inference_and_the_pair_outputs(tiny, tmp_path, monkeypatch):
+class _Reached(Exception):
+    """A stand-in stops a command once it has seen the device."""
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "pair", "localize", "splat", "demo"])
+def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_command(tiny, tmp_path, monkeypatch,
+                                                                                  command):
     import pointmap.checkpoint
+    import pointmap.demo
     import pointmap.io_pair
+    import pointmap.localize
     import pointmap.pipeline
+    import pointmap.splat
+    from pointmap.io import save_reconstruction
+
+    sys.path.insert(0, str(Path(__file__).parent / "io"))
+    from recon_factory import make_recon
 
     weights, folder = tiny
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a machine with one GPU: auto takes it
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     seen = {}
-    real_load, real_recon, real_pair = (pointmap.checkpoint.load_model, pointmap.pipeline.reconstruct,
-                                        pointmap.io_pair.write_pair_outputs)
-    monkeypatch.setattr(pointmap.checkpoint, "load_model",
-                        lambda *a, **k: seen.setdefault("load", []).append(k.get("device")) or real_load(*a, **k))
-    monkeypatch.setattr(pointmap.pipeline, "reconstruct",
-                        lambda *a, **k: seen.setdefault("recon", []).append(k.get("device")) or real_recon(*a, **k))
-    monkeypatch.setattr(pointmap.io_pair, "write_pair_outputs",
-                        lambda *a, **k: seen.setdefault("pair", []).append(k.get("device")) or real_pair(*a, **k))
+
+    def record(name):
+        def stand_in(*a, **k):
+            seen[name] = k.get("device")
+            if name == "load":
+                return pm.PointmapNet(pm.PRESETS["test"]).eval()  # on the CPU: nothing here runs on the GPU
+            if name == "splat":
+                return {"fit": None}
+            raise _Reached(name)
+        return stand_in
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", record("load"))
+    for module, name in ((pointmap.pipeline, "reconstruct"), (pointmap.io_pair, "write_pair_outputs"),
+                         (pointmap.localize, "localize"), (pointmap.demo, "run_demo"), (pointmap.splat, "run")):
+        monkeypatch.setattr(module, name, record(name if name != "run" else "splat"))
+    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    images = [str(folder / "a.jpg"), str(folder / "c.png")]
+    args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path / "rec"), *images],
+            "splat": [str(tmp_path / "rec"), "--test", images[0]], "demo": []}[command]
+    with pytest.raises(_Reached):
+        main(["--quiet", command, *args, "-o", str(tmp_path / "out"), "--model", str(weights), "--size", "64"]
+             if command in ("reconstruct", "pair") else
+             ["--quiet", command, *args, "-o", str(tmp_path / "out"), "--model", str(weights)])
+    stage = {"reconstruct": "reconstruct", "pair": "write_pair_outputs", "localize": "localize", "splat": "localize",
+             "demo": "run_demo"}[command]
+    assert seen[stage] == "cuda"
+    if command != "demo":  # run_demo loads its own model, with the device it was given
+        assert seen["load"] == "cuda"
+
+
+def test_splat_without_test_views_never_asks_for_the_device(tiny, tmp_path, monkeypatch):
+    import pointmap.splat
+    from pointmap.io import save_reconstruction
+
+    sys.path.insert(0, str(Path(__file__).parent / "io"))
+    from recon_factory import make_recon
+
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
-    assert main(["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), "--size",
-                 "64", "--export", "npz", "--device", "auto"]) == 0
-    assert main(["--quiet", "pair", str(folder / "a.jpg"), str(folder / "c.png"), "-o", str(tmp_path / "p"),
-                 "--model", str(weights), "--size", "64", "--device", "cpu"]) == 0
-    assert seen == {"load": ["cpu", "cpu"], "recon": ["cpu"], "pair": ["cpu"]}  # auto: the CPU on this machine
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": None})
+    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    assert main(["--quiet", "splat", str(tmp_path / "rec"), "--device", "cuda"]) == 0  # the fit runs on the CPU
 
 
 def test_a_retrieval_graph_pairs_the_photographs_by_similarity_end_to_end(tiny, tmp_path, monkeypatch):
@@ -554,8 +595,8 @@ def test_a_pairs_file_names_the_pairs_by_path_or_unique_file_name_and_reconstruc
     ("a.jpg zzz.png\n", [], "line 1: 'zzz.png' is none of the 3 photographs"),
     ("a.jpg b.PNG c.png\n", [], "line 1: expected two image names, got 'a.jpg b.PNG c.png'"),
     ("# nothing\n", [], "no pairs in the file"),
-    ("a.jpg b.PNG\n", [], "the pair graph is disconnected: 2 components"),  # c.png in no pair
-    ("a.jpg a.jpg\n", [], "invalid pair (0, 0)"),
+    ("a.jpg b.PNG\n", [], "pairs.txt: the pair graph is disconnected: 2 components"),  # c.png in no pair
+    ("a.jpg ./photos/a.jpg\n", [], "line 1: a photograph paired with itself"),
     ("a.jpg b.PNG\n", ["--graph", "complete"], "--pairs and --graph complete both choose the pairs"),
 ])
 def test_a_pairs_file_that_cannot_be_used_is_refused_by_line_before_the_model_loads(tiny, tmp_path, capsys,
@@ -578,7 +619,10 @@ def test_a_file_name_two_photographs_share_is_refused_as_ambiguous(tmp_path):
     (tmp_path / "p.txt").write_text("x/a.jpg y/a.jpg\n")
     assert pairs_from_file(str(tmp_path / "p.txt"), ["s/x/a.jpg", "s/y/a.jpg"]) == [(0, 1)]
     (tmp_path / "p.txt").write_text("a.jpg y/a.jpg\n")
-    with pytest.raises(PointmapError, match="'a.jpg' names several of the 2 photographs"):
+    with pytest.raises(PointmapError, match="'a.jpg' names several of the 2 photographs .* e.g. 'x/a.jpg'"):
         pairs_from_file(str(tmp_path / "p.txt"), ["s/x/a.jpg", "s/y/a.jpg"])
+    # a photograph's own path names it even when it is also a tail of another's
+    (tmp_path / "p.txt").write_text("a/b.jpg ./c/a/b.jpg\n")
+    assert pairs_from_file(str(tmp_path / "p.txt"), ["a/b.jpg", "c/a/b.jpg"]) == [(0, 1)]
     with pytest.raises(PointmapError, match="--pairs expected a text file"):
         pairs_from_file(str(tmp_path / "missing.txt"), ["a.jpg"])

@@ -115,3 +115,22 @@ def test_the_retrieval_graph_refuses_a_similarity_it_cannot_use(sim, k, message)
 def test_a_retrieval_graph_cannot_be_made_from_a_count_alone():
     with pytest.raises(pm.GraphError, match="from the images' similarity"):
         pm.make_pairs(8, "retrieval-3")
+
+
+def test_equal_scores_go_to_the_lower_index():
+    from pointmap.pairs import pairs_from_similarity
+
+    assert pairs_from_similarity(np.ones((4, 4)), 1) == [(0, 1), (0, 2), (0, 3)]
+
+
+def test_given_pairs_may_be_an_index_array_and_are_checked_like_a_list():
+    import torch
+
+    from pointmap.pairs import pairs_from_list
+
+    assert pairs_from_list(3, np.array([[1, 0], [2, 1]])) == [(0, 1), (1, 2)]
+    assert pairs_from_list(3, torch.tensor([[0, 2], [2, 1]])) == [(0, 2), (1, 2)]
+    with pytest.raises(pm.GraphError, match=r"an \[M, 2\] array of image indices, got shape \[2, 3\]"):
+        pairs_from_list(3, np.zeros((2, 3), int))
+    with pytest.raises(pm.GraphError, match="expected \\(i, j\\) pairs of image indices"):
+        pairs_from_list(3, np.array([[0.5, 1.0]]))

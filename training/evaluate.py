@@ -56,7 +56,8 @@ def _per_pair_rows_kept(path, set_name: str) -> list:
     with open(path, newline="") as f:
         old = list(csv.reader(f))
     if not old or tuple(old[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
-        raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)}, got "
+        raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)} (or, before "
+                         f"session 42, {','.join(PER_PAIR_HEADER_V1)}), got "
                          f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
     pad = ["nan"] * (len(PER_PAIR_HEADER) - len(old[0]))  # an older file's rows gain the pipeline's columns
     return [r + pad for r in old[1:] if r and r[0] != set_name]
@@ -78,6 +79,10 @@ def write_per_pair(path, set_name: str, rows) -> None:
 
     from pointmap.atomic import atomic_open
 
+    rows = list(rows)
+    for r in rows:
+        if not isinstance(r, PairResult):
+            raise ValueError(f"write_per_pair expected PairResult rows, got {type(r).__name__} {r!r}")
     kept = _per_pair_rows_kept(path, set_name)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")

@@ -38,9 +38,10 @@ def fake_stack(monkeypatch, request):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
 
     inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs}
-    from pointmap.pairs import pairs_from_list
+    from pointmap.pairs import pairs_from_list, pairs_from_similarity, parse_graph
 
-    pairs_module = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list}
+    pairs_module = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list,
+                    "pairs_from_similarity": pairs_from_similarity, "parse_graph": parse_graph}
     for name, fns in (("pointmap.pairs", pairs_module), ("pointmap.inference", inference),
                       ("pointmap.matching", {"match": match, "match_coarse": match_coarse})):
         mod = types.ModuleType(name)
@@ -347,3 +348,49 @@ def test_a_given_list_of_pairs_is_run_as_given_and_a_disconnected_one_is_refused
         with pytest.raises(GraphError, match=message):
             reconstruct(None, images, graph=bad, size=48, quiet=True)
     assert "pairs" not in calls  # refused before any inference
+
+
+def test_the_retrieval_estimate_counts_the_second_encoding_and_the_token_comparisons():
+    from pointmap.model import PRESETS
+    from pointmap.pipeline import CPU_GFLOPS_AT_256, CPU_GFLOPS_WIDTH_EXPONENT, inference_gflop
+
+    model = type("Exported", (), {"cfg": PRESETS["small"]})()
+    plain = estimate_cost(10, 20, (224, 224), model)["inference_seconds"]
+    retr = estimate_cost(10, 20, (224, 224), model, retrieval=True)["inference_seconds"]
+    per_image = inference_gflop(PRESETS["small"], (224, 224))[0]
+    tokens, dim = 14 * 14, PRESETS["small"].enc_dim
+    rate = CPU_GFLOPS_AT_256 * (dim / 256) ** CPU_GFLOPS_WIDTH_EXPONENT
+    assert retr - plain == pytest.approx((10 * per_image + 2 * tokens ** 2 * dim * 45 / 1e9) / rate)
+
+
+@pytest.mark.parametrize("bad", [0, 2.5, "8"])
+def test_reconstruct_refuses_a_batch_size_before_anything_runs(fake_stack, bad):
+    from pointmap.errors import ShapeError
+
+    _, images, calls = fake_stack
+    with pytest.raises(ShapeError, match="batch_size expected an int >= 1"):
+        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, batch_size=bad)
+    assert "pairs" not in calls
+
+
+def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_encoder(fake_stack, monkeypatch):
+    _, images, calls = fake_stack
+    monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity",  # the stand-in module
+                        lambda *a, **k: pytest.fail("the encoder ran"), raising=False)
+    with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
+        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, epipolar="yes")
+    with pytest.raises(PointmapError, match="refine expected True, False or a SparseConfig, got str"):
+        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, refine="no")
+    with pytest.raises(Exception, match="mask 0 expected"):
+        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, masks=[np.zeros((5, 5), bool)] * 5)
+
+
+def test_a_retrieval_run_records_its_stage_time_and_every_run_its_pairs(fake_stack, monkeypatch):
+    sc, images, calls = fake_stack
+    sim = np.eye(5) + 0.5 * (np.abs(np.subtract.outer(np.arange(5), np.arange(5))) == 1)  # a chain 0-1-2-3-4
+    monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity",  # the stand-in module
+                        lambda *a, **k: torch.from_numpy(sim), raising=False)
+    recon = reconstruct(None, images, graph="retrieval-1", size=48, quiet=True, epipolar=False)
+    info = recon.info["pipeline"]
+    assert calls["pairs"] == [(0, 1), (1, 2), (2, 3), (3, 4)] and info["pair_list"] == [[0, 1], [1, 2], [2, 3], [3, 4]]
+    assert list(info["seconds"])[:2] == ["retrieval", "inference"] and info["seconds"]["retrieval"] >= 0

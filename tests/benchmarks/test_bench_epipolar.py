@@ -1,5 +1,7 @@
 import re
 
+import pytest
+
 from benchmarks.bench_epipolar import main
 
 
@@ -39,6 +41,15 @@ def test_several_starts_and_modes_run_on_the_same_rings_and_the_summary_counts_t
     # a threshold below any fit's error fails every start, and lists each start's worst rotation
     assert all(c[3].startswith("3 (") and c[4] == "-" for c in summary)
     assert "| 5 | off, analytic | on, analytic |" not in out and "off, analytic: time (s)" in out
+    # a threshold above every error fails none, and the worst of the others is the largest worst rotation
+    main(["--sizes", "5", "--hw", "48", "64", "--window", "2", "--seeds", "0", "1", "2", "--rot-deg", "6",
+          "--jacobians", "analytic", "--cheirality", "on", "--fail-deg", "90"])
+    rows = _table(capsys.readouterr().out)
+    per_start = [[c.strip() for c in r.strip("|").split("|")] for r in rows if r.count("|") == 10]  # one method
+    assert len(per_start) == 3
+    worst = max(float(c[7].split("/")[0]) for c in per_start)
+    summary, = [[c.strip() for c in r.strip("|").split("|")] for r in rows if r.count("|") == 7]
+    assert summary[3] == "0 (-)" and float(summary[4]) == pytest.approx(worst, abs=0.006)
 
 
 def test_the_stage_mode_times_the_alignment_and_the_stage_after_it_with_and_without_cheirality(capsys):

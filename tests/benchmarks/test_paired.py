@@ -57,6 +57,12 @@ def test_per_pair_files_round_trip_keep_other_sets_and_replace_a_rewritten_set(t
     assert read_per_pair(f)[("edge", 0)][0] < 15
 
 
+def test_only_pair_results_are_written(tmp_path):
+    with pytest.raises(ValueError, match="expected PairResult rows, got tuple"):
+        write_per_pair(tmp_path / "p.csv", "eval_a", [(0, 1.0, 2.0, 3.0)])
+    assert not (tmp_path / "p.csv").exists()
+
+
 def test_a_per_pair_file_refuses_to_overwrite_a_foreign_file_and_reading_rejects_malformed_rows(tmp_path):
     foreign = tmp_path / "notes.csv"
     foreign.write_text("name,value\nx,1\n")
