@@ -72,7 +72,7 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.T
     [0, 1], diagonal 1: what the ``retrieval-K`` graph (``pointmap.pairs.pairs_from_similarity``) pairs by. On 24
     rendered views each of a room, a cluster and a courtyard it follows the cameras' viewing angle (Spearman 0.36 /
     0.52 / 0.51) better than the cosine of the mean tokens ``localize`` ranks references by (0.21 / 0.23 / 0.27;
-    docs/alignment.md). Images of different shapes compare too (their token counts differ)."""
+    ``benchmarks/bench_retrieval.py``). Images of different shapes compare too (their token counts differ)."""
     enc = encode_views(model, _as_images(views), batch_size, device)
     toks = [torch.nn.functional.normalize(e.tokens[0].float().cpu(), dim=-1) for e in enc]  # off the GPU
     del enc
