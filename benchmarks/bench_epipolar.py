@@ -180,10 +180,10 @@ def main(argv=None) -> None:
                 rots = [r[m][2] for r in mine]
                 bad = sorted((x for x in rots if not x <= args.fail_deg), key=lambda x: (x == x, x))  # NaN: failed
                 good = [x for x in rots if x <= args.fail_deg]
+                worst_good = f"{max(good):.2f}" if good else "-"
                 print(f"| {n} | {name(*m)} | {len(rots)} | {len(bad)} ({', '.join(f'{x:.1f}' for x in bad) or '-'}) | "
-                      f"{max(good):.2f} | {np.median([r[m][0] for r in mine]):.2f} |" if good else
-                      f"| {n} | {name(*m)} | {len(rots)} | {len(bad)} ({', '.join(f'{x:.1f}' for x in bad)}) | - | "
-                      f"{np.median([r[m][0] for r in mine]):.2f} |")
+                      f"{worst_good} | {np.median([r[m][0] for r in mine]):.2f} |")
+
 
 if __name__ == "__main__":
     main()

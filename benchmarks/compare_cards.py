@@ -183,8 +183,9 @@ def exact_count(per_pair: dict, tol: float = 15.0) -> int | None:
     """The session-42 ship count from a per-pair file (``paired.read_per_pair``): rotations + directions within
     ``tol`` of the pointmaps' pose and of the pipeline's over the four card sets; None when the file lacks a set or
     the pipeline's errors."""
-    keys = [k for k in per_pair if k[0] in EVAL_SETS + ("bench_s525252",)]
-    if {k[0] for k in keys} != set(EVAL_SETS + ("bench_s525252",)):
+    card_sets = (*EVAL_SETS, "bench_s525252")
+    keys = [k for k in per_pair if k[0] in card_sets]
+    if {k[0] for k in keys} != set(card_sets):
         return None
     if any(math.isnan(per_pair[k][3]) for k in keys):
         return None

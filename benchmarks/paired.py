@@ -23,14 +23,13 @@ draw of the training run that made each model (two runs of one recipe differ too
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from training.evaluate import PER_PAIR_HEADER, PER_PAIR_HEADER_V1  # noqa: E402
+from training.evaluate import PER_PAIR_HEADER, read_per_pair_csv  # noqa: E402
 
 
 class PairedError(ValueError):
@@ -42,25 +41,23 @@ def read_per_pair(path) -> dict:
     before the pipeline's columns existed reads them as NaN); PairedError for anything else."""
     path = Path(path)
     try:
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
+        width, rows = read_per_pair_csv(path)
     except (OSError, UnicodeDecodeError) as e:
         raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
-    if not rows or tuple(rows[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
-        raise PairedError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)} (or {','.join(PER_PAIR_HEADER_V1)}),"
-                          f" got "
-                          f"{','.join(rows[0]) if rows else 'an empty file'}")
+    except ValueError as e:  # a foreign header
+        raise PairedError(str(e)) from None
+    header = ",".join(PER_PAIR_HEADER[:width])
     out = {}
-    for n, r in enumerate(rows[1:], start=2):
+    for n, r in enumerate(rows, start=2):
         if not r:
             continue
         try:
-            if len(r) != len(rows[0]):
+            if len(r) != width:
                 raise ValueError(f"{len(r)} fields")
             key = (r[0], int(r[1]))
-            vals = tuple(float(x) for x in r[2:]) + (math.nan,) * (len(PER_PAIR_HEADER) - len(r))
+            vals = tuple(float(x) for x in r[2:]) + (math.nan,) * (len(PER_PAIR_HEADER) - width)
         except ValueError as e:
-            raise PairedError(f"{path}, line {n}: expected {','.join(rows[0])}, got {','.join(r)!r} ({e})") from e
+            raise PairedError(f"{path}, line {n}: expected {header}, got {','.join(r)!r} ({e})") from e
         if key in out:
             raise PairedError(f"{path}, line {n}: pair {key[1]} of set {key[0]!r} appears twice")
         out[key] = vals

@@ -13,6 +13,7 @@ from tqdm.auto import tqdm
 
 from pointmap.errors import CheckpointError, GraphError, ShapeError, is_int
 from pointmap.images import View
+from pointmap.pairs import checked_index_pairs
 from pointmap.prediction import PairPrediction
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,7 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.T
         for j in range(i + 1, n):
             c = toks[i] @ toks[j].T
             a, b = c.argmax(1), c.argmax(0)
-            mutual = int((b[a] == torch.arange(len(a), device=a.device)).sum())
+            mutual = int((b[a] == torch.arange(len(a))).sum())
             sim[i, j] = sim[j, i] = mutual / min(len(toks[i]), len(toks[j]))
     return sim
 
@@ -102,14 +103,7 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     pairs = list(pairs)
     if not pairs:
         raise GraphError("predict_pairs needs at least one pair")
-    for p in pairs:
-        if (not isinstance(p, (tuple, list)) or len(p) != 2
-                or not all(is_int(k) for k in p)):
-            raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
-    pairs = [(int(i), int(j)) for i, j in pairs]
-    for i, j in pairs:
-        if not (0 <= i < n and 0 <= j < n) or i == j:
-            raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
+    pairs = checked_index_pairs(n, pairs)
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     if not (hasattr(model, "decode_pair") and callable(model)):

@@ -108,11 +108,24 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
     return sorted(edges)
 
 
+def checked_index_pairs(n: int, pairs) -> list[tuple[int, int]]:
+    """``pairs`` as (i, j) tuples of ints, in their order and direction, each index in 0..n-1 and i != j;
+    GraphError naming the first bad pair otherwise (``predict_pairs`` and ``pairs_from_list`` check with this)."""
+    out = []
+    for p in pairs:
+        if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):
+            raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
+        i, j = int(p[0]), int(p[1])
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
+        out.append((i, j))
+    return out
+
+
 def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
     """A pair graph given as (i, j) index pairs (a list, or an [M, 2] integer array or tensor, e.g. from an external
-    retrieval): sorted unordered pairs without
-    duplicates ((j, i) is (i, j)), each index in 0..n-1 and i != j, connecting all ``n`` images; GraphError naming
-    the first bad pair or the components otherwise."""
+    retrieval): sorted unordered pairs without duplicates ((j, i) is (i, j)), each index in 0..n-1 and i != j,
+    connecting all ``n`` images; GraphError naming the first bad pair or the components otherwise."""
     if not is_int(n) or int(n) < 2:
         raise GraphError(f"a pair graph needs at least 2 images, got {n!r}")
     n = int(n)
@@ -122,14 +135,7 @@ def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
         if len(pairs.shape) != 2 or pairs.shape[1] != 2:
             raise GraphError(f"pairs expected an [M, 2] array of image indices, got shape {list(pairs.shape)}")
         pairs = pairs.tolist()
-    out = set()
-    for p in pairs:
-        if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):
-            raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
-        i, j = int(p[0]), int(p[1])
-        if not (0 <= i < n and 0 <= j < n) or i == j:
-            raise GraphError(f"invalid pair ({i}, {j}) for {n} images: indices must differ and be in 0..{n - 1}")
-        out.add((min(i, j), max(i, j)))
+    out = {(min(i, j), max(i, j)) for i, j in checked_index_pairs(n, pairs)}
     if not out:
         raise GraphError("pairs expected at least one (i, j) pair, got none")
     check_connected(n, out)

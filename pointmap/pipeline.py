@@ -19,8 +19,9 @@ from pointmap.io.points import check_conf_filter, confidence_mask
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
 ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
 FUSE_SECONDS_PER_EDGE_PIXEL = 1.2e-7
+# info["pipeline"]["seconds"]'s keys, as the report names them
 STAGE_NAMES = {"retrieval": "pair retrieval", "inference": "inference", "alignment": "alignment",
-               "epipolar": "pose refinement on matches", "sparse": "sparse refinement"}  # info["pipeline"]["seconds"]'s keys, as the report names them
+               "epipolar": "pose refinement on matches", "sparse": "sparse refinement"}
 # Inference: the network's FLOPs (counted by torch on the meta device) at a CPU rate that grows with the width.
 # Both anchors measured on 2 threads of the 2-core VM (docs/benchmarks.md): the shipped `small` (256-wide encoder)
 # in `reconstruct`, 71 GFLOP/s at 4, 8 and 16 images (bench_pipeline.py, session 39); the official-size
@@ -177,8 +178,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
 
     graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
         "retrieval-K": each image with the K others most alike by their encoder tokens (``image_similarity``: the
-        share that are mutual nearest neighbours), plus the spanning tree that keeps the graph connected (``pairs_from_similarity``; for photos in no particular order), or
-        a list of (i, j) image index pairs (``pairs_from_list``: connected; recorded as the graph "given")
+        share that are mutual nearest neighbours), plus the spanning tree that keeps the graph connected
+        (``pairs_from_similarity``; for photos in no particular order), or a list / [M, 2] array of (i, j) image
+        index pairs (``pairs_from_list``: connected; recorded as the graph "given")
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
         Images of different sizes or orientations are centre-cropped to the largest shape they all contain
         (``crop_to_common``; reported unless ``quiet``)

@@ -41,10 +41,23 @@ PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot", "pair_rot_er
 PER_PAIR_HEADER_V1 = PER_PAIR_HEADER[:5]  # files written before session 42 (no pipeline pose): read as NaN
 
 
+def read_per_pair_csv(path) -> tuple[int, list]:
+    """(the number of columns of the file's header, its data rows as lists of strings) of a per-pair CSV written
+    by ``write_per_pair``, this version's or one before session 42 (without the pipeline's two columns); OSError
+    when it cannot be read, ValueError naming the header otherwise."""
+    import csv
+
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or tuple(rows[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
+        raise ValueError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)} (or, before session 42, "
+                         f"{','.join(PER_PAIR_HEADER_V1)}), got {','.join(rows[0]) if rows else 'an empty file'}")
+    return len(rows[0]), rows[1:]
+
+
 def _per_pair_rows_kept(path, set_name: str) -> list:
     """The rows of other sets in an existing per-pair CSV at ``path`` ([] when there is none), after checking
     ``set_name`` and that the file is a per-pair CSV; ValueError otherwise (nothing written)."""
-    import csv
     from pathlib import Path
 
     if not set_name or set_name == "all" or any(c in set_name for c in ',"\n\r'):
@@ -53,14 +66,12 @@ def _per_pair_rows_kept(path, set_name: str) -> list:
     path = Path(path)
     if not path.exists():
         return []
-    with open(path, newline="") as f:
-        old = list(csv.reader(f))
-    if not old or tuple(old[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
-        raise ValueError(f"{path} expected a per-pair CSV with the header {','.join(PER_PAIR_HEADER)} (or, before "
-                         f"session 42, {','.join(PER_PAIR_HEADER_V1)}), got "
-                         f"{','.join(old[0]) if old else 'an empty file'}; refusing to overwrite it")
-    pad = ["nan"] * (len(PER_PAIR_HEADER) - len(old[0]))  # an older file's rows gain the pipeline's columns
-    return [r + pad for r in old[1:] if r and r[0] != set_name]
+    try:
+        width, old = read_per_pair_csv(path)
+    except ValueError as e:
+        raise ValueError(f"{e}; refusing to overwrite it") from None
+    pad = ["nan"] * (len(PER_PAIR_HEADER) - width)  # an older file's rows gain the pipeline's columns
+    return [r + pad for r in old if r and r[0] != set_name]
 
 
 def check_per_pair(path, set_name: str) -> None:
