@@ -67,14 +67,43 @@ def pooled_tokens(model, views, batch_size: int = 8, device="cpu") -> torch.Tens
     return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1).cpu() for e in enc]), dim=-1)
 
 
+def checked_encodings(encodings, imgs: list[torch.Tensor]) -> list:
+    """``encodings`` (``encode_views``'s output for these images, one per image) checked against the images: one
+    entry per image, each a batch of one on the patch grid of its image's shape. ShapeError (one line) otherwise."""
+    if not isinstance(encodings, (list, tuple)) or len(encodings) != len(imgs):
+        got = f"{len(encodings)} entries" if isinstance(encodings, (list, tuple)) else type(encodings).__name__
+        raise ShapeError(f"encodings expected encode_views's list, one per image ({len(imgs)}), got {got}")
+    grids = {}
+    for k, (e, img) in enumerate(zip(encodings, imgs)):
+        tokens, grid = getattr(e, "tokens", None), getattr(e, "grid", None)
+        if not isinstance(tokens, torch.Tensor) or tokens.ndim != 3 or tokens.shape[0] != 1 or grid is None:
+            got = list(tokens.shape) if isinstance(tokens, torch.Tensor) else type(e).__name__
+            raise ShapeError(f"encodings[{k}] expected one image's encoding (tokens [1, N, D]), got {got}")
+        if tokens.shape[1] != grid[0] * grid[1] or grids.setdefault(tuple(img.shape), tuple(grid)) != tuple(grid) \
+                or img.shape[1] % grid[0] or img.shape[2] % grid[1] \
+                or img.shape[1] // grid[0] != img.shape[2] // grid[1]:
+            raise ShapeError(f"encodings[{k}] (grid {tuple(grid)}, {tokens.shape[1]} tokens) is not an encoding of "
+                             f"image {k} ({list(img.shape)})")
+    return list(encodings)
+
+
 @torch.inference_mode()
-def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
+def image_similarity(model, views, batch_size: int = 8, device="cpu", *, encodings=None) -> torch.Tensor:
     """[N, N] symmetric share of each pair's encoder patch tokens that are mutual nearest neighbours (cosine), in
     [0, 1], diagonal 1: what the ``retrieval-K`` graph (``pointmap.pairs.pairs_from_similarity``) pairs by. On 24
     rendered views each of a room, a cluster and a courtyard it follows the cameras' viewing angle (Spearman 0.36 /
     0.52 / 0.51) better than the cosine of the mean tokens ``localize`` ranks references by (0.21 / 0.23 / 0.27;
-    ``benchmarks/bench_retrieval.py``). Images of different shapes compare too (their token counts differ)."""
-    enc = encode_views(model, _as_images(views), batch_size, device)
+    ``benchmarks/bench_retrieval.py``). Images of different shapes compare too (their token counts differ).
+    ``encodings``: ``encode_views``'s output for these views, reused (``predict_pairs`` takes it too, so an image
+    is encoded once for both); None: the views are encoded here."""
+    imgs = _as_images(views)
+    if encodings is None:
+        encodings = encode_views(model, imgs, batch_size, device)
+    if isinstance(encodings, (list, tuple)) and any(getattr(getattr(e, "tokens", None), "ndim", 3) == 4
+                                                    for e in encodings):  # images, deferred to the pair graph
+        raise CheckpointError("image_similarity needs the encoder's tokens, which a single-graph ONNX export does "
+                              "not give (it encodes inside each pair): export with --split, or use another graph")
+    enc = checked_encodings(encodings, imgs)
     toks = [torch.nn.functional.normalize(e.tokens[0].float().cpu(), dim=-1) for e in enc]  # off the GPU
     del enc
     n = len(toks)
@@ -90,13 +119,15 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu") -> torch.T
 
 @torch.inference_mode()
 def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", keep_desc: bool = True,
-                  store_dtype=None, quiet: bool = False) -> dict[tuple[int, int], PairPrediction]:
+                  store_dtype=None, quiet: bool = False, encodings=None) -> dict[tuple[int, int], PairPrediction]:
     """Predict every pair in both orders.
 
     views: list of View (from ``load_images``) or [3, H, W] tensors in [0, 1]
     pairs: iterable of (i, j), i != j (e.g. ``make_pairs``); (j, i) is added for each
     Returns {(i, j): PairPrediction} with batch size 1 per entry, on the CPU; ``store_dtype``
     (e.g. torch.float16) shrinks what is kept for many images, ``keep_desc=False`` drops descriptors.
+    ``encodings``: ``encode_views``'s output for these views (e.g. kept from ``image_similarity``), used instead
+    of encoding them again.
     """
     imgs = _as_images(views)
     n = len(imgs)
@@ -108,11 +139,15 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     if not (hasattr(model, "decode_pair") and callable(model)):
         raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")
+    given = None if encodings is None else checked_encodings(encodings, imgs)
     edges = directed(pairs)
     used = sorted({k for e in edges for k in e})
-    bar = tqdm(total=len(used) + len(edges), desc="inference", unit="img|pair", disable=quiet or None)
-    enc_used = encode_views(model, [imgs[k] for k in used], batch_size, device, progress=bar)
-    enc = dict(zip(used, enc_used))
+    bar = tqdm(total=len(edges) + (len(used) if given is None else 0), desc="inference", unit="img|pair",
+               disable=quiet or None)
+    if given is None:
+        enc = dict(zip(used, encode_views(model, [imgs[k] for k in used], batch_size, device, progress=bar)))
+    else:
+        enc = {k: given[k] for k in used}
     groups = defaultdict(list)  # pairs with the same shapes decode in one batch
     for e in edges:
         groups[(tuple(imgs[e[0]].shape), tuple(imgs[e[1]].shape))].append(e)

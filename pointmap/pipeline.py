@@ -84,8 +84,8 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     measured on 2 threads. ``epipolar``: False, True or an ``EpipolarConfig``, as ``reconstruct`` takes it; for a
     model with descriptors, the alignment time then includes the pose refinement on matches (per pair and coarse
     cell) and its depth re-fit (a second dense alignment, unless the config's ``refit_depth`` is off).
-    ``retrieval`` (the ``retrieval-K`` graph): inference also counts its similarity, each image encoded once more
-    and every image pair's patch tokens compared (``image_similarity``).
+    ``retrieval`` (the ``retrieval-K`` graph): inference also counts its similarity, every image pair's patch tokens
+    compared (``image_similarity``; the images are encoded once, for the similarity and the pairs alike).
     Memory counts the predictions ``reconstruct`` keeps (``predictions_gb``: both pointmaps and confidences of every
     directed pair in float32, and, for a model with descriptors when ``epipolar`` or ``refine`` will match on
     them, both descriptor maps and their confidences: 2 x (desc_dim + 1) more floats per pixel, 6x the pointmaps'
@@ -111,9 +111,9 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     if str(device).startswith("cuda"):
         rate *= 100.0
     gflop = n_images * per_image + 2 * n_pairs * per_pair
-    if retrieval:  # the images encoded again, and T x T token products of D per image pair
+    if retrieval:  # T x T token products of D per image pair (the encodings are shared with the pairs)
         tokens = max(1, h // p) * max(1, w // p)
-        gflop += n_images * per_image + 2 * tokens * tokens * arch.enc_dim * n_images * (n_images - 1) / 2 / 1e9
+        gflop += 2 * tokens * tokens * arch.enc_dim * n_images * (n_images - 1) / 2 / 1e9
     infer_s = gflop / rate
     dense_s = (ALIGN_SECONDS_PER_EDGE_PIXEL_ITER * E * P_opt * cfg.niter
                + FUSE_SECONDS_PER_EDGE_PIXEL * E * P * (1 + cfg.fuse_iters))
@@ -236,16 +236,19 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         clock = now
 
     retrieval = isinstance(graph, str) and graph.startswith("retrieval")
+    encodings = None  # the retrieval's, reused by predict_pairs
     if not isinstance(graph, str):  # the caller's own pairs (e.g. an external retrieval's)
         from pointmap.pairs import pairs_from_list
 
         pairs, graph = pairs_from_list(n, graph), "given"
     elif retrieval:  # pairs by the images' similarity (an unordered photo collection)
-        from pointmap.inference import image_similarity
+        from pointmap.inference import encode_views, image_similarity
         from pointmap.pairs import pairs_from_similarity, parse_graph
 
         k = parse_graph(graph)[1]  # the name checked before the encoder runs
-        pairs = pairs_from_similarity(image_similarity(model, views, batch_size, device), k)
+        # each image encoded once: the similarity's tokens are the ones predict_pairs decodes
+        encodings = encode_views(model, [v.img for v in views], batch_size, device)
+        pairs = pairs_from_similarity(image_similarity(model, views, encodings=encodings), k)
         lap("retrieval")
     else:
         graph = auto_graph(n) if graph == "auto" else graph
@@ -258,7 +261,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
     preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
-                          keep_desc=bool(epipolar) or bool(refine))
+                          keep_desc=bool(epipolar) or bool(refine), encodings=encodings)
+    del encodings
     lap("inference")
     if user_masks is not None:
         preds = {(i, j): _mask_pred(p, user_masks[i], user_masks[j]) for (i, j), p in preds.items()}

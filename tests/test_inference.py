@@ -99,3 +99,36 @@ def test_predictions_and_pooled_tokens_carry_no_autograd_graph(tiny_model):
     preds = pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True)
     assert not any(t.requires_grad for p in preds.values() for t in vars(p).values() if isinstance(t, torch.Tensor))
     assert not pooled_tokens(tiny_model, views(2)).requires_grad
+
+
+def test_encodings_passed_in_give_the_same_predictions_and_similarity_without_encoding_again(tiny_model):
+    from pointmap.inference import encode_views, image_similarity
+
+    vs = views(4, [(48, 64), (48, 64), (64, 48), (48, 64)])
+    pairs = [(0, 1), (1, 2), (3, 2)]
+    fresh = pm.predict_pairs(tiny_model, vs, pairs, batch_size=2, quiet=True)
+    sim = image_similarity(tiny_model, vs)
+    model = CountingModel(tiny_model)
+    encodings = encode_views(model, [v.img for v in vs], batch_size=3)
+    assert torch.equal(image_similarity(model, vs, encodings=encodings), sim)
+    reused = pm.predict_pairs(model, vs, pairs, batch_size=2, quiet=True, encodings=encodings)
+    assert model.encoded_images == 4  # once each, by encode_views alone
+    assert set(reused) == set(fresh)
+    for e in fresh:
+        for name, t in fresh[e].as_dict().items():
+            assert torch.allclose(getattr(reused[e], name), t, atol=1e-6), (e, name)
+
+
+def test_encodings_that_do_not_belong_to_the_views_are_refused(tiny_model):
+    from pointmap.inference import encode_views, image_similarity
+
+    vs = views(3, [(48, 64), (64, 48), (48, 64)])
+    enc = encode_views(tiny_model, [v.img for v in vs])
+    for bad, message in [(enc[:2], "one per image \\(3\\), got 2 entries"), (enc[0], "got Encoded"),
+                         ([enc[1], enc[0], enc[2]], "encodings\\[0\\] \\(grid \\(4, 3\\), 12 tokens\\) is not an encoding"),
+                         ([enc[0].cat([enc[0], enc[2]]), enc[1], enc[2]], "tokens \\[1, N, D\\]\\), got \\[2, 12, "),
+                         ([None, enc[1], enc[2]], "got NoneType")]:
+        with pytest.raises(pm.ShapeError, match=message):
+            pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, encodings=bad)
+        with pytest.raises(pm.ShapeError, match=message):
+            image_similarity(tiny_model, vs, encodings=bad)

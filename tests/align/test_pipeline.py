@@ -37,7 +37,12 @@ def fake_stack(monkeypatch, request):
     def match(pred):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
 
-    inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs}
+    def encode_views(model, imgs, batch_size=8, device="cpu", progress=None):
+        calls["encoded"] = calls.get("encoded", 0) + len(imgs)
+        return [f"encoding of image {k}" for k in range(len(imgs))]
+
+    inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs,
+                 "encode_views": encode_views}
     from pointmap.pairs import pairs_from_list, pairs_from_similarity, parse_graph
 
     pairs_module = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list,
@@ -350,17 +355,16 @@ def test_a_given_list_of_pairs_is_run_as_given_and_a_disconnected_one_is_refused
     assert "pairs" not in calls  # refused before any inference
 
 
-def test_the_retrieval_estimate_counts_the_second_encoding_and_the_token_comparisons():
+def test_the_retrieval_estimate_adds_the_token_comparisons_and_no_second_encoding():
     from pointmap.model import PRESETS
-    from pointmap.pipeline import CPU_GFLOPS_AT_256, CPU_GFLOPS_WIDTH_EXPONENT, inference_gflop
+    from pointmap.pipeline import CPU_GFLOPS_AT_256, CPU_GFLOPS_WIDTH_EXPONENT
 
     model = type("Exported", (), {"cfg": PRESETS["small"]})()
     plain = estimate_cost(10, 20, (224, 224), model)["inference_seconds"]
     retr = estimate_cost(10, 20, (224, 224), model, retrieval=True)["inference_seconds"]
-    per_image = inference_gflop(PRESETS["small"], (224, 224))[0]
     tokens, dim = 14 * 14, PRESETS["small"].enc_dim
     rate = CPU_GFLOPS_AT_256 * (dim / 256) ** CPU_GFLOPS_WIDTH_EXPONENT
-    assert retr - plain == pytest.approx((10 * per_image + 2 * tokens ** 2 * dim * 45 / 1e9) / rate)
+    assert retr - plain == pytest.approx(2 * tokens ** 2 * dim * 45 / 1e9 / rate)
 
 
 @pytest.mark.parametrize("bad", [0, 2.5, "8"])
@@ -375,8 +379,9 @@ def test_reconstruct_refuses_a_batch_size_before_anything_runs(fake_stack, bad):
 
 def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_encoder(fake_stack, monkeypatch):
     _, images, calls = fake_stack
-    monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity",  # the stand-in module
-                        lambda *a, **k: pytest.fail("the encoder ran"), raising=False)
+    for name in ("encode_views", "image_similarity"):  # the stand-in module's
+        monkeypatch.setattr(sys.modules["pointmap.inference"], name, lambda *a, **k: pytest.fail("the encoder ran"),
+                            raising=False)
     with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
         reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, epipolar="yes")
     with pytest.raises(PointmapError, match="refine expected True, False or a SparseConfig, got str"):
@@ -385,12 +390,19 @@ def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_enc
         reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, masks=[np.zeros((5, 5), bool)] * 5)
 
 
-def test_a_retrieval_run_records_its_stage_time_and_every_run_its_pairs(fake_stack, monkeypatch):
+def test_a_retrieval_run_encodes_each_image_once_records_its_stage_time_and_every_run_its_pairs(fake_stack,
+                                                                                                 monkeypatch):
     sc, images, calls = fake_stack
     sim = np.eye(5) + 0.5 * (np.abs(np.subtract.outer(np.arange(5), np.arange(5))) == 1)  # a chain 0-1-2-3-4
-    monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity",  # the stand-in module
-                        lambda *a, **k: torch.from_numpy(sim), raising=False)
+
+    def image_similarity(model, views, *a, encodings=None, **k):
+        calls["similarity_encodings"] = encodings
+        return torch.from_numpy(sim)
+
+    monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity", image_similarity, raising=False)
     recon = reconstruct(None, images, graph="retrieval-1", size=48, quiet=True, epipolar=False)
+    assert calls["encoded"] == 5 and calls["similarity_encodings"] == [f"encoding of image {k}" for k in range(5)]
+    assert calls["kw"]["encodings"] is calls["similarity_encodings"]  # the pairs decode the retrieval's encodings
     info = recon.info["pipeline"]
     assert calls["pairs"] == [(0, 1), (1, 2), (2, 3), (3, 4)] and info["pair_list"] == [[0, 1], [1, 2], [2, 3], [3, 4]]
     assert list(info["seconds"])[:2] == ["retrieval", "inference"] and info["seconds"]["retrieval"] >= 0

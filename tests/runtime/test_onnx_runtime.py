@@ -154,3 +154,13 @@ def test_provider_resolution():
     assert resolve_providers("auto")[-1] == "CPUExecutionProvider"
     assert resolve_providers([("CPUExecutionProvider", {"arena_extend_strategy": "kSameAsRequested"})])[0][0] == \
         "CPUExecutionProvider"
+
+
+def test_image_similarity_refuses_a_single_graph_export_and_agrees_with_eager_on_a_split_one(full_export,
+                                                                                              split_export, test_model):
+    from pointmap.inference import image_similarity
+
+    imgs = [torch.rand(3, 48, 64, generator=torch.Generator().manual_seed(k)) for k in range(3)]
+    with pytest.raises(CheckpointError, match="single-graph ONNX export .* export with --split"):
+        image_similarity(pm.load_model(full_export), imgs)
+    assert torch.allclose(image_similarity(pm.load_model(split_export), imgs), image_similarity(test_model, imgs))
