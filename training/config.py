@@ -62,6 +62,9 @@ class TrainConfig:
                                    # docs/training.md, Growing a model)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
+    ckpt_minutes: float = 10.0     # also checkpoint when this much wall time passed since the last one (0: off), so
+                                   # a slow run killed outright loses minutes, not ckpt_every steps; SIGTERM itself
+                                   # checkpoints the current step and stops (resume with the same command)
     eval_every: int = 1000
     eval_pairs: int = 64
     log_every: int = 10
@@ -195,7 +198,7 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature")
     out += [f"--{k} expected a finite value > 0, got {getattr(cfg, k)}" for k in positive
             if not 0 < getattr(cfg, k) < math.inf]
-    nonneg = ("min_lr", "weight_decay", "max_rotation", "max_minutes")
+    nonneg = ("min_lr", "weight_decay", "max_rotation", "max_minutes", "ckpt_minutes")
     out += [f"--{k} expected a finite value >= 0, got {getattr(cfg, k)}" for k in nonneg
             if not 0 <= getattr(cfg, k) < math.inf]
     if cfg.min_lr > cfg.lr:

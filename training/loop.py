@@ -8,12 +8,15 @@ Runs single-process or under ``torchrun`` (DDP: gloo on CPU, nccl on GPU).
 from __future__ import annotations
 
 import collections
+import contextlib
 import csv
 import dataclasses
 import io
 import math
 import os
 import random
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -408,75 +411,109 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects)
     loader = torch.utils.data.DataLoader(dataset, batch_sampler=sampler, collate_fn=collate,
                                          num_workers=cfg.workers, persistent_workers=False,
+                                         worker_init_fn=_leave_sigterm_to_the_main_process,
                                          prefetch_factor=4 if cfg.workers > 0 else None)
     bar = tqdm(total=cfg.steps, initial=start, desc=cfg.task, disable=cfg.quiet or rank != 0, dynamic_ncols=True)
     t0, seen, metrics = time.time(), 0, {}
+    last_ckpt_time = t0
     step = start
     by_time = DecayByTime(cfg, start, t0) if cfg.decay_by_time else None
     eval_seconds = ckpt_seconds = 0.0  # the last evaluation's and checkpoint's durations (--decay_by_time)
     use_bf16 = use_autocast(cfg, device)
     model.train()
-    for batch in loader:
-        batch = _to(batch, device)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-            loss, metrics = step_fn(step_model, batch, step)
-        loss_value = float(loss.detach())
-        if not math.isfinite(loss_value):
-            raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
-        optimizer.step()
-        scheduler.step()
-        step += 1
-        seen += cfg.batch_size * world
-        now = time.time()
-        stop = cfg.max_minutes > 0 and (now - t0) / 60 > cfg.max_minutes
-        moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
-        if world > 1 and cfg.max_minutes > 0:
-            # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would hang)
-            shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
-            dist.broadcast(shared, 0)
-            moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
-        if moved:  # the next update already runs at the first decay step's rate
-            for group in optimizer.param_groups:
-                group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
-            scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
-            bar.total = cfg.steps
-            if rank == 0:
-                tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
-        rate = seen / max(now - t0, 1e-9)
-        metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
-                   "pairs_per_s": rate, **metrics}
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
-        if step % cfg.log_every == 0:
-            logger.log("train", step, metrics)
-        if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
-            # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
-            save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
-        ending = stop or step >= cfg.steps  # the last update: checkpointed and evaluated, whatever ended it
-        if rank == 0 and (step % cfg.ckpt_every == 0 or ending):
-            t_ckpt = time.time()
-            save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
-            if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps:  # wsd only (check_loop_options)
-                save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
-            ckpt_seconds = time.time() - t_ckpt
-        if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
-            model.eval()
-            t_eval = time.time()
-            ev = eval_fn(model)
-            eval_seconds = time.time() - t_eval
-            model.train()
-            logger.log("eval", step, ev)
-            metrics.update({f"eval_{k}": v for k, v in ev.items()})
-            tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
-        if ending:
-            break
+    with sigterm_flag() as terminated:
+        for batch in loader:
+            batch = _to(batch, device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                loss, metrics = step_fn(step_model, batch, step)
+            loss_value = float(loss.detach())
+            if not math.isfinite(loss_value):
+                raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
+            optimizer.step()
+            scheduler.step()
+            step += 1
+            seen += cfg.batch_size * world
+            now = time.time()
+            stop = cfg.max_minutes > 0 and (now - t0) / 60 > cfg.max_minutes
+            killed = bool(terminated)
+            moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
+            if world > 1:
+                # every rank follows rank 0's clock and signal (one end and one stop for all: a rank stopping alone
+                # would hang)
+                shared = torch.tensor([cfg.steps, int(stop), int(killed)], dtype=torch.int64, device=device)
+                dist.broadcast(shared, 0)
+                moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
+                killed = bool(shared[2])
+            if moved:  # the next update already runs at the first decay step's rate
+                for group in optimizer.param_groups:
+                    group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
+                scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
+                bar.total = cfg.steps
+                if rank == 0:
+                    tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
+            rate = seen / max(now - t0, 1e-9)
+            metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
+                       "pairs_per_s": rate, **metrics}
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
+            if step % cfg.log_every == 0:
+                logger.log("train", step, metrics)
+            if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
+                # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
+                save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
+            ending = stop or killed or step >= cfg.steps  # the last update: checkpointed, whatever ended it
+            due = cfg.ckpt_minutes > 0 and now - last_ckpt_time >= cfg.ckpt_minutes * 60
+            if rank == 0 and (step % cfg.ckpt_every == 0 or ending or due):
+                t_ckpt = last_ckpt_time = time.time()
+                save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
+                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps:  # wsd only (check_loop_options)
+                    save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
+                ckpt_seconds = time.time() - t_ckpt
+            if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
+                if rank == 0:
+                    tqdm.write(f"[step {step}] SIGTERM: checkpointed {last}; the same command resumes from it")
+                break
+            if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
+                model.eval()
+                t_eval = time.time()
+                ev = eval_fn(model)
+                eval_seconds = time.time() - t_eval
+                model.train()
+                logger.log("eval", step, ev)
+                metrics.update({f"eval_{k}": v for k, v in ev.items()})
+                tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
+            if ending:
+                break
     bar.close()
     if world > 1:
         dist.barrier()
     return {"step": step, **metrics}
+
+
+@contextlib.contextmanager
+def sigterm_flag():
+    """While inside: SIGTERM appends to the yielded list instead of killing the process, so the loop can checkpoint
+    the step it is on and stop (what a job scheduler or a session's end sends; SIGKILL cannot be caught, which
+    ``--ckpt_minutes`` bounds). The previous handler is restored on the way out. Off the main thread (where Python
+    cannot set handlers) the list stays empty."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _leave_sigterm_to_the_main_process(worker_id: int) -> None:
+    """DataLoader workers ignore SIGTERM (a group-wide signal reaches them too): the main process checkpoints and
+    then shuts them down; a worker dying first would end the run with a DataLoader error instead."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def use_autocast(cfg: TrainConfig, device: torch.device) -> bool:

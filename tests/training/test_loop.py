@@ -769,3 +769,68 @@ def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(t
     with open(tmp_path / "eval.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["step"] for r in rows] == ["500", "700"] and rows[1]["RRA15"] == "12.0"
+
+
+def test_sigterm_checkpoints_the_current_step_and_a_resumed_run_ends_as_an_uninterrupted_one(tmp_path):
+    import signal
+
+    straight = run(tmp_path / "a", 6, ckpt_every=1000, ckpt_minutes=0.0)
+    cfg = dataclasses.replace(config(tmp_path / "b", 6), ckpt_every=1000, ckpt_minutes=0.0)
+    step = make_step(cfg)
+
+    def signalled_step(model, batch, k):
+        if k == 2:  # the third update: the signal arrives while it runs
+            os.kill(os.getpid(), signal.SIGTERM)
+        return step(model, batch, k)
+
+    before = signal.getsignal(signal.SIGTERM)
+    torch.manual_seed(0)
+    result = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, signalled_step)
+    assert result["step"] == 3 and torch.load(tmp_path / "b" / "last.pt", weights_only=True)["step"] == 3
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler is the loop's only while it runs
+    resumed = run(tmp_path / "b", 6, ckpt_every=1000, ckpt_minutes=0.0)
+    for k, v in straight.state_dict().items():
+        assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), k
+
+
+def test_ckpt_minutes_checkpoints_by_wall_time_between_ckpt_every_steps(tmp_path, monkeypatch):
+    tick_clock(monkeypatch)  # every clock reading 0.05 s later
+
+    def checkpointed_steps(minutes):
+        out = tmp_path / f"m{minutes}"
+        cfg = dataclasses.replace(config(out, 5), ckpt_every=1000, ckpt_minutes=minutes)
+        step, seen = make_step(cfg), []
+
+        def watching_step(model, batch, k):  # the step last.pt holds when each update starts
+            seen.append(torch.load(out / "last.pt", weights_only=True)["step"] if (out / "last.pt").exists() else None)
+            return step(model, batch, k)
+
+        torch.manual_seed(0)
+        fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, watching_step)
+        return seen
+
+    assert checkpointed_steps(0.0) == [None] * 5  # by steps alone: only the last update
+    assert checkpointed_steps(0.0005) == [None, 1, 2, 3, 4]  # 0.03 s: due after every update (one tick, 0.05 s)
+    assert checkpointed_steps(60.0) == [None] * 5
+
+
+def test_a_sigterm_to_the_whole_process_group_stops_a_run_with_a_data_worker_after_a_checkpoint(tmp_path):
+    import signal
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "tests/training/sigterm_worker.py"), str(tmp_path)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        for line in proc.stdout:
+            if line.strip() == "step 3":  # a few updates in, with the data worker running
+                break
+        os.killpg(proc.pid, signal.SIGTERM)  # the main process and its data worker alike
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err[-2000:]
+    saved = torch.load(tmp_path / "last.pt", weights_only=True)["step"]
+    assert saved >= 4 and f"fit returned at step {saved}" in out
+    assert "SIGTERM: checkpointed" in out + err and "DataLoader worker" not in err
