@@ -265,6 +265,10 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
     if args.pairs is not None and args.graph != "auto":
         raise PointmapError(f"--pairs and --graph {args.graph} both choose the pairs: use one")
+    if args.cache_half and args.cache is None:
+        raise PointmapError("--cache-half sets how --cache DIR stores predictions: give --cache")
+    if args.cache is not None and Path(args.cache).expanduser().is_file():
+        raise PointmapError(f"--cache expected a directory, got {args.cache!r}, which is a file")
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
@@ -410,14 +414,19 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
 
 def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
     """One prepared scene (``prepare_scene``) through ``pm.reconstruct`` to its exports (and splats)."""
+    import torch
+
     from pointmap.align import AlignConfig
+    from pointmap.cache import PredictionCache
     from pointmap.pipeline import reconstruct
 
     align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet)
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
-                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device)
+                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device,
+                        cache=None if args.cache is None else PredictionCache(
+                            args.cache, model, torch.float16 if args.cache_half else torch.float32))
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
@@ -562,6 +571,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--pairs", default=None, metavar="FILE",
                    help="the pairs to run, one per line: two image names (hloc / COLMAP pairs format; a path or a "
                    "unique file name), e.g. from a retrieval; instead of --graph")
+    r.add_argument("--cache", default=None, metavar="DIR",
+                   help="keep the pair predictions in DIR; a later run with the same model and images reads them "
+                   "instead of running the network (e.g. to align again with other settings)")
+    r.add_argument("--cache-half", dest="cache_half", action="store_true",
+                   help="store the cached predictions in float16 (half the disk; at 224 px a directed pair with "
+                   "descriptors takes about 8 MB in float32)")
     r.add_argument("--export", default="ply,glb,colmap,npz",
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
                         "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), tum (trajectory.txt), npz (reconstruction.npz, which "

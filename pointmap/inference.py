@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 from collections import defaultdict
 
 import torch
@@ -119,7 +120,8 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu", *, encodin
 
 @torch.inference_mode()
 def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", keep_desc: bool = True,
-                  store_dtype=None, quiet: bool = False, encodings=None) -> dict[tuple[int, int], PairPrediction]:
+                  store_dtype=None, quiet: bool = False, encodings=None,
+                  cache=None) -> dict[tuple[int, int], PairPrediction]:
     """Predict every pair in both orders.
 
     views: list of View (from ``load_images``) or [3, H, W] tensors in [0, 1]
@@ -128,6 +130,9 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     (e.g. torch.float16) shrinks what is kept for many images, ``keep_desc=False`` drops descriptors.
     ``encodings``: ``encode_views``'s output for these views (e.g. kept from ``image_similarity``), used instead
     of encoding them again.
+    ``cache``: a directory or a ``pointmap.cache.PredictionCache``: pairs found there (same model weights, same
+    input pixels) are read instead of predicted, the others are predicted and written there; only the images of
+    pairs not found are encoded.
     """
     imgs = _as_images(views)
     n = len(imgs)
@@ -140,10 +145,31 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     if not (hasattr(model, "decode_pair") and callable(model)):
         raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")
     given = None if encodings is None else checked_encodings(encodings, imgs)
-    edges = directed(pairs)
+    out: dict[tuple[int, int], PairPrediction] = {}
+    edges = order = directed(pairs)
+    keys = {}
+    if cache is not None:
+        from pointmap.cache import PredictionCache, image_digest
+
+        cache = cache if isinstance(cache, PredictionCache) else PredictionCache(cache, model)
+        need_desc = keep_desc and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
+        digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
+        hits = 0
+        for i, j in edges:
+            keys[(i, j)] = cache.key(digests[i], digests[j])
+            pred = cache.get(keys[(i, j)], tuple(imgs[i].shape[1:]), tuple(imgs[j].shape[1:]), need_desc)
+            if pred is not None:
+                if not keep_desc:
+                    pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
+                out[(i, j)] = pred.map(lambda t: t.to(store_dtype)) if store_dtype else pred
+                hits += 1
+        if not quiet:
+            print(f"pointmap: prediction cache {cache.dir}: {hits} of {len(edges)} directed pairs read, "
+                  f"{len(edges) - hits} to predict", file=sys.stderr)
+        edges = [e for e in edges if e not in out]
     used = sorted({k for e in edges for k in e})
     bar = tqdm(total=len(edges) + (len(used) if given is None else 0), desc="inference", unit="img|pair",
-               disable=quiet or None)
+               disable=quiet or not edges or None)
     if given is None:
         enc = dict(zip(used, encode_views(model, [imgs[k] for k in used], batch_size, device, progress=bar)))
     else:
@@ -151,7 +177,6 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     groups = defaultdict(list)  # pairs with the same shapes decode in one batch
     for e in edges:
         groups[(tuple(imgs[e[0]].shape), tuple(imgs[e[1]].shape))].append(e)
-    out: dict[tuple[int, int], PairPrediction] = {}
     for group in groups.values():
         for s in range(0, len(group), batch_size):
             chunk = group[s: s + batch_size]
@@ -160,12 +185,14 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
             pred = model.decode_pair(e1, e2)
             if not keep_desc:
                 pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
-            pred = pred.map(lambda t: t.to("cpu", store_dtype) if store_dtype else t.cpu())
+            pred = pred.map(lambda t: t.cpu())
             for b, e in enumerate(chunk):
-                out[e] = pred[b]
+                if cache is not None:
+                    cache.put(keys[e], pred[b])
+                out[e] = pred[b].map(lambda t: t.to(store_dtype)) if store_dtype else pred[b]
             bar.update(len(chunk))
     bar.close()
-    return out
+    return {e: out[e] for e in order}
 
 
 def _stack(encs: list):

@@ -173,7 +173,7 @@ def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> No
 def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None, batch_size: int = 8,
                 K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
                 conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
-                epipolar=True, quiet: bool = False, device: str = "cpu"):
+                epipolar=True, quiet: bool = False, device: str = "cpu", cache=None):
     """Photos to a Reconstruction.
 
     graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
@@ -195,6 +195,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         docs/alignment.md)
     refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
         or pointmaps; uses ``pm.match``)
+    cache: a directory (or a ``pointmap.cache.PredictionCache``) where pair predictions are kept: a run with the
+        same model and input pixels reads them instead of running the network (``predict_pairs``), e.g. to align
+        again with other settings or after adding images; the counts are in ``info["pipeline"]["cache"]``
     """
     from pointmap.checkpoint import model_input_size
     from pointmap.errors import ShapeError, is_int
@@ -208,6 +211,10 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     check_conf_filter(min_conf, conf_percentile)
+    if cache is not None:  # the path checked and the model fingerprinted before any image is read
+        from pointmap.cache import PredictionCache
+
+        cache = cache if isinstance(cache, PredictionCache) else PredictionCache(cache, model)
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
     cfg = align or AlignConfig(quiet=quiet)
@@ -261,7 +268,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
     preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
-                          keep_desc=bool(epipolar) or bool(refine), encodings=encodings)
+                          keep_desc=bool(epipolar) or bool(refine), encodings=encodings, cache=cache)
     del encodings
     lap("inference")
     if user_masks is not None:
@@ -311,7 +318,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
                               "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine),
                               "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False)),
-                              "seconds": seconds}
+                              "seconds": seconds,
+                              "cache": None if cache is None else {"dir": str(cache.dir), "hits": cache.hits,
+                                                                   "misses": cache.misses}}
     if not quiet:
         print("pointmap: took " + ", ".join(f"{STAGE_NAMES[k]} {_fmt_s(v)}" for k, v in seconds.items()),
               file=sys.stderr)

@@ -1,6 +1,7 @@
 """The command line's argument handling: folders of images, the export list, flags after the command, and
 refusals that come before any model runs."""
 
+import re
 import sys
 from pathlib import Path
 
@@ -626,3 +627,34 @@ def test_a_file_name_two_photographs_share_is_refused_as_ambiguous(tmp_path):
     assert pairs_from_file(str(tmp_path / "p.txt"), ["a/b.jpg", "c/a/b.jpg"]) == [(0, 1)]
     with pytest.raises(PointmapError, match="--pairs expected a text file"):
         pairs_from_file(str(tmp_path / "missing.txt"), ["a.jpg"])
+
+
+def test_reconstruct_with_cache_reads_the_pairs_back_on_a_second_run(tiny, tmp_path, capsys):
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    args = ["reconstruct", str(folder), "--model", str(weights), "--size", "64", "--export", "npz", "--graph",
+            "complete", "--no-epipolar", "--cache", str(tmp_path / "cache")]
+    assert main([*args, "-o", str(tmp_path / "a")]) == 0
+    assert "0 of 6 directed pairs read, 6 to predict" in capsys.readouterr().err
+    assert main([*args, "-o", str(tmp_path / "b")]) == 0
+    assert "6 of 6 directed pairs read, 0 to predict" in capsys.readouterr().err
+    info = load_npz(tmp_path / "b" / "reconstruction.npz").info["pipeline"]["cache"]
+    assert info["hits"] == 6 and info["misses"] == 0 and info["dir"].startswith(str(tmp_path / "cache"))
+    assert main([*args[:-1], str(tmp_path / "half"), "--cache-half", "-o", str(tmp_path / "c")]) == 0
+    full = sum(p.stat().st_size for p in (tmp_path / "cache").rglob("*.safetensors"))
+    half = sum(p.stat().st_size for p in (tmp_path / "half").rglob("*.safetensors"))
+    assert half < 0.6 * full
+    capsys.readouterr()
+
+
+def test_cache_options_that_cannot_be_used_are_refused_before_the_model_loads(tiny, tmp_path, capsys, monkeypatch):
+    import pointmap.checkpoint
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    weights, folder = tiny
+    (tmp_path / "file").write_text("x")
+    for extra, message in [(["--cache", str(tmp_path / "file")], "--cache expected a directory, got .*which is a file"),
+                           (["--cache-half"], "--cache-half sets how --cache DIR stores predictions: give --cache")]:
+        assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), *extra]) == 2
+        assert re.search(message, capsys.readouterr().err)

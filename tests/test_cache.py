@@ -1,0 +1,139 @@
+"""The on-disk prediction cache: hits equal fresh predictions, keys follow the weights and the pixels, and nothing
+unreadable or foreign is trusted."""
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+from test_inference import CountingModel, views
+
+import pointmap as pm
+from pointmap.cache import PredictionCache, model_fingerprint
+
+
+def same(a: dict, b: dict, exact: bool = True):
+    """Equal predictions: bit for bit (read back), or to float rounding (predicted in another batch)."""
+    assert list(a) == list(b)
+    for e in a:
+        for name, t in a[e].as_dict().items():
+            o = getattr(b[e], name)
+            assert torch.equal(o, t) if exact else torch.allclose(o, t, atol=1e-5), (e, name)
+
+
+def test_a_second_run_reads_every_pair_from_the_cache_without_the_encoder_and_gets_the_same_predictions(tiny_model,
+                                                                                                        tmp_path):
+    vs = views(4, [(48, 64), (48, 64), (64, 48), (48, 64)])
+    pairs = [(0, 1), (1, 2), (3, 2), (0, 3)]
+    fresh = pm.predict_pairs(tiny_model, vs, pairs, quiet=True)
+    first = PredictionCache(tmp_path, tiny_model)
+    same(fresh, pm.predict_pairs(tiny_model, vs, pairs, quiet=True, cache=first))
+    assert (first.hits, first.misses) == (0, 8) and len(list(first.dir.glob("*.safetensors"))) == 8
+    model = CountingModel(tiny_model)
+    model.cfg = tiny_model.cfg
+    model.state_dict = tiny_model.state_dict  # the wrapper fingerprints as the model it wraps
+    again = PredictionCache(tmp_path, model)
+    same(fresh, pm.predict_pairs(model, vs, pairs, quiet=True, cache=again))
+    assert (again.hits, again.misses, model.encoded_images) == (8, 0, 0)
+    half = pm.predict_pairs(tiny_model, vs, pairs, quiet=True, cache=tmp_path, store_dtype=torch.float16,
+                            keep_desc=False)
+    assert half[(0, 1)].pts1_cam1.dtype == torch.float16 and half[(0, 1)].desc1 is None
+
+
+def test_a_changed_image_or_other_weights_miss_and_only_the_missing_pairs_are_predicted(tiny_model, tmp_path):
+    vs = views(4)
+    pairs = [(0, 1), (1, 2), (2, 3)]
+    pm.predict_pairs(tiny_model, vs, pairs, quiet=True, cache=tmp_path)
+    vs[3].img[0, 0, 0] += 0.5  # one pixel of image 3
+    model = CountingModel(tiny_model)
+    model.cfg, model.state_dict = tiny_model.cfg, tiny_model.state_dict
+    cache = PredictionCache(tmp_path, model)
+    out = pm.predict_pairs(model, vs, pairs, quiet=True, cache=cache)
+    assert (cache.hits, cache.misses, model.encoded_images) == (4, 2, 2)  # (2, 3) and (3, 2): images 2 and 3
+    same({e: out[e] for e in [(2, 3), (3, 2)]}, pm.predict_pairs(tiny_model, vs, [(2, 3)], quiet=True), exact=False)
+    other = pm.PointmapNet(pm.PRESETS["test"]).eval()
+    with torch.no_grad():
+        next(other.parameters()).copy_(next(tiny_model.parameters()) + 1e-3)
+    assert model_fingerprint(other) != model_fingerprint(tiny_model)
+    cache = PredictionCache(tmp_path, other)
+    pm.predict_pairs(other, vs, pairs, quiet=True, cache=cache)
+    assert cache.hits == 0 and cache.dir != PredictionCache(tmp_path, tiny_model).dir
+
+
+def test_a_pair_cached_without_descriptors_is_predicted_again_when_they_are_needed(tiny_model, tmp_path):
+    vs = views(2)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path, keep_desc=False)
+    cache = PredictionCache(tmp_path, tiny_model)
+    out = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.hits == 0 and out[(0, 1)].has_desc
+    cache = PredictionCache(tmp_path, tiny_model)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.hits == 2  # rewritten with them
+
+
+def test_a_corrupt_truncated_or_foreign_file_is_reported_predicted_again_and_replaced(tiny_model, tmp_path, caplog):
+    from safetensors.torch import save_file
+
+    vs = views(2)
+    fresh = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path)
+    cache = PredictionCache(tmp_path, tiny_model)
+    files = sorted(cache.dir.glob("*.safetensors"))
+    files[0].write_bytes(b"not a safetensors file")
+    data = files[1].read_bytes()
+    files[1].write_bytes(data[: len(data) // 2])
+    with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
+        same(fresh, pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache))
+    assert cache.hits == 0 and caplog.text.count("is unreadable") == 2
+    save_file({"pts1_cam1": torch.zeros(1, 48, 64, 3)}, str(files[0]), metadata={"format": "something else"})
+    cache = PredictionCache(tmp_path, tiny_model)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
+        same(fresh, pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache), exact=False)  # one alone
+    assert (cache.hits, cache.misses) == (1, 1) and "not a pointmap pair prediction" in caplog.text
+    cache = PredictionCache(tmp_path, tiny_model)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.hits == 2 and not list(cache.dir.glob(".*"))  # replaced; no temporary file left behind
+
+
+def test_a_cache_path_that_is_a_file_and_a_model_without_weights_are_refused(tiny_model, tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(pm.PointmapError, match="cache expected a directory, got .*which is a file"):
+        pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True, cache=tmp_path / "f")
+    with pytest.raises(pm.PointmapError, match="cache expected a directory path, got int"):
+        PredictionCache(3, tiny_model)
+    with pytest.raises(pm.CheckpointError, match="needs a PyTorch model or an ONNX export directory.*got object"):
+        PredictionCache(tmp_path, object())
+
+
+def test_an_onnx_export_fingerprints_by_its_files(split_export, full_export):
+    a, b = pm.load_model(split_export), pm.load_model(split_export)
+    assert model_fingerprint(a) == model_fingerprint(b) != model_fingerprint(pm.load_model(full_export))
+
+
+def test_reconstruct_with_a_cache_runs_the_network_once_and_aligns_the_same(tiny_model, tmp_path):
+    rng = np.random.default_rng(5)
+    images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    kw = dict(size=64, quiet=True, epipolar=False, align=pm.AlignConfig(niter=20, quiet=True))
+    first = pm.reconstruct(tiny_model, images, cache=tmp_path / "c", **kw)
+    model = CountingModel(tiny_model)
+    model.cfg, model.state_dict = tiny_model.cfg, tiny_model.state_dict
+    second = pm.reconstruct(model, images, cache=tmp_path / "c", **kw)
+    assert model.encoded_images == 0
+    assert first.info["pipeline"]["cache"]["misses"] == 6 and second.info["pipeline"]["cache"]["hits"] == 6
+    assert torch.allclose(torch.as_tensor(first.cam2world), torch.as_tensor(second.cam2world))
+
+
+def test_a_float16_cache_halves_the_files_and_reads_back_close_to_the_fresh_predictions(tiny_model, tmp_path):
+    vs = views(2)
+    fresh = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path / "full")
+    half = PredictionCache(tmp_path / "half", tiny_model, dtype=torch.float16)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=half)
+    read = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=PredictionCache(tmp_path / "half", tiny_model))
+    for e in fresh:
+        for name, t in fresh[e].as_dict().items():
+            o = getattr(read[e], name)
+            assert o.dtype == torch.float32 and torch.allclose(o, t, rtol=1e-3, atol=1e-3), (e, name)
+    size = {k: sum(p.stat().st_size for p in (tmp_path / k).rglob("*.safetensors")) for k in ("full", "half")}
+    assert size["half"] < 0.55 * size["full"]
+    with pytest.raises(pm.PointmapError, match="cache dtype expected torch.float32 or torch.float16, got torch.int8"):
+        PredictionCache(tmp_path, tiny_model, dtype=torch.int8)
