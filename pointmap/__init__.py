@@ -35,7 +35,8 @@ from pointmap.reconstruction import Reconstruction
 __version__ = "0.1.0"
 
 # heavier parts load on first use
-_LAZY = {"global_align": "pointmap.align", "align_to_cameras": "pointmap.align", "refine_matches": "pointmap.align",
+_LAZY = {"global_align": "pointmap.align", "align_to_cameras": "pointmap.align",
+         "scale_to_depth": "pointmap.align", "refine_matches": "pointmap.align",
          "AlignConfig": "pointmap.align", "SparseConfig": "pointmap.align",
          "EpipolarConfig": "pointmap.align", "refine_epipolar": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat",
          "io": "pointmap.io", "localize": "pointmap.localize", "Localization": "pointmap.localize"}
@@ -52,6 +53,6 @@ __all__ = [
     "CheckpointError", "ConventionError", "GraphError", "ImageError", "Matches", "match_coarse", "ModelConfig", "PRESETS",
     "PairPrediction", "PointmapError", "PointmapNet", "Reconstruction", "ShapeError", "View", "__version__",
     "check_connected", "global_align", "load_images", "load_model", "make_pairs", "match", "predict_pairs",
-    "reconstruct", "align_to_cameras", "relative_pose", "pair_pose", "pose_from_essential", "translation_from_matches", "refine_pose_with_matches", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
+    "reconstruct", "align_to_cameras", "scale_to_depth", "relative_pose", "pair_pose", "pose_from_essential", "translation_from_matches", "refine_pose_with_matches", "save_model", "splat", "io", "refine_matches", "AlignConfig", "SparseConfig",
     "EpipolarConfig", "refine_epipolar", "localize", "Localization",
 ]

@@ -247,6 +247,23 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
     return masks
 
 
+def depths_from_folder(folder: str, images: list[str], png_scale: float) -> list:
+    """``--metric-depth``: one depth map per image from ``folder`` (``<image stem>.npy`` or a 16-bit ``.png`` times
+    ``png_scale``; ``pointmap.io.depth``), None for an image without one. PointmapError for a folder that is missing
+    or holds no depth map of any of the images."""
+    from pointmap.io.depth import depth_file, read_depth
+
+    if not Path(folder).is_dir():
+        raise PointmapError(f"--metric-depth expected a folder of depth maps, got {folder!r}")
+    if not png_scale > 0:
+        raise PointmapError(f"--depth-png-scale expected > 0, got {png_scale}")
+    found = [depth_file(folder, Path(p).stem) for p in images]
+    if not any(found):
+        raise PointmapError(f"--metric-depth {folder} holds no depth map named like the images "
+                            f"({Path(images[0]).stem}.npy or .png, ...)")
+    return [None if f is None else read_depth(f, png_scale) for f in found]
+
+
 def cmd_reconstruct(args) -> int:
     # every argument is checked before the model runs: nothing fails after minutes of inference
     from pointmap.io.points import check_conf_filter
@@ -265,6 +282,9 @@ def cmd_reconstruct(args) -> int:
         raise PointmapError("--known-poses holds the poses of --cameras FILE fixed: give --cameras")
     if args.pairs is not None and args.graph != "auto":
         raise PointmapError(f"--pairs and --graph {args.graph} both choose the pairs: use one")
+    if args.metric_depth is not None and args.known_poses:
+        raise PointmapError("--metric-depth scales the reconstruction to measured depth, but --known-poses already "
+                            "fixes its scale to the poses': use one")
     if args.cache_half and args.cache is None:
         raise PointmapError("--cache-half sets how --cache DIR stores predictions: give --cache")
     if args.cache is not None and Path(args.cache).expanduser().is_file():
@@ -275,12 +295,13 @@ def cmd_reconstruct(args) -> int:
         return reconstruct_scene(model, size, args, scene, formats)
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
-    if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks, args.pairs)) or \
+    if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks, args.pairs,
+                                                              args.metric_depth)) or \
             (args.focal is not None and "," in args.focal):
-        raise PointmapError("--each-folder takes --cameras, --masks and --pairs relative to each scene folder (e.g. "
-                            "--cameras sparse/0, --masks masks, --pairs pairs.txt): an absolute path or per-image "
-                            "--focal would apply one scene's cameras, masks or pairs to every scene (a single --focal "
-                            "for all is accepted)")
+        raise PointmapError("--each-folder takes --cameras, --masks, --pairs and --metric-depth relative to each scene "
+                            "folder (e.g. --cameras sparse/0, --masks masks, --pairs pairs.txt, --metric-depth depth): "
+                            "an absolute path or per-image --focal would apply one scene's files to every scene (a "
+                            "single --focal for all is accepted)")
     out_root = writable_dir(Path(args.out)).resolve()
     scenes = sorted(d for d in Path(args.images[0]).iterdir()  # hidden, __MACOSX-like and the output skipped
                     if d.is_dir() and not d.name.startswith((".", "__")) and d.resolve() != out_root)
@@ -290,8 +311,8 @@ def cmd_reconstruct(args) -> int:
     failed = []
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
-        own = argparse.Namespace(**{**vars(args), **{k: str(scene / getattr(args, k)) for k in ("cameras", "masks",
-                                                                                              "pairs")
+        own = argparse.Namespace(**{**vars(args), **{k: str(scene / getattr(args, k))
+                                                      for k in ("cameras", "masks", "pairs", "metric_depth")
                                                       if getattr(args, k) is not None}})  # the scene's own files
         try:
             reconstruct_scene(model, size, own, prepare_scene(own, [str(scene)], Path(args.out) / scene.name),
@@ -402,6 +423,11 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
         K = K_from_focals(images, focal)
     masks = masks_from_folder(args.masks, images) if args.masks is not None else None
+    depths = depths_from_folder(args.metric_depth, images, args.depth_png_scale) \
+        if args.metric_depth is not None else None
+    if depths is not None and distortions:
+        raise PointmapError("--metric-depth: the photographs have lens distortion (--cameras) and are undistorted "
+                            "first, but their depth maps are not: undistort both beforehand")
     if distortions:  # lens distortion undone first: the model, the aligner and every export take pinhole cameras
         from pointmap.undistort import undistort_photos
 
@@ -409,7 +435,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         if not args.quiet:
             print(f"pointmap: {len(distortions)} photograph(s) with lens distortion resampled onto pinhole cameras in "
                   f"{out / 'undistorted'}", file=sys.stderr)
-    return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out}
+    return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out,
+            "depths": depths}
 
 
 def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
@@ -427,6 +454,14 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
                         epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device,
                         cache=None if args.cache is None else PredictionCache(
                             args.cache, model, torch.float16 if args.cache_half else torch.float32))
+    if scene.get("depths") is not None:  # into the measured depth's units
+        from pointmap.align.gauge import scale_to_depth
+
+        recon, report = scale_to_depth(recon, scene["depths"])
+        recon.info["metric_depth"] = report
+        if not args.quiet:
+            print(f"pointmap: scaled by {report['scale']:.4g} to the measured depth of {report['images']} image(s) "
+                  f"({report['pixels']} pixels; per-pixel scatter {100 * report['spread']:.1f}%)", file=sys.stderr)
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
@@ -597,6 +632,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "undistorted first (into OUT/undistorted)")
     r.add_argument("--known-poses", dest="known_poses", action="store_true",
                    help="also hold the poses of --cameras fixed (two or more spread-out ones fix the scale too)")
+    r.add_argument("--metric-depth", dest="metric_depth", default=None, metavar="DIR",
+                   help="measured depth maps (a LiDAR / RGB-D camera's, any resolution of the image's aspect), named "
+                   "by image stem: .npy float z-depth, or 16-bit .png times --depth-png-scale; the reconstruction is "
+                   "scaled to their units (median ratio, pm.scale_to_depth)")
+    r.add_argument("--depth-png-scale", dest="depth_png_scale", type=float, default=1e-3,
+                   help="units per step of a 16-bit depth PNG (default 0.001: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                    help="the images come from one camera (same size, same zoom): estimate one focal for all")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,

@@ -310,7 +310,7 @@ def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one
     assert main(["reconstruct", str(folder / "a.jpg"), "--each-folder", "-o", str(out)]) == 2
     assert "--each-folder expected one folder whose sub-folders are scenes" in capsys.readouterr().err
     assert main(["reconstruct", str(scenes), "--each-folder", "-o", str(out), "--masks", str(folder)]) == 2
-    assert "takes --cameras, --masks and --pairs relative to each scene folder" in capsys.readouterr().err
+    assert "takes --cameras, --masks, --pairs and --metric-depth relative to each scene folder" in capsys.readouterr().err
 
 
 def test_each_folder_reads_every_scenes_own_cameras_and_masks_and_its_images_folder(tiny, tmp_path, capsys):
@@ -658,3 +658,38 @@ def test_cache_options_that_cannot_be_used_are_refused_before_the_model_loads(ti
                            (["--cache-half"], "--cache-half sets how --cache DIR stores predictions: give --cache")]:
         assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), *extra]) == 2
         assert re.search(message, capsys.readouterr().err)
+
+
+def test_metric_depth_scales_the_reconstruction_to_the_measured_maps(tiny, tmp_path, capsys):
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    (tmp_path / "depth").mkdir()
+    np.save(tmp_path / "depth" / "a.npy", np.full((30, 40), 5.0, np.float32))  # a sensor at half resolution
+    cv2.imwrite(str(tmp_path / "depth" / "b.png"), np.full((60, 80), 5000, np.uint16))  # millimetres
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), "--size", "64",
+                 "--export", "npz", "--no-epipolar", "--metric-depth", str(tmp_path / "depth")]) == 0
+    assert "to the measured depth of 2 image(s)" in capsys.readouterr().err
+    recon = load_npz(tmp_path / "r" / "reconstruction.npz")
+    report = recon.info["metric_depth"]
+    assert report["images"] == 2 and report["per_image"][2] is None  # c.png has no map
+    names = [Path(n).name for n in recon.names]
+    d = torch.cat([recon.depth_z[names.index(n)].flatten() for n in ("a.jpg", "b.PNG")])
+    assert float(d[d > 0].median()) == pytest.approx(5.0, rel=0.01)
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--metric-depth", "nowhere"], "--metric-depth expected a folder of depth maps"),
+    (["--metric-depth", "EMPTY"], "holds no depth map named like the images"),
+    (["--metric-depth", "EMPTY", "--cameras", "X", "--known-poses"], "--known-poses already fixes its scale"),
+])
+def test_metric_depth_that_cannot_be_used_is_refused_before_the_model_loads(tiny, tmp_path, capsys, monkeypatch,
+                                                                           extra, message):
+    import pointmap.checkpoint
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    weights, folder = tiny
+    (tmp_path / "EMPTY").mkdir()
+    extra = [str(tmp_path / e) if e in ("nowhere", "EMPTY") else e for e in extra]
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), *extra]) == 2
+    assert message in capsys.readouterr().err

@@ -40,6 +40,7 @@ from data.shards import (
     write_atomic,
 )
 from pointmap.errors import PointmapError
+from pointmap.io.depth import depth_file, read_depth
 
 DEPTH_DIRS = ("depth", "depths")
 OPENGL_AXES = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -62,38 +63,6 @@ def find_cameras(scene: Path) -> Path:
             return folder
     raise PointmapError(f"{scene}: expected a transforms.json or a COLMAP model (sparse/0/cameras.bin) for its "
                         "cameras")
-
-
-def read_depth(path: Path, png_scale: float) -> np.ndarray:
-    """A depth map as float32 [H, W] with 0 where there is none (NaN, inf, <= 0). PointmapError for a file that
-    is not a 2-D float .npy or a 16-bit .png."""
-    import cv2
-
-    if path.suffix.lower() == ".npy":
-        try:
-            d = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise PointmapError(f"{path}: not a readable .npy depth map ({e})") from None
-        if d.ndim == 3 and d.shape[-1] == 1:
-            d = d[..., 0]
-        if d.ndim != 2 or not np.issubdtype(d.dtype, np.floating):
-            raise PointmapError(f"{path}: a depth map expected a 2-D float array, got {d.dtype} {list(d.shape)}")
-    else:
-        d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if d is None or d.ndim != 2 or d.dtype != np.uint16:
-            got = "unreadable" if d is None else f"{d.dtype} {list(d.shape)}"
-            raise PointmapError(f"{path}: a .png depth map expected a 16-bit single-channel image, got {got}")
-        d = d.astype(np.float64) * png_scale
-    d = np.asarray(d, np.float32)
-    return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
-
-
-def _depth_file(scene: Path, stem: str) -> Path | None:
-    for folder in DEPTH_DIRS:
-        for ext in (".npy", ".png"):
-            if (scene / folder / f"{stem}{ext}").is_file():
-                return scene / folder / f"{stem}{ext}"
-    return None
 
 
 def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -> list[dict]:
@@ -119,7 +88,7 @@ def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -
     views, left_out = [], []
     for k, path in enumerate(images):
         name = Path(path).name
-        depth_path = _depth_file(scene, Path(path).stem)
+        depth_path = depth_file([scene / f for f in DEPTH_DIRS], Path(path).stem)
         if K is None or k not in K or k not in cam2world or depth_path is None:
             left_out.append(f"{name} ({'no camera' if K is None or k not in K or k not in cam2world else 'no depth'})")
             continue

@@ -87,3 +87,63 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
               "cameras": int(keep.sum()), "ate_rmse": float(centre_err.pow(2).mean().sqrt()),
               "rot_err_deg_median": float(torch.quantile(rot_err, 0.5)), "rot_err_deg_max": float(rot_err.max())}
     return moved, report
+
+
+def scale_to_depth(recon, depth, *, min_pixels: int = 50):
+    """Put ``recon`` in the units of measured depth (a phone's LiDAR or ToF map, an RGB-D camera's, sparse depth
+    from a survey): the scale is the median over every usable pixel of measured / reconstructed z-depth, applied
+    about the world origin (``Reconstruction.transformed``: camera centres and depths scale, rotations stay).
+    ``depth``: one entry per image, a [H, W] z-depth map (numpy or torch) in the wanted units at the ORIGINAL
+    image's size or any size of its aspect ratio (a depth sensor's lower resolution), 0 / NaN / inf = none; None
+    for images without one. Each reconstruction pixel reads the measured depth at the same original-image point
+    (``map_from_original``; nearest). Pixels count where both depths exist and the reconstruction keeps the pixel
+    (``recon.masks``). Returns (the scaled Reconstruction, report): ``scale``, ``pixels`` and ``images`` used,
+    ``per_image`` (each image's own median ratio, None without depth), ``spread`` (1.4826 x the median absolute
+    deviation of the log ratios: the relative scatter of the per-pixel scale, e.g. 0.05 = 5%). PointmapError with
+    fewer than ``min_pixels`` usable pixels; ShapeError for a map of the wrong count or aspect ratio."""
+    import numpy as np
+
+    from pointmap.errors import PointmapError, ShapeError
+
+    n = len(recon)
+    if not isinstance(depth, (list, tuple)) or len(depth) != n:
+        got = f"{len(depth)} entries" if isinstance(depth, (list, tuple)) else type(depth).__name__
+        raise ShapeError(f"depth expected a list of {n} maps (None for an image without one), got {got}")
+    h, w = recon.depth_z.shape[1:]
+    ratios, per_image = [], []
+    for i, d in enumerate(depth):
+        if d is None:
+            per_image.append(None)
+            continue
+        d = d.detach().cpu().numpy() if isinstance(d, torch.Tensor) else np.asarray(d)
+        if d.ndim != 2 or not np.issubdtype(d.dtype, np.number) or min(d.shape) < 1:
+            raise ShapeError(f"depth[{i}] expected a [H, W] map of numbers, got {d.dtype} {list(d.shape)}")
+        ow, oh = recon.original_sizes[i]
+        dh, dw = d.shape
+        if abs(dw / dh - ow / oh) > 0.01 * ow / oh:
+            raise ShapeError(f"depth[{i}] is {dw}x{dh}, not the aspect ratio of image {i} ({ow}x{oh} original)")
+        sx, sy, left, top = (float(x) for x in recon.map_from_original[i])
+        u = (np.arange(w) + 0.5 + left) / sx  # map pixel centres in original edge coordinates
+        v = (np.arange(h) + 0.5 + top) / sy
+        cu = np.floor(u * dw / ow).astype(np.int64)  # the depth pixel holding that point
+        cv = np.floor(v * dh / oh).astype(np.int64)
+        inside = (cv[:, None] >= 0) & (cv[:, None] < dh) & (cu[None] >= 0) & (cu[None] < dw)
+        measured = np.where(inside, d.astype(np.float64)[np.clip(cv, 0, dh - 1)][:, np.clip(cu, 0, dw - 1)], 0.0)
+        ours = recon.depth_z[i].double().numpy()
+        keep = inside & np.isfinite(measured) & (measured > 0) & (ours > 0)
+        if recon.masks is not None:
+            keep &= recon.masks[i].numpy()
+        r = np.log(measured[keep] / ours[keep])
+        per_image.append(float(np.exp(np.median(r))) if r.size else None)
+        ratios.append(r)
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    if r.size < min_pixels:
+        raise PointmapError(f"scale_to_depth needs at least {min_pixels} pixels where both the measured and the "
+                            f"reconstructed depth exist, got {r.size}")
+    log_scale = float(np.median(r))
+    moved = recon.transformed(float(np.exp(log_scale)), torch.eye(3, dtype=torch.float64),
+                              torch.zeros(3, dtype=torch.float64))
+    report = {"scale": float(np.exp(log_scale)), "pixels": int(r.size),
+              "images": sum(p is not None for p in per_image), "per_image": per_image,
+              "spread": float(1.4826 * np.median(np.abs(r - log_scale)))}
+    return moved, report

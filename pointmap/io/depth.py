@@ -1,0 +1,48 @@
+"""Depth maps from files: ``.npy`` (float z-depth, its own units) or 16-bit ``.png`` (times a scale, millimetres
+by default), as depth sensors, scanner apps and MVS tools write them. 0, NaN, inf or negative = no depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pointmap.errors import PointmapError
+
+DEPTH_SUFFIXES = (".npy", ".png")
+
+
+def read_depth(path, png_scale: float = 1e-3) -> np.ndarray:
+    """A depth map as float32 [H, W], 0 where there is none. ``png_scale``: units per step of a 16-bit PNG.
+    PointmapError for a file that is not a 2-D float .npy or a 16-bit single-channel .png."""
+    import cv2
+
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            d = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise PointmapError(f"{path}: not a readable .npy depth map ({e})") from None
+        if d.ndim == 3 and d.shape[-1] == 1:
+            d = d[..., 0]
+        if d.ndim != 2 or not np.issubdtype(d.dtype, np.floating):
+            raise PointmapError(f"{path}: a depth map expected a 2-D float array, got {d.dtype} {list(d.shape)}")
+    elif path.suffix.lower() == ".png":
+        d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if d is None or d.ndim != 2 or d.dtype != np.uint16:
+            got = "unreadable" if d is None else f"{d.dtype} {list(d.shape)}"
+            raise PointmapError(f"{path}: a .png depth map expected a 16-bit single-channel image, got {got}")
+        d = d.astype(np.float64) * png_scale
+    else:
+        raise PointmapError(f"{path}: a depth map expected a {' or '.join(DEPTH_SUFFIXES)} file")
+    d = np.asarray(d, np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
+
+
+def depth_file(folders, stem: str) -> Path | None:
+    """The first ``<stem>.npy`` or ``<stem>.png`` in ``folders`` (a folder or a list of them), else None."""
+    for folder in [folders] if isinstance(folders, (str, Path)) else folders:
+        for ext in DEPTH_SUFFIXES:
+            if (Path(folder) / f"{stem}{ext}").is_file():
+                return Path(folder) / f"{stem}{ext}"
+    return None
