@@ -12,6 +12,7 @@ prediction is recomputed and the file replaced), never trusted.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from dataclasses import fields
@@ -26,21 +27,46 @@ from pointmap.prediction import PairPrediction
 log = logging.getLogger(__name__)
 
 FORMAT = "pointmap-pair-prediction"
-VERSION = "1"
+VERSION = "2"
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> bytes:
+    """SHA-256 of the library code that turns weights into predictions (``pointmap/model``, the ONNX runner, the
+    prediction contract): an edit to the network's code is another key, as other weights are."""
+    root = Path(__file__).parent
+    files = sorted((root / "model").rglob("*.py")) + [root / "runtime" / "onnx.py", root / "prediction.py"]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.digest()
+
+
+def state_token(model):
+    """A cheap token that changes when the model's weights may have: each tensor's storage and in-place version
+    (PyTorch), or the export files' modification times and sizes (ONNX)."""
+    if isinstance(model, torch.nn.Module):
+        return ("torch", id(model), tuple((k, t.data_ptr(), t._version) for k, t in model.state_dict().items()))
+    path = getattr(model, "path", None)
+    if path is not None and Path(path).is_dir():
+        return ("onnx", str(path), tuple((p.name, p.stat().st_mtime_ns, p.stat().st_size)
+                                         for p in sorted(Path(path).iterdir()) if p.is_file()))
+    return ("other", id(model))
 
 
 def model_fingerprint(model) -> str:
-    """SHA-256 (hex) of what the model computes with: a PyTorch model's parameters and buffers (names, dtypes,
-    shapes, bytes) with its architecture, or an ONNX export's graph files and metadata. CheckpointError for
-    anything else."""
-    h = hashlib.sha256()
+    """SHA-256 (hex) of what the model computes with: the library's network code (``code_digest``), a PyTorch
+    model's parameters and buffers (names, dtypes, shapes, bytes) with its architecture, or an ONNX export's graph
+    files and metadata. CheckpointError for anything else."""
+    h = hashlib.sha256(code_digest())
     cfg = getattr(model, "cfg", None)
     h.update(repr(cfg.to_dict() if hasattr(cfg, "to_dict") else cfg).encode())
     if isinstance(model, torch.nn.Module):
         for name, t in sorted(model.state_dict().items()):
             t = t.detach().cpu().contiguous()
             h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-            h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
         return h.hexdigest()
     path = getattr(model, "path", None)
     if path is not None and Path(path).is_dir():  # an ONNX export: its graphs and sidecar
@@ -65,10 +91,14 @@ def image_digest(img: torch.Tensor) -> bytes:
 
 
 class PredictionCache:
-    """Pair predictions on disk under ``root/<model fingerprint[:16]>/``. ``hits`` and ``misses`` count lookups
-    (``predict_pairs`` reports them); ``fingerprint`` is the model's (``model_fingerprint``). ``dtype``: what new
-    files hold: float32 (read back bit for bit; at 224 x 224 about 8 MB per directed pair with 16-dim
-    descriptors, 1.6 MB without) or float16 (half that; read back as float32)."""
+    """Pair predictions on disk under ``root/<model fingerprint[:16]>/``, for the model it was made with.
+    ``hits`` and ``misses`` count lookups (``predict_pairs`` reports them); ``fingerprint`` is the model's
+    (``model_fingerprint``); ``check(model)`` refuses another model, or this one after its weights changed in
+    place. ``dtype``: what new files hold: float32 (read back bit for bit; at 224 x 224 about 8 MB per directed
+    pair with 16-dim descriptors, 1.6 MB without) or float16 (half that, read back as float32; confidences clamped
+    to float16's range). A float32 cache takes a float16 file as a miss and rewrites it. A file whose tensors do
+    not match the checksum in its header is a miss too. A write that fails (disk full, permissions) is logged once
+    and the cache stops writing: it is an optimisation, never a reason to lose the predictions."""
 
     def __init__(self, root, model, dtype=torch.float32) -> None:
         if dtype not in (torch.float32, torch.float16):
@@ -79,12 +109,29 @@ class PredictionCache:
         if root.exists() and not root.is_dir():
             raise PointmapError(f"cache expected a directory, got {str(root)!r}, which is a file")
         self.fingerprint = model_fingerprint(model)
+        self._token = state_token(model)
         self.dir = root / self.fingerprint[:16]
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise PointmapError(f"cache expected a directory it can write, got {str(root)!r}: {e.strerror}") from None
         self.hits = self.misses = 0
         self.dtype = dtype
+        self.writable = True
 
     def __repr__(self) -> str:
         return f"PredictionCache({str(self.dir)!r}, hits={self.hits}, misses={self.misses})"
+
+    def check(self, model) -> None:
+        """PointmapError unless ``model`` computes what this cache was made for (re-fingerprinted only when its
+        weights may have changed: ``state_token``)."""
+        token = state_token(model)
+        if token == self._token:
+            return
+        if model_fingerprint(model) != self.fingerprint:
+            raise PointmapError("this prediction cache was made for other weights than the model given (another "
+                                "model, or this one changed since): make a PredictionCache for the model")
+        self._token = token
 
     def key(self, digest1: bytes, digest2: bytes) -> str:
         """The file name stem of the pair (view 1, view 2), from ``image_digest`` of each (order matters)."""
@@ -93,9 +140,10 @@ class PredictionCache:
     def path(self, key: str) -> Path:
         return self.dir / f"{key}.safetensors"
 
-    def get(self, key: str, shape1: tuple, shape2: tuple, need_desc: bool) -> PairPrediction | None:
-        """The cached prediction (batch of one, float32, CPU), or None: absent, written without the descriptors
-        ``need_desc`` asks for, or unreadable (logged). ``shape1``/``shape2``: the images' (H, W), checked."""
+    def get(self, key: str, shape1: tuple, shape2: tuple, desc: bool) -> PairPrediction | None:
+        """The cached prediction (batch of one, float32, CPU), or None: absent, without the descriptors ``desc``
+        asks for, of lower precision than this cache writes, or unreadable (logged). Without ``desc`` only the
+        pointmaps and confidences are read. ``shape1``/``shape2``: the images' (H, W), checked."""
         from safetensors import SafetensorError, safe_open
 
         path = self.path(key)
@@ -109,32 +157,57 @@ class PredictionCache:
                     raise ValueError(f"not a pointmap pair prediction for this key (metadata {meta})")
                 if meta.get("version") != VERSION:
                     raise ValueError(f"format version {meta.get('version')!r}, this library reads {VERSION}")
-                tensors = {name: f.get_tensor(name) for name in f.keys()}
-            pred = PairPrediction(**{fl.name: None if fl.name not in tensors else tensors[fl.name].float()
-                                     for fl in fields(PairPrediction)})
+                names = list(f.keys())
+                if desc and "desc1" not in names or meta.get("dtype") == "float16" and self.dtype == torch.float32:
+                    self.misses += 1
+                    return None
+                tensors = {name: f.get_tensor(name) for name in names}  # all of them: the checksum covers all
+            if _checksum(tensors) != meta.get("sha256"):
+                raise ValueError("its tensors do not match the checksum in its header (corrupted)")
+            pred = PairPrediction(**{fl.name: None if fl.name not in tensors or (not desc and "desc" in fl.name)
+                                     else tensors[fl.name].float() for fl in fields(PairPrediction)})
             if tuple(pred.pts1_cam1.shape[:3]) != (1, *shape1) or tuple(pred.pts2_cam1.shape[:3]) != (1, *shape2):
                 raise ValueError(f"its maps are {list(pred.pts1_cam1.shape[1:3])} and {list(pred.pts2_cam1.shape[1:3])}, "
                                  f"the images {list(shape1)} and {list(shape2)}")
-        except (SafetensorError, OSError, ValueError, TypeError, PointmapError) as e:
+        except (SafetensorError, OSError, ValueError, TypeError, RuntimeError, PointmapError) as e:
             log.warning("prediction cache: %s is unreadable (%s); the pair is predicted again", path,
                         str(e).splitlines()[0][:200])
-            self.misses += 1
-            return None
-        if need_desc and not pred.has_desc:
             self.misses += 1
             return None
         self.hits += 1
         return pred
 
-    def put(self, key: str, pred: PairPrediction) -> Path:
-        """Write one pair's prediction (batch of one) atomically, in the cache's ``dtype``."""
+    def put(self, key: str, pred: PairPrediction) -> Path | None:
+        """Write one pair's prediction (batch of one) atomically, in the cache's ``dtype``; None when writing
+        failed (logged once; no later write is tried)."""
         from safetensors.torch import save_file
 
         if pred.batch_size != 1:
             raise PointmapError(f"the cache stores one pair per file, got a batch of {pred.batch_size}")
-        tensors = {fl.name: getattr(pred, fl.name).detach().to("cpu", self.dtype).contiguous()
-                   for fl in fields(pred) if getattr(pred, fl.name) is not None}
+        if not self.writable:
+            return None
+        big = torch.finfo(self.dtype).max
+        tensors = {fl.name: getattr(pred, fl.name).detach().to("cpu", torch.float32).clamp(-big, big)
+                   .to(self.dtype).contiguous() for fl in fields(pred) if getattr(pred, fl.name) is not None}
+        meta = {"format": FORMAT, "version": VERSION, "key": key, "dtype": str(self.dtype).removeprefix("torch."),
+                "sha256": _checksum(tensors)}
         path = self.path(key)
-        with atomic_path(path) as tmp:
-            save_file(tensors, str(tmp), metadata={"format": FORMAT, "version": VERSION, "key": key})
+        try:
+            with atomic_path(path) as tmp:
+                save_file(tensors, str(tmp), metadata=meta)
+        except OSError as e:
+            log.warning("prediction cache: cannot write %s (%s); the cache stops writing for this run", path,
+                        e.strerror or e)
+            self.writable = False
+            return None
         return path
+
+
+def _checksum(tensors: dict) -> str:
+    """SHA-256 over the tensors' names, dtypes, shapes and bytes, in name order."""
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()

@@ -287,12 +287,12 @@ def cmd_reconstruct(args) -> int:
                             "fixes its scale to the poses': use one")
     if args.cache_half and args.cache is None:
         raise PointmapError("--cache-half sets how --cache DIR stores predictions: give --cache")
-    if args.cache is not None and Path(args.cache).expanduser().is_file():
-        raise PointmapError(f"--cache expected a directory, got {args.cache!r}, which is a file")
+    if args.cache is not None:
+        writable_dir(Path(args.cache).expanduser(), "--cache")
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
-        return reconstruct_scene(model, size, args, scene, formats)
+        return reconstruct_scene(model, size, args, scene, formats, prediction_cache(args, model))
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
     if any(p is not None and Path(p).is_absolute() for p in (args.cameras, args.masks, args.pairs,
@@ -308,6 +308,7 @@ def cmd_reconstruct(args) -> int:
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
     model, size = _model_and_size(args.model, args.size, args.device)  # loaded once for every scene
+    cache = prediction_cache(args, model)  # its weights hashed once too
     failed = []
     for scene in scenes:
         print(f"scene {scene.name}", file=sys.stderr)
@@ -316,7 +317,7 @@ def cmd_reconstruct(args) -> int:
                                                       if getattr(args, k) is not None}})  # the scene's own files
         try:
             reconstruct_scene(model, size, own, prepare_scene(own, [str(scene)], Path(args.out) / scene.name),
-                              formats)
+                              formats, cache)
         except Exception as e:  # one bad scene does not stop the others (KeyboardInterrupt still does)
             print(f"pointmap: scene {scene.name} skipped: {e.__class__.__name__}: {e}", file=sys.stderr)
             failed.append(scene.name)
@@ -439,21 +440,27 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             "depths": depths}
 
 
-def reconstruct_scene(model, size: int, args, scene: dict, formats) -> int:
-    """One prepared scene (``prepare_scene``) through ``pm.reconstruct`` to its exports (and splats)."""
+def prediction_cache(args, model):
+    """``--cache DIR`` (``--cache-half``): the PredictionCache of ``model``, or None."""
+    if args.cache is None:
+        return None
     import torch
 
-    from pointmap.align import AlignConfig
     from pointmap.cache import PredictionCache
+
+    return PredictionCache(args.cache, model, torch.float16 if args.cache_half else torch.float32)
+
+
+def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) -> int:
+    """One prepared scene (``prepare_scene``) through ``pm.reconstruct`` to its exports (and splats)."""
+    from pointmap.align import AlignConfig
     from pointmap.pipeline import reconstruct
 
     align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet)
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
-                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device,
-                        cache=None if args.cache is None else PredictionCache(
-                            args.cache, model, torch.float16 if args.cache_half else torch.float32))
+                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device, cache=cache)
     if scene.get("depths") is not None:  # into the measured depth's units
         from pointmap.align.gauge import scale_to_depth
 

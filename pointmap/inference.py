@@ -130,9 +130,9 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     (e.g. torch.float16) shrinks what is kept for many images, ``keep_desc=False`` drops descriptors.
     ``encodings``: ``encode_views``'s output for these views (e.g. kept from ``image_similarity``), used instead
     of encoding them again.
-    ``cache``: a directory or a ``pointmap.cache.PredictionCache``: pairs found there (same model weights, same
-    input pixels) are read instead of predicted, the others are predicted and written there; only the images of
-    pairs not found are encoded.
+    ``cache``: a directory or a ``pointmap.cache.PredictionCache`` (made for this model): pairs found there (same
+    weights and network code, same input pixels) are read instead of predicted, the others are predicted and
+    written there, with their descriptors; only the images of pairs not found are encoded.
     """
     imgs = _as_images(views)
     n = len(imgs)
@@ -151,16 +151,17 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     if cache is not None:
         from pointmap.cache import PredictionCache, image_digest
 
-        cache = cache if isinstance(cache, PredictionCache) else PredictionCache(cache, model)
-        need_desc = keep_desc and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
+        if isinstance(cache, PredictionCache):
+            cache.check(model)  # made for this model's weights
+        else:
+            cache = PredictionCache(cache, model)
+        want_desc = keep_desc and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
         digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
         hits = 0
         for i, j in edges:
             keys[(i, j)] = cache.key(digests[i], digests[j])
-            pred = cache.get(keys[(i, j)], tuple(imgs[i].shape[1:]), tuple(imgs[j].shape[1:]), need_desc)
+            pred = cache.get(keys[(i, j)], tuple(imgs[i].shape[1:]), tuple(imgs[j].shape[1:]), want_desc)
             if pred is not None:
-                if not keep_desc:
-                    pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
                 out[(i, j)] = pred.map(lambda t: t.to(store_dtype)) if store_dtype else pred
                 hits += 1
         if not quiet:
@@ -182,13 +183,13 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
             chunk = group[s: s + batch_size]
             e1 = _stack([enc[i] for i, _ in chunk])
             e2 = _stack([enc[j] for _, j in chunk])
-            pred = model.decode_pair(e1, e2)
+            pred = model.decode_pair(e1, e2).map(lambda t: t.cpu())
+            for b, e in enumerate(chunk):
+                if cache is not None:  # with descriptors even when not kept here: a later stage may need them
+                    cache.put(keys[e], pred[b])
             if not keep_desc:
                 pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
-            pred = pred.map(lambda t: t.cpu())
             for b, e in enumerate(chunk):
-                if cache is not None:
-                    cache.put(keys[e], pred[b])
                 out[e] = pred[b].map(lambda t: t.to(store_dtype)) if store_dtype else pred[b]
             bar.update(len(chunk))
     bar.close()

@@ -214,7 +214,11 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     if cache is not None:  # the path checked and the model fingerprinted before any image is read
         from pointmap.cache import PredictionCache
 
-        cache = cache if isinstance(cache, PredictionCache) else PredictionCache(cache, model)
+        if isinstance(cache, PredictionCache):
+            cache.check(model)
+        else:
+            cache = PredictionCache(cache, model)
+        counts = cache.hits, cache.misses  # this run's are the difference (a cache may serve many runs)
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
     cfg = align or AlignConfig(quiet=quiet)
@@ -319,8 +323,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
                               "conf_percentile": conf_percentile, "refined": bool(refine),
                               "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False)),
                               "seconds": seconds,
-                              "cache": None if cache is None else {"dir": str(cache.dir), "hits": cache.hits,
-                                                                   "misses": cache.misses}}
+                              "cache": None if cache is None else {"dir": str(cache.dir),
+                                                                   "hits": cache.hits - counts[0],
+                                                                   "misses": cache.misses - counts[1]}}
     if not quiet:
         print("pointmap: took " + ", ".join(f"{STAGE_NAMES[k]} {_fmt_s(v)}" for k, v in seconds.items()),
               file=sys.stderr)

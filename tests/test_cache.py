@@ -60,15 +60,43 @@ def test_a_changed_image_or_other_weights_miss_and_only_the_missing_pairs_are_pr
     assert cache.hits == 0 and cache.dir != PredictionCache(tmp_path, tiny_model).dir
 
 
-def test_a_pair_cached_without_descriptors_is_predicted_again_when_they_are_needed(tiny_model, tmp_path):
+def test_descriptors_are_cached_even_when_not_kept_and_a_file_without_them_misses_when_they_are_needed(tiny_model,
+                                                                                                       tmp_path):
+    from pointmap.cache import image_digest
+
     vs = views(2)
     pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path, keep_desc=False)
     cache = PredictionCache(tmp_path, tiny_model)
     out = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
-    assert cache.hits == 0 and out[(0, 1)].has_desc
+    assert cache.hits == 2 and out[(0, 1)].has_desc  # written with them although the first run dropped them
+    key = cache.key(image_digest(vs[0].img), image_digest(vs[1].img))
+    p = out[(0, 1)]
+    cache.put(key, pm.PairPrediction(p.pts1_cam1, p.pts2_cam1, p.conf1, p.conf2))  # a file without descriptors
+    cache = PredictionCache(tmp_path, tiny_model)
+    out = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert (cache.hits, cache.misses) == (1, 1) and out[(0, 1)].has_desc
+    cache = PredictionCache(tmp_path, tiny_model)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache, keep_desc=False)
+    assert cache.hits == 2  # rewritten with them; read without them
+
+
+def test_a_cache_refuses_another_model_and_its_own_model_after_an_in_place_change(tiny_model, tmp_path):
+    vs = views(2)
     cache = PredictionCache(tmp_path, tiny_model)
     pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
-    assert cache.hits == 2  # rewritten with them
+    other = pm.PointmapNet(pm.PRESETS["test"]).eval()
+    with pytest.raises(pm.PointmapError, match="made for other weights than the model given"):
+        pm.predict_pairs(other, vs, [(0, 1)], quiet=True, cache=cache)
+    weight = next(tiny_model.parameters())
+    kept = weight.detach().clone()
+    with torch.no_grad():
+        weight.add_(1e-3)
+    with pytest.raises(pm.PointmapError, match="made for other weights"):
+        pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    with torch.no_grad():
+        weight.copy_(kept)  # back: the fingerprint matches again (re-hashed)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.hits == 2
 
 
 def test_a_corrupt_truncated_or_foreign_file_is_reported_predicted_again_and_replaced(tiny_model, tmp_path, caplog):
@@ -84,6 +112,20 @@ def test_a_corrupt_truncated_or_foreign_file_is_reported_predicted_again_and_rep
     with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
         same(fresh, pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache))
     assert cache.hits == 0 and caplog.text.count("is unreadable") == 2
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(files[0]))
+    tensors["conf1"][0, 0, 0] += 1.0  # a flipped value, the header intact
+    from safetensors import safe_open
+
+    with safe_open(str(files[0]), framework="pt") as f:
+        header = f.metadata()
+    save_file(tensors, str(files[0]), metadata=header)
+    cache = PredictionCache(tmp_path, tiny_model)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
+        pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.misses == 1 and "do not match the checksum" in caplog.text
     save_file({"pts1_cam1": torch.zeros(1, 48, 64, 3)}, str(files[0]), metadata={"format": "something else"})
     cache = PredictionCache(tmp_path, tiny_model)
     caplog.clear()
@@ -128,12 +170,58 @@ def test_a_float16_cache_halves_the_files_and_reads_back_close_to_the_fresh_pred
     fresh = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path / "full")
     half = PredictionCache(tmp_path / "half", tiny_model, dtype=torch.float16)
     pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=half)
-    read = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=PredictionCache(tmp_path / "half", tiny_model))
+    again = PredictionCache(tmp_path / "half", tiny_model, dtype=torch.float16)
+    read = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=again)
+    assert again.hits == 2
     for e in fresh:
         for name, t in fresh[e].as_dict().items():
             o = getattr(read[e], name)
             assert o.dtype == torch.float32 and torch.allclose(o, t, rtol=1e-3, atol=1e-3), (e, name)
     size = {k: sum(p.stat().st_size for p in (tmp_path / k).rglob("*.safetensors")) for k in ("full", "half")}
     assert size["half"] < 0.55 * size["full"]
+    full = PredictionCache(tmp_path / "half", tiny_model)  # a float32 cache: the float16 files are misses
+    exact = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=full)
+    assert full.misses == 2 and all(torch.equal(getattr(exact[e], n), t) for e in fresh
+                                     for n, t in fresh[e].as_dict().items())
+    full = PredictionCache(tmp_path / "half", tiny_model)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=full)
+    assert full.hits == 2  # rewritten in float32
     with pytest.raises(pm.PointmapError, match="cache dtype expected torch.float32 or torch.float16, got torch.int8"):
         PredictionCache(tmp_path, tiny_model, dtype=torch.int8)
+
+
+def test_a_write_that_fails_is_logged_once_and_the_predictions_are_still_returned(tiny_model, tmp_path, caplog,
+                                                                                  monkeypatch):
+    import pointmap.cache
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pointmap.cache, "atomic_path", full_disk)
+    cache = PredictionCache(tmp_path, tiny_model)
+    with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
+        out = pm.predict_pairs(tiny_model, views(3), [(0, 1), (1, 2)], quiet=True, cache=cache)
+    assert len(out) == 4 and caplog.text.count("cannot write") == 1 and not cache.writable
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(pm.PointmapError, match="cache expected a directory it can write"):
+        PredictionCache(tmp_path / "file" / "below", tiny_model)
+
+
+def test_the_fingerprint_covers_zero_dim_buffers_and_the_network_code(tiny_model, monkeypatch):
+    import pointmap.cache
+
+    bn = torch.nn.BatchNorm1d(3)  # num_batches_tracked: a 0-dim buffer
+    assert len(model_fingerprint(bn)) == 64
+    before = model_fingerprint(tiny_model)
+    monkeypatch.setattr(pointmap.cache, "code_digest", lambda: b"an edited network")
+    assert model_fingerprint(tiny_model) != before
+
+
+def test_a_cache_object_serving_several_reconstructions_records_each_runs_own_counts(tiny_model, tmp_path):
+    rng = np.random.default_rng(6)
+    images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    kw = dict(size=64, quiet=True, epipolar=False, align=pm.AlignConfig(niter=10, quiet=True))
+    cache = PredictionCache(tmp_path, tiny_model)
+    first = pm.reconstruct(tiny_model, images, cache=cache, **kw).info["pipeline"]["cache"]
+    second = pm.reconstruct(tiny_model, images, cache=cache, **kw).info["pipeline"]["cache"]
+    assert (first["hits"], first["misses"]) == (0, 6) and (second["hits"], second["misses"]) == (6, 0)

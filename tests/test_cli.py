@@ -654,7 +654,9 @@ def test_cache_options_that_cannot_be_used_are_refused_before_the_model_loads(ti
     monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
     weights, folder = tiny
     (tmp_path / "file").write_text("x")
-    for extra, message in [(["--cache", str(tmp_path / "file")], "--cache expected a directory, got .*which is a file"),
+    for extra, message in [(["--cache", str(tmp_path / "file")], "--cache expected a folder to write into, got "
+                                                                  ".*which is a file"),
+                           (["--cache", str(tmp_path / "file" / "c")], "--cache expected a folder .*cannot be made"),
                            (["--cache-half"], "--cache-half sets how --cache DIR stores predictions: give --cache")]:
         assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), *extra]) == 2
         assert re.search(message, capsys.readouterr().err)
