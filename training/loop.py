@@ -333,9 +333,10 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     ``make_optimizer``; ``extra``: recorded in every checkpoint, e.g. the model's growth history).
 
     Evaluates with ``eval_fn(model) -> metrics dict`` every ``eval_every`` steps (rank 0) and checkpoints
-    every ``ckpt_every`` steps to ``out/last.pt``; both also at the last step, whether ``--steps`` or
-    ``--max_minutes`` ended the run (eval.csv's last row, which training.ship records, is the saved state's).
-    Returns the last metrics.
+    every ``ckpt_every`` steps and every ``ckpt_minutes`` of wall time to ``out/last.pt``; both also at the last
+    step, whether ``--steps`` or ``--max_minutes`` ended the run (eval.csv's last row, which training.ship records,
+    is then the saved state's). SIGTERM (on any rank) ends the run after the current step with a checkpoint and no
+    evaluation. Returns the last metrics with ``step`` and ``terminated`` (True after a SIGTERM).
     """
     check_loop_options(cfg)
     cfg = dataclasses.replace(cfg)  # --decay_by_time moves cfg.steps: the caller's config stays as given
@@ -421,6 +422,7 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     eval_seconds = ckpt_seconds = 0.0  # the last evaluation's and checkpoint's durations (--decay_by_time)
     use_bf16 = use_autocast(cfg, device)
     model.train()
+    terminated_at_end = False
     with sigterm_flag() as terminated:
         for batch in loader:
             batch = _to(batch, device)
@@ -441,12 +443,14 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             killed = bool(terminated)
             moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
             if world > 1:
-                # every rank follows rank 0's clock and signal (one end and one stop for all: a rank stopping alone
-                # would hang)
-                shared = torch.tensor([cfg.steps, int(stop), int(killed)], dtype=torch.int64, device=device)
+                # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would
+                # hang), and a SIGTERM that reached any rank stops them all
+                shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
                 dist.broadcast(shared, 0)
                 moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
-                killed = bool(shared[2])
+                signalled = torch.tensor([int(killed)], dtype=torch.int64, device=device)
+                dist.all_reduce(signalled, op=dist.ReduceOp.MAX)
+                killed = bool(signalled[0])
             if moved:  # the next update already runs at the first decay step's rate
                 for group in optimizer.param_groups:
                     group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
@@ -469,12 +473,16 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             if rank == 0 and (step % cfg.ckpt_every == 0 or ending or due):
                 t_ckpt = last_ckpt_time = time.time()
                 save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
-                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps:  # wsd only (check_loop_options)
+                # the decay's keepsakes on the --ckpt_every grid and at the run's real end only: a checkpoint by
+                # the clock or a signal would add an irregular one to what training.ship averages
+                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and \
+                        (step % cfg.ckpt_every == 0 or (ending and not killed)):  # wsd only (check_loop_options)
                     save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
                 ckpt_seconds = time.time() - t_ckpt
             if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
                 if rank == 0:
                     tqdm.write(f"[step {step}] SIGTERM: checkpointed {last}; the same command resumes from it")
+                terminated_at_end = True
                 break
             if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
                 model.eval()
@@ -490,30 +498,42 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     bar.close()
     if world > 1:
         dist.barrier()
-    return {"step": step, **metrics}
+    return {"step": step, "terminated": bool(terminated_at_end), **metrics}
 
 
 @contextlib.contextmanager
 def sigterm_flag():
     """While inside: SIGTERM appends to the yielded list instead of killing the process, so the loop can checkpoint
     the step it is on and stop (what a job scheduler or a session's end sends; SIGKILL cannot be caught, which
-    ``--ckpt_minutes`` bounds). The previous handler is restored on the way out. Off the main thread (where Python
-    cannot set handlers) the list stays empty."""
+    ``--ckpt_minutes`` bounds); a second SIGTERM kills the process as the first would have. The previous handler
+    is restored on the way out. Off the main thread (where Python cannot set handlers) the list stays empty."""
     received: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield received
         return
-    previous = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
+
+    def on_sigterm(signum, frame):
+        received.append(signum)
+        if len(received) > 1:  # asked twice (e.g. a run stuck waiting for data): die as SIGTERM would
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
         yield received
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    finally:  # None: a handler set outside Python, which cannot be restored; the default then
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+WORKER_SIGTERM_GRACE_S = 60
+TERMINATED_EXIT = 128 + signal.SIGTERM  # training.train / pretrain exit with it after a SIGTERM, as a shell reports
 
 
 def _leave_sigterm_to_the_main_process(worker_id: int) -> None:
-    """DataLoader workers ignore SIGTERM (a group-wide signal reaches them too): the main process checkpoints and
-    then shuts them down; a worker dying first would end the run with a DataLoader error instead."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    """A DataLoader worker outlives a SIGTERM by ``WORKER_SIGTERM_GRACE_S`` (a group-wide signal reaches it too):
+    the main process checkpoints and shuts it down meanwhile, where a worker dying at once would end the run with a
+    DataLoader error instead. The alarm then ends a worker nobody shut down (hung, or its parent gone)."""
+    signal.signal(signal.SIGTERM, lambda signum, frame: signal.alarm(WORKER_SIGTERM_GRACE_S))
 
 
 def use_autocast(cfg: TrainConfig, device: torch.device) -> bool:

@@ -13,7 +13,7 @@ from pointmap.errors import PointmapError
 from pointmap.model import PRESETS
 from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
-from training.loop import fit
+from training.loop import TERMINATED_EXIT, fit
 from training.losses import completion_loss
 from training.mix import open_pairs
 from training.train import collate
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
-    return 0
+    return TERMINATED_EXIT if result.get("terminated") else 0  # a chained `&& ship` must not take it as finished
 
 
 if __name__ == "__main__":

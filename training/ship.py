@@ -165,6 +165,9 @@ def main(argv=None) -> int:
     except (CheckpointError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
+        print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
+              f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
     cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",

@@ -18,7 +18,7 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
 from training.grow import is_growth, silent_parameters
-from training.loop import fit, load_checkpoint
+from training.loop import TERMINATED_EXIT, fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
@@ -296,7 +296,7 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
-    return 0
+    return TERMINATED_EXIT if result.get("terminated") else 0  # a chained `&& ship` must not take it as finished
 
 
 if __name__ == "__main__":

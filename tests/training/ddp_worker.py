@@ -1,5 +1,8 @@
-"""Run by test_loop under torchrun: a few DDP steps, then each rank saves its weights."""
+"""Run by test_loop under torchrun: a few DDP steps, then each rank saves its weights. With a second argument
+``sigterm``, rank 1 alone receives SIGTERM during the second update, and every rank must stop after it."""
 
+import os
+import signal
 import sys
 
 import torch
@@ -13,12 +16,22 @@ sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from synthetic import PlanePairs  # noqa: E402
 
 out = sys.argv[1]
+signalled = len(sys.argv) > 2 and sys.argv[2] == "sigterm"
 # with a time limit and --decay_by_time every step broadcasts rank 0's end and stop decision
-cfg = TrainConfig(data="synthetic", out=out, preset="test", batch_size=2, steps=3, warmup=1, ckpt_every=100,
-                  eval_every=100, workers=0, quiet=True, n_corr=64, threads=1, schedule="wsd", decay_steps=1,
-                  max_minutes=60.0, decay_by_time=True)
+cfg = TrainConfig(data="synthetic", out=out, preset="test", batch_size=2, steps=40 if signalled else 3, warmup=1,
+                  ckpt_every=100, eval_every=100, workers=0, quiet=True, n_corr=64, threads=1, schedule="wsd",
+                  decay_steps=1, max_minutes=60.0, decay_by_time=True)
 torch.manual_seed(0)
 model = PointmapNet(PRESETS["test"])
-fit(cfg, model, PlanePairs(8), collate, make_step(cfg))
+step = make_step(cfg)
+
+
+def step_fn(m, batch, k):
+    if signalled and k == 1 and torch.distributed.get_rank() == 1:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return step(m, batch, k)
+
+
+result = fit(cfg, model, PlanePairs(8), collate, step_fn)
 rank = torch.distributed.get_rank()
-torch.save(model.state_dict(), f"{out}/rank{rank}.pt")
+torch.save({**model.state_dict(), "__step": torch.tensor(result["step"])}, f"{out}/rank{rank}.pt")

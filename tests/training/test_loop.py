@@ -253,18 +253,22 @@ def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss
 
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
-def test_two_ddp_processes_on_cpu_end_with_identical_weights(tmp_path):
+@pytest.mark.parametrize("mode", ["plain", "sigterm"])
+def test_two_ddp_processes_on_cpu_end_with_identical_weights_and_a_sigterm_on_one_rank_stops_both(tmp_path, mode):
     torchrun = str(Path(sys.executable).parent / "torchrun")
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([torchrun, "--nproc_per_node=2", "--master_port=29517",
-                           str(ROOT / "tests/training/ddp_worker.py"), str(tmp_path)],
+    proc = subprocess.run([torchrun, "--nproc_per_node=2", f"--master_port={29517 + (mode == 'sigterm')}",
+                           str(ROOT / "tests/training/ddp_worker.py"), str(tmp_path), mode],
                           env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
     w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    assert int(w0.pop("__step")) == int(w1.pop("__step")) == (2 if mode == "sigterm" else 3)
     initial = PointmapNet(PRESETS["test"]).state_dict()
     assert all(torch.equal(w0[k], w1[k]) for k in w0)
     assert any(not torch.equal(w0[k], initial[k]) for k in w0)
+    if mode == "sigterm":
+        assert torch.load(tmp_path / "last.pt", weights_only=True)["step"] == 2
 
 
 def test_fresh_heads_init_takes_the_trunk_and_keeps_only_head_tensors_whose_shapes_match(tmp_path, monkeypatch):
@@ -786,7 +790,8 @@ def test_sigterm_checkpoints_the_current_step_and_a_resumed_run_ends_as_an_unint
     before = signal.getsignal(signal.SIGTERM)
     torch.manual_seed(0)
     result = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, signalled_step)
-    assert result["step"] == 3 and torch.load(tmp_path / "b" / "last.pt", weights_only=True)["step"] == 3
+    assert result["step"] == 3 and result["terminated"]
+    assert torch.load(tmp_path / "b" / "last.pt", weights_only=True)["step"] == 3
     assert signal.getsignal(signal.SIGTERM) is before  # the handler is the loop's only while it runs
     resumed = run(tmp_path / "b", 6, ckpt_every=1000, ckpt_minutes=0.0)
     for k, v in straight.state_dict().items():
@@ -830,7 +835,44 @@ def test_a_sigterm_to_the_whole_process_group_stops_a_run_with_a_data_worker_aft
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 0, err[-2000:]
+    assert proc.returncode == 0, err[-2000:]  # the worker script's own exit (training.train's would be 143)
     saved = torch.load(tmp_path / "last.pt", weights_only=True)["step"]
     assert saved >= 4 and f"fit returned at step {saved}" in out
     assert "SIGTERM: checkpointed" in out + err and "DataLoader worker" not in err
+
+
+def test_checkpoints_by_the_clock_or_a_signal_add_no_decay_keepsakes(tmp_path, monkeypatch):
+    import signal
+
+    tick_clock(monkeypatch)
+    cfg = dataclasses.replace(config(tmp_path / "a", 8), schedule="wsd", decay_steps=4, ckpt_every=2, decay_ckpts=True,
+                              ckpt_minutes=0.0005)  # the clock checkpoints after every update
+    step = make_step(cfg)
+
+    def signalled_step(model, batch, k):
+        if k == 6:  # the seventh update, inside the decay (5-8)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return step(model, batch, k)
+
+    torch.manual_seed(0)
+    result = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, signalled_step)
+    assert result["step"] == 7 and result["terminated"]
+    kept = sorted(p.name for p in (tmp_path / "a").glob("decay_*.pt"))
+    assert kept == ["decay_6.pt"]  # the grid's; not 5 (clock) nor 7 (signal)
+    assert torch.load(tmp_path / "a" / "last.pt", weights_only=True)["step"] == 7
+
+
+def test_a_second_sigterm_kills_the_process_as_the_first_would_have(tmp_path):
+    code = (
+        "import os, signal, time\n"
+        "from training.loop import sigterm_flag\n"
+        "with sigterm_flag() as got:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(0.1)\n"
+        "    print('first caught', len(got), flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(1)\n"
+        "print('survived')\n")
+    proc = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          capture_output=True, text=True, timeout=60)
+    assert "first caught 1" in proc.stdout and "survived" not in proc.stdout and proc.returncode == -15

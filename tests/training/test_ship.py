@@ -163,3 +163,16 @@ def test_an_older_checkpoint_without_the_newer_config_fields_averages_with_a_mod
     assert ck["step"] == 1 and [d["source"] for d in ck["averaged"]] == [f"{tmp_path.name}/m.safetensors",
                                                                           f"{tmp_path.name}/old.pt"]
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_shipping_warns_when_the_metrics_row_is_an_earlier_state_than_the_weights(tmp_path, capsys):
+    ck = tmp_path / "a.pt"
+    _checkpoint(ck, 0, 120)  # e.g. a run stopped by SIGTERM at step 120 after its last evaluation at 100
+    (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n")
+    assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
+                 str(tmp_path / "x.safetensors")]) == 0
+    assert "its last row is step 100, the shipped weights' step is 120" in capsys.readouterr().err
+    (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n120,51.0\n")
+    assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
+                 str(tmp_path / "y.safetensors")]) == 0
+    assert "warning" not in capsys.readouterr().err
