@@ -125,16 +125,19 @@ def test_a_second_run_with_other_settings_is_refused_and_bad_options_too(tmp_pat
 
 def test_a_rendered_scene_written_out_as_a_users_files_is_prepared_back_to_the_engines_pairs(tmp_path):
     import os
-
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    import subprocess
+    import sys
     import tarfile
+    from pathlib import Path
 
-    from data.generate import GenConfig, generate
     from data.geom import decode_corr
     from data.shards import read_npz, read_png
 
-    generate(tmp_path / "rendered", GenConfig(kind="pairs", scenes=1, views=3, size=64, shard_size=1, seed=7),
-             workers=1, progress=False, log=None)
+    root = Path(__file__).resolve().parents[2]  # rendered in a process of its own: no GL state shared with others
+    subprocess.run([sys.executable, "-m", "data.render", "--out", str(tmp_path / "rendered"), "--kind", "pairs",
+                    "--scenes", "1", "--views", "3", "--size", "64", "--shard-size", "1", "--seed", "7",
+                    "--workers", "1"], check=True, capture_output=True, timeout=300,
+                   env=dict(os.environ, PYOPENGL_PLATFORM="egl", PYTHONPATH=str(root)))
 
     def read(path):
         with tarfile.open(path) as tar:
