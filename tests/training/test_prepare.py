@@ -6,6 +6,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from data.datasets import PairDataset
 from data.geom import look_at
@@ -170,3 +171,28 @@ def test_a_rendered_scene_written_out_as_a_users_files_is_prepared_back_to_the_e
             both = np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
             assert (np.isfinite(a).all(-1) == np.isfinite(b).all(-1)).mean() > 0.999
             assert np.abs(a[both] - b[both]).max() <= 1 / 64
+
+
+def test_a_scene_with_a_colmap_model_gives_the_same_pairs_as_with_its_transforms_json(tmp_path):
+    import shutil
+    import tarfile
+
+    import pointmap as pm
+
+    cams, K = make_scene(tmp_path / "ns")
+    shutil.copytree(tmp_path / "ns", tmp_path / "cm")
+    (tmp_path / "cm" / "transforms.json").unlink()
+    depth = np.stack([np.load(tmp_path / "ns" / "depth" / f"f{k}.npy") for k in range(4)])
+    recon = pm.Reconstruction(images=torch.zeros(4, H, W, 3), cam2world=torch.tensor(np.stack(cams)),
+                              K=torch.tensor(K).repeat(4, 1, 1).float(), depth_z=torch.from_numpy(depth),
+                              conf=torch.ones(4, H, W), names=[f"f{k}.png" for k in range(4)])
+    recon.save(tmp_path / "cm", formats=("colmap",))  # sparse/0/*.bin, OpenCV world-to-camera, as COLMAP's
+    for name in ("ns", "cm"):
+        assert main([str(tmp_path / name), "--out", str(tmp_path / f"{name}_out")]) == 0
+    metas = []
+    for name in ("ns", "cm"):
+        with tarfile.open(tmp_path / f"{name}_out" / "shard-000000.tar") as tar:
+            metas.append(json.loads(tar.extractfile("scene-00000000/meta.json").read()))
+    assert metas[0]["pairs"] == metas[1]["pairs"] and len(metas[0]["pairs"]) >= 3
+    for a, b in zip(metas[0]["views"], metas[1]["views"]):
+        assert np.allclose(a["K"], b["K"], atol=1e-6) and np.allclose(a["cam2world"], b["cam2world"], atol=1e-5)
