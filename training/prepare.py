@@ -133,10 +133,19 @@ def overlaps(views: list[dict], tol: float, stride: int = 4, reading=READINGS[0]
     return ov
 
 
-def pairs_of(ov: np.ndarray, lo: float, hi: float) -> list[tuple[int, int]]:
-    """(i < j) whose overlap is >= lo both ways and whose smaller one is <= hi (the rendered sets' rule)."""
+def pairs_of(ov: np.ndarray, lo: float, hi: float, per_view: int = 0) -> list[tuple[int, int]]:
+    """(i < j) whose overlap is >= lo both ways and whose smaller one is <= hi (the rendered sets' rule); with
+    ``per_view`` > 0 only each view's ``per_view`` partners of largest overlap among those (the union: a scene of
+    V views gives at most V x per_view pairs, not V^2 / 2)."""
     n = len(ov)
-    return [(i, j) for i in range(n) for j in range(i + 1, n) if lo <= min(ov[i, j], ov[j, i]) <= hi]
+    ok = [(i, j) for i in range(n) for j in range(i + 1, n) if lo <= min(ov[i, j], ov[j, i]) <= hi]
+    if per_view <= 0:
+        return ok
+    keep = set()
+    for v in range(n):
+        mine = sorted((p for p in ok if v in p), key=lambda p: (-min(ov[p[0], p[1]], ov[p[1], p[0]]), p))
+        keep.update(mine[:per_view])
+    return sorted(keep)
 
 
 def diagnose(views: list[dict], tol: float, lo: float, n_pairs: int = 6) -> str:
@@ -196,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overlap", default="0.15,0.95", help="lo,hi: the pairs kept (default 0.15,0.95, as rendered)")
     p.add_argument("--depth-tol", type=float, default=0.02,
                    help="relative depth agreement of a co-visible pixel (default 0.02; rendered sets use 0.005)")
+    p.add_argument("--pairs-per-view", type=int, default=8,
+                   help="keep each view's N partners of largest overlap (default 8; 0: every qualifying pair, which "
+                   "grows as views^2: 1.5 MB of correspondences per pair at 512 px)")
     p.add_argument("--shard-size", type=int, default=4, help="scenes per shard (default 4)")
     p.add_argument("--seed", type=int, default=0, help="the train / val split's seed (PairDataset)")
     return p
@@ -218,7 +230,11 @@ def main(argv=None) -> int:
         print("error: " + "; ".join(bad), file=sys.stderr)
         return 2
     out = Path(args.out)
+    if args.pairs_per_view < 0:
+        print(f"error: --pairs-per-view expected >= 0 (0: all), got {args.pairs_per_view}", file=sys.stderr)
+        return 2
     config = {"kind": "pairs", "source": "training.prepare", "seed": args.seed, "max_side": args.max_side,
+              "pairs_per_view": args.pairs_per_view,
               "png_depth_scale": args.png_depth_scale, "overlap": [lo, hi], "depth_tol": args.depth_tol,
               "shard_size": args.shard_size, "scenes": [str(Path(s).resolve()) for s in args.scenes]}
     if (out / "config.json").is_file() and load_json(out / "config.json") != config:
@@ -259,7 +275,7 @@ def main(argv=None) -> int:
             tqdm.write(f"skipped: {problems[-1]}")
             continue
         ov = overlaps(views, args.depth_tol)
-        pairs = pairs_of(ov, lo, hi)
+        pairs = pairs_of(ov, lo, hi, args.pairs_per_view)
         if not pairs:
             problems.append(f"{scene}: {diagnose(views, args.depth_tol, lo)}")
             tqdm.write(f"skipped: {problems[-1]}")

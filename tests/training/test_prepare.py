@@ -196,3 +196,19 @@ def test_a_scene_with_a_colmap_model_gives_the_same_pairs_as_with_its_transforms
     assert metas[0]["pairs"] == metas[1]["pairs"] and len(metas[0]["pairs"]) >= 3
     for a, b in zip(metas[0]["views"], metas[1]["views"]):
         assert np.allclose(a["K"], b["K"], atol=1e-6) and np.allclose(a["cam2world"], b["cam2world"], atol=1e-5)
+
+
+def test_pairs_per_view_keeps_each_views_partners_of_largest_overlap():
+    from training.prepare import pairs_of
+
+    rng = np.random.default_rng(1)
+    ov = rng.uniform(0.2, 0.9, (6, 6))
+    np.fill_diagonal(ov, 1)
+    every = pairs_of(ov, 0.15, 0.95)
+    assert len(every) == 15
+    two = pairs_of(ov, 0.15, 0.95, per_view=2)
+    score = {p: min(ov[p], ov[p[::-1]]) for p in every}
+    for v in range(6):  # each view's two best partners are kept (a brute-force reading of the rule)
+        best = sorted((p for p in every if v in p), key=lambda p: -score[p])[:2]
+        assert set(best) <= set(two)
+    assert len(two) <= 12 and set(two) <= set(every) and two == sorted(two)
