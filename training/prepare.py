@@ -85,7 +85,7 @@ def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -
         raise PointmapError(f"{scene}: {len(distortions)} photograph(s) with lens distortion ({names}, ...): "
                             "undistort the photographs and depth maps first (pointmap.undistort), then give "
                             "pinhole cameras")
-    views, left_out = [], []
+    views, left_out, target = [], [], None
     for k, path in enumerate(images):
         name = Path(path).name
         depth_path = depth_file([scene / f for f in DEPTH_DIRS], Path(path).stem)
@@ -99,8 +99,13 @@ def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -
         if abs(dw / dh - w / h) > 0.01 * w / h:
             raise PointmapError(f"{depth_path}: {dw}x{dh} is not the aspect ratio of {name} ({w}x{h})")
         Ki = np.asarray(K[k], np.float64).copy()
-        s = min(1.0, max_side / max(h, w))
-        nw, nh = max(1, round(w * s)), max(1, round(h * s))
+        if target is None:  # the scene's stored size: the first view's, its long side at most max_side
+            s = min(1.0, max_side / max(h, w))
+            target = (max(1, round(w * s)), max(1, round(h * s)))
+        elif abs(target[0] / target[1] - w / h) > 0.01 * w / h:  # PairDataset crops both views of a pair alike
+            raise PointmapError(f"{scene}: {name} is {w}x{h}, another shape than the scene's first photograph "
+                                f"(stored {target[0]}x{target[1]}): a scene's photographs need one aspect ratio")
+        nw, nh = target  # every view of the scene at one size (K scaled per axis)
         if (nw, nh) != (w, h):
             rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA)
             sx, sy = nw / w, nh / h  # pixel centres at integers: u' = (u + 0.5) s - 0.5
@@ -109,7 +114,9 @@ def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -
             Ki[1, 1] *= sy
             Ki[1, 2] = (Ki[1, 2] + 0.5) * sy - 0.5
         if depth.shape != (nh, nw):
-            depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST)
+            # the source pixel under each output pixel's centre (INTER_NEAREST reads floor(x s): up to half a
+            # pixel off the resized image and K)
+            depth = cv2.resize(depth, (nw, nh), interpolation=cv2.INTER_NEAREST_EXACT)
         views.append({"name": name, "rgb": np.ascontiguousarray(rgb), "depth": depth, "K": Ki,
                       "cam2world": np.asarray(cam2world[k], np.float64)})
     if left_out:
@@ -172,7 +179,8 @@ def diagnose(views: list[dict], tol: float, lo: float, n_pairs: int = 6) -> str:
     return text
 
 
-def scene_members(index: int, views: list[dict], pairs, ov, seed: int, source: str) -> tuple[list, dict]:
+def scene_members(index: int, views: list[dict], pairs, ov, seed: int, source: str,
+                  tol: float = 0.005) -> tuple[list, dict]:
     """Tar members and meta.json of one scene, as ``data.generate.render_scene`` writes them."""
     prefix = f"scene-{index:08d}"
     h, w = views[0]["depth"].shape
@@ -187,8 +195,8 @@ def scene_members(index: int, views: list[dict], pairs, ov, seed: int, source: s
         members.append((f"{prefix}/view-{k}.npz", npz_bytes({"depth_z": v["depth"]})))
     for i, j in pairs:
         a, b = views[i], views[j]
-        c12 = correspondences(a["depth"], a["K"], a["cam2world"], b["depth"], b["K"], b["cam2world"])[0]
-        c21 = correspondences(b["depth"], b["K"], b["cam2world"], a["depth"], a["K"], a["cam2world"])[0]
+        c12 = correspondences(a["depth"], a["K"], a["cam2world"], b["depth"], b["K"], b["cam2world"], rel_tol=tol)[0]
+        c21 = correspondences(b["depth"], b["K"], b["cam2world"], a["depth"], a["K"], a["cam2world"], rel_tol=tol)[0]
         members.append((f"{prefix}/pair-{i}-{j}.npz", npz_bytes({"corr_12": encode_corr(c12),
                                                                  "corr_21": encode_corr(c21)})))
     return members, meta
@@ -284,13 +292,13 @@ def main(argv=None) -> int:
         mean_ov = np.mean([min(ov[i, j], ov[j, i]) for i, j in pairs])
         tqdm.write(f"{scene}: {len(views)} views, {len(pairs)} pairs (mean overlap {mean_ov:.2f}), "
                    f"{100 * with_depth:.0f}% of pixels with depth")
-        pending.append(scene_members(kept, views, pairs, ov, args.seed, str(Path(scene).resolve())))
+        pending.append(scene_members(kept, views, pairs, ov, args.seed, str(Path(scene).resolve()), args.depth_tol))
         kept += 1
         if len(pending) == args.shard_size:
             flush()
     flush()
     for stale in sorted(out.glob("shard-*.tar")):  # shards of an earlier run of these settings beyond this one's
-        if int(stale.stem.split("-")[1]) >= len(shards):
+        if stale.stem.split("-")[1].isdigit() and int(stale.stem.split("-")[1]) >= len(shards):
             stale.unlink()
             (out / sidecar_name(int(stale.stem.split("-")[1]))).unlink(missing_ok=True)
     manifest = {"format": FORMAT, "config": config, "complete": True, "shards": shards,

@@ -36,6 +36,8 @@ def read_depth(path, png_scale: float = 1e-3) -> np.ndarray:
     else:
         raise PointmapError(f"{path}: a depth map expected a {' or '.join(DEPTH_SUFFIXES)} file")
     d = np.asarray(d, np.float32)
+    if min(d.shape) < 1:
+        raise PointmapError(f"{path}: an empty depth map ({d.shape[1]}x{d.shape[0]})")
     return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
 
 

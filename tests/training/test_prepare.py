@@ -26,7 +26,8 @@ def plane_depth(K, cam2world):
     return np.where(t > 0, t, 0).astype(np.float32)
 
 
-def make_scene(folder, *, opengl=True, depth_factor=1.0, png_depth=False, drop_depth=()):
+def make_scene(folder, *, opengl=True, depth_factor=1.0, png_depth=False, drop_depth=(), depth_noise=0.0,
+               small=()):
     """Four photographs of the plane from cameras half a metre apart, a transforms.json (nerfstudio: OpenGL axes, cx in
     edge coordinates) and depth maps; returns the cameras (OpenCV cam2world) and K."""
     rng = np.random.default_rng(0)
@@ -39,8 +40,10 @@ def make_scene(folder, *, opengl=True, depth_factor=1.0, png_depth=False, drop_d
         eye = np.array([0.3 * k, 0.1 * k, 0.4 * k])  # sideways and forwards
         c2w = look_at(eye, eye + np.array([0.05, 0.0, 1.0]), up=(0.0, -1.0, 0.0))
         cams.append(c2w)
-        cv2.imwrite(str(folder / "images" / f"f{k}.png"), texture)
+        img = texture if k not in small else cv2.resize(texture, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(folder / "images" / f"f{k}.png"), img)
         depth = plane_depth(K, c2w) * depth_factor
+        depth = depth * (1 + depth_noise * rng.standard_normal(depth.shape)).astype(np.float32)
         if k not in drop_depth:
             if png_depth:
                 cv2.imwrite(str(folder / "depth" / f"f{k}.png"), np.rint(depth * 1000).astype(np.uint16))
@@ -48,6 +51,8 @@ def make_scene(folder, *, opengl=True, depth_factor=1.0, png_depth=False, drop_d
                 np.save(folder / "depth" / f"f{k}.npy", depth)
         T = c2w @ np.diag([1.0, -1, -1, 1]) if opengl else c2w
         frames.append({"file_path": f"images/f{k}.png", "transform_matrix": T.tolist()})
+    for k in small:  # a photograph at half resolution: its camera says so
+        frames[k].update(w=W // 2, h=H // 2, fl_x=F / 2, fl_y=F / 2, cx=(K[0, 2] + 0.5) / 2, cy=(K[1, 2] + 0.5) / 2)
     meta = {"w": W, "h": H, "fl_x": F, "fl_y": F, "cx": K[0, 2] + 0.5, "cy": K[1, 2] + 0.5, "frames": frames}
     (folder / "transforms.json").write_text(json.dumps(meta))
     return cams, K
@@ -212,3 +217,65 @@ def test_pairs_per_view_keeps_each_views_partners_of_largest_overlap():
         best = sorted((p for p in every if v in p), key=lambda p: -score[p])[:2]
         assert set(best) <= set(two)
     assert len(two) <= 12 and set(two) <= set(every) and two == sorted(two)
+
+
+def read_shard(path):
+    import tarfile
+
+    with tarfile.open(path) as tar:
+        return {m.name: tar.extractfile(m).read() for m in tar.getmembers()}
+
+
+def test_the_stored_correspondences_use_the_depth_tolerance_the_pairs_were_chosen_with(tmp_path):
+    from data.geom import decode_corr
+    from data.shards import read_npz
+
+    make_scene(tmp_path / "s", depth_noise=0.01)  # a sensor's 1% noise
+    assert main([str(tmp_path / "s"), "--out", str(tmp_path / "out"), "--depth-tol", "0.03"]) == 0
+    shard = read_shard(tmp_path / "out" / "shard-000000.tar")
+    meta = json.loads(shard["scene-00000000/meta.json"])
+    for i, j in meta["pairs"]:
+        corr = decode_corr(read_npz(shard[f"scene-00000000/pair-{i}-{j}.npz"])["corr_12"])
+        covered = float(np.isfinite(corr).all(-1).mean())  # every pixel has depth on the plane
+        assert covered > 0.9 * meta["overlap"][i][j], (i, j, covered, meta["overlap"][i][j])
+
+
+def test_a_photograph_at_another_resolution_is_stored_at_the_scenes_size_and_another_shape_is_refused(tmp_path,
+                                                                                                     capsys):
+    from data.shards import read_png
+
+    make_scene(tmp_path / "s", small=(2,))
+    assert main([str(tmp_path / "s"), "--out", str(tmp_path / "out")]) == 0
+    shard = read_shard(tmp_path / "out" / "shard-000000.tar")
+    meta = json.loads(shard["scene-00000000/meta.json"])
+    assert {read_png(shard[f"scene-00000000/view-{k}.png"]).shape for k in range(4)} == {(H, W, 3)}
+    assert np.allclose(meta["views"][2]["K"], meta["views"][0]["K"], atol=1e-6)  # upsampled 2x about pixel centres
+    ds = PairDataset(tmp_path / "out", size=48, augment=False, split="all")
+    for k in range(len(ds)):
+        v1, v2 = ds[k]
+        assert float(v2["valid"].float().mean()) > 0.99  # no border without depth from a mis-sized crop
+    frames = json.loads((tmp_path / "s" / "transforms.json").read_text())
+    frames["frames"][1].update(w=W, h=W, cy=W / 2)  # a square photograph among 4:3 ones
+    (tmp_path / "s" / "transforms.json").write_text(json.dumps(frames))
+    cv2.imwrite(str(tmp_path / "s" / "images" / "f1.png"), np.zeros((W, W, 3), np.uint8))
+    np.save(tmp_path / "s" / "depth" / "f1.npy", np.ones((W, W), np.float32))
+    assert main([str(tmp_path / "s"), "--out", str(tmp_path / "out2")]) == 2
+    assert "another shape than the scene's first photograph" in capsys.readouterr().out
+
+
+def test_resized_depth_is_the_depth_under_each_stored_pixel_centre(tmp_path):
+    from data.shards import read_npz
+
+    cams, _ = make_scene(tmp_path / "s")
+    assert main([str(tmp_path / "s"), "--out", str(tmp_path / "out"), "--max-side", "32"]) == 0  # 96x72 -> 32x24
+    shard = read_shard(tmp_path / "out" / "shard-000000.tar")
+    meta = json.loads(shard["scene-00000000/meta.json"])
+    for k in range(4):
+        K = np.array(meta["views"][k]["K"])
+        stored = read_npz(shard[f"scene-00000000/view-{k}.npz"])["depth_z"]
+        u, v = np.meshgrid(np.arange(32.0), np.arange(24.0))
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        d = rays @ cams[k][:3, :3].T
+        o = cams[k][:3, 3]
+        truth = (PLANE_Z + SLOPE * o[0] - o[2]) / (d[..., 2] - SLOPE * d[..., 0])
+        assert np.median(np.abs(stored / truth - 1)) < 1e-4  # a factor of 3: the centre pixel exactly
