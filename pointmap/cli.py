@@ -257,11 +257,18 @@ def depths_from_folder(folder: str, images: list[str], png_scale: float) -> list
         raise PointmapError(f"--metric-depth expected a folder of depth maps, got {folder!r}")
     if not png_scale > 0:
         raise PointmapError(f"--depth-png-scale expected > 0, got {png_scale}")
+    from pointmap.images import image_sizes
+
     found = [depth_file(folder, Path(p).stem) for p in images]
     if not any(found):
         raise PointmapError(f"--metric-depth {folder} holds no depth map named like the images "
                             f"({Path(images[0]).stem}.npy or .png, ...)")
-    return [None if f is None else read_depth(f, png_scale) for f in found]
+    depths = [None if f is None else read_depth(f, png_scale) for f in found]
+    for (w, h), d, f in zip(image_sizes(images), depths, found):  # checked now, not after inference
+        if d is not None and abs(d.shape[1] / d.shape[0] - w / h) > 0.01 * w / h:
+            raise PointmapError(f"--metric-depth: {f} is {d.shape[1]}x{d.shape[0]}, not the aspect ratio of its "
+                                f"photograph ({w}x{h}, EXIF orientation applied)")
+    return depths
 
 
 def cmd_reconstruct(args) -> int:
@@ -464,11 +471,17 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
     if scene.get("depths") is not None:  # into the measured depth's units
         from pointmap.align.gauge import scale_to_depth
 
-        recon, report = scale_to_depth(recon, scene["depths"])
-        recon.info["metric_depth"] = report
-        if not args.quiet:
-            print(f"pointmap: scaled by {report['scale']:.4g} to the measured depth of {report['images']} image(s) "
-                  f"({report['pixels']} pixels; per-pixel scatter {100 * report['spread']:.1f}%)", file=sys.stderr)
+        try:
+            recon, report = scale_to_depth(recon, scene["depths"])
+        except PointmapError as e:  # e.g. too few pixels with both depths: the reconstruction is saved unscaled
+            print(f"pointmap: warning: --metric-depth not applied, the reconstruction keeps its own scale: {e}",
+                  file=sys.stderr)
+        else:
+            recon.info["metric_depth"] = report
+            if not args.quiet:
+                print(f"pointmap: scaled by {report['scale']:.4g} to the measured depth of {report['images']} "
+                      f"image(s) ({report['pixels']} pixels; per-pixel scatter {100 * report['spread']:.1f}%)",
+                      file=sys.stderr)
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)

@@ -183,12 +183,14 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
             chunk = group[s: s + batch_size]
             e1 = _stack([enc[i] for i, _ in chunk])
             e2 = _stack([enc[j] for _, j in chunk])
-            pred = model.decode_pair(e1, e2).map(lambda t: t.cpu())
-            for b, e in enumerate(chunk):
-                if cache is not None:  # with descriptors even when not kept here: a later stage may need them
+            pred = model.decode_pair(e1, e2)
+            if cache is not None:  # with descriptors even when not kept here: a later stage may need them
+                pred = pred.map(lambda t: t.cpu())
+                for b, e in enumerate(chunk):
                     cache.put(keys[e], pred[b])
             if not keep_desc:
                 pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2)
+            pred = pred.map(lambda t: t.cpu())
             for b, e in enumerate(chunk):
                 out[e] = pred[b].map(lambda t: t.to(store_dtype)) if store_dtype else pred[b]
             bar.update(len(chunk))

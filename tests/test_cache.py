@@ -225,3 +225,25 @@ def test_a_cache_object_serving_several_reconstructions_records_each_runs_own_co
     first = pm.reconstruct(tiny_model, images, cache=cache, **kw).info["pipeline"]["cache"]
     second = pm.reconstruct(tiny_model, images, cache=cache, **kw).info["pipeline"]["cache"]
     assert (first["hits"], first["misses"]) == (0, 6) and (second["hits"], second["misses"]) == (6, 0)
+
+
+def test_a_full_disk_reported_by_safetensors_is_logged_too(tiny_model, tmp_path, caplog, monkeypatch):
+    import safetensors.torch
+    from safetensors import SafetensorError
+
+    def full(*a, **k):
+        raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+
+    monkeypatch.setattr(safetensors.torch, "save_file", full)
+    cache = PredictionCache(tmp_path, tiny_model)
+    with caplog.at_level(logging.WARNING, logger="pointmap.cache"):
+        out = pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True, cache=cache)
+    assert len(out) == 2 and "No space left on device" in caplog.text and not cache.writable
+    assert not list(cache.dir.iterdir())  # no half-written file
+
+
+def test_an_edit_through_data_which_pytorch_does_not_count_is_refused_too(tiny_model, tmp_path):
+    cache = PredictionCache(tmp_path, tiny_model)
+    next(tiny_model.parameters()).data.add_(1e-3)
+    with pytest.raises(pm.PointmapError, match="made for other weights"):
+        pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True, cache=cache)

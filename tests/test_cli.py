@@ -695,3 +695,23 @@ def test_metric_depth_that_cannot_be_used_is_refused_before_the_model_loads(tiny
     extra = [str(tmp_path / e) if e in ("nowhere", "EMPTY") else e for e in extra]
     assert main(["reconstruct", str(folder), "-o", str(tmp_path / "r"), "--model", str(weights), *extra]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_metric_depth_of_another_shape_is_refused_before_the_model_and_too_few_pixels_save_unscaled(tiny, tmp_path,
+                                                                                                  capsys, monkeypatch):
+    import pointmap.checkpoint
+
+    weights, folder = tiny
+    (tmp_path / "depth").mkdir()
+    np.save(tmp_path / "depth" / "a.npy", np.ones((80, 60), np.float32))  # portrait map for a landscape photo
+    real = pointmap.checkpoint.load_model
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    args = ["reconstruct", str(folder), "--model", str(weights), "--size", "64", "--export", "npz",
+            "--no-epipolar", "--metric-depth", str(tmp_path / "depth")]
+    assert main([*args, "-o", str(tmp_path / "r")]) == 2
+    assert "is 60x80, not the aspect ratio of its photograph (80x60" in capsys.readouterr().err
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", real)
+    np.save(tmp_path / "depth" / "a.npy", np.zeros((60, 80), np.float32))  # no usable pixel
+    assert main([*args, "-o", str(tmp_path / "r")]) == 0
+    assert "--metric-depth not applied, the reconstruction keeps its own scale" in capsys.readouterr().err
+    assert (tmp_path / "r" / "reconstruction.npz").exists()

@@ -280,6 +280,14 @@ class Logger:
             except Exception:  # noqa: BLE001 - TensorBoard is optional
                 self.tb = None
 
+    def has_eval(self, step: int) -> bool:
+        """Whether ``eval.csv`` already holds a row for ``step``."""
+        path = self.out / "eval.csv"
+        if not path.exists():
+            return False
+        with open(path, newline="") as fh:
+            return any(row.get("step") == str(step) for row in csv.DictReader(fh))
+
     def log(self, kind: str, step: int, values: dict) -> None:
         if not self.enabled:
             return
@@ -475,8 +483,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
                 save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
                 # the decay's keepsakes on the --ckpt_every grid and at the run's real end only: a checkpoint by
                 # the clock or a signal would add an irregular one to what training.ship averages
-                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and \
-                        (step % cfg.ckpt_every == 0 or (ending and not killed)):  # wsd only (check_loop_options)
+                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and (step % cfg.ckpt_every == 0 or (
+                        ending and not killed) or step >= cfg.steps):  # wsd only (check_loop_options)
                     save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
                 ckpt_seconds = time.time() - t_ckpt
             if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
@@ -496,6 +504,13 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
             if ending:
                 break
     bar.close()
+    if step == start >= cfg.steps and eval_fn is not None and rank == 0 and not logger.has_eval(step):
+        # resumed at the end (e.g. a SIGTERM during the last update): the final evaluation the run owes
+        model.eval()
+        ev = eval_fn(model)
+        model.train()
+        logger.log("eval", step, ev)
+        metrics.update({f"eval_{k}": v for k, v in ev.items()})
     if world > 1:
         dist.barrier()
     return {"step": step, "terminated": bool(terminated_at_end), **metrics}
@@ -525,15 +540,15 @@ def sigterm_flag():
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
-WORKER_SIGTERM_GRACE_S = 60
 TERMINATED_EXIT = 128 + signal.SIGTERM  # training.train / pretrain exit with it after a SIGTERM, as a shell reports
 
 
 def _leave_sigterm_to_the_main_process(worker_id: int) -> None:
-    """A DataLoader worker outlives a SIGTERM by ``WORKER_SIGTERM_GRACE_S`` (a group-wide signal reaches it too):
-    the main process checkpoints and shuts it down meanwhile, where a worker dying at once would end the run with a
-    DataLoader error instead. The alarm then ends a worker nobody shut down (hung, or its parent gone)."""
-    signal.signal(signal.SIGTERM, lambda signum, frame: signal.alarm(WORKER_SIGTERM_GRACE_S))
+    """DataLoader workers ignore SIGTERM (a group-wide signal reaches them too): the main process checkpoints and
+    then shuts them down; a worker dying first would end the run with a DataLoader error instead (as would one
+    dying later on a timer: the loader raises wherever the main process is). A worker whose parent is gone exits
+    by itself (PyTorch's worker watchdog)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def use_autocast(cfg: TrainConfig, device: torch.device) -> bool:

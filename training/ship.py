@@ -34,8 +34,8 @@ def last_eval(path: Path) -> dict:
         raise ValueError(f"--metrics expected a run's eval.csv, got {str(path)!r}, which is not a file")
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    if not rows or "step" not in rows[-1]:
-        raise ValueError(f"--metrics {path}: expected an eval.csv with a header and at least one row")
+    if not rows or "step" not in rows[-1] or rows[-1]["step"] in (None, ""):
+        raise ValueError(f"--metrics {path}: expected an eval.csv with a header and at least one row with its step")
     try:
         return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")}
     except (TypeError, ValueError) as e:

@@ -876,3 +876,31 @@ def test_a_second_sigterm_kills_the_process_as_the_first_would_have(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT)},
                           capture_output=True, text=True, timeout=60)
     assert "first caught 1" in proc.stdout and "survived" not in proc.stdout and proc.returncode == -15
+
+
+def test_a_sigterm_during_the_last_update_keeps_its_decay_checkpoint_and_the_resume_evaluates_the_end(tmp_path):
+    import signal
+
+    cfg = dataclasses.replace(config(tmp_path / "a", 8), schedule="wsd", decay_steps=4, ckpt_every=2,
+                              decay_ckpts=True, ckpt_minutes=0.0)
+    step, evals = make_step(cfg), []
+
+    def signalled_step(model, batch, k):
+        if k == 7:  # the last update
+            os.kill(os.getpid(), signal.SIGTERM)
+        return step(model, batch, k)
+
+    def eval_fn(model):
+        evals.append(1)
+        return {"score": 1.0}
+
+    torch.manual_seed(0)
+    first = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, signalled_step, eval_fn)
+    assert first["step"] == 8 and first["terminated"] and not evals
+    assert sorted(p.name for p in (tmp_path / "a").glob("decay_*.pt")) == ["decay_6.pt", "decay_8.pt"]
+    again = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, step, eval_fn)  # resumed at the end
+    assert again["step"] == 8 and not again["terminated"] and evals == [1]
+    rows = (tmp_path / "a" / "eval.csv").read_text().splitlines()
+    assert rows[-1].startswith("8,")
+    fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, step, eval_fn)  # once is enough
+    assert evals == [1]

@@ -176,3 +176,12 @@ def test_shipping_warns_when_the_metrics_row_is_an_earlier_state_than_the_weight
     assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
                  str(tmp_path / "y.safetensors")]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_an_eval_csv_whose_last_row_has_no_step_is_refused_in_one_line(tmp_path, capsys):
+    ck = tmp_path / "a.pt"
+    _checkpoint(ck, 0, 100)
+    (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n,51.0\n")
+    assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out", str(tmp_path / "x.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert "at least one row with its step" in err and len(err.strip().splitlines()) == 1
