@@ -265,9 +265,16 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         graph = auto_graph(n) if graph == "auto" else graph
         pairs = make_pairs(n, graph)
     cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine, retrieval)
+    if cache is not None:  # pairs already on disk cost a read, not the network: the estimate says so
+        from pointmap.inference import directed
+
+        cached = cache.present([v.img for v in views], directed(pairs))
+        cost["cached_pairs"] = cached
+        cost["inference_seconds"] *= 1 - cached / (2 * len(pairs))
     if not quiet:
+        hits = f" ({cost['cached_pairs']} of {2 * len(pairs)} directed pairs in the cache)" if cache is not None else ""
         print(f"pointmap: {n} images, graph {graph}: {len(pairs)} pairs; estimated inference "
-              f"~{_fmt_s(cost['inference_seconds'])}, alignment ~{_fmt_s(cost['align_seconds'])}, "
+              f"~{_fmt_s(cost['inference_seconds'])}{hits}, alignment ~{_fmt_s(cost['align_seconds'])}, "
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
