@@ -30,12 +30,11 @@ from data.shards import (
     load_json,
     npz_bytes,
     png_bytes,
-    sha256_bytes,
     sha256_file,
     shard_name,
     sidecar_name,
-    tar_bytes,
     write_atomic,
+    write_shard,
 )
 
 # Seeds in this range are reserved for held-out evaluation sets (data.heldout); training runs refuse them.
@@ -180,12 +179,7 @@ def render_shard(shard: int, cfg: GenConfig, out: Path, renderer, progress=None)
         n_views += len(meta["views"])
         if progress is not None:
             progress(1)
-    data = tar_bytes(members)
-    write_atomic(out / shard_name(shard), data)
-    entry = {"index": shard, "name": shard_name(shard), "sha256": sha256_bytes(data), "bytes": len(data),
-             "scenes": [lo, hi], "pairs": n_pairs, "views": n_views}
-    write_atomic(out / sidecar_name(shard), json_bytes(entry))
-    return entry
+    return write_shard(out, shard, members, (lo, hi), n_pairs, n_views)
 
 
 def shard_is_complete(out: Path, shard: int) -> bool:

@@ -123,6 +123,19 @@ def tar_bytes(members: list) -> bytes:
     return out.getvalue()
 
 
+def write_shard(out, index: int, members: list, scenes: tuple, pairs: int, views: int) -> dict:
+    """Write shard ``index`` of ``out`` atomically, its tar first, then its sidecar (what ``completed_shards``
+    reads). ``members``: (name, bytes) as ``tar_bytes`` takes them; ``scenes``: its [lo, hi) scene range. Returns
+    the sidecar entry."""
+    out = Path(out)
+    data = tar_bytes(members)
+    write_atomic(out / shard_name(index), data)
+    entry = {"index": index, "name": shard_name(index), "sha256": sha256_bytes(data), "bytes": len(data),
+             "scenes": list(scenes), "pairs": pairs, "views": views}
+    write_atomic(out / sidecar_name(index), json_bytes(entry))
+    return entry
+
+
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

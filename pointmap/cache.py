@@ -122,11 +122,15 @@ class PredictionCache:
     def path(self, key: str) -> Path:
         return self.dir / f"{key}.safetensors"
 
+    def keys(self, imgs, edges) -> dict:
+        """{(i, j): key} for the directed pairs ``edges`` into ``imgs`` ([3, H, W] tensors), each image hashed once."""
+        digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
+        return {(i, j): self.key(digests[i], digests[j]) for i, j in edges}
+
     def present(self, imgs, edges) -> int:
         """How many of the directed pairs ``edges`` ((i, j) into ``imgs``, [3, H, W] tensors) have a file here
         (whether it will be usable is known only when it is read)."""
-        digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
-        return sum(self.path(self.key(digests[i], digests[j])).is_file() for i, j in edges)
+        return sum(self.path(key).is_file() for key in self.keys(imgs, edges).values())
 
     def get(self, key: str, shape1: tuple, shape2: tuple, desc: bool) -> PairPrediction | None:
         """The cached prediction (batch of one, float32, CPU), or None: absent, without the descriptors ``desc``

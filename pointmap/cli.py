@@ -251,7 +251,7 @@ def depths_from_folder(folder: str, images: list[str], png_scale: float) -> list
     """``--metric-depth``: one depth map per image from ``folder`` (``<image stem>.npy`` or a 16-bit ``.png`` times
     ``png_scale``; ``pointmap.io.depth``), None for an image without one. PointmapError for a folder that is missing
     or holds no depth map of any of the images."""
-    from pointmap.io.depth import depth_file, read_depth
+    from pointmap.io.depth import depth_file, read_depth, same_aspect
 
     if not Path(folder).is_dir():
         raise PointmapError(f"--metric-depth expected a folder of depth maps, got {folder!r}")
@@ -265,7 +265,7 @@ def depths_from_folder(folder: str, images: list[str], png_scale: float) -> list
                             f"({Path(images[0]).stem}.npy or .png, ...)")
     depths = [None if f is None else read_depth(f, png_scale) for f in found]
     for (w, h), d, f in zip(image_sizes(images), depths, found):  # checked now, not after inference
-        if d is not None and abs(d.shape[1] / d.shape[0] - w / h) > 0.01 * w / h:
+        if d is not None and not same_aspect(d.shape[::-1], (w, h)):
             raise PointmapError(f"--metric-depth: {f} is {d.shape[1]}x{d.shape[0]}, not the aspect ratio of its "
                                 f"photograph ({w}x{h}, EXIF orientation applied)")
     return depths

@@ -147,26 +147,22 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     given = None if encodings is None else checked_encodings(encodings, imgs)
     out: dict[tuple[int, int], PairPrediction] = {}
     edges = order = directed(pairs)
-    keys = {}
     if cache is not None:
-        from pointmap.cache import PredictionCache, image_digest
+        from pointmap.cache import PredictionCache
 
         if isinstance(cache, PredictionCache):
             cache.check(model)  # made for this model's weights
         else:
             cache = PredictionCache(cache, model)
         want_desc = keep_desc and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
-        digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
-        hits = 0
+        keys = cache.keys(imgs, edges)
         for i, j in edges:
-            keys[(i, j)] = cache.key(digests[i], digests[j])
             pred = cache.get(keys[(i, j)], tuple(imgs[i].shape[1:]), tuple(imgs[j].shape[1:]), want_desc)
             if pred is not None:
                 out[(i, j)] = pred.map(lambda t: t.to(store_dtype)) if store_dtype else pred
-                hits += 1
         if not quiet:
-            print(f"pointmap: prediction cache {cache.dir}: {hits} of {len(edges)} directed pairs read, "
-                  f"{len(edges) - hits} to predict", file=sys.stderr)
+            print(f"pointmap: prediction cache {cache.dir}: {len(out)} of {len(edges)} directed pairs read, "
+                  f"{len(edges) - len(out)} to predict", file=sys.stderr)
         edges = [e for e in edges if e not in out]
     used = sorted({k for e in edges for k in e})
     bar = tqdm(total=len(edges) + (len(used) if given is None else 0), desc="inference", unit="img|pair",

@@ -430,7 +430,19 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     eval_seconds = ckpt_seconds = 0.0  # the last evaluation's and checkpoint's durations (--decay_by_time)
     use_bf16 = use_autocast(cfg, device)
     model.train()
-    terminated_at_end = False
+    def evaluate() -> float:
+        """Evaluate (rank 0), log eval.csv's row, add it to ``metrics``; returns the seconds it took."""
+        model.eval()
+        t_eval = time.time()
+        ev = eval_fn(model)
+        seconds = time.time() - t_eval
+        model.train()
+        logger.log("eval", step, ev)
+        metrics.update({f"eval_{k}": v for k, v in ev.items()})
+        tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
+        return seconds
+
+    killed = False
     with sigterm_flag() as terminated:
         for batch in loader:
             batch = _to(batch, device)
@@ -483,37 +495,24 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
                 save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
                 # the decay's keepsakes on the --ckpt_every grid and at the run's real end only: a checkpoint by
                 # the clock or a signal would add an irregular one to what training.ship averages
-                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and (step % cfg.ckpt_every == 0 or (
-                        ending and not killed) or step >= cfg.steps):  # wsd only (check_loop_options)
+                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and (
+                        step % cfg.ckpt_every == 0 or step >= cfg.steps or (stop and not killed)):  # wsd only
                     save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
                 ckpt_seconds = time.time() - t_ckpt
             if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
                 if rank == 0:
                     tqdm.write(f"[step {step}] SIGTERM: checkpointed {last}; the same command resumes from it")
-                terminated_at_end = True
                 break
             if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
-                model.eval()
-                t_eval = time.time()
-                ev = eval_fn(model)
-                eval_seconds = time.time() - t_eval
-                model.train()
-                logger.log("eval", step, ev)
-                metrics.update({f"eval_{k}": v for k, v in ev.items()})
-                tqdm.write(f"[eval step {step}] " + ", ".join(f"{k}={v:.4g}" for k, v in ev.items()))
+                eval_seconds = evaluate()
             if ending:
                 break
     bar.close()
     if step == start >= cfg.steps and eval_fn is not None and rank == 0 and not logger.has_eval(step):
-        # resumed at the end (e.g. a SIGTERM during the last update): the final evaluation the run owes
-        model.eval()
-        ev = eval_fn(model)
-        model.train()
-        logger.log("eval", step, ev)
-        metrics.update({f"eval_{k}": v for k, v in ev.items()})
+        evaluate()  # resumed at the end (e.g. a SIGTERM during the last update): the final evaluation the run owes
     if world > 1:
         dist.barrier()
-    return {"step": step, "terminated": bool(terminated_at_end), **metrics}
+    return {"step": step, "terminated": killed, **metrics}
 
 
 @contextlib.contextmanager

@@ -33,14 +33,12 @@ from data.shards import (
     load_json,
     npz_bytes,
     png_bytes,
-    sha256_bytes,
-    shard_name,
     sidecar_name,
-    tar_bytes,
     write_atomic,
+    write_shard,
 )
 from pointmap.errors import PointmapError
-from pointmap.io.depth import depth_file, read_depth
+from pointmap.io.depth import depth_file, read_depth, same_aspect
 
 DEPTH_DIRS = ("depth", "depths")
 OPENGL_AXES = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -96,13 +94,13 @@ def load_scene(scene, max_side: int = 512, png_scale: float = 1e-3, say=print) -
         h, w = rgb.shape[:2]
         depth = read_depth(depth_path, png_scale)
         dh, dw = depth.shape
-        if abs(dw / dh - w / h) > 0.01 * w / h:
+        if not same_aspect((dw, dh), (w, h)):
             raise PointmapError(f"{depth_path}: {dw}x{dh} is not the aspect ratio of {name} ({w}x{h})")
         Ki = np.asarray(K[k], np.float64).copy()
         if target is None:  # the scene's stored size: the first view's, its long side at most max_side
             s = min(1.0, max_side / max(h, w))
             target = (max(1, round(w * s)), max(1, round(h * s)))
-        elif abs(target[0] / target[1] - w / h) > 0.01 * w / h:  # PairDataset crops both views of a pair alike
+        elif not same_aspect(target, (w, h)):  # PairDataset crops both views of a pair alike
             raise PointmapError(f"{scene}: {name} is {w}x{h}, another shape than the scene's first photograph "
                                 f"(stored {target[0]}x{target[1]}): a scene's photographs need one aspect ratio")
         nw, nh = target  # every view of the scene at one size (K scaled per axis)
@@ -260,15 +258,9 @@ def main(argv=None) -> int:
     def flush():
         if not pending:
             return
-        index = len(shards)
-        members = [m for ms, _ in pending for m in ms]
-        data = tar_bytes(members)
-        write_atomic(out / shard_name(index), data)
-        entry = {"index": index, "name": shard_name(index), "sha256": sha256_bytes(data), "bytes": len(data),
-                 "scenes": [pending[0][1]["scene"], pending[-1][1]["scene"] + 1],
-                 "pairs": sum(len(m["pairs"]) for _, m in pending), "views": sum(len(m["views"]) for _, m in pending)}
-        write_atomic(out / sidecar_name(index), json_bytes(entry))
-        shards.append(entry)
+        shards.append(write_shard(out, len(shards), [m for ms, _ in pending for m in ms],
+                                  (pending[0][1]["scene"], pending[-1][1]["scene"] + 1),
+                                  sum(len(m["pairs"]) for _, m in pending), sum(len(m["views"]) for _, m in pending)))
         pending.clear()
 
     for scene in tqdm(args.scenes, desc="scenes", unit="scene"):

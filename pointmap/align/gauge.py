@@ -104,6 +104,7 @@ def scale_to_depth(recon, depth, *, min_pixels: int = 50):
     import numpy as np
 
     from pointmap.errors import PointmapError, ShapeError
+    from pointmap.io.depth import same_aspect
 
     n = len(recon)
     if not isinstance(depth, (list, tuple)) or len(depth) != n:
@@ -120,7 +121,7 @@ def scale_to_depth(recon, depth, *, min_pixels: int = 50):
             raise ShapeError(f"depth[{i}] expected a [H, W] map of numbers, got {d.dtype} {list(d.shape)}")
         ow, oh = recon.original_sizes[i]
         dh, dw = d.shape
-        if abs(dw / dh - ow / oh) > 0.01 * ow / oh:
+        if not same_aspect((dw, dh), (ow, oh)):
             raise ShapeError(f"depth[{i}] is {dw}x{dh}, not the aspect ratio of image {i} ({ow}x{oh} original)")
         sx, sy, left, top = (float(x) for x in recon.map_from_original[i])
         u = (np.arange(w) + 0.5 + left) / sx  # map pixel centres in original edge coordinates

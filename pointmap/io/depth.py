@@ -41,6 +41,12 @@ def read_depth(path, png_scale: float = 1e-3) -> np.ndarray:
     return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
 
 
+def same_aspect(size, other, tol: float = 0.01) -> bool:
+    """Whether two (width, height) sizes have one aspect ratio within ``tol`` (relative): a depth map at a sensor's
+    resolution belongs to its photograph only then."""
+    return abs(size[0] / size[1] - other[0] / other[1]) <= tol * other[0] / other[1]
+
+
 def depth_file(folders, stem: str) -> Path | None:
     """The first ``<stem>.npy`` or ``<stem>.png`` in ``folders`` (a folder or a list of them), else None."""
     for folder in [folders] if isinstance(folders, (str, Path)) else folders:
