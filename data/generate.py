@@ -30,6 +30,7 @@ from data.shards import (
     load_json,
     npz_bytes,
     png_bytes,
+    save_manifest,
     sha256_file,
     shard_name,
     sidecar_name,
@@ -195,12 +196,8 @@ def shard_is_complete(out: Path, shard: int) -> bool:
 
 def write_manifest(out: Path, cfg: GenConfig) -> dict:
     """Rebuild ``manifest.json`` from the sidecars present (deterministic content, no timestamps)."""
-    entries, problems = completed_shards(out, verify=False, warn=False)
-    manifest = {"format": FORMAT, "config": cfg.to_dict(), "complete": len(entries) == cfg.n_shards,
-                "shards": entries, "pairs": sum(e["pairs"] for e in entries),
-                "views": sum(e["views"] for e in entries)}
-    write_atomic(out / "manifest.json", json_bytes(manifest))
-    return manifest
+    entries, _ = completed_shards(out, verify=False, warn=False)
+    return save_manifest(out, cfg.to_dict(), entries, complete=len(entries) == cfg.n_shards)
 
 
 def prepare_out(out: Path, cfg: GenConfig) -> None:

@@ -136,6 +136,15 @@ def write_shard(out, index: int, members: list, scenes: tuple, pairs: int, views
     return entry
 
 
+def save_manifest(out, config: dict, entries: list, complete: bool) -> dict:
+    """Write ``out/manifest.json`` atomically for the shards ``entries`` (``write_shard``'s sidecar entries) made
+    with ``config``; deterministic content, no timestamps. Returns the manifest."""
+    manifest = {"format": FORMAT, "config": config, "complete": complete, "shards": entries,
+                "pairs": sum(e["pairs"] for e in entries), "views": sum(e["views"] for e in entries)}
+    write_atomic(Path(out) / "manifest.json", json_bytes(manifest))
+    return manifest
+
+
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

@@ -12,6 +12,7 @@ prediction is recomputed and the file replaced), never trusted.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import logging
@@ -104,6 +105,18 @@ class PredictionCache:
         self.hits = self.misses = 0
         self.dtype = dtype
         self.writable = True
+        self._trusted = None  # the model ``trusted`` vouches for, within its block
+
+    @contextlib.contextmanager
+    def trusted(self, model):
+        """Within the block ``check(model)`` passes without hashing: for a caller that has just checked this model
+        and runs nothing that could change its weights before the block ends (``reconstruct`` checks once before
+        reading the images, then calls ``predict_pairs``, which would hash a 2 GB model's weights again)."""
+        self._trusted = model
+        try:
+            yield self
+        finally:
+            self._trusted = None
 
     def __repr__(self) -> str:
         return f"PredictionCache({str(self.dir)!r}, hits={self.hits}, misses={self.misses})"
@@ -111,6 +124,8 @@ class PredictionCache:
     def check(self, model) -> None:
         """PointmapError unless ``model`` computes what this cache was made for: its weights hashed again (edits
         through ``.data`` escape PyTorch's version counters, so nothing cheaper is sure; 0.05 s for ``small``)."""
+        if self._trusted is not None and self._trusted is model:
+            return
         if model_fingerprint(model) != self.fingerprint:
             raise PointmapError("this prediction cache was made for other weights than the model given (another "
                                 "model, or this one changed since): make a PredictionCache for the model")

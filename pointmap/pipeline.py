@@ -3,6 +3,7 @@ global_align -> refine_epipolar [-> refine_matches]), with a cost estimate print
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import sys
@@ -278,8 +279,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
-    preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
-                          keep_desc=bool(epipolar) or bool(refine), encodings=encodings, cache=cache)
+    with contextlib.nullcontext() if cache is None else cache.trusted(model):  # checked above: hashed once per run
+        preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
+                              keep_desc=bool(epipolar) or bool(refine), encodings=encodings, cache=cache)
     del encodings
     lap("inference")
     if user_masks is not None:

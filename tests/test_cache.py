@@ -247,3 +247,29 @@ def test_an_edit_through_data_which_pytorch_does_not_count_is_refused_too(tiny_m
     next(tiny_model.parameters()).data.add_(1e-3)
     with pytest.raises(pm.PointmapError, match="made for other weights"):
         pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True, cache=cache)
+
+
+def test_reconstruct_hashes_the_weights_once_per_run_and_predict_pairs_still_checks_its_cache(tiny_model, tmp_path,
+                                                                                             monkeypatch):
+    import pointmap.cache as cache_mod
+
+    calls = []
+    real = cache_mod.model_fingerprint
+    monkeypatch.setattr(cache_mod, "model_fingerprint", lambda m: calls.append(1) or real(m))
+    rng = np.random.default_rng(7)
+    images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
+    kw = dict(size=64, quiet=True, epipolar=False, align=pm.AlignConfig(niter=5, quiet=True))
+    pm.reconstruct(tiny_model, images, cache=tmp_path / "c", **kw)
+    assert len(calls) == 1  # the cache made from the path; no second hash inside the inference
+    cache = PredictionCache(tmp_path / "c", tiny_model)
+    calls.clear()
+    pm.reconstruct(tiny_model, images, cache=cache, **kw)
+    assert len(calls) == 1  # the given cache checked once
+    views = [torch.rand(3, 32, 32) for _ in range(2)]
+    with torch.no_grad():
+        next(tiny_model.parameters()).data.add_(1.0)  # weights changed after the cache was made
+    with pytest.raises(pm.PointmapError, match="other weights"):
+        pm.predict_pairs(tiny_model, views, [(0, 1)], cache=cache, quiet=True)
+    with pytest.raises(pm.PointmapError, match="other weights"):
+        pm.reconstruct(tiny_model, images, cache=cache, **kw)
+

@@ -33,6 +33,7 @@ from data.shards import (
     load_json,
     npz_bytes,
     png_bytes,
+    save_manifest,
     sidecar_name,
     write_atomic,
     write_shard,
@@ -293,9 +294,7 @@ def main(argv=None) -> int:
         if stale.stem.split("-")[1].isdigit() and int(stale.stem.split("-")[1]) >= len(shards):
             stale.unlink()
             (out / sidecar_name(int(stale.stem.split("-")[1]))).unlink(missing_ok=True)
-    manifest = {"format": FORMAT, "config": config, "complete": True, "shards": shards,
-                "pairs": sum(e["pairs"] for e in shards), "views": sum(e["views"] for e in shards)}
-    write_atomic(out / "manifest.json", json_bytes(manifest))
+    manifest = save_manifest(out, config, shards, complete=True)
     print(f"{out}: {kept} scene(s), {manifest['views']} views, {manifest['pairs']} pairs in {len(shards)} shard(s); "
           f"{len(problems)} scene(s) skipped")
     if not kept:
