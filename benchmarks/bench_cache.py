@@ -1,0 +1,92 @@
+"""What the prediction cache (``reconstruct(cache=DIR)``, ``--cache DIR``) costs and saves: one rendered scene
+reconstructed without a cache (the baseline), then twice with a float32 cache and twice with a float16 one
+(``--cache-half``), each in a new empty folder, in the same run. Per run: the wall time, the inference stage's
+(``info["pipeline"]["seconds"]``), the pairs read and predicted, the cache's size on disk, and the largest camera
+rotation difference from the run without a cache (a float32 cache reads back bit for bit: 0 within the
+alignment's own run-to-run noise; float16 may differ slightly).
+
+    nice .venv/bin/python benchmarks/bench_cache.py --model small --views 9 --threads 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import pointmap as pm  # noqa: E402
+from benchmarks.bench_inference import load_models  # noqa: E402
+from benchmarks.bench_pipeline import KINDS, render_views  # noqa: E402
+from pointmap.cache import PredictionCache  # noqa: E402
+
+
+def folder_mb(path: Path) -> float:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 1e6
+
+
+def rotation_gap_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Largest angle (degrees) between the same camera's rotations in two reconstructions (both anchored alike)."""
+    # from the chord ||Ra - Rb||_F = 2 sqrt(2) sin(angle / 2): exact 0 for equal matrices, where arccos of the
+    # trace of a float32 rotation that is not quite orthonormal reads ~0.02 degrees
+    chord = torch.linalg.matrix_norm(torch.as_tensor(a)[:, :3, :3].double() - torch.as_tensor(b)[:, :3, :3].double())
+    return float(torch.rad2deg(2 * torch.arcsin((chord / 8 ** 0.5).clamp(max=1.0))).max())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", default="small", help="a shipped model's name or a model file")
+    p.add_argument("--views", type=int, default=9, help="rendered views of the scene (>= 2); graph complete")
+    p.add_argument("--kind", choices=KINDS, default="room")
+    p.add_argument("--render-size", type=int, default=320)
+    p.add_argument("--size", type=int, default=224, help="network input size")
+    p.add_argument("--niter", type=int, default=300, help="alignment iterations")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--dir", default=None, help="where the caches are made (default: a temporary folder, removed)")
+    a = p.parse_args(argv)
+    if a.views < 2 or a.threads < 1 or a.niter < 1:
+        p.error(f"--views expected >= 2, --threads and --niter >= 1, got {a.views}, {a.threads} and {a.niter}")
+    try:
+        model = load_models([a.model])[a.model]
+    except pm.CheckpointError as e:
+        p.error(str(e))
+    torch.set_num_threads(a.threads)
+    images, _ = render_views(a.views, a.kind, a.render_size)
+    root = Path(tempfile.mkdtemp(prefix="bench_cache_", dir=a.dir))
+    kw = dict(size=a.size, graph="complete", quiet=True, align=pm.AlignConfig(niter=a.niter, quiet=True))
+    runs = [("no cache (baseline)", None, None), ("float32 cache, first run", "f32", torch.float32),
+            ("float32 cache, second run", "f32", torch.float32), ("float16 cache, first run", "f16", torch.float16),
+            ("float16 cache, second run", "f16", torch.float16)]
+    print(f"model {a.model}; {a.views} views of a {a.kind} at {a.size} px, graph complete "
+          f"({a.views * (a.views - 1)} directed pairs); {a.threads} threads\n")
+    print("| run | wall s | inference s | pairs read / predicted | cache MB | max rotation gap to baseline (deg) |")
+    print("|---|---|---|---|---|---|")
+    pm.reconstruct(model, images[:2], **kw)  # untimed warm-up: first-call costs (imports, allocator) out of the table
+    base = None
+    try:
+        for name, sub, dtype in runs:
+            cache = None if sub is None else PredictionCache(root / sub, model, dtype)
+            t0 = time.perf_counter()
+            recon = pm.reconstruct(model, images, cache=cache, **kw)
+            wall = time.perf_counter() - t0
+            info = recon.info["pipeline"]
+            base = recon.cam2world if base is None else base
+            counts = "-" if cache is None else f"{info['cache']['hits']} / {info['cache']['misses']}"
+            size = "-" if cache is None else f"{folder_mb(root / sub):.0f}"
+            print(f"| {name} | {wall:.1f} | {info['seconds']['inference']:.1f} | {counts} | {size} | "
+                  f"{rotation_gap_deg(base, recon.cam2world):.3f} |")
+    finally:
+        if a.dir is None:
+            shutil.rmtree(root, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
