@@ -1,9 +1,10 @@
 """What the prediction cache (``reconstruct(cache=DIR)``, ``--cache DIR``) costs and saves: one rendered scene
 reconstructed without a cache (the baseline), then twice with a float32 cache and twice with a float16 one
 (``--cache-half``), each in a new empty folder, in the same run. Per run: the wall time, the inference stage's
-(``info["pipeline"]["seconds"]``), the pairs read and predicted, the cache's size on disk, and the largest camera
-rotation difference from the run without a cache (a float32 cache reads back bit for bit: 0 within the
-alignment's own run-to-run noise; float16 may differ slightly).
+(``info["pipeline"]["seconds"]``), the pairs read and predicted, the cache's size on disk (files written
+atomically and synced, as ``put`` always does), and the largest camera rotation difference from the run without a
+cache (a float32 cache reads back bit for bit: 0; float16 may differ slightly). The five runs are repeated in turn
+(``--repeats``) and each figure is the median (min-max) over the repeats.
 
     nice .venv/bin/python benchmarks/bench_cache.py --model small --views 9 --threads 2
 """
@@ -32,6 +33,13 @@ def folder_mb(path: Path) -> float:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 1e6
 
 
+def spread(xs: list) -> str:
+    """'median (min-max)' of a list of seconds; the value alone for one."""
+    xs = sorted(xs)
+    med = xs[len(xs) // 2] if len(xs) % 2 else (xs[len(xs) // 2 - 1] + xs[len(xs) // 2]) / 2
+    return f"{med:.1f}" if len(xs) == 1 else f"{med:.1f} ({xs[0]:.1f}-{xs[-1]:.1f})"
+
+
 def rotation_gap_deg(a: torch.Tensor, b: torch.Tensor) -> float:
     """Largest angle (degrees) between the same camera's rotations in two reconstructions (both anchored alike)."""
     # from the chord ||Ra - Rb||_F = 2 sqrt(2) sin(angle / 2): exact 0 for equal matrices, where arccos of the
@@ -49,10 +57,12 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=224, help="network input size")
     p.add_argument("--niter", type=int, default=300, help="alignment iterations")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=3, help="times the five runs are made, in turn (median reported)")
     p.add_argument("--dir", default=None, help="where the caches are made (default: a temporary folder, removed)")
     a = p.parse_args(argv)
-    if a.views < 2 or a.threads < 1 or a.niter < 1:
-        p.error(f"--views expected >= 2, --threads and --niter >= 1, got {a.views}, {a.threads} and {a.niter}")
+    if a.views < 2 or min(a.threads, a.niter, a.repeats) < 1:
+        p.error(f"--views expected >= 2, --threads, --niter and --repeats >= 1, got {a.views}, {a.threads}, "
+                f"{a.niter} and {a.repeats}")
     try:
         model = load_models([a.model])[a.model]
     except pm.CheckpointError as e:
@@ -66,25 +76,33 @@ def main(argv=None) -> int:
             ("float16 cache, second run", "f16", torch.float16)]
     print(f"model {a.model}; {a.views} views of a {a.kind} at {a.size} px, graph complete "
           f"({a.views * (a.views - 1)} directed pairs); {a.threads} threads\n")
+    print(f"median (min-max) of {a.repeats} repeats; the second runs read what the first just wrote (warm page cache)\n")
     print("| run | wall s | inference s | pairs read / predicted | cache MB | max rotation gap to baseline (deg) |")
     print("|---|---|---|---|---|---|")
     pm.reconstruct(model, images[:2], **kw)  # untimed warm-up: first-call costs (imports, allocator) out of the table
-    base = None
+    walls, infers, counts, sizes, gaps = ({name: [] for name, _, _ in runs} for _ in range(5))
     try:
-        for name, sub, dtype in runs:
-            cache = None if sub is None else PredictionCache(root / sub, model, dtype)
-            t0 = time.perf_counter()
-            recon = pm.reconstruct(model, images, cache=cache, **kw)
-            wall = time.perf_counter() - t0
-            info = recon.info["pipeline"]
-            base = recon.cam2world if base is None else base
-            counts = "-" if cache is None else f"{info['cache']['hits']} / {info['cache']['misses']}"
-            size = "-" if cache is None else f"{folder_mb(root / sub):.0f}"
-            print(f"| {name} | {wall:.1f} | {info['seconds']['inference']:.1f} | {counts} | {size} | "
-                  f"{rotation_gap_deg(base, recon.cam2world):.3f} |")
+        for rep in range(a.repeats):  # the five runs in turn, each repeat in new folders: drift hits them alike
+            base = None
+            for name, sub, dtype in runs:
+                t0 = time.perf_counter()  # the cache's own weight hash (--cache DIR makes one) inside the timing
+                cache = None if sub is None else PredictionCache(root / f"r{rep}" / sub, model, dtype)
+                recon = pm.reconstruct(model, images, cache=cache, **kw)
+                walls[name].append(time.perf_counter() - t0)
+                info = recon.info["pipeline"]
+                infers[name].append(info["seconds"]["inference"])
+                base = recon.cam2world if base is None else base
+                gaps[name].append(rotation_gap_deg(base, recon.cam2world))
+                if cache is not None:
+                    counts[name].append(f"{info['cache']['hits']} / {info['cache']['misses']}")
+                    sizes[name].append(folder_mb(root / f"r{rep}" / sub))
     finally:
         if a.dir is None:
             shutil.rmtree(root, ignore_errors=True)
+    for name, _, _ in runs:
+        c = " or ".join(sorted(set(counts[name]))) or "-"
+        size = f"{max(sizes[name]):.0f}" if sizes[name] else "-"
+        print(f"| {name} | {spread(walls[name])} | {spread(infers[name])} | {c} | {size} | {max(gaps[name]):.3f} |")
     return 0
 
 

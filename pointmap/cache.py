@@ -13,6 +13,7 @@ prediction is recomputed and the file replaced), never trusted.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import hashlib
 import logging
@@ -78,6 +79,9 @@ def image_digest(img: torch.Tensor) -> bytes:
     h.update(t.numpy().tobytes())
     return h.digest()
 
+# (cache, model) pairs whose check ``PredictionCache._vouched`` skips in the current context (thread, task)
+_VOUCHED: contextvars.ContextVar[tuple] = contextvars.ContextVar("pointmap_cache_vouched", default=())
+
 
 class PredictionCache:
     """Pair predictions on disk under ``root/<model fingerprint[:16]>/``, for the model it was made with.
@@ -105,26 +109,29 @@ class PredictionCache:
         self.hits = self.misses = 0
         self.dtype = dtype
         self.writable = True
-        self._trusted = None  # the model ``trusted`` vouches for, within its block
 
     @contextlib.contextmanager
-    def trusted(self, model):
-        """Within the block ``check(model)`` passes without hashing: for a caller that has just checked this model
-        and runs nothing that could change its weights before the block ends (``reconstruct`` checks once before
-        reading the images, then calls ``predict_pairs``, which would hash a 2 GB model's weights again)."""
-        self._trusted = model
+    def _vouched(self, model):
+        """Private: within the block, in this thread (a context variable; nested blocks restore the outer state),
+        ``check(model)`` passes without hashing. Only for a caller that has just run ``check(model)`` itself (or
+        made this cache from ``model``) and runs nothing that changes the weights before the block ends:
+        ``reconstruct`` checks once before reading the images and vouches for the model to its own
+        ``predict_pairs`` call, which would otherwise hash it again (seconds for a 2 GB model). Weights changed by
+        another thread or an ONNX export's files rewritten meanwhile are not seen inside the block."""
+        token = _VOUCHED.set(_VOUCHED.get() + ((self, model),))
         try:
             yield self
         finally:
-            self._trusted = None
+            _VOUCHED.reset(token)
 
     def __repr__(self) -> str:
         return f"PredictionCache({str(self.dir)!r}, hits={self.hits}, misses={self.misses})"
 
     def check(self, model) -> None:
         """PointmapError unless ``model`` computes what this cache was made for: its weights hashed again (edits
-        through ``.data`` escape PyTorch's version counters, so nothing cheaper is sure; 0.05 s for ``small``)."""
-        if self._trusted is not None and self._trusted is model:
+        through ``.data`` escape PyTorch's version counters, so nothing cheaper is sure; 0.05 s for ``small``),
+        except inside ``reconstruct``'s own ``_vouched`` block after it checked."""
+        if any(c is self and m is model for c, m in _VOUCHED.get()):
             return
         if model_fingerprint(model) != self.fingerprint:
             raise PointmapError("this prediction cache was made for other weights than the model given (another "

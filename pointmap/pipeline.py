@@ -198,7 +198,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         or pointmaps; uses ``pm.match``)
     cache: a directory (or a ``pointmap.cache.PredictionCache``) where pair predictions are kept: a run with the
         same model and input pixels reads them instead of running the network (``predict_pairs``), e.g. to align
-        again with other settings or after adding images; the counts are in ``info["pipeline"]["cache"]``
+        again with other settings or after adding images; the counts are in ``info["pipeline"]["cache"]``. The
+        model's weights are hashed once, at the start: do not change them from another thread during the run
     """
     from pointmap.checkpoint import model_input_size
     from pointmap.errors import ShapeError, is_int
@@ -279,7 +280,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
     # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
-    with contextlib.nullcontext() if cache is None else cache.trusted(model):  # checked above: hashed once per run
+    with contextlib.nullcontext() if cache is None else cache._vouched(model):  # checked above: hashed once
         preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
                               keep_desc=bool(epipolar) or bool(refine), encodings=encodings, cache=cache)
     del encodings

@@ -273,3 +273,35 @@ def test_reconstruct_hashes_the_weights_once_per_run_and_predict_pairs_still_che
     with pytest.raises(pm.PointmapError, match="other weights"):
         pm.reconstruct(tiny_model, images, cache=cache, **kw)
 
+
+
+def test_a_vouched_check_ends_with_its_block_even_on_an_error_and_does_not_reach_another_thread(tiny_model, tmp_path,
+                                                                                                 monkeypatch):
+    import threading
+
+    import pointmap.cache as cache_mod
+
+    cache = PredictionCache(tmp_path, tiny_model)
+    calls = []
+    real = cache_mod.model_fingerprint
+    monkeypatch.setattr(cache_mod, "model_fingerprint", lambda m: calls.append(1) or real(m))
+    with pytest.raises(RuntimeError):
+        with cache._vouched(tiny_model):
+            cache.check(tiny_model)
+            assert calls == []
+            raise RuntimeError("a stage failed inside the block")
+    cache.check(tiny_model)
+    assert len(calls) == 1  # hashed again once the block is left by the error
+    with cache._vouched(tiny_model):
+        with cache._vouched(tiny_model):
+            pass
+        cache.check(tiny_model)  # the outer block still vouches after the inner one ended
+        assert len(calls) == 1
+        other = threading.Thread(target=cache.check, args=(tiny_model,))
+        other.start()
+        other.join()
+        assert len(calls) == 2  # another thread's check hashes
+        other_cache = PredictionCache(tmp_path / "other", tiny_model)
+        calls.clear()
+        other_cache.check(tiny_model)
+        assert len(calls) == 1  # only the cache that vouched skips

@@ -16,7 +16,7 @@ def test_the_benchmark_reads_every_pair_on_the_second_runs_and_float32_matches_t
                                                                                            capsys):
     weights = pm.save_model(test_model, tmp_path / "m.safetensors")
     assert main(["--model", str(weights), "--views", "3", "--render-size", "64", "--size", "64", "--niter", "20",
-                 "--threads", "1"]) == 0
+                 "--threads", "1", "--repeats", "2"]) == 0
     rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]]
             for r in capsys.readouterr().out.splitlines() if r.startswith("| ") and "cache" in r}
     assert rows["float32 cache, first run"][2] == "0 / 6" and rows["float32 cache, second run"][2] == "6 / 0"
