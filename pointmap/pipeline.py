@@ -192,8 +192,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         keep conf >= that percentile); stored in ``recon.masks`` and applied by ``recon.save``
     epipolar: True (default), False or an ``EpipolarConfig``: poses refined on the model's coarse matches after
         alignment, then the depths re-fitted with them held (``pointmap.align.epipolar``; models with descriptors:
-        on 1,008 held-out camera pairs of the shipped model RRA@15 / RTA@15 55.8 / 10.6 -> 58.7 / 15.7%,
-        docs/alignment.md)
+        on 1,008 held-out camera pairs of v26a, the model shipped in session 30, RRA@15 / RTA@15 55.8 / 10.6 ->
+        58.7 / 15.7%, docs/alignment.md)
     refine: False, True or a ``SparseConfig``: second stage on reciprocal matches (needs descriptors
         or pointmaps; uses ``pm.match``)
     cache: a directory (or a ``pointmap.cache.PredictionCache``) where pair predictions are kept: a run with the

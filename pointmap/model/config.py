@@ -142,7 +142,8 @@ PRESETS: dict[str, ModelConfig] = {
     "test": ModelConfig(enc_dim=32, enc_depth=2, enc_heads=2, dec_dim=32, dec_depth=4, dec_heads=2,
                         head="catmlp+dpt", desc_dim=8, dpt_layer_dims=(8, 16, 24, 32), dpt_feature_dim=16,
                         dpt_last_dim=8, desc_hidden_factor=2.0),
-    # a model that trains on two CPU cores in hours (the shipped model)
+    # a model that trains on two CPU cores in hours (the shipped file is this preset grown to 8 / 8 blocks,
+    # `training.grow`, session 35: its config travels in the file)
     "small": ModelConfig(enc_dim=256, enc_depth=6, enc_heads=4, dec_dim=192, dec_depth=4, dec_heads=4,
                          head="catmlp+linear", desc_dim=16, desc_hidden_factor=0.25),
     # official architectures (weights from naver/dust3r and naver/mast3r load into these)
