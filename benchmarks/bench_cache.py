@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -27,6 +28,7 @@ import pointmap as pm  # noqa: E402
 from benchmarks.bench_inference import load_models  # noqa: E402
 from benchmarks.bench_pipeline import KINDS, render_views  # noqa: E402
 from pointmap.cache import PredictionCache  # noqa: E402
+from pointmap.geometry.rotations import relative_rotation_error_deg  # noqa: E402
 
 
 def folder_mb(path: Path) -> float:
@@ -35,17 +37,16 @@ def folder_mb(path: Path) -> float:
 
 def spread(xs: list) -> str:
     """'median (min-max)' of a list of seconds; the value alone for one."""
-    xs = sorted(xs)
-    med = xs[len(xs) // 2] if len(xs) % 2 else (xs[len(xs) // 2 - 1] + xs[len(xs) // 2]) / 2
-    return f"{med:.1f}" if len(xs) == 1 else f"{med:.1f} ({xs[0]:.1f}-{xs[-1]:.1f})"
+    med = statistics.median(xs)
+    return f"{med:.1f}" if len(xs) == 1 else f"{med:.1f} ({min(xs):.1f}-{max(xs):.1f})"
 
 
 def rotation_gap_deg(a: torch.Tensor, b: torch.Tensor) -> float:
-    """Largest angle (degrees) between the same camera's rotations in two reconstructions (both anchored alike)."""
-    # from the chord ||Ra - Rb||_F = 2 sqrt(2) sin(angle / 2): exact 0 for equal matrices, where arccos of the
-    # trace of a float32 rotation that is not quite orthonormal reads ~0.02 degrees
-    chord = torch.linalg.matrix_norm(torch.as_tensor(a)[:, :3, :3].double() - torch.as_tensor(b)[:, :3, :3].double())
-    return float(torch.rad2deg(2 * torch.arcsin((chord / 8 ** 0.5).clamp(max=1.0))).max())
+    """Largest angle (degrees) between the same camera's rotations in two reconstructions (both anchored alike);
+    ``relative_rotation_error_deg``'s atan2 form reads 0 for equal matrices, where arccos of the trace of a float32
+    rotation that is not quite orthonormal reads ~0.02 degrees."""
+    ra, rb = (torch.as_tensor(c)[:, :3, :3].double() for c in (a, b))
+    return float(relative_rotation_error_deg(ra, rb).max())
 
 
 def main(argv=None) -> int:
@@ -76,7 +77,8 @@ def main(argv=None) -> int:
             ("float16 cache, second run", "f16", torch.float16)]
     print(f"model {a.model}; {a.views} views of a {a.kind} at {a.size} px, graph complete "
           f"({a.views * (a.views - 1)} directed pairs); {a.threads} threads\n")
-    print(f"median (min-max) of {a.repeats} repeats; the second runs read what the first just wrote (warm page cache)\n")
+    print(f"median (min-max) of {a.repeats} repeats; the second runs read what the first just wrote "
+          "(warm page cache)\n")
     print("| run | wall s | inference s | pairs read / predicted | cache MB | max rotation gap to baseline (deg) |")
     print("|---|---|---|---|---|---|")
     pm.reconstruct(model, images[:2], **kw)  # untimed warm-up: first-call costs (imports, allocator) out of the table

@@ -249,13 +249,19 @@ def test_an_edit_through_data_which_pytorch_does_not_count_is_refused_too(tiny_m
         pm.predict_pairs(tiny_model, views(2), [(0, 1)], quiet=True, cache=cache)
 
 
-def test_reconstruct_hashes_the_weights_once_per_run_and_predict_pairs_still_checks_its_cache(tiny_model, tmp_path,
-                                                                                             monkeypatch):
+@pytest.fixture
+def fingerprint_calls(monkeypatch) -> list:
+    """A list that gets one entry per hash of a model's weights (``pointmap.cache.model_fingerprint`` call)."""
     import pointmap.cache as cache_mod
 
-    calls = []
-    real = cache_mod.model_fingerprint
+    calls, real = [], cache_mod.model_fingerprint
     monkeypatch.setattr(cache_mod, "model_fingerprint", lambda m: calls.append(1) or real(m))
+    return calls
+
+
+def test_reconstruct_hashes_the_weights_once_per_run_and_predict_pairs_still_checks_its_cache(tiny_model, tmp_path,
+                                                                                             fingerprint_calls):
+    calls = fingerprint_calls
     rng = np.random.default_rng(7)
     images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3)]
     kw = dict(size=64, quiet=True, epipolar=False, align=pm.AlignConfig(niter=5, quiet=True))
@@ -274,17 +280,13 @@ def test_reconstruct_hashes_the_weights_once_per_run_and_predict_pairs_still_che
         pm.reconstruct(tiny_model, images, cache=cache, **kw)
 
 
-
 def test_a_vouched_check_ends_with_its_block_even_on_an_error_and_does_not_reach_another_thread(tiny_model, tmp_path,
-                                                                                                 monkeypatch):
+                                                                                                 fingerprint_calls):
     import threading
 
-    import pointmap.cache as cache_mod
-
     cache = PredictionCache(tmp_path, tiny_model)
-    calls = []
-    real = cache_mod.model_fingerprint
-    monkeypatch.setattr(cache_mod, "model_fingerprint", lambda m: calls.append(1) or real(m))
+    calls = fingerprint_calls
+    calls.clear()  # the cache's own hash above
     with pytest.raises(RuntimeError):
         with cache._vouched(tiny_model):
             cache.check(tiny_model)

@@ -122,9 +122,9 @@ def resolve_conf_transform(transform: str, preds: dict, keys: list) -> str:
 
     log(conf) is DUSt3R's weighting for confidences that spread above their floor of 1 (the official models'
     do: the demos threshold them at 1.5 and 3). A model whose confidences all sit at the floor (ours up to v23a,
-    session 24: below 1.03 on held-out scenes; since v24a most pixels are at 1.1 or more) would get weights of 1e-5 that are float32
-    rounding noise, and global alignment worse than its own pairwise poses (docs/alignment.md, measured);
-    conf itself then weighs the pixels (nearly) uniformly.
+    session 24: below 1.03 on held-out scenes; since v24a most pixels are at 1.1 or more) would get weights of
+    1e-5 that are float32 rounding noise, and global alignment worse than its own pairwise poses
+    (docs/alignment.md, measured); conf itself then weighs the pixels (nearly) uniformly.
     """
     if transform != "auto":
         if transform not in CONF_TRANSFORMS:
