@@ -663,7 +663,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
-                   help="keep pixels above this percentile of confidence per image (0-100)")
+                   help="keep pixels at or above this percentile of confidence over all images' unmasked pixels "
+                   "(0-100; 50 keeps the most confident half of the scene)")
     r.add_argument("--masks", default=None, metavar="DIR",
                    help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
                         "are left out of the alignment, the matches and the exports (sky, people, a turntable)")

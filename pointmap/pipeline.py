@@ -321,9 +321,10 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
                                fixed_intrinsics=fixed_K)
         lap("sparse")
-    keep = confidence_mask(recon.conf, min_conf, conf_percentile)
-    if user_masks is not None:
-        keep &= user_masks
+    # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it down)
+    eligible = recon.depth_z > 0
+    keep = confidence_mask(recon.conf, min_conf, conf_percentile,
+                           within=eligible if user_masks is None else eligible & user_masks)
     recon.masks = keep
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None

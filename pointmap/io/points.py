@@ -26,17 +26,25 @@ def check_conf_filter(min_conf, percentile, names=("min_conf", "conf_percentile"
 
 
 def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
-                    percentile: float | None = None) -> torch.Tensor:
+                    percentile: float | None = None, within: torch.Tensor | None = None) -> torch.Tensor:
     """[N, h, w] bool. ``min_conf``: absolute, keep conf > min_conf (raw network confidence, >= 1; the
     official demos use 3 for DUSt3R and 1.5 for MASt3R). ``percentile`` in [0, 100): relative, keep
-    conf >= that percentile of all finite confidences (50 keeps the most confident half). Both may be
-    combined (a pixel must pass both)."""
+    conf >= that percentile of the finite confidences over all images together (50 keeps the most confident half
+    of the scene's pixels, so a less confident image keeps fewer). Both may be combined (a pixel must pass both).
+    ``within`` ([N, h, w] bool, e.g. depth present and inside the user's masks): the only pixels kept, and the
+    only ones the percentile is taken over (50 keeps half of them, however many pixels a mask removed)."""
     check_conf_filter(min_conf, percentile, ("min_conf", "percentile"))
     keep = torch.isfinite(conf)
+    if within is not None:
+        if not isinstance(within, torch.Tensor) or within.shape != conf.shape or within.dtype != torch.bool:
+            raise ShapeError(f"within expected a bool tensor of conf's shape {tuple(conf.shape)}, got "
+                             f"{type(within).__name__} {tuple(getattr(within, 'shape', ()))} "
+                             f"{getattr(within, 'dtype', '')}")
+        keep &= within
     if min_conf is not None:
         keep &= conf > min_conf
     if percentile is not None:
-        vals = conf[torch.isfinite(conf)].double()
+        vals = conf[torch.isfinite(conf) & (within if within is not None else True)].double()
         if vals.numel():
             thr = float(np.percentile(vals.numpy(), percentile))
             keep &= conf >= thr
@@ -56,7 +64,7 @@ def select_points(recon, min_conf: float | None = None, conf_percentile: float |
                   max_points: int | None = None, seed: int = 0) -> PointSet:
     """Valid pixels (depth > 0, inside recon.masks, confidence thresholds) as a point set; a random
     subset of ``max_points`` if given."""
-    keep = recon.valid() & confidence_mask(recon.conf, min_conf, conf_percentile)
+    keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=recon.valid())
     n_idx, v, u = keep.nonzero(as_tuple=True)
     if max_points is not None and len(n_idx) > max_points:
         g = torch.Generator().manual_seed(seed)

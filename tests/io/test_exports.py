@@ -164,6 +164,21 @@ def test_confidence_thresholds_keep_what_they_say_and_refuse_a_nan_threshold_tha
         select_points(make_recon(n=2), min_conf=float("nan"))
 
 
+def test_a_confidence_percentile_is_taken_over_the_pixels_a_mask_keeps_not_over_the_masked_ones():
+    conf = torch.arange(1, 101, dtype=torch.float32).reshape(1, 10, 10)
+    within = torch.zeros(1, 10, 10, dtype=torch.bool)
+    within[..., 5:] = True  # 50 pixels
+    conf[~within] = 0  # as the pipeline leaves masked pixels
+    keep = confidence_mask(conf, percentile=50, within=within)
+    assert int(keep.sum()) == 25 and not keep[~within].any()  # half of the 50, none outside
+    assert int(confidence_mask(conf, percentile=50).sum()) == 50  # over all 100 pixels the zeros count
+    with pytest.raises(ValueError, match=r"within expected a bool tensor of conf's shape \(1, 10, 10\)"):
+        confidence_mask(conf, percentile=50, within=within[0])
+    recon = make_recon(n=2, with_mask=True)  # the left half of every view masked, one pixel without depth
+    eligible = int(recon.valid().sum())
+    assert len(select_points(recon, conf_percentile=50).xyz) == eligible - eligible // 2
+
+
 def test_quaternion_matches_rotation():
     from pointmap.geometry.rotations import random_rotation
 
