@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, is_number
+from pointmap.errors import ShapeError, is_int, is_number
 
 
 def check_conf_filter(min_conf, percentile, names=("min_conf", "conf_percentile")) -> None:
@@ -51,6 +51,13 @@ def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
     return keep
 
 
+def check_point_cap(cap, name: str) -> None:
+    """ShapeError unless ``cap`` is None (no cap) or an int >= 1: 0 would write an empty cloud (an empty points3D
+    stops 3DGS trainers) and a negative one kept all but a few points."""
+    if cap is not None and not (is_int(cap) and cap >= 1):
+        raise ShapeError(f"{name} expected None (all points) or an int >= 1, got {cap!r}")
+
+
 @dataclass
 class PointSet:
     xyz: np.ndarray        # [M, 3] float64 world
@@ -64,6 +71,9 @@ def select_points(recon, min_conf: float | None = None, conf_percentile: float |
                   max_points: int | None = None, seed: int = 0) -> PointSet:
     """Valid pixels (depth > 0, inside recon.masks, confidence thresholds) as a point set; a random
     subset of ``max_points`` if given."""
+    check_point_cap(max_points, "max_points")
+    if not is_int(seed):
+        raise ShapeError(f"seed expected an int, got {seed!r}")
     keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=recon.valid())
     n_idx, v, u = keep.nonzero(as_tuple=True)
     if max_points is not None and len(n_idx) > max_points:

@@ -179,6 +179,18 @@ def test_a_confidence_percentile_is_taken_over_the_pixels_a_mask_keeps_not_over_
     assert len(select_points(recon, conf_percentile=50).xyz) == eligible - eligible // 2
 
 
+@pytest.mark.parametrize("cap", [-1, 0, 2.5, True, "5"])
+def test_a_point_cap_that_is_not_a_positive_int_is_refused_before_anything_is_written(tmp_path, cap):
+    recon = make_recon(n=2)
+    for kw in ({"max_points": cap}, {"colmap_max_points": cap}):
+        with pytest.raises(ValueError, match=f"{next(iter(kw))} expected None \\(all points\\) or an int >= 1"):
+            save_reconstruction(recon, tmp_path / "out", formats=("ply", "colmap"), **kw)
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match="max_points expected None"):
+        select_points(recon, max_points=cap)
+    assert len(select_points(recon, max_points=7).xyz) == 7
+
+
 def test_quaternion_matches_rotation():
     from pointmap.geometry.rotations import random_rotation
 
