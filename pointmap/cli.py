@@ -398,6 +398,17 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
     return pairs
 
 
+def video_timestamps(inputs: list[str], images: list[str]) -> list[float] | None:
+    """Each image's time in seconds when the input is one video (its frames' indices over its stated frame rate:
+    what a TUM trajectory is matched against ground truth by), else None (photographs, several videos, or a video
+    that states no frame rate: trajectories then count images)."""
+    from pointmap.video import frame_times, is_video
+
+    if len(inputs) != 1 or not is_video(inputs[0]):
+        return None
+    return frame_times(inputs[0], images)
+
+
 def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     """A scene's inputs (files, folders, a video) read and checked without the model: the image paths, the pair
     graph, known K / poses (``--cameras``, ``--focal``) and masks, for ``reconstruct_scene``."""
@@ -411,6 +422,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
     images = expand_images(inputs, out / "frames", args.stride, args.max_frames)
+    timestamps = video_timestamps(inputs, images)
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
         graph = auto_graph(len(images), sequential=True)
@@ -444,7 +456,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             print(f"pointmap: {len(distortions)} photograph(s) with lens distortion resampled onto pinhole cameras in "
                   f"{out / 'undistorted'}", file=sys.stderr)
     return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out,
-            "depths": depths}
+            "depths": depths, "timestamps": timestamps}
 
 
 def prediction_cache(args, model):
@@ -482,6 +494,8 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
                 print(f"pointmap: scaled by {report['scale']:.4g} to the measured depth of {report['images']} "
                       f"image(s) ({report['pixels']} pixels; per-pixel scatter {100 * report['spread']:.1f}%)",
                       file=sys.stderr)
+    if scene.get("timestamps") is not None:  # one video's frames: the TUM trajectory's times are the frames' own
+        recon.info["timestamps"] = scene["timestamps"]
     out = scene["out"]
     written = recon.save(out, formats=formats, max_points=args.max_points or None,
                          colmap_max_points=args.colmap_points or None)
@@ -558,6 +572,7 @@ def cmd_localize(args) -> int:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
     out = writable_dir(Path(args.out))
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames)
+    times = video_timestamps(args.images, images)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
@@ -570,7 +585,8 @@ def cmd_localize(args) -> int:
     with atomic_open(out / "localization.json", "w") as f:
         json.dump({"reconstruction": str(npz), "queries": rows}, f, indent=1, allow_nan=False)
     posed = [k for k, r in enumerate(loc.ref) if r >= 0]
-    write_tum(loc.subset(posed), out / "trajectory.txt", timestamps=posed)
+    write_tum(loc.subset(posed), out / "trajectory.txt",
+              timestamps=posed if times is None else [times[k] for k in posed])
     for row in rows:
         print(f"{row['name']}: " + (f"posed against {row['reference']} (confidence {row['confidence']:.2f})"
                                     if row["reference"] else "not posed"))

@@ -81,6 +81,35 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     return paths
 
 
+def frame_rate(video) -> float | None:
+    """Frames per second the container states (OpenCV's ``CAP_PROP_FPS``), None when it states none (0 or not
+    finite). ImageError when the file cannot be opened."""
+    import cv2
+
+    cap = _open(video)
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+    finally:
+        cap.release()
+    return fps if math.isfinite(fps) and fps > 0 else None
+
+
+def frame_times(video, frames) -> list[float] | None:
+    """Seconds from the start of ``video`` of ``frames``, paths ``extract_frames`` wrote for it (named
+    ``<stem>_<frame index>.png``): index / the stated frame rate. None when the video states no frame rate.
+    ImageError for a path that is not one of its frames."""
+    fps = frame_rate(video)
+    if fps is None:
+        return None
+    stem, times = Path(video).stem, []
+    for f in frames:
+        head, _, index = Path(f).stem.rpartition("_")
+        if head != stem or not index.isdigit():
+            raise ImageError(f"frame_times expected frames of {Path(video).name} named {stem}_<index>.png, got {f}")
+        times.append(int(index) / fps)
+    return times
+
+
 def count_frames(video) -> int:
     """Frames in ``video``: the container's count when it states one, else counted by grabbing every frame
     without decoding it (browser-recorded .webm files often state none). ImageError when it cannot be opened."""

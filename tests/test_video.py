@@ -88,3 +88,33 @@ def test_two_videos_of_one_file_name_are_refused_before_their_frames_overwrite_e
     with pytest.raises(PointmapError, match="videos named \\['walk'\\] more than once"):
         expand_images([str(a), str(b)], tmp_path / "frames", stride=2)
     assert not (tmp_path / "frames").exists()
+
+
+def test_a_video_reconstruction_writes_its_frames_times_in_seconds_to_the_tum_trajectory(tmp_path):
+    import torch
+
+    import pointmap as pm
+    from pointmap.cli import main
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    video = _video(tmp_path / "clip.avi", n=14, sharp=(2, 7, 12))  # 10 frames per second
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(video), "-o", str(out), "--model", str(weights), "--size", "64", "--stride", "5",
+                 "--export", "tum,npz", "--quiet"]) == 0
+    rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
+    assert [float(r[0]) for r in rows] == pytest.approx([0.2, 0.7, 1.2])  # frames 2, 7 and 12, not 0, 1, 2
+    assert load_npz(out / "reconstruction.npz").info["timestamps"] == pytest.approx([0.2, 0.7, 1.2])
+
+
+def test_frame_times_read_the_stated_frame_rate_and_refuse_another_videos_frames(tmp_path, monkeypatch):
+    from pointmap import video as vid
+
+    video = _video(tmp_path / "walk.avi", n=3)
+    assert vid.frame_rate(video) == pytest.approx(10)
+    assert vid.frame_times(video, [tmp_path / "walk_000004.png", "f/walk_000015.png"]) == pytest.approx([0.4, 1.5])
+    with pytest.raises(ImageError, match=r"frames of walk.avi named walk_<index>.png, got .*run_000004.png"):
+        vid.frame_times(video, [tmp_path / "run_000004.png"])
+    monkeypatch.setattr(vid, "frame_rate", lambda v: None)  # a container that states no rate: images are counted
+    assert vid.frame_times(video, [tmp_path / "walk_000004.png"]) is None

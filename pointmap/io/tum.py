@@ -1,7 +1,8 @@
 """TUM RGB-D trajectory export (``trajectory.txt``), the format trajectory tools (evo, the TUM scripts) read:
 one line per image, ``timestamp tx ty tz qx qy qz qw``, the camera-to-world pose (camera centre and orientation,
-OpenCV camera axes as everywhere in pointmap), the quaternion scalar last. The timestamp is the image's index
-unless ``timestamps`` are given (e.g. a video's frame times)."""
+OpenCV camera axes as everywhere in pointmap), the quaternion scalar last. The timestamp is the image's time in
+seconds: ``timestamps`` when given, else ``recon.info["timestamps"]`` when it holds them (``pointmap reconstruct``
+records a video's frame times there), else the image's index."""
 
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ from pointmap.io.colmap import rotation_to_quaternion
 def write_tum(recon, path, timestamps=None) -> Path:
     """Write ``recon``'s cam2world poses to ``path`` in TUM format; returns the path."""
     n = len(recon)
+    if timestamps is None:
+        timestamps = getattr(recon, "info", {}).get("timestamps")
     ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
     if ts.shape != (n,) or not np.isfinite(ts).all():
-        raise ValueError(f"timestamps expected {n} finite numbers, got {ts.shape}")
+        raise ValueError(f"timestamps expected {n} finite numbers (one per image), got {ts.shape}")
     c2w = recon.cam2world.double().numpy()
     with atomic_open(path, "w") as f:
         f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes) written by pointmap\n")
