@@ -1,6 +1,9 @@
 """GLB scene: the coloured point cloud plus one wireframe frustum per camera (trimesh).
 
-Coordinates are the reconstruction's world frame (OpenCV: y down, z forward), unchanged.
+glTF's axes, as every glTF viewer (Blender, three.js, model-viewer) assumes them: x right, y up, the view along -z.
+The reconstruction's world (OpenCV axes: y down, z forward; image 0's camera unless poses were given) is turned
+180 degrees about x, ``GLTF_FROM_WORLD``: a point (x, y, z) is stored as (x, -y, -z). Image 0's view then opens
+upright, seen the way its camera saw it, instead of upside down and from behind. Other formats keep the world as is.
 """
 
 from __future__ import annotations
@@ -8,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from pointmap.io.atomic import write_bytes
+
+GLTF_FROM_WORLD = np.diag([1.0, -1.0, -1.0])  # a rotation (det +1): OpenCV axes to glTF's
 
 
 def frustum_lines(cam2world: np.ndarray, K: np.ndarray, size: tuple, depth: float) -> np.ndarray:
@@ -28,13 +33,13 @@ def write_glb(path, recon, points, frustum_scale: float = 0.05) -> None:
     scene = trimesh.Scene()
     if len(points.xyz):
         rgba = np.concatenate([points.rgb, np.full((len(points.rgb), 1), 255, np.uint8)], 1)
-        scene.add_geometry(trimesh.PointCloud(points.xyz, colors=rgba), geom_name="points")
+        scene.add_geometry(trimesh.PointCloud(points.xyz @ GLTF_FROM_WORLD.T, colors=rgba), geom_name="points")
     c2w = recon.cam2world.double().numpy()
     K = recon.K.double().numpy()
     extent = points.xyz.max(0) - points.xyz.min(0) if len(points.xyz) > 1 else np.ones(3)
     depth = frustum_scale * float(np.linalg.norm(extent)) or 0.1
     for k in range(len(recon)):
-        segs = frustum_lines(c2w[k], K[k], recon.original_sizes[k], depth)
+        segs = frustum_lines(c2w[k], K[k], recon.original_sizes[k], depth) @ GLTF_FROM_WORLD.T
         path3d = trimesh.load_path(segs)
         path3d.colors = np.tile([[255, 64, 0, 255]], (len(path3d.entities), 1))
         scene.add_geometry(path3d, geom_name=f"camera_{k:03d}")

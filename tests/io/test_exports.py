@@ -13,6 +13,7 @@ from recon_factory import make_recon  # noqa: E402
 from pointmap.io import confidence_mask, load_npz, read_ply, save_reconstruction, select_points  # noqa: E402
 from pointmap.io.atomic import atomic_open  # noqa: E402
 from pointmap.io.colmap import rotation_to_quaternion  # noqa: E402
+from pointmap.io.glb import frustum_lines  # noqa: E402
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -113,10 +114,36 @@ def test_glb_has_cloud_and_frustums(tmp_path):
     paths = [g for g in geoms if isinstance(g, trimesh.path.Path3D)]
     assert len(clouds) == 1 and len(clouds[0].vertices) == 1000
     assert len(paths) == 3
-    # each frustum's apex is the camera centre
-    centres = recon.cam2world[:, :3, 3].numpy()
+    # glTF axes, (x, -y, -z) of the world: each frustum's apex is its camera centre so turned
+    flip = np.array([1.0, -1.0, -1.0])
+    centres = recon.cam2world[:, :3, 3].numpy() * flip
     for c in centres:
         assert min(np.linalg.norm(p.vertices - c, axis=1).min() for p in paths) < 1e-4
+    pts = select_points(recon, max_points=1000)
+    assert np.allclose(np.asarray(clouds[0].vertices), pts.xyz * flip, atol=1e-5)
+
+
+def test_in_the_glb_image_0s_camera_looks_along_minus_z_with_its_image_upright(tmp_path):
+    import trimesh
+
+    recon = make_recon(n=1)
+    recon.cam2world = torch.eye(4)[None]  # the default world: image 0's camera (OpenCV: looks along +z, top at -y)
+    save_reconstruction(recon, tmp_path, formats=("glb",))
+    path = [g for g in trimesh.load(tmp_path / "scene.glb").geometry.values() if isinstance(g, trimesh.path.Path3D)][0]
+    v = np.asarray(path.vertices)
+    corners = np.unique(v[np.linalg.norm(v, axis=1) > 1e-6].round(9), axis=0)  # the apex is the origin
+    assert len(corners) == 4  # the image's corners
+    view = corners.mean(0) / np.linalg.norm(corners.mean(0))
+    assert view[2] < -0.99  # seen along -z, glTF's forward
+    by_height = corners[np.argsort(corners[:, 1])]
+    assert (by_height[2:, 1] > 0).all() and (by_height[:2, 1] < 0).all()
+    # the upper two are the image's top corners (pixel row -0.5: OpenCV y < 0 in the camera)
+    top = frustum_lines(np.eye(4), recon.K[0].double().numpy(), recon.original_sizes[0], 1.0)[:2, 1]
+    assert (top[:, 1] < 0).all()
+    unit = lambda x: x / np.linalg.norm(x, axis=1, keepdims=True)  # noqa: E731
+    upper = unit(by_height[2:])
+    for corner in unit(top * np.array([1.0, -1.0, -1.0])):
+        assert np.abs(upper - corner).sum(1).min() < 1e-6
 
 
 def test_npz_roundtrip(tmp_path):
