@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -189,6 +190,12 @@ class OnnxPointmapModel:
             except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
         self.providers = next(iter(self._sessions.values())).get_providers()
+        wanted = [p[0] if isinstance(p, tuple) else p for p in provs]
+        for f, sess in self._sessions.items():  # onnxruntime falls back to the CPU with at most a log line: say so
+            lost = [p for p in wanted if p not in sess.get_providers()]
+            if lost:
+                warnings.warn(f"onnxruntime could not start {lost} for {f} (e.g. a missing CUDA / TensorRT library); "
+                              f"it runs on {sess.get_providers()}", RuntimeWarning, stacklevel=2)
         self._warned_unsplit = False
 
     # -- torch.nn.Module look-alikes, so code written for PointmapNet runs unchanged -------------------

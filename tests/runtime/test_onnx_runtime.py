@@ -164,3 +164,21 @@ def test_image_similarity_refuses_a_single_graph_export_and_agrees_with_eager_on
     with pytest.raises(CheckpointError, match="single-graph ONNX export .* export with --split"):
         image_similarity(pm.load_model(full_export), imgs)
     assert torch.allclose(image_similarity(pm.load_model(split_export), imgs), image_similarity(test_model, imgs))
+
+
+def test_a_requested_provider_that_onnxruntime_could_not_start_is_reported_not_silently_replaced_by_the_cpu(
+        full_export, monkeypatch):
+    import onnxruntime as ort
+
+    from pointmap.runtime import onnx as rt
+
+    class CpuOnly(ort.InferenceSession):  # what onnxruntime does when the CUDA libraries are missing
+        def __init__(self, path, sess_options=None, providers=None):
+            super().__init__(path, sess_options=sess_options, providers=["CPUExecutionProvider"])
+
+    monkeypatch.setattr(rt, "resolve_providers", lambda p: ["CUDAExecutionProvider", "CPUExecutionProvider"])
+    monkeypatch.setattr(ort, "InferenceSession", CpuOnly)
+    with pytest.warns(RuntimeWarning, match=r"could not start \['CUDAExecutionProvider'\] for model.onnx.*"
+                                            r"runs on \['CPUExecutionProvider'\]"):
+        runner = load_onnx(full_export, providers="cuda")
+    assert runner.providers == ["CPUExecutionProvider"]
