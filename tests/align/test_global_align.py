@@ -44,6 +44,24 @@ def test_without_known_poses_the_world_is_the_first_cameras_frame(scene):
     assert rot < 0.5 and centre < 0.02, (rot, centre)
 
 
+def test_a_loss_that_turns_non_finite_mid_run_is_reported_and_the_best_iterate_is_kept(scene, monkeypatch):
+    from pointmap.align import loop
+
+    real, calls = loop.loss_and_grad, {"n": 0}
+
+    def blows_up_at_the_sixth(*args, **kw):  # as a NaN in a prediction or a diverging step would
+        calls["n"] += 1
+        return float("nan") if calls["n"] == 6 else real(*args, **kw)
+
+    monkeypatch.setattr(loop, "loss_and_grad", blows_up_at_the_sixth)
+    preds = gt_preds(scene, complete_pairs(6), seed=2)
+    with pytest.warns(RuntimeWarning, match=r"loss became non-finite after 5 of 60 iterations.*best iterate"):
+        recon = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=60))
+    rep = recon.info["align"]
+    assert rep["stop_reason"] == "non-finite loss" and not rep["converged"] and rep["iterations"] == 5
+    assert torch.isfinite(recon.cam2world).all() and rep["final_loss"] <= rep["init_loss"]
+
+
 def test_sparse_graph_and_original_pixels(scene):
     """Chain graph (each image paired with its next two) and maps that are a 2x downscale + crop of the
     original: K comes back in ORIGINAL pixels."""
