@@ -12,6 +12,7 @@ import ast
 import json
 import math
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -22,6 +23,9 @@ from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
+# NAVER's DUSt3R / MASt3R / CroCo checkpoints: non-commercial. A model's ``provenance["licence"]`` (an SPDX id) is
+# its weights' licence; fine-tuning, averaging and export carry it on (training.train, training.ship, export).
+OFFICIAL_LICENCE = "CC-BY-NC-SA-4.0"
 FORMAT = "pointmap/1"
 HEAD_PREFIXES = ("downstream_head", "pose_head", "desc_stem")  # everything else is the trunk (encoder, decoders)
 
@@ -249,12 +253,29 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
     state = official_to_ours(ckpt["model"])
     load_state_strict(model, state, allow_missing_heads=allow_missing_heads or "CroCoNet" in ctor,
                       source=str(path))
-    model.provenance = {"source": "official", "path": str(path), "ctor": ctor}
+    model.provenance = {"source": "official", "path": str(path), "ctor": ctor, "licence": OFFICIAL_LICENCE}
+    warn_if_noncommercial(model, path, "official NAVER weights")
     img_size = parse_ctor(ctor)[1].get("img_size")
     if isinstance(img_size, int) or (isinstance(img_size, tuple) and img_size and
                                      all(isinstance(x, int) for x in img_size)):
         model.provenance["image_size"] = max(img_size) if isinstance(img_size, tuple) else img_size
     return model
+
+
+def model_licence(model) -> str | None:
+    """The licence its provenance records for ``model``'s weights (an SPDX id, e.g. ``OFFICIAL_LICENCE`` for an
+    official checkpoint and what it was fine-tuned into), None where it records none."""
+    prov = getattr(model, "provenance", None)
+    lic = prov.get("licence") if isinstance(prov, dict) else None
+    return lic if isinstance(lic, str) and lic else None
+
+
+def warn_if_noncommercial(model, path, what: str) -> None:
+    """A UserWarning when ``model``'s recorded licence is a non-commercial one (an ``-NC`` SPDX id)."""
+    lic = model_licence(model)
+    if lic is not None and "-NC" in lic.upper():
+        warnings.warn(f"{path}: {what} are licensed {lic} (non-commercial use only); models fine-tuned or averaged "
+                      "from them and their exports carry that licence", UserWarning, stacklevel=4)
 
 
 def model_input_size(model, default: int = 512) -> int:
@@ -386,6 +407,7 @@ def load_own(path: Path) -> PointmapNet:
         model.provenance = json.loads(meta.get("provenance", "{}"))
     except json.JSONDecodeError as e:
         raise CheckpointError(f"{path} has broken provenance metadata: {e}") from None
+    warn_if_noncommercial(model, path, "these weights (derived from official ones)")
     return model
 
 

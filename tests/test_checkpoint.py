@@ -62,6 +62,19 @@ def test_an_official_checkpoint_with_alias_keys_and_a_namespace_loads_into_ident
     assert loaded.cfg.desc_dim == 8 and loaded.cfg.two_confs
 
 
+def test_an_official_checkpoint_says_it_is_non_commercial_and_a_saved_copy_keeps_its_licence(tmp_path):
+    from pointmap.checkpoint import OFFICIAL_LICENCE, model_licence
+
+    _, path = tiny_official(tmp_path)
+    with pytest.warns(UserWarning, match=r"official NAVER weights are licensed CC-BY-NC-SA-4.0 \(non-commercial"):
+        loaded = pm.load_model(path)
+    assert model_licence(loaded) == OFFICIAL_LICENCE
+    copy = pm.save_model(loaded, tmp_path / "copy.safetensors")
+    with pytest.warns(UserWarning, match=r"derived from official ones\) are licensed CC-BY-NC-SA-4.0"):
+        assert model_licence(pm.load_model(copy)) == OFFICIAL_LICENCE
+    assert model_licence(pm.PointmapNet(pm.PRESETS["test"])) is None
+
+
 def test_an_official_checkpoint_runs_at_the_size_its_constructor_names(tmp_path):
     from pointmap.checkpoint import model_input_size
 

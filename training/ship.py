@@ -8,8 +8,10 @@ A model file (``.safetensors``, e.g. the shipped model a run was fine-tuned from
 ``--weights`` sets each input's share: the weights of a fine-tuned run interpolated towards its start (WiSE-FT,
 Wortsman et al. 2022), for instance ``--ckpt small.safetensors decay_*.pt --weights 4 1 1 1 1``.
 
-The provenance stored with the weights (steps, image size, data, held-out metrics, command) is what
-``pm.load_model(name).provenance`` and docs/models.md report.
+The provenance stored with the weights (steps, image size, data, held-out metrics, command, licence) is what
+``pm.load_model(name).provenance`` and docs/models.md report. The licence is ``--licence`` (Apache-2.0, the
+project's) unless an input's lineage records another (an official checkpoint's CC-BY-NC-SA-4.0, carried through
+fine-tuning): that one is kept, and a ``--licence`` that contradicts it is refused.
 """
 
 from __future__ import annotations
@@ -22,7 +24,14 @@ from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import WEIGHTS_DIR, CheckpointError, load_own, load_state_strict, save_model
+from pointmap.checkpoint import (
+    WEIGHTS_DIR,
+    CheckpointError,
+    load_own,
+    load_state_strict,
+    model_licence,
+    save_model,
+)
 from pointmap.model import ModelConfig, PointmapNet
 from training.loop import load_checkpoint
 
@@ -57,7 +66,8 @@ def _load_input(path: Path) -> dict:
     except (TypeError, ValueError):
         raise CheckpointError(f"{path}: its provenance's steps expected a whole number, got "
                               f"{prov.get('steps')!r}") from None
-    return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model", "step": step}
+    return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model", "step": step,
+            "extra": {"licence": model_licence(model)} if model_licence(model) else {}}
 
 
 def _config(ck: dict, path: Path) -> ModelConfig:
@@ -72,9 +82,10 @@ def average_checkpoints(paths, weights=None) -> dict:
     weights replaced by the average of all of them (floating tensors averaged in float64 with ``weights``,
     uniform by default, and cast back; any other tensor must be equal in all) and ``averaged_steps`` set to the
     training checkpoints' steps. ``paths`` may include model files (``.safetensors``); ``averaged`` lists every
-    input with its share. CheckpointError when there is
-    no training checkpoint, when they are not 'train' checkpoints or model files of one architecture with the same
-    tensors, or for weights that are not one non-negative number per input with a positive sum."""
+    input with its share, ``licence`` every licence the inputs with a share record (None: none records one).
+    CheckpointError when there is no training checkpoint, when they are not 'train' checkpoints or model files of
+    one architecture with the same tensors, or for weights that are not one non-negative number per input with a
+    positive sum."""
     paths = [Path(p) for p in paths]
     if not paths:
         raise CheckpointError("expected at least one checkpoint to average, got none")
@@ -125,6 +136,9 @@ def average_checkpoints(paths, weights=None) -> dict:
             raise CheckpointError(f"non-floating tensor {k} differs across the checkpoints; cannot average it")
     out = dict(base)
     out["model"] = avg
+    # the weights' licence: every licence an input with a share records (an average of official weights is theirs)
+    licences = sorted({lic for ck, w in zip(cks, weights) if w > 0 and (lic := (ck.get("extra") or {}).get("licence"))})
+    out["licence"] = " AND ".join(licences) if licences else None
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
     out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
                        for src, ck, s in zip(_sources(paths), cks, shares)]
@@ -153,6 +167,8 @@ def main(argv=None) -> int:
     p.add_argument("--metrics", default=None, help="eval.csv of the run (its last row is recorded)")
     p.add_argument("--note", default="")
     p.add_argument("--out", default=None, help="default: pointmap/weights/NAME.safetensors")
+    p.add_argument("--licence", default=None,
+                   help="the weights' licence (SPDX id) when no input records one (default: the project's)")
     p.add_argument("--dtype", choices=("fp16", "int8"), default="fp16",
                    help="storage: fp16, or int8 weight matrices with per-channel scales (about half of fp16; "
                         "pointmap.checkpoint.save_model)")
@@ -165,13 +181,18 @@ def main(argv=None) -> int:
     except (CheckpointError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    inherited = ck.get("licence")
+    if inherited is not None and a.licence not in (None, inherited):
+        print(f"error: --licence {a.licence}: the weights derive from ones licensed {inherited}, which they keep",
+              file=sys.stderr)
+        return 2
     if metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
         print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
               f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
     cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
-                  "heldout_metrics": metrics, "note": a.note,
+                  "heldout_metrics": metrics, "note": a.note, "licence": inherited or a.licence or "Apache-2.0",
                   **({"averaged_steps": ck["averaged_steps"], "averaged": ck["averaged"]} if len(a.ckpt) > 1 else {}),
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import load_model, load_state_strict, load_trunk, official_to_ours
+from pointmap.checkpoint import load_model, load_state_strict, load_trunk, model_licence, official_to_ours
 from pointmap.errors import CheckpointError, PointmapError
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
@@ -31,18 +31,22 @@ from training.mix import limit_rotation, open_pairs
 
 
 def _init_state(path: Path):
-    """(state dict under our key names, model config, kind, growth history) of any --init source; the history is
-    the list ``training.grow`` records (``grown_from``), None where the source does not record one."""
+    """(state dict under our key names, model config, kind, lineage) of any --init source; the lineage holds the
+    growth history ``training.grow`` records (``grown_from``, None where the source does not record one) and the
+    weights' licence (``licence``, None where none is recorded: an official checkpoint records its own)."""
     if path.suffix == ".pt":  # one of our training checkpoints (pretraining or training)
         from pointmap.model.config import ModelConfig
 
         ck = load_checkpoint(path)
-        growth = (ck.get("extra") or {}).get("grown_from")
-        return official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind"), growth
+        extra = ck.get("extra") or {}
+        return (official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind"),
+                {"grown_from": extra.get("grown_from"), "licence": extra.get("licence")})
     model = load_model(str(path))
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"--init {path} is not a PyTorch model")
-    return model.state_dict(), model.cfg, "weights", (getattr(model, "provenance", None) or {}).get("grown_from")
+    prov = getattr(model, "provenance", None) or {}
+    return model.state_dict(), model.cfg, "weights", {"grown_from": prov.get("grown_from"),
+                                                      "licence": model_licence(model)}
 
 
 def build_model(cfg: TrainConfig) -> PointmapNet:
@@ -56,8 +60,9 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
     if not cfg.init:
         model = PointmapNet(preset)
         model.growth = []  # never grown
+        model.licence = None  # our own weights: training.ship labels them
         return model
-    state, model_cfg, kind, growth = _init_state(Path(cfg.init))
+    state, model_cfg, kind, lineage = _init_state(Path(cfg.init))
     if cfg.init_heads == "fresh":
         model = PointmapNet(preset)
         fresh = load_trunk(model, state, source=cfg.init)
@@ -73,8 +78,16 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
         reset_confidence(model, cfg.conf_reset)
-    model.growth = growth  # training.grow's record (None: --init does not say), kept in the run's checkpoints
+    model.growth = lineage["grown_from"]  # training.grow's record (None: --init does not say), kept in the run's
+    model.licence = lineage["licence"]  # checkpoints, as the licence of the weights it starts from
     return model.train()
+
+
+def lineage_extra(model: PointmapNet) -> dict | None:
+    """What every checkpoint of a run records of the model's lineage (``build_model``'s ``growth`` and ``licence``,
+    those known), read back by a later ``--init`` and by ``training.ship``; None when neither is known."""
+    return {k: v for k, v in (("grown_from", getattr(model, "growth", None)),
+                              ("licence", getattr(model, "licence", None))) if v is not None} or None
 
 
 def reset_confidence(model: PointmapNet, conf: float) -> None:
@@ -289,7 +302,7 @@ def main(argv=None) -> int:
     if lr_scale:
         print(f"--grown_lr {cfg.grown_lr}: {len(lr_scale)} tensors (the output projections of the blocks grown from "
               f"{cfg.grown_from})", file=sys.stderr)
-    extra = {"grown_from": model.growth} if model.growth is not None else None
+    extra = lineage_extra(model)
     try:
         result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale, extra=extra)
     except CheckpointError as e:  # e.g. a resume whose optimizer groups do not fit

@@ -695,6 +695,25 @@ def test_a_run_from_a_grown_model_records_its_growth_in_every_checkpoint(tmp_pat
     assert build_model(dataclasses.replace(cfg, init=str(tmp_path / "run" / "last.pt"))).growth == model.growth
 
 
+def test_a_run_from_non_commercial_weights_records_their_licence_in_every_checkpoint_and_passes_it_on(tmp_path):
+    from pointmap.checkpoint import OFFICIAL_LICENCE
+    from training.train import build_model, lineage_extra
+
+    torch.manual_seed(0)
+    nc = PointmapNet(PRESETS["test"].replace(head="catmlp+linear"))
+    nc.provenance = {"source": "official", "licence": OFFICIAL_LICENCE}
+    init = pm.save_model(nc, tmp_path / "nc.safetensors")
+    cfg = dataclasses.replace(config(tmp_path / "run", 2), init=str(init), preset="test")
+    model = build_model(cfg)
+    assert model.licence == OFFICIAL_LICENCE and lineage_extra(model) == {"licence": OFFICIAL_LICENCE}
+    fit(cfg, model, PlanePairs(4), collate, make_step(cfg), extra=lineage_extra(model))
+    ck = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    assert ck["extra"] == {"licence": OFFICIAL_LICENCE}
+    assert build_model(dataclasses.replace(cfg, init=str(tmp_path / "run" / "last.pt"))).licence == OFFICIAL_LICENCE
+    scratch = build_model(dataclasses.replace(cfg, init=None))
+    assert scratch.licence is None and lineage_extra(scratch) == {"grown_from": []}
+
+
 @pytest.mark.parametrize("flags,message", [
     (["--batch_size", "0"], "--batch_size expected >= 1, got 0"),
     (["--log_every", "0"], "--log_every expected >= 1, got 0"),

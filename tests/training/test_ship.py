@@ -82,6 +82,30 @@ def test_the_growth_history_a_run_records_ships_in_the_provenance(tmp_path):
     assert pm.load_model(tmp_path / "p.safetensors").provenance["grown_from"] == []  # never grown, and it says so
 
 
+def test_the_shipped_licence_is_the_projects_unless_an_input_records_another_which_it_keeps(tmp_path, capsys):
+    from pointmap.checkpoint import OFFICIAL_LICENCE
+
+    _checkpoint(tmp_path / "own.pt", seed=0, step=5)
+    _checkpoint(tmp_path / "nc.pt", seed=1, step=6, extra={"licence": OFFICIAL_LICENCE})
+    nc_file = PointmapNet(PRESETS["test"])
+    nc_file.provenance = {"steps": 3, "licence": OFFICIAL_LICENCE}
+    pm.save_model(nc_file, tmp_path / "nc.safetensors")
+
+    def shipped(*args):
+        assert main([*args, "--out", str(tmp_path / "m.safetensors")]) == 0
+        return pm.load_model(tmp_path / "m.safetensors").provenance["licence"]
+
+    assert shipped("--ckpt", str(tmp_path / "own.pt")) == "Apache-2.0"
+    assert shipped("--ckpt", str(tmp_path / "nc.pt")) == OFFICIAL_LICENCE
+    assert shipped("--ckpt", str(tmp_path / "nc.safetensors"), str(tmp_path / "own.pt")) == OFFICIAL_LICENCE
+    # an input with no share adds nothing, its licence neither
+    assert shipped("--ckpt", str(tmp_path / "nc.safetensors"), str(tmp_path / "own.pt"), "--weights", "0", "1") \
+        == "Apache-2.0"
+    assert main(["--ckpt", str(tmp_path / "nc.pt"), "--licence", "MIT", "--out", str(tmp_path / "x.safetensors")]) == 2
+    assert "--licence MIT: the weights derive from ones licensed CC-BY-NC-SA-4.0" in capsys.readouterr().err
+    assert not (tmp_path / "x.safetensors").exists()
+
+
 def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_one_line(tmp_path, capsys):
     ck = tmp_path / "a.pt"
     _checkpoint(ck, 0, 100)
