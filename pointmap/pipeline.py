@@ -322,9 +322,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
                                fixed_intrinsics=fixed_K)
         lap("sparse")
     # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it down)
-    eligible = recon.depth_z > 0
-    keep = confidence_mask(recon.conf, min_conf, conf_percentile,
-                           within=eligible if user_masks is None else eligible & user_masks)
+    keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=user_masks)
     recon.masks = keep
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None
