@@ -594,6 +594,54 @@ def cmd_localize(args) -> int:
     return 0
 
 
+def model_summary(model, source: str) -> dict:
+    """What ``pointmap info`` reports of a loaded model: its architecture, input size, licence and provenance."""
+    from pointmap.checkpoint import WEIGHTS_DIR, model_input_size, model_licence
+
+    cfg, prov = model.cfg, (getattr(model, "provenance", None) or {})
+    named = "/" not in source and os.sep not in source and (WEIGHTS_DIR / f"{source}.safetensors").exists()
+    path = WEIGHTS_DIR / f"{source}.safetensors" if named else Path(source)
+    params = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else None
+    files = [path] if path.is_file() else sorted(path.glob("*")) if path.is_dir() else []
+    return {"source": source, "path": str(path.resolve()), "megabytes": round(sum(f.stat().st_size for f in files
+                                                                                 if f.is_file()) / 1e6, 1),
+            "runtime": type(model).__name__, "parameters": params, "input_size": model_input_size(model, 512),
+            "licence": model_licence(model), "config": cfg.to_dict(), "provenance": prov}
+
+
+def cmd_info(args) -> int:
+    import json
+
+    from pointmap.checkpoint import load_model
+
+    info = model_summary(load_model(args.model), args.model)
+    if args.json:
+        print(json.dumps(info, indent=1, default=str))
+        return 0
+    cfg, prov = info["config"], info["provenance"]
+    lines = [f"model: {info['source']} ({info['path']}, {info['megabytes']} MB, {info['runtime']})",
+             f"architecture: encoder {cfg['enc_depth']} x {cfg['enc_dim']} ({cfg['enc_heads']} heads), decoder "
+             f"{cfg['dec_depth']} x {cfg['dec_dim']}, patch {cfg['patch_size']}, head {cfg['head']}, descriptors "
+             f"{cfg['desc_dim'] or 'none'}, pose head {'yes' if cfg.get('pose_head') else 'no'}"
+             + (f"; {info['parameters'] / 1e6:.1f} M parameters" if info["parameters"] else ""),
+             f"input size: {info['input_size']}",
+             f"licence: {info['licence'] or 'not recorded in the file (see its model card)'}"]
+    if prov.get("source") == "official":
+        lines.append(f"source: official checkpoint, {prov.get('ctor', '')[:100]}")
+    if "steps" in prov:
+        lines.append(f"trained: {prov['steps']} steps, batch {prov.get('batch_size', '?')}, data "
+                     f"{prov.get('data') or '?'}" + (f"; averaged over {len(prov['averaged'])} inputs"
+                                                     if prov.get("averaged") else ""))
+    m = prov.get("heldout_metrics") or {}
+    if m:
+        lines.append(f"held-out ({prov.get('eval_data') or '?'}, the run at step {int(m.get('step', 0))}): "
+                     + ", ".join(f"{k} {m[k]:.3g}" for k in ("RRA15", "RTA15", "AbsRel", "match_prec") if k in m))
+    if prov.get("note"):
+        lines.append(f"note: {prov['note']}")
+    print("\n".join(lines))
+    return 0
+
+
 def cmd_demo(args) -> int:
     from pointmap.demo import run_demo
 
@@ -727,6 +775,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="video: at most this many frames when --stride is not given (default 30)")
     loc.set_defaults(fn=cmd_localize)
 
+    i = sub.add_parser("info", parents=[common],
+                       help="what a model is: architecture, input size, licence, training provenance")
+    i.add_argument("model", nargs="?", default=DEFAULT_MODEL,
+                   help="shipped model name, .safetensors, official .pth or ONNX export (default: %(default)s)")
+    i.add_argument("--json", action="store_true", help="everything as JSON (config and full provenance)")
+    i.set_defaults(fn=cmd_info)
+
     d = sub.add_parser("demo", parents=[common], help="reconstruct the demo scenes shipped with the package")
     d.add_argument("-o", "--out", default="demo_out")
     d.add_argument("--model", default=DEFAULT_MODEL)
@@ -743,7 +798,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
     try:
-        if args.cmd != "splat" or args.test:  # the commands that run the network (splat only with --test)
+        if args.cmd not in ("splat", "info") or getattr(args, "test", False):  # the commands that run the network
             args.device = resolve_device(args.device)  # before anything runs: a missing GPU is one line
         return args.fn(args)
     except PointmapError as e:

@@ -716,3 +716,27 @@ def test_metric_depth_of_another_shape_is_refused_before_the_model_and_too_few_p
     assert main([*args, "-o", str(tmp_path / "r")]) == 0
     assert "--metric-depth not applied, the reconstruction keeps its own scale" in capsys.readouterr().err
     assert (tmp_path / "r" / "reconstruction.npz").exists()
+
+
+def test_info_tells_what_a_model_is_its_licence_and_training_and_refuses_a_missing_one(tmp_path, capsys):
+    import json
+
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    path = pm.save_model(model, tmp_path / "m.safetensors", provenance={
+        "steps": 12, "batch_size": 8, "data": "train_a", "eval_data": "eval_b", "licence": "Apache-2.0",
+        "heldout_metrics": {"step": 12, "RRA15": 61.25, "AbsRel": 0.3}, "note": "a test"})
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    cfg = pm.PRESETS["test"]
+    assert f"encoder {cfg.enc_depth} x {cfg.enc_dim}" in out and "licence: Apache-2.0" in out
+    assert "trained: 12 steps, batch 8, data train_a" in out and "held-out (eval_b, the run at step 12): RRA15 61.2" in out
+    assert f"{sum(p.numel() for p in model.parameters()) / 1e6:.1f} M parameters" in out
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["licence"] == "Apache-2.0" and info["config"]["enc_dim"] == cfg.enc_dim
+    assert info["provenance"]["note"] == "a test" and info["megabytes"] > 0
+    bare = pm.save_model(model, tmp_path / "bare.safetensors", provenance={})
+    assert main(["info", str(bare)]) == 0 and "licence: not recorded in the file" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "none.safetensors")]) == 2
+    assert "checkpoint not found" in capsys.readouterr().err
