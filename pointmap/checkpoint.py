@@ -415,6 +415,15 @@ def shipped_models() -> list[str]:
     return sorted(p.stem for p in WEIGHTS_DIR.glob("*.safetensors"))
 
 
+def shipped_path(src) -> Path | None:
+    """The shipped weights file ``load_model(src)`` reads when ``src`` names a shipped model (a bare name that is
+    not an existing path), else None."""
+    if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
+        path = WEIGHTS_DIR / f"{src}.safetensors"
+        return path if path.exists() else None
+    return None
+
+
 def load_model(src, device="cpu", **kwargs):
     """Load a model from a preset name with shipped weights, our .safetensors, an official .pth, or an
     ONNX export (file or directory): ``pm.load_model("small")``. Returns an eval-mode model on ``device``.
@@ -426,9 +435,9 @@ def load_model(src, device="cpu", **kwargs):
     if not isinstance(src, (str, os.PathLike)):
         raise CheckpointError(f"load_model expected a shipped model's name (e.g. 'small'), a checkpoint path or a "
                               f"PointmapNet, got {type(src).__name__}")
+    if (shipped := shipped_path(src)) is not None:
+        return load_own(shipped).to(device).eval()
     if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
-        if (WEIGHTS_DIR / f"{src}.safetensors").exists():
-            return load_own(WEIGHTS_DIR / f"{src}.safetensors").to(device).eval()
         if src in PRESETS:
             raise CheckpointError(f"preset {src!r} has no shipped weights; shipped: {shipped_models() or 'none'}. "
                                   f"Use PointmapNet(PRESETS[{src!r}]) for random weights or pass a checkpoint path")

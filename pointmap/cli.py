@@ -141,13 +141,14 @@ def _image_files(folder: Path) -> list[str]:
 
 
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
-                  max_frames: int = 30) -> list[str]:
+                  max_frames: int = 30, times: dict | None = None) -> list[str]:
     """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
     ``IMAGE_SUFFIXES``, any case), or when it has none for those of its ``images/`` folder (the layout of a
     COLMAP or nerfstudio scene); a video (``pointmap.video.VIDEO_SUFFIXES``) for frames extracted into
     ``frames_dir`` (``pointmap.video.extract_frames``: one per ``stride`` frames, the sharpest of each window,
-    at most ``max_frames`` when no stride is given); files are kept as given. PointmapError for a folder
-    without images."""
+    at most ``max_frames`` when no stride is given); files are kept as given. ``times``, a dict, receives each
+    extracted frame's time in seconds (``extract_frames(with_times=True)``) under its path. PointmapError for a
+    folder without images."""
     from pointmap.video import extract_frames, is_video
 
     stems = [Path(i).stem for i in items if is_video(Path(i))]
@@ -161,7 +162,10 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
         if is_video(p):
             if frames_dir is None:
                 raise PointmapError(f"{p} is a video: frames need a folder to go to")
-            out += [str(f) for f in extract_frames(p, frames_dir, stride=stride, max_frames=max_frames)]
+            frames = extract_frames(p, frames_dir, stride=stride, max_frames=max_frames, with_times=True)
+            out += [str(f) for f, _ in frames]
+            if times is not None:
+                times.update((str(f), t) for f, t in frames)
         elif p.is_dir():
             found = _image_files(p)
             if not found and (p / "images").is_dir():  # a COLMAP / nerfstudio scene: its photographs in images/
@@ -398,15 +402,15 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
     return pairs
 
 
-def video_timestamps(inputs: list[str], images: list[str]) -> list[float] | None:
-    """Each image's time in seconds when the input is one video (its frames' indices over its stated frame rate:
-    what a TUM trajectory is matched against ground truth by), else None (photographs, several videos, or a video
-    that states no frame rate: trajectories then count images)."""
-    from pointmap.video import frame_times, is_video
+def video_timestamps(inputs: list[str], images: list[str], times: dict) -> list[float] | None:
+    """Each image's time in seconds (``times``, from ``expand_images``) when the input is one video: what a TUM
+    trajectory is matched against ground truth by. None for photographs, several videos (two clocks), or a video
+    whose frames have no time (trajectories then count images)."""
+    from pointmap.video import is_video
 
-    if len(inputs) != 1 or not is_video(inputs[0]):
+    if len(inputs) != 1 or not is_video(inputs[0]) or any(times.get(i) is None for i in images):
         return None
-    return frame_times(inputs[0], images)
+    return [times[i] for i in images]
 
 
 def prepare_scene(args, inputs: list[str], out: Path) -> dict:
@@ -421,8 +425,9 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     if args.masks is not None and not Path(args.masks).is_dir():
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
-    images = expand_images(inputs, out / "frames", args.stride, args.max_frames)
-    timestamps = video_timestamps(inputs, images)
+    times: dict = {}
+    images = expand_images(inputs, out / "frames", args.stride, args.max_frames, times)
+    timestamps = video_timestamps(inputs, images, times)
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs
         graph = auto_graph(len(images), sequential=True)
@@ -571,8 +576,9 @@ def cmd_localize(args) -> int:
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
     out = writable_dir(Path(args.out))
-    images = expand_images(args.images, out / "frames", args.stride, args.max_frames)
-    times = video_timestamps(args.images, images)
+    frame_times: dict = {}
+    images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
+    times = video_timestamps(args.images, images, frame_times)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
@@ -596,13 +602,13 @@ def cmd_localize(args) -> int:
 
 def model_summary(model, source: str) -> dict:
     """What ``pointmap info`` reports of a loaded model: its architecture, input size, licence and provenance."""
-    from pointmap.checkpoint import WEIGHTS_DIR, model_input_size, model_licence
+    from pointmap.checkpoint import model_input_size, model_licence, shipped_path
 
     cfg, prov = model.cfg, (getattr(model, "provenance", None) or {})
-    named = "/" not in source and os.sep not in source and (WEIGHTS_DIR / f"{source}.safetensors").exists()
-    path = WEIGHTS_DIR / f"{source}.safetensors" if named else Path(source)
+    path = shipped_path(source) or Path(source)  # the file load_model read
     params = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else None
-    files = [path] if path.is_file() else sorted(path.glob("*")) if path.is_dir() else []
+    # an ONNX graph's weights may lie beside it (external data): a folder counts whole, a file with its .data
+    files = sorted(path.glob("*")) if path.is_dir() else [path, *path.parent.glob(path.name + ".data")]
     return {"source": source, "path": str(path.resolve()), "megabytes": round(sum(f.stat().st_size for f in files
                                                                                  if f.is_file()) / 1e6, 1),
             "runtime": type(model).__name__, "parameters": params, "input_size": model_input_size(model, 512),

@@ -28,12 +28,15 @@ def sharpness(frame_bgr: np.ndarray) -> float:
 
 
 def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int = 30,
-                   pick_sharpest: bool = True) -> list[Path]:
+                   pick_sharpest: bool = True, with_times: bool = False) -> list:
     """Write frames of ``video`` to ``out_dir`` as ``<stem>_<frame index>.png`` and return their paths in time order.
 
     ``stride``: one frame per window of that many frames (default: the smallest stride giving at most
     ``max_frames`` frames, from ``count_frames``); the frame kept in each window is its sharpest when
     ``pick_sharpest`` (else the first). Memory holds one window's best frame, whatever the video's length.
+    ``with_times``: (path, seconds) pairs instead, each frame's presentation time as the container gives it
+    (right for the variable frame rates phones record), else its index over the stated frame rate when the
+    container's times are missing or not increasing, else None (no rate stated either).
     ImageError when the file cannot be decoded or holds no frame; every image is written atomically as soon as
     its window closes."""
     import cv2
@@ -47,19 +50,22 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         raise ImageError(f"max_frames expected an integer >= 2, got {max_frames!r}")
     out_dir = Path(out_dir)
     paths: list[Path] = []
+    kept: list[tuple[int, float]] = []  # (frame index, the container's time in seconds) of each written frame
 
-    def write(index: int, frame: np.ndarray) -> None:  # one window's frame, written as soon as it closes
+    def write(index: int, seconds: float, frame: np.ndarray) -> None:  # one window's frame, written as it closes
         path = out_dir / f"{video.stem}_{index:06d}.png"
         with atomic_path(path) as tmp:
             if not cv2.imwrite(str(tmp), frame):
                 raise ImageError(f"could not write frame {index} of {video} to {path}")
         paths.append(path)
+        kept.append((index, seconds))
 
     if stride is None:
         stride = max(1, math.ceil(count_frames(video) / max_frames))
     cap = _open(video)
     try:
-        best: tuple[float, int, np.ndarray] | None = None  # only the current window's best frame is held
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        best: tuple[float, int, float, np.ndarray] | None = None  # only the current window's best frame is held
         index = 0
         while True:
             ok, frame = cap.read()
@@ -67,7 +73,7 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
                 break
             score = sharpness(frame) if pick_sharpest else -float(index % stride)
             if best is None or score > best[0]:
-                best = (score, index, frame)
+                best = (score, index, float(cap.get(cv2.CAP_PROP_POS_MSEC)) / 1000.0, frame)
             index += 1
             if index % stride == 0:
                 write(*best[1:])
@@ -78,36 +84,19 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         cap.release()
     if not paths:
         raise ImageError(f"no frame could be decoded from {video}")
-    return paths
+    if not with_times:
+        return paths
+    return list(zip(paths, _frame_seconds(kept, fps)))
 
 
-def frame_rate(video) -> float | None:
-    """Frames per second the container states (OpenCV's ``CAP_PROP_FPS``), None when it states none (0 or not
-    finite). ImageError when the file cannot be opened."""
-    import cv2
-
-    cap = _open(video)
-    try:
-        fps = float(cap.get(cv2.CAP_PROP_FPS))
-    finally:
-        cap.release()
-    return fps if math.isfinite(fps) and fps > 0 else None
-
-
-def frame_times(video, frames) -> list[float] | None:
-    """Seconds from the start of ``video`` of ``frames``, paths ``extract_frames`` wrote for it (named
-    ``<stem>_<frame index>.png``): index / the stated frame rate. None when the video states no frame rate.
-    ImageError for a path that is not one of its frames."""
-    fps = frame_rate(video)
-    if fps is None:
-        return None
-    stem, times = Path(video).stem, []
-    for f in frames:
-        head, _, index = Path(f).stem.rpartition("_")
-        if head != stem or not index.isdigit():
-            raise ImageError(f"frame_times expected frames of {Path(video).name} named {stem}_<index>.png, got {f}")
-        times.append(int(index) / fps)
-    return times
+def _frame_seconds(kept: list[tuple[int, float]], fps: float) -> list[float | None]:
+    """The kept frames' times: the container's when finite and increasing, else index / ``fps``, else None."""
+    seconds = [t for _, t in kept]
+    if all(math.isfinite(t) and t >= 0 for t in seconds) and all(b > a for a, b in zip(seconds, seconds[1:])):
+        return seconds
+    if math.isfinite(fps) and fps > 0:
+        return [i / fps for i, _ in kept]
+    return [None] * len(kept)
 
 
 def count_frames(video) -> int:

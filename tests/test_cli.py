@@ -740,3 +740,18 @@ def test_info_tells_what_a_model_is_its_licence_and_training_and_refuses_a_missi
     assert main(["info", str(bare)]) == 0 and "licence: not recorded in the file" in capsys.readouterr().out
     assert main(["info", str(tmp_path / "none.safetensors")]) == 2
     assert "checkpoint not found" in capsys.readouterr().err
+
+
+def test_info_describes_the_file_load_model_reads_when_a_local_file_has_a_shipped_models_name(tmp_path, monkeypatch):
+    from pointmap.checkpoint import WEIGHTS_DIR, shipped_path
+    from pointmap.cli import model_summary
+
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    (tmp_path / "here").mkdir()
+    (tmp_path / "here" / "small").write_bytes(b"a checkpoint named like the shipped model")
+    monkeypatch.chdir(tmp_path / "here")  # ./small exists: load_model reads it, not the shipped small
+    assert shipped_path("small") is None
+    assert model_summary(model, "small")["path"] == str((tmp_path / "here" / "small").resolve())
+    monkeypatch.chdir(tmp_path)
+    assert shipped_path("small") == WEIGHTS_DIR / "small.safetensors"  # the package ships it
+    assert model_summary(model, "small")["path"] == str((WEIGHTS_DIR / "small.safetensors").resolve())

@@ -108,13 +108,44 @@ def test_a_video_reconstruction_writes_its_frames_times_in_seconds_to_the_tum_tr
     assert load_npz(out / "reconstruction.npz").info["timestamps"] == pytest.approx([0.2, 0.7, 1.2])
 
 
-def test_frame_times_read_the_stated_frame_rate_and_refuse_another_videos_frames(tmp_path, monkeypatch):
+def test_frames_carry_the_containers_times_else_index_over_the_rate_else_none(tmp_path, monkeypatch):
     from pointmap import video as vid
 
-    video = _video(tmp_path / "walk.avi", n=3)
-    assert vid.frame_rate(video) == pytest.approx(10)
-    assert vid.frame_times(video, [tmp_path / "walk_000004.png", "f/walk_000015.png"]) == pytest.approx([0.4, 1.5])
-    with pytest.raises(ImageError, match=r"frames of walk.avi named walk_<index>.png, got .*run_000004.png"):
-        vid.frame_times(video, [tmp_path / "run_000004.png"])
-    monkeypatch.setattr(vid, "frame_rate", lambda v: None)  # a container that states no rate: images are counted
-    assert vid.frame_times(video, [tmp_path / "walk_000004.png"]) is None
+    video = _video(tmp_path / "walk.avi", n=12, sharp=(3, 9))  # 10 frames per second
+    frames = extract_frames(video, tmp_path / "f", stride=6, with_times=True)
+    assert [(p.name, t) for p, t in frames] == [("walk_000003.png", pytest.approx(0.3)),
+                                                ("walk_000009.png", pytest.approx(0.9))]
+    # a container whose times are missing or not increasing: the index over the stated rate; no rate either: None
+    assert vid._frame_seconds([(3, 0.0), (9, 0.0)], 10.0) == pytest.approx([0.3, 0.9])
+    assert vid._frame_seconds([(3, 0.5), (9, float("nan"))], 25.0) == pytest.approx([0.12, 0.36])
+    assert vid._frame_seconds([(3, 0.0), (9, 0.0)], 0.0) == [None, None]
+    assert vid._frame_seconds([(0, 0.0), (5, 1.0)], 0.0) == [0.0, 1.0]  # the container's own, rate or not
+
+
+def test_localizing_a_videos_frames_times_the_trajectory_by_the_frames_own_times(tmp_path, monkeypatch):
+    import torch
+
+    import pointmap as pm
+    import pointmap.localize
+    from pointmap.cli import main
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    clip = _video(tmp_path / "clip.avi", n=8, sharp=(1, 6))  # 10 frames per second
+    rec = tmp_path / "rec"
+    assert main(["--quiet", "reconstruct", str(clip), "--model", str(weights), "--size", "64", "-o", str(rec),
+                 "--stride", "4", "--export", "npz"]) == 0
+    calls = []
+
+    def pose_against(recon, ref, pred, rev, K_map=None, patch=16):  # the geometry: tests/align/test_localize.py
+        calls.append(ref)
+        pose = torch.eye(4, dtype=torch.float64) if len(calls) == 2 else torch.full((4, 4), float("nan"))
+        return pose, torch.tensor([[60.0, 0, 32], [0, 60, 21], [0, 0, 1]], dtype=torch.float64), 1.0
+
+    monkeypatch.setattr(pointmap.localize, "pose_against", pose_against)
+    walk = _video(tmp_path / "walk.avi", n=8, sharp=(2, 7))
+    out = tmp_path / "loc"
+    assert main(["--quiet", "localize", str(rec), str(walk), "--model", str(weights), "-o", str(out),
+                 "--stride", "4", "--n-refs", "1"]) == 0
+    rows = [ln.split() for ln in (out / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(calls) == 2 and len(rows) == 1 and float(rows[0][0]) == pytest.approx(0.7)  # frame 7, not query 1

@@ -137,7 +137,8 @@ def average_checkpoints(paths, weights=None) -> dict:
     out = dict(base)
     out["model"] = avg
     # the weights' licence: every licence an input with a share records (an average of official weights is theirs)
-    licences = sorted({lic for ck, w in zip(cks, weights) if w > 0 and (lic := (ck.get("extra") or {}).get("licence"))})
+    licences = sorted({part for ck, w in zip(cks, weights) if w > 0 and (lic := (ck.get("extra") or {}).get("licence"))
+                       for part in lic.split(" AND ")})
     out["licence"] = " AND ".join(licences) if licences else None
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
     out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}

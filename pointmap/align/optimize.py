@@ -189,10 +189,12 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
     report = run(params, stack, cfg, chunk)
     if report["stop_reason"] == "non-finite loss":  # stopped early: the poses are the best iterate's, not converged
+        cause = "NaN or inf in the predictions" + (f", or too high a learning rate (lr={cfg.lr})"
+                                                   if cfg.optimizer == "adam" else "")
+        kept = (f"the best iterate so far is kept (loss {report['final_loss']:.4g}, from {report['init_loss']:.4g})"
+                if report["iterations"] else "the initial state is returned, unoptimised")
         warnings.warn(f"global_align: the loss became non-finite after {report['iterations']} of {cfg.niter} "
-                      f"iterations (NaN or inf in the predictions, or too high a learning rate, lr={cfg.lr}); the best "
-                      f"iterate so far is kept (loss {report['final_loss']:.4g}, from {report['init_loss']:.4g})",
-                      RuntimeWarning, stacklevel=2)
+                      f"iterations ({cause}); {kept}", RuntimeWarning, stacklevel=2)
     with torch.no_grad():
         c2w_out = params.cam2world().double()
         fxo, fyo, cxo, cyo = (x.double() for x in params.intrinsics())

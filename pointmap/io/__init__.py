@@ -11,7 +11,7 @@ from pointmap.io.nerfstudio import write_transforms
 from pointmap.io.npz import load_npz, write_npz
 from pointmap.io.ply import read_ply, write_ply
 from pointmap.io.points import check_conf_filter, check_point_cap, confidence_mask, select_points
-from pointmap.io.tum import write_tum
+from pointmap.io.tum import tum_timestamps, write_tum
 
 FORMATS = ("ply", "glb", "colmap", "colmap_txt", "nerfstudio", "tum", "npz")
 
@@ -41,6 +41,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     check_conf_filter(min_conf, conf_percentile)  # every argument before anything is written
     check_point_cap(max_points, "max_points")
     check_point_cap(colmap_max_points, "colmap_max_points")
+    if "tum" in formats:
+        tum_timestamps(recon)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")

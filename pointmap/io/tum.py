@@ -14,14 +14,24 @@ from pointmap.io.atomic import atomic_open
 from pointmap.io.colmap import rotation_to_quaternion
 
 
-def write_tum(recon, path, timestamps=None) -> Path:
-    """Write ``recon``'s cam2world poses to ``path`` in TUM format; returns the path."""
+def tum_timestamps(recon, timestamps=None) -> np.ndarray:
+    """[N] float64: ``timestamps``, else ``recon.info["timestamps"]``, else the image indices. ValueError unless
+    one finite number per image."""
     n = len(recon)
     if timestamps is None:
-        timestamps = getattr(recon, "info", {}).get("timestamps")
-    ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
+        timestamps = (getattr(recon, "info", None) or {}).get("timestamps")
+    try:
+        ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"timestamps expected {n} finite numbers (one per image), got {timestamps!r}") from None
     if ts.shape != (n,) or not np.isfinite(ts).all():
-        raise ValueError(f"timestamps expected {n} finite numbers (one per image), got {ts.shape}")
+        raise ValueError(f"timestamps expected {n} finite numbers (one per image), got shape {ts.shape}")
+    return ts
+
+
+def write_tum(recon, path, timestamps=None) -> Path:
+    """Write ``recon``'s cam2world poses to ``path`` in TUM format; returns the path."""
+    ts = tum_timestamps(recon, timestamps)
     c2w = recon.cam2world.double().numpy()
     with atomic_open(path, "w") as f:
         f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes) written by pointmap\n")

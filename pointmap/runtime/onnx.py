@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pointmap.checkpoint import warn_if_noncommercial
 from pointmap.errors import CheckpointError, ShapeError
 from pointmap.model.config import ModelConfig
 from pointmap.model.net import Encoded, PointmapNet
@@ -192,10 +193,12 @@ class OnnxPointmapModel:
         self.providers = next(iter(self._sessions.values())).get_providers()
         wanted = [p[0] if isinstance(p, tuple) else p for p in provs]
         for f, sess in self._sessions.items():  # onnxruntime falls back to the CPU with at most a log line: say so
-            lost = [p for p in wanted if p not in sess.get_providers()]
-            if lost:
+            got = sess.get_providers()
+            if wanted[0] != "CPUExecutionProvider" and got[0] == "CPUExecutionProvider":
+                lost = [p for p in wanted if p not in got]
                 warnings.warn(f"onnxruntime could not start {lost} for {f} (e.g. a missing CUDA / TensorRT library); "
-                              f"it runs on {sess.get_providers()}", RuntimeWarning, stacklevel=2)
+                              f"it runs on {got}", RuntimeWarning, stacklevel=2)
+        warn_if_noncommercial(self, self.path, "these weights (derived from official ones)")
         self._warned_unsplit = False
 
     # -- torch.nn.Module look-alikes, so code written for PointmapNet runs unchanged -------------------

@@ -60,6 +60,10 @@ def test_a_loss_that_turns_non_finite_mid_run_is_reported_and_the_best_iterate_i
     rep = recon.info["align"]
     assert rep["stop_reason"] == "non-finite loss" and not rep["converged"] and rep["iterations"] == 5
     assert torch.isfinite(recon.cam2world).all() and rep["final_loss"] <= rep["init_loss"]
+    calls["n"] = -100  # non-finite from the first iteration: nothing to keep but the start
+    monkeypatch.setattr(loop, "loss_and_grad", lambda *a, **k: float("nan"))
+    with pytest.warns(RuntimeWarning, match=r"after 0 of 60 iterations.*the initial state is returned, unoptimised"):
+        global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=60))
 
 
 def test_sparse_graph_and_original_pixels(scene):

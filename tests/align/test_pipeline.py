@@ -19,7 +19,8 @@ from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstr
 @pytest.fixture
 def fake_stack(monkeypatch, request):
     sc = make_scene(5, 32, 48, seed=51)
-    calls = {"descriptors": "descriptors" in request.node.name}
+    calls = {"descriptors": "descriptors" in request.node.name,
+             "varied": "varied_confidences" in request.node.name}  # a little noise: confidences 3 + U(0, 1)
 
     def make_pairs(n, graph):
         calls["graph"] = graph
@@ -29,7 +30,7 @@ def fake_stack(monkeypatch, request):
         calls["pairs"], calls["kw"], calls["shapes"] = list(pairs), kw, [v.shape for v in views]
         if calls.get("stop"):
             raise StopIteration("stand-in stops after recording its inputs")
-        return gt_preds(sc, pairs, seed=1)
+        return gt_preds(sc, pairs, seed=1, noise=1e-4 if calls["varied"] else 0.0)
 
     def predict_pairs_with_descriptors(model, views, pairs, batch_size=8, **kw):
         return with_descriptors(predict_pairs(model, views, pairs, batch_size, **kw), sc)
@@ -115,6 +116,19 @@ def test_reconstruct_masks_and_percentile(fake_stack):
     recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=0.0,
                         quiet=True)
     assert not recon.masks[2, :, :10].any() and recon.masks[2, :, 10:].all()
+
+
+def test_a_confidence_percentile_keeps_that_share_of_the_pixels_the_masks_keep_with_varied_confidences(fake_stack):
+    sc, images, _ = fake_stack
+    masks = [np.ones((32, 48), bool) for _ in images]
+    for m in masks:
+        m[:, :24] = False  # half of every image masked: its pixels must not count towards the percentile
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=50.0,
+                        quiet=True)
+    kept = recon.masks
+    assert not kept[:, :, :24].any()
+    share = float(kept[:, :, 24:].float().mean())
+    assert abs(share - 0.5) < 0.02, share  # with the masked pixels counted it kept all of them (share 1.0)
 
 
 def test_masks_to_maps_from_original_size():

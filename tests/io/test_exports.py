@@ -628,3 +628,19 @@ def test_saving_into_a_path_that_is_a_file_is_refused_naming_it(tmp_path):
     (tmp_path / "taken").write_text("x")
     with pytest.raises(ShapeError, match="out_dir expected a folder to write into, got .*taken', which is a file"):
         save_reconstruction(make_recon(), tmp_path / "taken", formats=("npz",))
+
+
+def test_tum_timestamps_come_from_the_argument_else_the_recorded_times_else_the_index_and_are_checked_first(
+        tmp_path):
+    from pointmap.io.tum import tum_timestamps, write_tum
+
+    recon = make_recon(n=3)
+    assert tum_timestamps(recon).tolist() == [0, 1, 2]
+    recon.info["timestamps"] = [0.5, 1.0, 1.5]
+    assert tum_timestamps(recon).tolist() == [0.5, 1.0, 1.5] and tum_timestamps(recon, [7, 8, 9]).tolist() == [7, 8, 9]
+    recon.info = None  # a Reconstruction built by hand may carry no info
+    assert write_tum(recon, tmp_path / "t.txt").exists()
+    recon.info = {"timestamps": [0.5, 1.0]}  # one short: refused before any file is written
+    with pytest.raises(ValueError, match="timestamps expected 3 finite numbers"):
+        save_reconstruction(recon, tmp_path / "out", formats=("ply", "tum"))
+    assert not (tmp_path / "out").exists()

@@ -1,5 +1,7 @@
 """The onnxruntime runner: PointmapNet's call contract, identical input checks, predict_pairs, load errors."""
 
+import warnings
+
 import pytest
 import torch
 
@@ -182,3 +184,8 @@ def test_a_requested_provider_that_onnxruntime_could_not_start_is_reported_not_s
                                             r"runs on \['CPUExecutionProvider'\]"):
         runner = load_onnx(full_export, providers="cuda")
     assert runner.providers == ["CPUExecutionProvider"]
+    # asked for the CPU, or ended on a GPU provider (TensorRT listed but not installed, CUDA running): no warning
+    monkeypatch.setattr(rt, "resolve_providers", lambda p: ["CPUExecutionProvider"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert load_onnx(full_export).providers == ["CPUExecutionProvider"]

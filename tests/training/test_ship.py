@@ -101,6 +101,8 @@ def test_the_shipped_licence_is_the_projects_unless_an_input_records_another_whi
     # an input with no share adds nothing, its licence neither
     assert shipped("--ckpt", str(tmp_path / "nc.safetensors"), str(tmp_path / "own.pt"), "--weights", "0", "1") \
         == "Apache-2.0"
+    _checkpoint(tmp_path / "mixed.pt", seed=2, step=7, extra={"licence": f"Apache-2.0 AND {OFFICIAL_LICENCE}"})
+    assert shipped("--ckpt", str(tmp_path / "mixed.pt"), str(tmp_path / "nc.pt")) == f"Apache-2.0 AND {OFFICIAL_LICENCE}"
     assert main(["--ckpt", str(tmp_path / "nc.pt"), "--licence", "MIT", "--out", str(tmp_path / "x.safetensors")]) == 2
     assert "--licence MIT: the weights derive from ones licensed CC-BY-NC-SA-4.0" in capsys.readouterr().err
     assert not (tmp_path / "x.safetensors").exists()
