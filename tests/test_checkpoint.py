@@ -269,7 +269,7 @@ def test_unknown_names_list_what_is_shipped():
         pm.load_model("nonexistent_model_name")
 
 
-def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_steps_and_data():
+def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_steps_data_and_licence():
     from pointmap.checkpoint import WEIGHTS_DIR
 
     assert pm.checkpoint.shipped_models()
@@ -277,6 +277,7 @@ def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_st
         assert (WEIGHTS_DIR / f"{name}.safetensors").stat().st_size <= 25_000_000, name
         prov = pm.load_model(name).provenance
         assert prov.get("steps", 0) > 0 and prov.get("data"), (name, sorted(prov))
+        assert prov.get("licence") == "Apache-2.0", name  # trained here from scratch: the project's licence
 
 
 @pytest.mark.parametrize("change,named", [({"enc_heads": 0}, "enc_heads=0"), ({"enc_dim": "abc"}, "enc_dim='abc'"),
