@@ -1,6 +1,7 @@
 """Pure batched geometry: cameras, rotations, Procrustes, focal estimation (docs/conventions.md)."""
 
 from pointmap.geometry.cameras import (
+    convert_camera_axes,
     crop_intrinsics,
     depth_to_points_cam,
     depth_to_points_world,
@@ -24,7 +25,7 @@ from pointmap.geometry.rotations import (
 )
 
 __all__ = [
-    "axis_angle_to_matrix", "crop_intrinsics", "depth_to_points_cam", "depth_to_points_world",
+    "axis_angle_to_matrix", "convert_camera_axes", "crop_intrinsics", "depth_to_points_cam", "depth_to_points_world",
     "focal_from_pointmap", "intrinsics", "invert_rigid", "is_pinhole_K", "pixel_grid", "project", "random_rotation",
     "relative_rotation_error_deg", "rotation_angle", "scale_intrinsics", "se3_exp", "to_matrix",
     "transform_points", "translation_angle_deg", "weighted_procrustes",

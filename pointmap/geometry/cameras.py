@@ -146,3 +146,26 @@ def crop_intrinsics(K: torch.Tensor, left: float, top: float) -> torch.Tensor:
     K[..., 0, 2] -= left
     K[..., 1, 2] -= top
     return K
+
+
+# Camera axes of the conventions users meet, as (right, down, forward) signs of OpenCV's x, y, z:
+# OpenCV / COLMAP / pointmap: x right, y down, z forward; OpenGL / nerfstudio / Blender / three.js: x right, y up,
+# z backward; PyTorch3D: x left, y up, z forward.
+CAMERA_AXES = {"opencv": (1.0, 1.0, 1.0), "opengl": (1.0, -1.0, -1.0), "pytorch3d": (-1.0, -1.0, 1.0)}
+
+
+def convert_camera_axes(cam2world, src: str = "opencv", dst: str = "opengl"):
+    """``cam2world`` [..., 4, 4] (torch or NumPy) with its camera axes in convention ``src`` -> the same cameras
+    (same centres, same orientation in the world) with axes in ``dst`` (names in ``CAMERA_AXES``): a right
+    multiplication by a diagonal sign matrix. For world-to-camera matrices, invert first (``invert_rigid``)."""
+    for name, conv in (("src", src), ("dst", dst)):
+        if conv not in CAMERA_AXES:
+            raise ShapeError(f"{name} expected one of {sorted(CAMERA_AXES)}, got {conv!r}")
+    if getattr(cam2world, "shape", ())[-2:] != (4, 4):
+        raise ShapeError(f"cam2world expected [..., 4, 4], got {tuple(getattr(cam2world, 'shape', ()))}")
+    signs = [a * b for a, b in zip(CAMERA_AXES[src], CAMERA_AXES[dst])] + [1.0]
+    if isinstance(cam2world, torch.Tensor):
+        return cam2world * torch.tensor(signs, dtype=cam2world.dtype, device=cam2world.device)
+    import numpy as np
+
+    return np.asarray(cam2world) * np.asarray(signs)

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pointmap.geometry.cameras import convert_camera_axes
 from pointmap.io.atomic import atomic_open
 from pointmap.io.ply import write_ply
 from pointmap.io.points import PointSet
-
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def write_transforms(recon, out_dir, points: PointSet | None = None) -> list[Path]:
@@ -35,7 +34,7 @@ def write_transforms(recon, out_dir, points: PointSet | None = None) -> list[Pat
         frames.append({"file_path": f"images/{recon.names[k]}", "fl_x": float(K[k, 0, 0]),
                        "fl_y": float(K[k, 1, 1]), "cx": float(K[k, 0, 2] + 0.5), "cy": float(K[k, 1, 2] + 0.5),
                        "w": w, "h": h, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
-                       "transform_matrix": (c2w[k] @ OPENCV_TO_OPENGL).tolist()})
+                       "transform_matrix": convert_camera_axes(c2w[k], "opencv", "opengl").tolist()})
     meta = {"camera_model": "OPENCV", "frames": frames}
     written = []
     if points is not None:
@@ -116,7 +115,7 @@ def read_transforms(path) -> dict:
         if not dist.is_identity and K is None:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) states lens distortion but no focal length "
                                 "(fl_x) and image size (w, h): the distortion cannot be undone without them")
-        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": T @ OPENCV_TO_OPENGL, "size": size,
+        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": convert_camera_axes(T, "opengl", "opencv"), "size": size,
                                                    "camera_angle_x": None if angle is None else float(angle),
                                                    "distortion": None if dist.is_identity else dist}
     return out

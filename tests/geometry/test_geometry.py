@@ -197,3 +197,33 @@ def test_pinhole_intrinsics_are_finite_with_positive_focals_and_a_0_0_1_bottom_r
     got = is_pinhole_K(torch.stack([K, *bad]))
     assert got.tolist() == [True] + [False] * len(bad)
     assert bool(is_pinhole_K(K.double().numpy()))  # arrays too
+
+
+def test_camera_axes_convert_between_opencv_opengl_and_pytorch3d_keeping_the_camera_where_it_looks():
+    import numpy as np
+
+    from pointmap.errors import ShapeError
+    from pointmap.geometry.cameras import convert_camera_axes
+    from pointmap.geometry.rotations import axis_angle_to_matrix
+
+    c2w = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    c2w[1, :3, :3] = axis_angle_to_matrix(torch.tensor([0.3, -0.5, 0.2], dtype=torch.float64))
+    c2w[1, :3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    gl = convert_camera_axes(c2w, "opencv", "opengl")
+    p3 = convert_camera_axes(c2w, "opencv", "pytorch3d")
+    for k in range(2):
+        forward, down, right = c2w[k, :3, 2], c2w[k, :3, 1], c2w[k, :3, 0]  # OpenCV: x right, y down, z forward
+        assert torch.allclose(gl[k, :3, 2], -forward) and torch.allclose(gl[k, :3, 1], -down)  # GL looks along -z
+        assert torch.allclose(gl[k, :3, 0], right) and torch.allclose(gl[k, :3, 3], c2w[k, :3, 3])
+        assert torch.allclose(p3[k, :3, 0], -right) and torch.allclose(p3[k, :3, 1], -down)
+        assert torch.allclose(p3[k, :3, 2], forward)
+        assert torch.linalg.det(gl[k, :3, :3]) > 0 and torch.linalg.det(p3[k, :3, :3]) > 0  # still rotations
+    for a in ("opencv", "opengl", "pytorch3d"):
+        for b in ("opencv", "opengl", "pytorch3d"):
+            back = convert_camera_axes(convert_camera_axes(c2w, "opencv", a), a, b)
+            assert torch.allclose(convert_camera_axes(back, b, "opencv"), c2w)
+    assert np.allclose(convert_camera_axes(c2w.numpy(), "opencv", "opengl"), gl.numpy())  # NumPy alike
+    with pytest.raises(ShapeError, match=r"dst expected one of \['opencv', 'opengl', 'pytorch3d'\], got 'blender'"):
+        convert_camera_axes(c2w, "opencv", "blender")
+    with pytest.raises(ShapeError, match=r"cam2world expected \[..., 4, 4\], got \(3, 3\)"):
+        convert_camera_axes(torch.eye(3))
