@@ -34,7 +34,7 @@ from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
 from pointmap.align.loop import run
 from pointmap.align.objective import chunk_size_for
 from pointmap.align.params import AlignParams
-from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.errors import GraphError, PointmapError, ShapeError, is_int, is_number
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.reconstruction import K_to_original, Reconstruction
 
@@ -89,7 +89,31 @@ class AlignConfig:
                                       ("conf_transform", self.conf_transform, ("auto",) + CONF_TRANSFORMS),
                                       ("init", self.init, INITS)):
             if value not in allowed:
-                raise ValueError(f"AlignConfig.{field} expected one of {allowed}, got {value!r}")
+                raise ShapeError(f"AlignConfig.{field} expected one of {allowed}, got {value!r}")
+
+        def number(name, positive, allow_none=False, integer=False):
+            v = getattr(self, name)
+            if v is None and allow_none:
+                return
+            ok = (is_int(v) if integer else is_number(v)) and math.isfinite(v) and (v > 0 if positive else v >= 0)
+            if not ok:
+                kind = "an int" if integer else "a finite number"
+                raise ShapeError(f"AlignConfig.{name} expected {kind} {'> 0' if positive else '>= 0'}"
+                                 f"{' or None' if allow_none else ''}, got {v!r}")
+
+        number("niter", positive=False, integer=True)  # 0: no optimisation, the start is returned
+        number("lr", positive=True)
+        number("lr_min", positive=False)
+        number("lr_focal", positive=True, allow_none=True)
+        number("max_opt_pixels", positive=True, allow_none=True, integer=True)
+        number("stride", positive=True, allow_none=True, integer=True)
+        number("max_chunk_pixels", positive=True, integer=True)
+        number("early_stop_tol", positive=False)
+        number("early_stop_window", positive=True, integer=True)
+        number("fuse_iters", positive=False, integer=True)
+        for name in ("shared_focal", "quiet"):
+            if not isinstance(getattr(self, name), bool):
+                raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
 
 
 def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):

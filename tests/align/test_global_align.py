@@ -143,6 +143,19 @@ def test_auto_weighting_reads_log_of_spread_confidences_and_conf_itself_at_their
     assert torch.equal(explicit.cam2world, auto.cam2world) and torch.equal(explicit.depth_z, auto.depth_z)
 
 
+@pytest.mark.parametrize("field, value", [("niter", -5), ("niter", 2.5), ("lr", -1.0), ("lr", float("nan")),
+                                          ("lr_focal", 0.0), ("early_stop_window", -1), ("max_opt_pixels", -10),
+                                          ("stride", 0), ("fuse_iters", 2.5), ("max_chunk_pixels", True),
+                                          ("early_stop_tol", float("inf")), ("quiet", "yes")])
+def test_a_config_with_an_impossible_number_is_refused_when_it_is_made_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=rf"AlignConfig.{field} expected .*, got {value!r}"):
+        AlignConfig(**{field: value})
+
+
+def test_a_config_of_zero_iterations_is_allowed_and_returns_the_start():
+    assert AlignConfig(niter=0).niter == 0 and AlignConfig(max_opt_pixels=None, lr_focal=None).stride is None
+
+
 @pytest.mark.parametrize("field, value", [("conf_transform", "rank"), ("optimizer", "sgd"), ("schedule", "step")])
 def test_a_config_with_an_unknown_name_is_refused_when_it_is_made(field, value):
     with pytest.raises(ValueError, match=f"AlignConfig.{field} expected one of"):
