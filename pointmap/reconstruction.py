@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 from pointmap.geometry.cameras import (
     K_LAYOUT,
     depth_to_points_world,
@@ -17,6 +17,14 @@ from pointmap.geometry.cameras import (
 )
 
 _REQUIRED = ("images", "cam2world", "K", "depth_z", "conf")
+
+
+def check_colour_range(img: torch.Tensor, what: str, tol: float = 0.01) -> None:
+    """ShapeError unless a float image's colours lie in [0, 1] (up to ``tol``): 0-255 floats would be clamped to
+    white without a word."""
+    if img.numel() and (float(img.min()) < -tol or float(img.max()) > 1 + tol):
+        raise ShapeError(f"{what}: expected colours in [0, 1], got values from {float(img.min()):.4g} to "
+                         f"{float(img.max()):.4g} (0-255 images: divide by 255, or pass uint8)")
 
 
 @dataclass
@@ -61,10 +69,15 @@ class Reconstruction:
         for name, (t, shape) in checks.items():
             if tuple(t.shape) != shape:
                 raise ShapeError(f"{name} expected {list(shape)}, got {list(t.shape)}")
+        if self.images.dtype == torch.uint8:  # 0-255 colours: stored as floats in [0, 1] like every other
+            self.images = self.images.float() / 255
+        if not self.images.is_floating_point():
+            raise ShapeError(f"images expected floats in [0, 1] (or uint8), got {self.images.dtype}")
         for name in ("images", "cam2world", "K", "depth_z", "conf"):
             t = getattr(self, name)
             if not torch.isfinite(t).all():
                 raise ShapeError(f"{name} contains NaN or inf values")
+        check_colour_range(self.images, "images")
         for name in ("depth_z", "conf"):  # 0 marks "no value"; below it is a mistake (e.g. a disparity map)
             t = getattr(self, name)
             if t.numel() and float(t.min()) < 0:
@@ -79,8 +92,10 @@ class Reconstruction:
                              f"{mfo.tolist()}")
         if self.original_sizes is None:
             self.original_sizes = [(w, h)] * n
-        if len(self.original_sizes) != n:
-            raise ShapeError(f"original_sizes expected {n} entries, got {len(self.original_sizes)}")
+        if len(self.original_sizes) != n or not all(
+                len(s) == 2 and all(is_int(x) and x > 0 for x in s) for s in self.original_sizes):
+            raise ShapeError(f"original_sizes expected {n} (width, height) pairs of positive ints, got "
+                             f"{list(self.original_sizes)[:4]}")
         if self.names is None:
             self.names = [f"view_{i:03d}.png" for i in range(n)]
         self.names = list(self.names)

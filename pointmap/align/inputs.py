@@ -10,7 +10,7 @@ import torch
 
 from pointmap.errors import ConventionError, GraphError, ShapeError, is_int
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid
-from pointmap.reconstruction import K_to_map
+from pointmap.reconstruction import K_to_map, check_colour_range
 
 
 @dataclass
@@ -29,11 +29,13 @@ def parse_views(views) -> ViewInfo:
     images, shapes, mfo, sizes, names = [], [], [], [], []
     for k, v in enumerate(views):
         img = v.img if hasattr(v, "img") else v
-        img = torch.as_tensor(np.asarray(img) if not torch.is_tensor(img) else img).float()
+        img = torch.as_tensor(np.asarray(img) if not torch.is_tensor(img) else img)
+        img = img.float() / 255 if img.dtype == torch.uint8 else img.float()
         if img.ndim != 3 or img.shape[0] != 3:
             raise ShapeError(f"view {k}: expected an image [3, h, w], got {list(img.shape)}")
         if not bool(torch.isfinite(img).all()):
             raise ShapeError(f"view {k}: expected a finite image, got NaN or inf pixels")
+        check_colour_range(img, f"view {k}")
         h, w = int(img.shape[1]), int(img.shape[2])
         images.append(img.permute(1, 2, 0).clamp(0, 1))
         shapes.append((h, w))

@@ -644,3 +644,26 @@ def test_tum_timestamps_come_from_the_argument_else_the_recorded_times_else_the_
     with pytest.raises(ValueError, match="timestamps expected 3 finite numbers"):
         save_reconstruction(recon, tmp_path / "out", formats=("ply", "tum"))
     assert not (tmp_path / "out").exists()
+
+
+def test_colours_on_the_0_255_scale_are_refused_as_floats_and_taken_as_uint8_where_a_reconstruction_is_made():
+    from dataclasses import replace
+
+    recon = make_recon(n=2)
+    with pytest.raises(ValueError, match=r"images: expected colours in \[0, 1\], got values from .* \(0-255 images: "
+                                         r"divide by 255, or pass uint8\)"):
+        replace(recon, images=recon.images * 255)
+    as_uint8 = replace(recon, images=(recon.images * 255).round().to(torch.uint8))
+    assert as_uint8.images.dtype == torch.float32 and torch.allclose(as_uint8.images, recon.images, atol=0.5 / 255)
+    with pytest.raises(ValueError, match=r"original_sizes expected 2 \(width, height\) pairs of positive ints"):
+        replace(recon, original_sizes=["a", "b"])
+
+
+def test_global_align_refuses_float_colours_on_the_0_255_scale_and_reads_uint8_views():
+    from pointmap.align.inputs import parse_views
+
+    img = torch.rand(3, 8, 12)
+    with pytest.raises(ValueError, match=r"view 1: expected colours in \[0, 1\]"):
+        parse_views([img, img * 255])
+    info = parse_views([(img * 255).round().to(torch.uint8).numpy()])
+    assert torch.allclose(info.images[0], img.permute(1, 2, 0), atol=0.5 / 255)
