@@ -73,9 +73,7 @@ def _read(src, index: int):
             raise ImageError(f"image {index}: expected an HxWx3 (or HxW, HxWx4) array, got shape {arr.shape}")
         if arr.shape[-1] == 1:
             arr = np.repeat(arr, 3, axis=-1)
-        if arr.shape[-1] == 4:
-            arr = arr[..., :3]
-        if arr.dtype == np.uint16:
+        if arr.dtype == np.uint16:  # as a 16-bit file: 0-65535 onto 0-255
             arr = (arr / 257.0).round().astype(np.uint8)
         elif arr.dtype in (np.float32, np.float64):
             if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
@@ -83,7 +81,7 @@ def _read(src, index: int):
             arr = (arr * 255).round().astype(np.uint8)
         elif arr.dtype != np.uint8:
             raise ImageError(f"image {index}: expected dtype uint8, uint16 or float in [0, 1], got {arr.dtype}")
-        return Image.fromarray(np.ascontiguousarray(arr)), name
+        return _to_rgb(Image.fromarray(np.ascontiguousarray(arr))), name
     if not isinstance(src, (str, os.PathLike)):
         raise ImageError(f"image {index}: expected a path, an HxWx3 numpy array or a PIL image, got "
                          f"{type(src).__name__}" + (" (a [3, H, W] tensor: pass img.permute(1, 2, 0).numpy())"
@@ -98,18 +96,23 @@ def _read(src, index: int):
         im.load()
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
-    im = ImageOps.exif_transpose(im)
+    return _to_rgb(ImageOps.exif_transpose(im)), path.name
+
+
+def _to_rgb(im):
+    """RGB of any PIL image, one rule for files and arrays: 16-bit (and 32-bit integer) grey maps 0-65535 onto
+    0-255, as a 16-bit photograph's full scale (not stretched to each image's own maximum, which would give the
+    views of one scene different exposures); transparency is composited on white."""
+    from PIL import Image
+
     if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-        a = np.asarray(im).astype(np.float64)
-        a = (a / max(a.max(), 1.0) * 255.0).round().astype(np.uint8)
-        im = Image.fromarray(a).convert("RGB")
-    elif im.mode in ("RGBA", "LA", "P", "PA"):
+        a = np.clip(np.asarray(im).astype(np.float64) / 257.0, 0, 255).round().astype(np.uint8)
+        return Image.fromarray(a).convert("RGB")
+    if im.mode in ("RGBA", "LA", "P", "PA"):
         im = im.convert("RGBA")
         bg = Image.new("RGBA", im.size, (255, 255, 255, 255))
-        im = Image.alpha_composite(bg, im).convert("RGB")
-    elif im.mode != "RGB":
-        im = im.convert("RGB")
-    return im, path.name
+        return Image.alpha_composite(bg, im).convert("RGB")
+    return im if im.mode == "RGB" else im.convert("RGB")
 
 
 def read_rgb(src) -> np.ndarray:

@@ -70,6 +70,18 @@ def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):
     assert float(d.img.min()) > 0.99
 
 
+def test_an_rgba_or_16_bit_picture_loads_the_same_from_its_file_and_from_its_array(tmp_path):
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, (64, 64, 4), dtype=np.uint8)  # partly transparent: composited on white
+    dim16 = rng.integers(0, 4096, (64, 64), dtype=np.uint16)  # a dim 16-bit picture: not stretched to its maximum
+    Image.fromarray(rgba).save(tmp_path / "a.png")
+    Image.fromarray(dim16).save(tmp_path / "d.png")
+    for name, arr in (("a.png", rgba), ("d.png", dim16)):
+        from_file, from_array = pm.load_images([tmp_path / name, arr], size=64)
+        assert torch.equal(from_file.img, from_array.img), name
+    assert float(pm.load_images([dim16], size=64)[0].img.mean()) < 0.05  # 2,048 of 65,535 on average
+
+
 def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
     (tmp_path / "x.jpg").write_text("not an image")
     with pytest.raises(pm.ImageError, match="x.jpg"):
