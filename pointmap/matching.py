@@ -8,11 +8,12 @@ and equals it when every pixel is a seed (tested).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.prediction import PairPrediction, check_prediction
 
 
@@ -98,6 +99,11 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     if pred.batch_size != 1:
         raise ShapeError(f"match expects a single pair (batch size 1), got batch size {pred.batch_size}; "
                          f"use pred[i] to pick one")
+    for name, v, low in (("subsample", subsample, 1), ("max_iter", max_iter, 1), ("border", border, 0)):
+        if not (is_int(v) and v >= low):
+            raise ShapeError(f"match: {name} expected an int >= {low}, got {v!r}")
+    if min_conf is not None and not (is_number(min_conf) and math.isfinite(min_conf)):
+        raise ShapeError(f"match: min_conf expected a finite number or None, got {min_conf!r}")
     if use == "auto":
         use = "desc" if pred.has_desc else "pts"
     if use == "desc" and not pred.has_desc:
@@ -165,6 +171,8 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
         raise ShapeError(f"match_coarse expects a single pair (batch size 1), got batch size {pred.batch_size}")
     if not pred.has_desc:
         raise ShapeError("match_coarse needs a model with a descriptor head (MASt3R-style)")
+    if not is_int(patch):
+        raise ShapeError(f"match_coarse: patch expected an int >= 1, got {patch!r}")
     d1, d2 = pred.desc1[0].float(), pred.desc2[0].float()
     (H1, W1), (H2, W2) = d1.shape[:2], d2.shape[:2]
     if patch < 1 or H1 % patch or W1 % patch or H2 % patch or W2 % patch:

@@ -133,6 +133,12 @@ def test_matching_refuses_batches_and_missing_descriptors():
         pm.match(pred, use="desc")
     with pytest.raises(pm.ShapeError, match="batch size 1"):
         pm.match(pm.PairPrediction.cat([pred, pred]))
+    for kw, named in (({"subsample": 0}, "subsample expected an int >= 1, got 0"),
+                      ({"subsample": True}, "subsample expected an int >= 1, got True"),
+                      ({"max_iter": 0}, "max_iter expected an int >= 1"), ({"border": -1}, "border expected an int >= 0"),
+                      ({"min_conf": float("nan")}, "min_conf expected a finite number or None, got nan")):
+        with pytest.raises(pm.ShapeError, match=named):
+            pm.match(pred, **kw)
 
 
 def true_matches(p1, c2w2, step=4, outliers=0.0, seed=0):
