@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from pointmap.atomic import atomic_path
-from pointmap.errors import CheckpointError
+from pointmap.errors import CheckpointError, ShapeError
 from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
 
@@ -330,14 +330,26 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     dequantizes to fp32, so an int8 file is a storage format: the model computes in float."""
     from safetensors.torch import save_file
 
+    if not isinstance(model, PointmapNet):
+        raise ShapeError(f"save_model expected a PointmapNet, got {type(model).__name__}")
     if dtype not in (None, torch.float16, torch.float32, "int8"):
-        raise ValueError(f"dtype expected None, torch.float16, torch.float32 or 'int8', got {dtype!r}")
+        raise ShapeError(f"dtype expected None, torch.float16, torch.float32 or 'int8', got {dtype!r}")
+    prov = provenance or getattr(model, "provenance", {}) or {}
+    if not isinstance(prov, dict):
+        raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise ShapeError(f"save_model expected a file path, got {path!r}")
     path = Path(path)
+    if path.is_dir():
+        raise ShapeError(f"save_model expected a file path, got the folder {path}")
     if path.suffix != ".safetensors":
         path = path.with_suffix(".safetensors")
     tensors, quantized = {}, []
     for k, v in model.state_dict().items():
         v = v.detach().cpu()
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            raise ShapeError(f"save_model: tensor {k} is not finite (NaN or inf values): a model that diverged "
+                             "is not saved")
         if dtype == "int8" and v.is_floating_point() and v.ndim >= 2 and v.numel() >= INT8_MIN_NUMEL:
             tensors[k], tensors[k + SCALE_SUFFIX] = quantize_int8(v)
             quantized.append(k)
@@ -347,7 +359,7 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
             tensors[k] = v
     tensors = {k: v.contiguous() for k, v in tensors.items()}
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
-            "provenance": json.dumps(provenance or getattr(model, "provenance", {}) or {})}
+            "provenance": json.dumps(prov)}
     if quantized:
         meta["int8"] = json.dumps(quantized)
     with atomic_path(path) as tmp:
@@ -402,6 +414,9 @@ def load_own(path: Path) -> PointmapNet:
     model = PointmapNet(cfg)
     state = _dequantize_state(state, meta, path)
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(f"{path} holds NaN or inf weights (e.g. {bad[:3]}): every prediction would be NaN")
     load_state_strict(model, state, source=str(path))
     try:
         model.provenance = json.loads(meta.get("provenance", "{}"))

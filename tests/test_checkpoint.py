@@ -310,3 +310,36 @@ def test_an_official_constructor_with_a_malformed_number_is_refused_as_a_checkpo
 def test_load_model_refuses_what_is_neither_a_name_nor_a_path_nor_a_model(src):
     with pytest.raises(pm.CheckpointError, match="expected a shipped model's name .*got "):
         pm.load_model(src)
+
+
+def test_save_model_refuses_what_is_not_a_model_a_path_or_a_provenance_and_weights_that_diverged(tmp_path):
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    for args, kw, named in (((None, tmp_path / "m"), {}, "expected a PointmapNet, got NoneType"),
+                            ((model, tmp_path), {}, "expected a file path, got the folder"),
+                            ((model, tmp_path / "m"), {"provenance": "abc"}, "provenance expected a dict, got str"),
+                            ((model, tmp_path / "m"), {"dtype": "fp16"}, "dtype expected None, torch.float16")):
+        with pytest.raises(ValueError, match=named):
+            pm.save_model(*args, **kw)
+    assert not list(tmp_path.iterdir())  # nothing written
+    with torch.no_grad():
+        next(model.parameters()).fill_(float("nan"))
+    with pytest.raises(ValueError, match=r"is not finite \(NaN or inf values\): a model that diverged is not saved"):
+        pm.save_model(model, tmp_path / "nan")
+
+
+def test_a_file_whose_weights_are_nan_is_refused_on_loading(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from pointmap.errors import CheckpointError
+
+    path = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "m.safetensors")
+    from safetensors import safe_open
+
+    with safe_open(str(path), "pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(path))
+    name = next(k for k, v in tensors.items() if v.is_floating_point())
+    tensors[name] = torch.full_like(tensors[name], float("nan"))
+    save_file(tensors, str(path), metadata=meta)
+    with pytest.raises(CheckpointError, match=rf"holds NaN or inf weights \(e.g. \['{name}'\]\)"):
+        pm.load_model(path)
