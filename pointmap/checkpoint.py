@@ -223,6 +223,12 @@ def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -
 
 
 def _torch_load(path: Path):
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not (head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"):  # torch.save writes a zip (or, before 1.6, a pickle)
+        raise CheckpointError(f"cannot read {path} as a checkpoint: not a PyTorch file (a .pth is a zip or pickle "
+                              f"file; this one starts with {head!r}); load_model reads .pth, .safetensors, ONNX "
+                              "exports and shipped names")
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
             return torch.load(path, map_location="cpu", weights_only=True)

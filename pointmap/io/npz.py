@@ -54,6 +54,10 @@ def load_npz(path):
     path = Path(path)
     if not path.is_file():
         raise PointmapError(f"expected a reconstruction.npz file, got {str(path)!r}, which is not a file")
+    with open(path, "rb") as f:
+        head = f.read(6)
+    if not head.startswith(b"PK"):  # an .npz is a zip archive
+        raise PointmapError(f"{path} is not a readable reconstruction.npz (not a zip archive; it starts with {head!r})")
     try:
         with np.load(path, allow_pickle=False) as z:
             if not hasattr(z, "files"):
