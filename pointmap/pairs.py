@@ -25,10 +25,9 @@ def parse_graph(graph: str) -> tuple[str, int | None, bool]:
     if kind == "retrieval" and len(parts) == 3:
         raise GraphError(f"graph {graph!r}: retrieval pairs by similarity, not by order (no '-noncyclic')")
     if kind in ("swin", "logwin", "oneref", "retrieval") and len(parts) >= 2:
-        try:
-            k = int(parts[1])
-        except ValueError:
-            raise GraphError(f"graph {graph!r}: {parts[1]!r} is not an integer") from None
+        if not (parts[1].isascii() and parts[1].isdigit()):  # int() would take " 1" and full-width digits
+            raise GraphError(f"graph {graph!r}: {parts[1]!r} is not a whole number (digits 0-9)")
+        k = int(parts[1])
         if kind != "oneref" and k < 1:
             raise GraphError(f"{kind}-{k}: {'neighbours' if kind == 'retrieval' else 'window'} must be >= 1")
         return kind, k, cyclic
@@ -58,7 +57,12 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
             raise GraphError(f"oneref-{k}: reference index out of range for {n} images")
         return sorted({(min(k, j), max(k, j)) for j in range(n) if j != k})
     edges: set[tuple[int, int]] = set()
-    steps = range(1, k + 1) if kind == "swin" else [2**e for e in range(k)]
+    # offsets past n - 1 add nothing new (skipped, or wrapped onto ones already there): a huge K costs O(n), not O(K)
+    if kind == "swin":
+        steps = range(1, min(k, n - 1 if not cyclic else n) + 1)
+    else:  # logwin: offsets 2**e; modulo n they repeat within n + log2(n) exponents
+        steps = sorted({2**e if not cyclic else pow(2, e, n) or n for e in range(min(k, n + n.bit_length()))
+                        if cyclic or 2**e < n})
     for i in range(n):
         for s in steps:
             j = i + s

@@ -134,3 +134,36 @@ def test_given_pairs_may_be_an_index_array_and_are_checked_like_a_list():
         pairs_from_list(3, np.zeros((2, 3), int))
     with pytest.raises(pm.GraphError, match="expected \\(i, j\\) pairs of image indices"):
         pairs_from_list(3, np.array([[0.5, 1.0]]))
+
+
+def _windows_by_definition(n, kind, k, cyclic):
+    """swin / logwin as defined: every image with the ones ``s`` ahead, s in 1..k or 2**0..2**(k-1), wrapped
+    around when cyclic."""
+    edges = set()
+    for i in range(n):
+        for s in (range(1, k + 1) if kind == "swin" else [2**e for e in range(k)]):
+            j = i + s
+            if j >= n and not cyclic:
+                continue
+            j %= n
+            if i != j:
+                edges.add((min(i, j), max(i, j)))
+    return sorted(edges)
+
+
+def test_window_graphs_equal_their_definition_for_any_window_and_a_huge_one_costs_nothing():
+    for n in range(2, 30):
+        for kind in ("swin", "logwin"):
+            for k in range(1, 40):
+                for suffix, cyclic in (("", True), ("-noncyclic", False)):
+                    assert pm.make_pairs(n, f"{kind}-{k}{suffix}") == _windows_by_definition(n, kind, k, cyclic), \
+                        (n, kind, k, cyclic)
+    assert pm.make_pairs(3, "swin-999999999") == pm.make_pairs(3, "complete")
+    assert pm.make_pairs(50, "logwin-999999999") == _windows_by_definition(50, "logwin", 200, True)
+    # (before, the offsets ran to K: the first call took minutes)
+
+
+@pytest.mark.parametrize("graph", ["swin- 1", "swin-\uff13", "logwin-+2"])
+def test_a_window_that_is_not_plain_digits_is_refused(graph):
+    with pytest.raises(pm.GraphError, match="is not a whole number"):
+        pm.make_pairs(5, graph)
