@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
@@ -334,8 +334,8 @@ def refine_pose_with_matches(cam2world: torch.Tensor, m, K1, K2, *, threshold_px
     if not isinstance(cam2world, torch.Tensor) or tuple(cam2world.shape) != (4, 4):
         raise ShapeError(f"cam2world expected a [4, 4] tensor, got "
                          f"{list(cam2world.shape) if hasattr(cam2world, 'shape') else type(cam2world).__name__}")
-    if not rotation_prior_deg >= 0 or max_evals < 1:  # NaN fails too
-        raise ShapeError(f"rotation_prior_deg expected >= 0 (math.inf: no prior) and max_evals >= 1, got "
+    if not rotation_prior_deg >= 0 or not is_int(max_evals) or max_evals < 1:  # NaN fails too
+        raise ShapeError(f"rotation_prior_deg expected >= 0 (math.inf: no prior) and max_evals an int >= 1, got "
                          f"{rotation_prior_deg} and {max_evals}")
     if not bool(torch.isfinite(cam2world).all()):
         return cam2world

@@ -362,6 +362,9 @@ def test_a_pose_refined_without_rotation_freedom_keeps_its_rotation_and_baseline
     for bad in (-1.0, float("nan")):
         with pytest.raises(pm.ShapeError, match="rotation_prior_deg"):
             pm.refine_pose_with_matches(wrong, m, K1.numpy(), K2.numpy(), rotation_prior_deg=bad)
+    for bad in (2.5, 0, True):  # 2.5 ran without end inside scipy
+        with pytest.raises(pm.ShapeError, match=f"max_evals an int >= 1, got 10.0 and {bad}"):
+            pm.refine_pose_with_matches(wrong, m, K1.numpy(), K2.numpy(), max_evals=bad)
 
 
 def _perturbed_start(gt, deg=6.0):

@@ -45,7 +45,7 @@ from functools import partial
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 from pointmap.pose import _bearings
 from pointmap.reconstruction import K_to_original
 
@@ -76,10 +76,11 @@ class EpipolarConfig:
     second_descent: bool = True
 
     def __post_init__(self):
-        if not self.rotation_prior_deg > 0 or self.rounds < 1 or self.max_evals < 1 or self.patch < 1 \
+        ints = (self.rounds, self.max_evals, self.patch)
+        if not all(is_int(v) for v in ints) or not self.rotation_prior_deg > 0 or min(ints) < 1 \
                 or (self.threshold_px is not None and not self.threshold_px > 0):
-            raise ValueError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, rounds, "
-                             f"max_evals and patch >= 1; got {self}")
+            raise ShapeError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, rounds, "
+                             f"max_evals and patch ints >= 1; got {self}")
 
 
 def epipolar_residuals(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray,

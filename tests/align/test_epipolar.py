@@ -310,7 +310,8 @@ def test_the_mirror_check_refuses_bad_settings_and_counts_only_rays_with_paralla
 
 
 @pytest.mark.parametrize("kwargs", [dict(rotation_prior_deg=0.0), dict(threshold_px=-1.0), dict(rounds=0),
-                                    dict(patch=0), dict(rotation_prior_deg=float("nan"))])
+                                    dict(patch=0), dict(rotation_prior_deg=float("nan")), dict(max_evals=2.5),
+                                    dict(rounds=2.5), dict(patch=8.0), dict(patch=True)])
 def test_bad_settings_are_refused_when_the_config_is_made(kwargs):
     with pytest.raises(ValueError, match="EpipolarConfig expected"):
         EpipolarConfig(**kwargs)
