@@ -810,6 +810,11 @@ def main(argv=None) -> int:
     except PointmapError as e:
         print(f"pointmap: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the file system's refusal (no such folder, no space, no permission): one line, not a trace
+        if args.verbose:
+            raise
+        print(f"pointmap: error: {e} (run with -v for the traceback)", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("pointmap: interrupted", file=sys.stderr)
         return 130

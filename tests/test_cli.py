@@ -755,3 +755,23 @@ def test_info_describes_the_file_load_model_reads_when_a_local_file_has_a_shippe
     monkeypatch.chdir(tmp_path)
     assert shipped_path("small") == WEIGHTS_DIR / "small.safetensors"  # the package ships it
     assert model_summary(model, "small")["path"] == str((WEIGHTS_DIR / "small.safetensors").resolve())
+
+
+def test_a_file_system_refusal_during_a_command_is_one_line_and_exit_2_with_the_trace_under_verbose(tiny, tmp_path,
+                                                                                                 monkeypatch, capsys):
+    import pointmap.io_pair
+
+    weights, folder = tiny
+
+    def refuse(*args, **kw):
+        raise FileNotFoundError(2, "No such file or directory", str(tmp_path / "gone" / "pair.npz"))
+
+    monkeypatch.setattr(pointmap.io_pair, "write_pair_outputs", refuse)
+    argv = ["pair", str(folder / "a.jpg"), str(folder / "b.PNG"), "-o", str(tmp_path / "out"), "--model", str(weights),
+            "--size", "64"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "pointmap: error: [Errno 2] No such file or directory" in err and "gone/pair.npz" in err
+    assert "Traceback" not in err and "run with -v" in err
+    with pytest.raises(FileNotFoundError):
+        main(["-v", *argv])
