@@ -142,6 +142,9 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     pairs = checked_index_pairs(n, pairs)
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
+    if store_dtype is not None and not (isinstance(store_dtype, torch.dtype) and store_dtype.is_floating_point):
+        raise ShapeError(f"store_dtype expected None or a floating torch dtype (e.g. torch.float16), got "
+                         f"{store_dtype!r}")
     if not (hasattr(model, "decode_pair") and callable(model)):
         raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")
     given = None if encodings is None else checked_encodings(encodings, imgs)

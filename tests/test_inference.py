@@ -69,6 +69,9 @@ def test_pairs_that_are_not_index_pairs_a_fractional_batch_size_and_a_non_model_
         pm.predict_pairs(tiny_model, views(2), [(0, 1)], batch_size=2.5, quiet=True)
     with pytest.raises(pm.CheckpointError, match="expected a model .*got NoneType"):
         pm.predict_pairs(None, views(2), [(0, 1)], quiet=True)
+    for bad in (torch.int64, "half"):  # int64 truncated every pointmap to whole numbers
+        with pytest.raises(pm.ShapeError, match="store_dtype expected None or a floating torch dtype"):
+            pm.predict_pairs(tiny_model, views(2), [(0, 1)], store_dtype=bad, quiet=True)
 
 
 def test_image_similarity_is_the_share_of_mutual_nearest_tokens_counted_one_by_one(tiny_model):

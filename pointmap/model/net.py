@@ -60,6 +60,10 @@ class PointmapNet(nn.Module):
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
+        if not isinstance(cfg, ModelConfig):
+            hint = f" (PRESETS[{cfg!r}] is the config; pm.load_model({cfg!r}) the trained model)" \
+                if isinstance(cfg, str) else ""
+            raise ShapeError(f"PointmapNet expected a ModelConfig, got {type(cfg).__name__}{hint}")
         self.cfg = cfg
         self.patch_embed = PatchEmbed(cfg.patch_size, cfg.enc_dim)
         self.enc_blocks = nn.ModuleList([Block(cfg.enc_dim, cfg.enc_heads, cfg.mlp_ratio) for _ in range(cfg.enc_depth)])

@@ -299,3 +299,16 @@ def test_the_stages_check_what_they_are_given(tiny_model):
 def test_configs_the_model_cannot_build_or_would_run_wrong_are_refused(kw, message):
     with pytest.raises(pm.CheckpointError, match=message):
         pm.PRESETS["test"].replace(**kw)
+
+
+def test_a_model_built_from_a_name_or_nothing_is_refused_with_the_way_to_build_it():
+    from pointmap.errors import CheckpointError
+    from pointmap.model.config import ModelConfig
+
+    with pytest.raises(ValueError, match=r"expected a ModelConfig, got str \(PRESETS\['small'\] is the config; "
+                                         r"pm.load_model\('small'\) the trained model\)"):
+        PointmapNet("small")
+    with pytest.raises(ValueError, match="expected a ModelConfig, got NoneType"):
+        PointmapNet(None)
+    with pytest.raises(CheckpointError, match="a model config expected a dict, got NoneType"):
+        ModelConfig.from_dict(None)
