@@ -130,7 +130,10 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
 
     if not isinstance(recon, Reconstruction) or len(recon) == 0:
         raise PointmapError(f"localize expected a Reconstruction with at least one view, got {type(recon).__name__}")
-    if isinstance(images, (str, bytes)) or not hasattr(images, "__len__") or len(images) == 0:
+    from pointmap.images import _as_list
+
+    images = list(_as_list(images, "localize"))  # one image (a path, an array) is a list of one, as load_images takes
+    if not images:
         raise PointmapError("localize expected a non-empty list of images (paths or arrays)")
     queries = query_views(recon, images)
     m, n = len(queries), len(recon)

@@ -127,6 +127,10 @@ def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
         localize(None, recon, queries, refs=[[1], [2]], K=torch.eye(4), quiet=True)
     with pytest.raises(PointmapError, match="non-empty list of images"):
         localize(None, recon, [], quiet=True)
+    # one image, not in a list, is one query (its rows were taken for images)
+    one = localize(None, recon, queries[0], refs=[[3]], quiet=True)
+    assert len(one.names) == 1
+    assert torch.equal(one.cam2world, localize(None, recon, [queries[0]], refs=[[3]], quiet=True).cam2world)
     for bad in (0, True):  # (a bool is not a count)
         with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
             localize(None, recon, queries, n_refs=bad, quiet=True)
