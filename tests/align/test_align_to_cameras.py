@@ -52,6 +52,10 @@ def test_bad_references_and_similarities_are_refused():
         pm.align_to_cameras(recon, torch.eye(4).repeat(2, 1, 1))
     with pytest.raises(pm.ShapeError, match="at least one True"):
         pm.align_to_cameras(recon, _reference(recon), mask=np.zeros(3, bool))
+    scaled = _reference(recon).clone()
+    scaled[1, :3, :3] *= 2  # not a rotation: the similarity fitted to it would be meaningless
+    with pytest.raises(pm.ShapeError, match=r"cam2world expected rigid reference poses .* got others at \[1\]"):
+        pm.align_to_cameras(recon, scaled)
     with pytest.raises(pm.ShapeError, match="R to be a rotation"):
         recon.transformed(1.0, 2 * torch.eye(3), torch.zeros(3))
     with pytest.raises(pm.ShapeError, match="scale > 0"):
