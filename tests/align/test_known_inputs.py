@@ -91,6 +91,13 @@ def test_bad_known_inputs_give_clear_errors(scene):
         global_align(views, preds, cam2world=bad, config=QUIET)
     with pytest.raises(ShapeError, match="cam2world expected"):
         global_align(views, preds, cam2world=torch.eye(4).repeat(3, 1, 1), config=QUIET)
+    # what is not numbers, or not a mask, is named (it failed deep inside torch.as_tensor)
+    for kw, named in (({"K": "K"}, "K expected numbers"), ({"cam2world": "x"}, "cam2world expected numbers"),
+                      ({"K": {0: None}}, r"K\[0\] expected numbers"),
+                      ({"cam2world": torch.eye(4).repeat(5, 1, 1), "pose_mask": "abc"}, "pose_mask expected bools"),
+                      ({"cam2world": torch.eye(4).repeat(5, 1, 1), "pose_mask": [0.5] * 5}, "pose_mask expected bools")):
+        with pytest.raises(ShapeError, match=named):
+            global_align(views, preds, config=QUIET, **kw)
 
 
 def test_a_transposed_K_fractional_image_keys_and_a_pose_mask_beside_a_dict_are_refused(scene):

@@ -142,6 +142,11 @@ def test_masks_to_maps_from_original_size():
     assert mm.shape == (h, w) and mm[:, : w // 2 - 1].sum() == 0 and mm[:, w // 2 + 1:].all()
     with pytest.raises(Exception, match="mask 0 expected"):
         masks_to_maps([np.zeros((5, 5), bool)], views)
+    for bad, named in ((5, "masks expected a list of per-image masks, got int"), ([None], "mask 0 expected bools"),
+                       ([np.full((h, w), 0.5)], "mask 0 expected bools")):  # 0.5 was quietly True
+        with pytest.raises(ValueError, match=named):
+            masks_to_maps(bad, views)
+    assert masks_to_maps([(mm.numpy() * 255).astype(np.uint8)], views).equal(mm[None])  # a 0 / 255 mask image
 
 
 def test_auto_graph_and_estimates():
