@@ -142,6 +142,9 @@ def prepare(im, size: int, *, square_ok: bool = False):
     else:
         S = max(W, H)
     new_w, new_h = round(W * size / S), round(H * size / S)
+    if min(new_w, new_h) < PATCH:
+        raise ImageError(f"{W}x{H} is too elongated: resized for size {size} it is {new_w}x{new_h}, smaller than "
+                         "one patch")
     resample = Image.LANCZOS if S > size else Image.BICUBIC
     im = im.resize((new_w, new_h), resample)
     cx, cy = new_w // 2, new_h // 2
@@ -175,7 +178,10 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) ->
         W, H = im.size
         if min(W, H) < PATCH:
             raise ImageError(f"image {name} is {W}x{H}: smaller than one {PATCH}x{PATCH} patch")
-        prepared, transform = prepare(im, size, square_ok=square_ok)
+        try:
+            prepared, transform = prepare(im, size, square_ok=square_ok)
+        except ImageError as e:
+            raise ImageError(f"image {name}: {e}") from None
         if min(prepared.size) < PATCH:
             raise ImageError(f"image {name} ({W}x{H}) is too elongated: its crop at size {size} is "
                              f"{prepared.size[0]}x{prepared.size[1]}, smaller than one patch")

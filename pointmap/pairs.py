@@ -148,6 +148,10 @@ def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
 
 def components(n: int, pairs) -> list[list[int]]:
     """Connected components of the pair graph (lists of image indices, largest first)."""
+    if not (is_int(n) and n >= 1):
+        raise GraphError(f"a pair graph expected a number of images (an int >= 1), got {n!r}")
+    if pairs is None or isinstance(pairs, (str, bytes)) or not hasattr(pairs, "__iter__"):
+        raise GraphError(f"a pair graph expected (i, j) pairs of image indices, got {type(pairs).__name__}")
     parent = list(range(n))
 
     def find(a):
@@ -156,7 +160,10 @@ def components(n: int, pairs) -> list[list[int]]:
             a = parent[a]
         return a
 
-    for i, j in pairs:
+    for p in pairs:
+        if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):
+            raise GraphError(f"pairs expected (i, j) pairs of image indices, got {p!r}")
+        i, j = int(p[0]), int(p[1])
         if not (0 <= i < n and 0 <= j < n):
             raise GraphError(f"pair ({i}, {j}) refers to an image outside 0..{n - 1}")
         parent[find(i)] = find(j)

@@ -90,6 +90,9 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
         pm.load_images([tmp_path / "missing.png"])
     with pytest.raises(pm.ImageError, match="smaller than one"):
         pm.load_images([np.zeros((8, 8, 3), np.uint8)])
+    with pytest.raises(pm.ImageError, match=r"image image_000.png: 2000x16 is too elongated: resized for size 32 it "
+                                            r"is 32x0"):  # PIL's own error before
+        pm.load_images([np.zeros((16, 2000, 3), np.uint8)], size=32)
     with pytest.raises(pm.ImageError, match="shape"):
         pm.load_images([np.zeros((8, 8, 3, 2), np.uint8)])
     with pytest.raises(pm.ImageError, match="size"):

@@ -39,6 +39,11 @@ def test_a_disconnected_graph_is_reported_with_its_components():
     with pytest.raises(pm.GraphError, match="2 components"):
         pm.check_connected(4, [(0, 1), (2, 3)])
     pm.check_connected(4, [(0, 1), (1, 2), (2, 3)])
+    for n, pairs, named in ((3, None, "expected \\(i, j\\) pairs of image indices, got NoneType"),
+                            (-1, [], "expected a number of images \\(an int >= 1\\), got -1"),
+                            (3.0, [(0, 1)], "got 3.0"), (3, [(0.5, 1)], "got \\(0.5, 1\\)")):
+        with pytest.raises(pm.GraphError, match=named):
+            pm.check_connected(n, pairs)
 
 
 def test_numpy_image_counts_are_taken_and_other_types_are_refused_naming_them():
