@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from pointmap.errors import ConventionError, ShapeError
+from pointmap.errors import ConventionError, ShapeError, is_int
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
@@ -406,9 +406,9 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     (world2cam included) receive gradients. ``backend``: "torch" (default), "gsplat" (CUDA; falls back
     to torch with a warning when unavailable) or "auto" (gsplat when available).
     """
+    if not (is_int(width) and is_int(height) and width > 0 and height > 0):
+        raise ShapeError(f"width and height expected positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)
-    if width <= 0 or height <= 0:
-        raise ShapeError(f"width and height must be positive, got {width}x{height}")
     if means.ndim != 2 or means.shape[1] != 3:
         raise ShapeError(f"means expected [N, 3], got {list(means.shape)}")
     n = means.shape[0]
@@ -422,6 +422,8 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     if background is not None and tuple(background.shape) != (colors.shape[1],):
         raise ShapeError(f"background expected [{colors.shape[1]}], got {list(background.shape)}")
     Kd = K.detach()
+    if not (bool(torch.isfinite(Kd).all()) and bool(torch.isfinite(world2cam.detach()).all())):
+        raise ShapeError("K and world2cam expected finite values, got NaN or inf (a camera lost in the fit?)")
     if abs(float(Kd[0, 1])) > 1e-9 or float(Kd[0, 0]) <= 0 or float(Kd[1, 1]) <= 0:
         raise ConventionError("K must have positive focals and zero skew")
     if tile < 1 or chunk < 1:

@@ -129,6 +129,14 @@ def test_input_validation():
         rasterize(*a[:5], a[5][:3], a[6], W, H)
     with pytest.raises(ShapeError, match="width"):
         rasterize(*a, 0, H)
+    for w in (True, 16.7):  # a bool and a fraction were taken (16.7 as 16)
+        with pytest.raises(ShapeError, match=f"width and height expected positive ints, got {w!r}"):
+            rasterize(*a, w, H)
+    for k in (5, 6):  # a NaN camera rendered a blank image without a word
+        bad = [t.clone() for t in a]
+        bad[k][0, 0] = float("nan")
+        with pytest.raises(ShapeError, match="K and world2cam expected finite values"):
+            rasterize(*bad, W, H)
     K = a[6].clone()
     K[0, 1] = 0.5
     with pytest.raises(ConventionError, match="skew"):
