@@ -608,7 +608,7 @@ def model_summary(model, source: str) -> dict:
     path = shipped_path(source) or Path(source)  # the file load_model read
     params = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else None
     # an ONNX graph's weights may lie beside it (external data): a folder counts whole, a file with its .data
-    files = sorted(path.glob("*")) if path.is_dir() else [path, *path.parent.glob(path.name + ".data")]
+    files = sorted(path.glob("*")) if path.is_dir() else [path, path.with_name(path.name + ".data")]
     return {"source": source, "path": str(path.resolve()), "megabytes": round(sum(f.stat().st_size for f in files
                                                                                  if f.is_file()) / 1e6, 1),
             "runtime": type(model).__name__, "parameters": params, "input_size": model_input_size(model, 512),

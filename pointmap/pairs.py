@@ -60,9 +60,10 @@ def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:
     # offsets past n - 1 add nothing new (skipped, or wrapped onto ones already there): a huge K costs O(n), not O(K)
     if kind == "swin":
         steps = range(1, min(k, n - 1 if not cyclic else n) + 1)
-    else:  # logwin: offsets 2**e; modulo n they repeat within n + log2(n) exponents
-        steps = sorted({2**e if not cyclic else pow(2, e, n) or n for e in range(min(k, n + n.bit_length()))
-                        if cyclic or 2**e < n})
+    elif cyclic:  # logwin: offsets 2**e modulo n repeat within n + log2(n) exponents; 0 pairs an image with itself
+        steps = sorted({pow(2, e, n) for e in range(min(k, n + n.bit_length()))} - {0})
+    else:
+        steps = [2**e for e in range(min(k, n.bit_length())) if 2**e < n]
     for i in range(n):
         for s in steps:
             j = i + s

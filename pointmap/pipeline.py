@@ -135,7 +135,7 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
 
 def masks_to_maps(masks, views) -> torch.Tensor:
     """Per-image masks (True = keep) at the ORIGINAL size (H, W) or at the map size -> [N, h, w] bool."""
-    from pointmap.align.inputs import _as_mask
+    from pointmap.align.inputs import as_mask
 
     if not hasattr(masks, "__len__") or isinstance(masks, (str, bytes)):
         raise ShapeError(f"masks expected a list of per-image masks, got {type(masks).__name__}")
@@ -143,7 +143,7 @@ def masks_to_maps(masks, views) -> torch.Tensor:
         raise ShapeError(f"masks expected one per image ({len(views)}), got {len(masks)}")
     out = []
     for k, (m, v) in enumerate(zip(masks, views)):
-        m = _as_mask(m, f"mask {k}")
+        m = as_mask(m, f"mask {k}")
         h, w = v.shape
         W, H = v.original_size
         if tuple(m.shape) == (h, w):

@@ -66,8 +66,9 @@ def _load_input(path: Path) -> dict:
     except (TypeError, ValueError):
         raise CheckpointError(f"{path}: its provenance's steps expected a whole number, got "
                               f"{prov.get('steps')!r}") from None
+    licence = model_licence(model)
     return {"model": model.state_dict(), "model_config": model.cfg.to_dict(), "kind": "model", "step": step,
-            "extra": {"licence": model_licence(model)} if model_licence(model) else {}}
+            "extra": {"licence": licence} if licence else {}}
 
 
 def _config(ck: dict, path: Path) -> ModelConfig:

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from pointmap.geometry.cameras import invert_rigid, similarity_on_cam2world
+from pointmap.align.inputs import as_mask
+from pointmap.geometry.cameras import invert_rigid, is_rigid, similarity_on_cam2world
 from pointmap.geometry.rotations import project_to_rotation
 
 
@@ -70,14 +71,12 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
     ref = torch.as_tensor(cam2world, dtype=torch.float64)
     if tuple(ref.shape) != (n, 4, 4) or not bool(torch.isfinite(ref).all()):
         raise ShapeError(f"cam2world expected [{n}, 4, 4] finite reference poses, got {list(ref.shape)}")
-    from pointmap.geometry.cameras import is_rigid
-
     rigid = is_rigid(ref)
     if not bool(rigid.all()):
         bad = [i for i in range(n) if not bool(rigid[i])]
         raise ShapeError(f"cam2world expected rigid reference poses (a rotation and a translation, last row 0 0 0 1), "
                          f"got others at {bad[:8]}")
-    keep = torch.ones(n, dtype=torch.bool) if mask is None else torch.as_tensor(mask).bool()
+    keep = torch.ones(n, dtype=torch.bool) if mask is None else as_mask(mask, "mask")
     if tuple(keep.shape) != (n,) or not bool(keep.any()):
         raise ShapeError(f"mask expected [{n}] bool with at least one True, got {list(keep.shape)}")
     known = {i: ref[i] for i in range(n) if keep[i]}

@@ -81,13 +81,18 @@ def _warn_duplicate_images(images: list) -> None:
                       "their cameras will coincide", stacklevel=4)
 
 
-def _as_mask(x, name: str) -> torch.Tensor:
+def _tensor_or_none(x) -> torch.Tensor | None:
+    """``x`` (a tensor, an array, nested lists) as a tensor; None when it is none of those (strings, None)."""
+    try:
+        return x if torch.is_tensor(x) else torch.as_tensor(np.asarray(x))
+    except (TypeError, ValueError, RuntimeError):
+        return None
+
+
+def as_mask(x, name: str) -> torch.Tensor:
     """A bool tensor of ``x``: bools, integers (nonzero = keep, e.g. a 0 / 255 mask image) or floats 0.0 / 1.0;
     ShapeError naming ``name`` for anything else (strings; fractions and NaN, which ``.bool()`` would make True)."""
-    try:
-        t = x if torch.is_tensor(x) else torch.as_tensor(np.asarray(x))
-    except (TypeError, ValueError, RuntimeError):
-        t = None
+    t = _tensor_or_none(x)
     if t is not None and (t.dtype == torch.bool or not (t.is_floating_point() or t.is_complex())):
         return t != 0
     if t is not None and t.is_floating_point() and bool(((t == 0) | (t == 1)).all()):
@@ -98,10 +103,7 @@ def _as_mask(x, name: str) -> torch.Tensor:
 
 def _as_tensor(x, name: str) -> torch.Tensor:
     """A real tensor of ``x`` (tensor, array, nested lists); ShapeError naming ``name`` for anything else."""
-    try:
-        t = x if torch.is_tensor(x) else torch.as_tensor(np.asarray(x))
-    except (TypeError, ValueError, RuntimeError):
-        t = None
+    t = _tensor_or_none(x)
     if t is None or not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64)):
         raise ShapeError(f"{name} expected numbers (a tensor or an array), got {type(x).__name__} {str(x)[:60]}")
     if not torch.isfinite(t).all():
@@ -169,7 +171,7 @@ def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
         T = _as_tensor(cam2world, "cam2world")
         if tuple(T.shape) != (n, 4, 4):
             raise ShapeError(f"cam2world expected [{n}, 4, 4] or a dict {{index: [4, 4]}}, got {list(T.shape)}")
-        mask = torch.ones(n, dtype=torch.bool) if pose_mask is None else _as_mask(pose_mask, "pose_mask")
+        mask = torch.ones(n, dtype=torch.bool) if pose_mask is None else as_mask(pose_mask, "pose_mask")
         if tuple(mask.shape) != (n,):
             raise ShapeError(f"pose_mask expected [{n}] bool, got {list(mask.shape)}")
         out = {i: T[i] for i in range(n) if mask[i]}

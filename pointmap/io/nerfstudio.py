@@ -115,7 +115,8 @@ def read_transforms(path) -> dict:
         if not dist.is_identity and K is None:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) states lens distortion but no focal length "
                                 "(fl_x) and image size (w, h): the distortion cannot be undone without them")
-        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": convert_camera_axes(T, "opengl", "opencv"), "size": size,
+        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": convert_camera_axes(T, "opengl", "opencv"),
+                                                   "size": size,
                                                    "camera_angle_x": None if angle is None else float(angle),
                                                    "distortion": None if dist.is_identity else dist}
     return out

@@ -34,17 +34,18 @@ def confidence_mask(conf: torch.Tensor, min_conf: float | None = None,
     ``within`` ([N, h, w] bool, e.g. depth present and inside the user's masks): the only pixels kept, and the
     only ones the percentile is taken over (50 keeps half of them, however many pixels a mask removed)."""
     check_conf_filter(min_conf, percentile, ("min_conf", "percentile"))
-    keep = torch.isfinite(conf)
+    eligible = torch.isfinite(conf)  # the pixels the percentile is taken over
     if within is not None:
         if not isinstance(within, torch.Tensor) or within.shape != conf.shape or within.dtype != torch.bool:
             raise ShapeError(f"within expected a bool tensor of conf's shape {tuple(conf.shape)}, got "
                              f"{type(within).__name__} {tuple(getattr(within, 'shape', ()))} "
                              f"{getattr(within, 'dtype', '')}")
-        keep &= within
+        eligible &= within
+    keep = eligible.clone()
     if min_conf is not None:
         keep &= conf > min_conf
     if percentile is not None:
-        vals = conf[torch.isfinite(conf) & (within if within is not None else True)].double()
+        vals = conf[eligible].double()
         if vals.numel():
             thr = float(np.percentile(vals.numpy(), percentile))
             keep &= conf >= thr
