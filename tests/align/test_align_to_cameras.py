@@ -52,6 +52,8 @@ def test_bad_references_and_similarities_are_refused():
         pm.align_to_cameras(recon, torch.eye(4).repeat(2, 1, 1))
     with pytest.raises(pm.ShapeError, match="at least one True"):
         pm.align_to_cameras(recon, _reference(recon), mask=np.zeros(3, bool))
+    with pytest.raises(pm.ShapeError, match="mask expected bools"):  # 0.5 was cast to True
+        pm.align_to_cameras(recon, _reference(recon), mask=np.full(3, 0.5))
     scaled = _reference(recon).clone()
     scaled[1, :3, :3] *= 2  # not a rotation: the similarity fitted to it would be meaningless
     with pytest.raises(pm.ShapeError, match=r"cam2world expected rigid reference poses .* got others at \[1\]"):
