@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from pointmap.atomic import atomic_path
-from pointmap.errors import CheckpointError, ShapeError
+from pointmap.errors import CheckpointError, ShapeError, check_device
 from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
 
@@ -451,6 +451,7 @@ def load_model(src, device="cpu", **kwargs):
 
     ``kwargs`` go to the ONNX runner (e.g. ``providers``). Raises CheckpointError with the reason.
     """
+    device = check_device(device, "load_model: device")  # before any file is read
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
     if not isinstance(src, (str, os.PathLike)):

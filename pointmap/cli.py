@@ -40,30 +40,10 @@ def check_size_graph_budget(args) -> None:
 
 def resolve_device(text: str) -> str:
     """``--device``: auto (CUDA, then Apple's MPS, then the CPU, whichever torch can use first), cpu, cuda, cuda:N
-    or mps. A device torch cannot use here is refused now, before any model loads."""
-    import re
+    or mps. A device torch cannot use here is refused now, before any model loads (``errors.check_device``)."""
+    from pointmap.errors import check_device
 
-    import torch
-
-    name = str(text).strip().lower()
-    cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    mps = getattr(torch.backends, "mps", None)
-    has_mps = bool(mps is not None and mps.is_available())
-    if name == "auto":
-        return "cuda" if cuda else "mps" if has_mps else "cpu"
-    if name == "cpu":
-        return name
-    if name == "cuda" or re.fullmatch(r"cuda:\d+", name):
-        k = int(name.split(":")[1]) if ":" in name else 0
-        if k >= cuda:
-            raise PointmapError(f"--device {text}: torch sees {cuda} CUDA device(s) here"
-                                f"{'' if cuda else ' (torch.cuda.is_available() is False)'}; use --device cpu or auto")
-        return name
-    if name == "mps":
-        if not has_mps:
-            raise PointmapError("--device mps: torch's MPS backend is not available here; use --device cpu or auto")
-        return name
-    raise PointmapError(f"--device expected auto, cpu, cuda, cuda:N or mps, got {text!r}")
+    return check_device(text, "--device")
 
 
 def _model_and_size(name: str, size: int | None, device: str = "cpu"):

@@ -72,3 +72,38 @@ def check_shape(name: str, tensor, expected: tuple, *, hint: str = "") -> None:
 
 def _fmt(expected: tuple) -> str:
     return "[" + ", ".join("..." if e is Ellipsis else "*" if e is None else str(e) for e in expected) + "]"
+
+
+def check_device(device, name: str = "device") -> str:
+    """A device torch can use here, as a string: ``auto`` (CUDA, then Apple's MPS, then the CPU, whichever torch
+    can use first), ``cpu``, ``cuda``, ``cuda:N``, ``mps`` or a ``torch.device``. A name torch does not know, or a
+    device this machine does not have, is refused with the way out (PointmapError), before any model or tensor
+    moves: torch's own error would come later, from deep inside the first ``.to(device)``."""
+    import re
+
+    import torch
+
+    if isinstance(device, torch.device):
+        device = str(device)
+    if not isinstance(device, str):
+        raise PointmapError(f"{name} expected a string (auto, cpu, cuda, cuda:N or mps) or a torch.device, got "
+                            f"{type(device).__name__}")
+    text = device.strip().lower()
+    cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    mps = getattr(torch.backends, "mps", None)
+    has_mps = bool(mps is not None and mps.is_available())
+    if text == "auto":
+        return "cuda" if cuda else "mps" if has_mps else "cpu"
+    if text == "cpu":
+        return text
+    if text == "cuda" or re.fullmatch(r"cuda:\d+", text):
+        k = int(text.split(":")[1]) if ":" in text else 0
+        if k >= cuda:
+            raise PointmapError(f"{name} {device}: torch sees {cuda} CUDA device(s) here"
+                                f"{'' if cuda else ' (torch.cuda.is_available() is False)'}; use cpu or auto")
+        return text
+    if text in ("mps", "mps:0"):
+        if not has_mps:
+            raise PointmapError(f"{name} {device}: torch's MPS backend is not available here; use cpu or auto")
+        return "mps"
+    raise PointmapError(f"{name} expected auto, cpu, cuda, cuda:N or mps, got {device!r}")

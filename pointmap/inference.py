@@ -42,9 +42,28 @@ def directed(pairs) -> list[tuple[int, int]]:
     return out
 
 
+def check_model_device(model, device, caller: str) -> str:
+    """``device`` checked (``errors.check_device``: a name torch knows, a device this machine has) and, for a torch
+    model, the device its weights are on: the model is not moved (``pm.load_model(..., device=)`` puts it there), so
+    a mismatch is refused here with the way out instead of failing inside its first layer. Returns the device."""
+    from pointmap.errors import PointmapError, check_device
+
+    device = check_device(device, f"{caller}: device")
+    if isinstance(model, torch.nn.Module):
+        p = next(model.parameters(), None)
+        want = torch.device(device)
+        if p is not None and (p.device.type != want.type or
+                              (want.index is not None and p.device.index not in (None, want.index))):
+            raise PointmapError(f"{caller}: the model's weights are on {p.device}, device is {device!r}; load it "
+                                f"there (pm.load_model(..., device={device!r}) or model.to({device!r})) or pass "
+                                f"device={str(p.device)!r}")
+    return device
+
+
 @torch.inference_mode()
 def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="cpu", progress=None) -> list:
     """Run the encoder once per image, batching images of equal shape. Returns one Encoded per image."""
+    device = check_model_device(model, device, "encode_views")
     by_shape = defaultdict(list)
     for k, img in enumerate(imgs):
         by_shape[tuple(img.shape)].append(k)
@@ -147,6 +166,7 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
                          f"{store_dtype!r}")
     if not (hasattr(model, "decode_pair") and callable(model)):
         raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")
+    device = check_model_device(model, device, "predict_pairs")
     given = None if encodings is None else checked_encodings(encodings, imgs)
     out: dict[tuple[int, int], PairPrediction] = {}
     edges = order = directed(pairs)

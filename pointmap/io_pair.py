@@ -74,6 +74,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     import trimesh
 
     from pointmap.images import load_images
+    from pointmap.inference import check_model_device
     from pointmap.matching import match
     from pointmap.pose import focal_from_prediction, pair_pose, relative_pose
     from pointmap.reconstruction import K_to_map
@@ -82,6 +83,7 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
         focal = tuple(float(f) for f in focal)
         if len(focal) != 2 or not all(np.isfinite(f) and f > 0 for f in focal):
             raise ShapeError(f"focal expected two positive focal lengths in pixels, got {focal}")
+    device = check_model_device(model, device, "write_pair_outputs")
     views = load_images([path1, path2], size=size)
     img1, img2 = views[0].img[None].to(device), views[1].img[None].to(device)
     with torch.inference_mode():

@@ -126,8 +126,9 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     """
     from tqdm import tqdm
 
-    from pointmap.inference import predict_pairs
+    from pointmap.inference import check_model_device, predict_pairs
 
+    device = check_model_device(model, device, "localize")
     if not isinstance(recon, Reconstruction) or len(recon) == 0:
         raise PointmapError(f"localize expected a Reconstruction with at least one view, got {type(recon).__name__}")
     from pointmap.images import _as_list

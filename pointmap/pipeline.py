@@ -208,12 +208,13 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     from pointmap.checkpoint import model_input_size
     from pointmap.errors import ShapeError, is_int
     from pointmap.images import crop_to_common, load_images
-    from pointmap.inference import predict_pairs
+    from pointmap.inference import check_model_device, predict_pairs
     from pointmap.pairs import make_pairs
 
     if align is not None and not isinstance(align, AlignConfig):
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     check_stages(epipolar, refine)
+    device = check_model_device(model, device, "reconstruct")  # a missing GPU refused before any image is read
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     check_conf_filter(min_conf, conf_percentile)

@@ -455,7 +455,7 @@ def test_the_device_resolves_to_what_torch_can_use_and_a_missing_gpu_is_refused_
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     assert resolve_device("auto") == "cpu" and resolve_device(" CPU ") == "cpu"
     for name, message in [("cuda", "torch sees 0 CUDA device(s) here (torch.cuda.is_available() is False); use "
-                                   "--device cpu or auto"),
+                                   "cpu or auto"),
                           ("cuda:1", "torch sees 0 CUDA device(s)"), ("mps", "MPS backend is not available"),
                           ("tpu", "--device expected auto, cpu, cuda, cuda:N or mps, got 'tpu'"),
                           ("cuda:x", "got 'cuda:x'")]:

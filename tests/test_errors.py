@@ -28,3 +28,16 @@ def test_check_shape_with_a_leading_ellipsis_checks_only_the_trailing_dims():
         check_shape("R", [[1.0]], (..., 3, 3))
     with pytest.raises(ShapeError, match=r"K expected \[\*, 3, 3\], got \[3, 3\]"):  # fixed rank as before
         check_shape("K", torch.zeros(3, 3), (None, 3, 3))
+
+
+def test_check_device_takes_names_and_torch_devices_and_refuses_what_this_machine_lacks(monkeypatch):
+    from pointmap.errors import PointmapError, check_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    assert check_device("cpu") == "cpu" and check_device(torch.device("cpu")) == "cpu" and check_device("auto") == "cpu"
+    for bad, message in [("gpu", "device expected auto, cpu, cuda, cuda:N or mps, got 'gpu'"),
+                         (torch.device("cuda:0"), "torch sees 0 CUDA device"), ("mps", "MPS backend is not available"),
+                         (0, "device expected a string .* or a torch.device, got int"), (None, "got NoneType")]:
+        with pytest.raises(PointmapError, match=message):
+            check_device(bad)

@@ -135,3 +135,23 @@ def test_encodings_that_do_not_belong_to_the_views_are_refused(tiny_model):
             pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, encodings=bad)
         with pytest.raises(pm.ShapeError, match=message):
             image_similarity(tiny_model, vs, encodings=bad)
+
+
+def test_a_device_torch_cannot_use_or_one_the_model_is_not_on_is_refused_before_any_work(tiny_model, monkeypatch):
+    from pointmap.errors import PointmapError
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    vs = views(2)
+    with pytest.raises(PointmapError, match="predict_pairs: device expected auto, cpu, cuda, cuda:N or mps, got 'gpu'"):
+        pm.predict_pairs(tiny_model, vs, [(0, 1)], device="gpu")
+    with pytest.raises(PointmapError, match="torch sees 0 CUDA device"):
+        pm.predict_pairs(tiny_model, vs, [(0, 1)], device="cuda")
+    with pytest.raises(PointmapError, match="reconstruct: device"):
+        pm.reconstruct(tiny_model, [np.zeros((64, 64, 3), np.uint8)] * 2, device="tpu", quiet=True)
+    with pytest.raises(PointmapError, match="load_model: device expected"):
+        pm.load_model(tiny_model, device="gpu")
+    # weights elsewhere than the device asked for (the meta device stands in for a GPU): the way out is named
+    elsewhere = type(tiny_model)(tiny_model.cfg).to("meta")
+    with pytest.raises(PointmapError, match=r"the model's weights are on meta, device is 'cpu'.*pm.load_model"):
+        pm.predict_pairs(elsewhere, vs, [(0, 1)])
+    assert set(pm.predict_pairs(tiny_model, vs, [(0, 1)], device=torch.device("cpu"))) == {(0, 1), (1, 0)}

@@ -38,8 +38,10 @@ from pointmap.splat.rasterize import rasterize
 def auto_budget(n_views: int, map_size: tuple[int, int], device: str | torch.device = "cpu") -> dict:
     """Working resolution (long side), steps and Gaussian count for a scene of ``n_views`` views whose
     maps are ``map_size`` = (width, height)."""
+    from pointmap.errors import check_device
+
     long_side = max(map_size)
-    if torch.device(device).type == "cuda":
+    if torch.device(check_device(device, "auto_budget: device")).type == "cuda":
         return {"max_side": min(long_side, 512), "steps": 1000, "max_gaussians": None, "coarse_frac": 0.0}
     # CPU: about 0.5 s CPU per step at 256x192 with 10k Gaussians (render + SSIM + backward + Adam),
     # a quarter of that at half resolution; 70 % of the steps run at half resolution.
