@@ -107,3 +107,12 @@ def check_device(device, name: str = "device") -> str:
             raise PointmapError(f"{name} {device}: torch's MPS backend is not available here; use cpu or auto")
         return "mps"
     raise PointmapError(f"{name} expected auto, cpu, cuda, cuda:N or mps, got {device!r}")
+
+
+def check_seed(seed, name: str = "seed") -> int:
+    """A random seed: an int from 0 to 2**63 - 1 (what both ``torch.Generator.manual_seed`` and NumPy's
+    ``default_rng`` take), refused with a ShapeError otherwise (a float or a negative seed would fail later, inside
+    one of them, with its own message). Returns it as a Python int."""
+    if not (is_int(seed) and 0 <= seed < 2 ** 63):
+        raise ShapeError(f"{name} expected an int in [0, 2**63), got {seed!r}")
+    return int(seed)

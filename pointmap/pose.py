@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, is_int
+from pointmap.errors import ShapeError, check_seed, is_int
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
@@ -141,7 +141,7 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     if not 0 < keep <= 1:
         raise ShapeError(f"keep expected in (0, 1], got {keep}")
     out = torch.full((B, 4, 4), float("nan"), dtype=torch.float32)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_seed(seed))
     for b in range(B):
         pts2 = pred.pts2_cam1[b].detach().float().cpu()
         conf2 = pred.conf2[b].detach().float().cpu()
@@ -287,7 +287,7 @@ def translation_from_matches(R, xy1, xy2, K1, K2, threshold_px: float = 2.0, pro
         return np.abs((n * r1).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12)
 
     thr = threshold_px / K1[0, 0]
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_seed(seed))
     best, n_best, iters, done = None, 0, max_iters, 0
     while done < iters:
         k = min(max(1, 2_000_000 // len(A)), 256, iters - done)  # hypotheses per batch: bounded memory

@@ -41,3 +41,13 @@ def test_check_device_takes_names_and_torch_devices_and_refuses_what_this_machin
                          (0, "device expected a string .* or a torch.device, got int"), (None, "got NoneType")]:
         with pytest.raises(PointmapError, match=message):
             check_device(bad)
+
+
+def test_a_seed_is_an_int_both_torch_and_numpy_generators_take():
+    from pointmap.errors import check_seed
+
+    assert check_seed(0) == 0 and check_seed(np.int64(7)) == 7 and type(check_seed(np.uint32(7))) is int
+    assert check_seed(2 ** 63 - 1) == 2 ** 63 - 1
+    for bad in (-1, 2 ** 63, 1.0, True, "3", None):
+        with pytest.raises(ShapeError, match="seed expected an int in"):
+            check_seed(bad)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, is_int, is_number
+from pointmap.errors import ShapeError, check_seed, is_int, is_number
 
 
 def check_conf_filter(min_conf, percentile, names=("min_conf", "conf_percentile")) -> None:
@@ -73,8 +73,7 @@ def select_points(recon, min_conf: float | None = None, conf_percentile: float |
     """Valid pixels (depth > 0, inside recon.masks, confidence thresholds) as a point set; a random
     subset of ``max_points`` if given."""
     check_point_cap(max_points, "max_points")
-    if not is_int(seed):
-        raise ShapeError(f"seed expected an int, got {seed!r}")
+    seed = check_seed(seed)
     keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=recon.valid())
     n_idx, v, u = keep.nonzero(as_tuple=True)
     if max_points is not None and len(n_idx) > max_points:

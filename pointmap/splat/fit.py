@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pointmap.errors import ShapeError, is_int, is_number
+from pointmap.errors import ShapeError, check_seed, is_int, is_number
 from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, scale_intrinsics
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
@@ -268,6 +268,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     _check_fit_options(steps=steps, max_side=max_side, coarse_frac=coarse_frac, lr=lr, pose_lr=pose_lr,
                        ssim_weight=ssim_weight, densify_every=densify_every, densify_grad=densify_grad,
                        time_budget=time_budget)
+    seed = check_seed(seed)
     t_start = time.perf_counter()
     device = torch.device("cpu")
     n, h, w = recon.depth_z.shape

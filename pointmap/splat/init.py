@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, check_seed, is_int
 from pointmap.geometry.cameras import invert_rigid, transform_points
 from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
@@ -105,10 +105,11 @@ def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_
         raise ShapeError(f"init_from expects a pointmap Reconstruction, got {type(recon).__name__}")
     if downsample not in ("voxel", "conf"):
         raise ShapeError(f"downsample must be 'voxel' or 'conf', got {downsample!r}")
-    if max_gaussians is not None and max_gaussians < 1:
-        raise ShapeError(f"max_gaussians must be >= 1 or None, got {max_gaussians}")
+    if max_gaussians is not None and not (is_int(max_gaussians) and max_gaussians >= 1):
+        raise ShapeError(f"max_gaussians expected an int >= 1 or None, got {max_gaussians!r}")
     if not 0.0 < opacity < 1.0:
         raise ShapeError(f"opacity must be in (0, 1), got {opacity}")
+    seed = check_seed(seed)
     valid = recon.valid(min_conf)
     if int(valid.sum()) == 0:
         raise ShapeError(f"no pixel has depth > 0 and confidence > {min_conf}; lower min_conf")

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from pointmap.atomic import atomic_path, write_bytes
-from pointmap.errors import ShapeError, is_int, is_number
+from pointmap.errors import ShapeError, check_seed, is_int, is_number
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
 
@@ -132,6 +132,7 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
         raise ShapeError(f"orbit_frames expected an int >= 0, got {orbit_frames!r}")
     if max_gaussians is not None and not (is_int(max_gaussians) and max_gaussians >= 1):
         raise ShapeError(f"max_gaussians expected an int >= 1 (None: the budget's), got {max_gaussians!r}")
+    check_seed(seed)  # before the output folder is made
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -132,6 +132,8 @@ def test_run_writes_outputs(tmp_path, tiny):
     ({"pose_lr": (1e-3,)}, "pose_lr expected \\(rotation, translation\\) rates >= 0"),
     ({"steps": "3"}, "steps expected an int >= 0, got '3'"),
     ({"time_budget": -1}, "time_budget expected seconds > 0"),
+    ({"seed": 1.5}, "seed expected an int in \\[0, 2\\*\\*63\\), got 1.5"),
+    ({"seed": -1}, "seed expected an int in .*got -1"),
 ])
 def test_fit_refuses_settings_out_of_their_range_before_any_work(tiny, kw, message):
     d, g, _ = tiny
@@ -154,4 +156,6 @@ def test_run_refuses_an_orbit_it_cannot_write_before_it_fits_or_writes_anything(
         run(d["recon"], tmp_path / "out", steps=2, orbit="orbit.png", quiet=True)
     with pytest.raises(ShapeError, match="orbit_frames expected an int >= 0"):
         run(d["recon"], tmp_path / "out", steps=2, orbit_frames=-1, quiet=True)
+    with pytest.raises(ShapeError, match="seed expected an int"):
+        run(d["recon"], tmp_path / "out", steps=2, seed="0", quiet=True)
     assert not (tmp_path / "out").exists()

@@ -73,3 +73,15 @@ def test_validation():
 
 def test_splat_tests_run_single_threaded():
     assert torch.get_num_threads() == 1
+
+
+def test_init_refuses_a_fractional_budget_and_a_seed_neither_generator_takes():
+    recon = _plane_recon()
+    for kw, message in [({"max_gaussians": 2.5}, "max_gaussians expected an int >= 1 or None, got 2.5"),
+                        ({"max_gaussians": 0}, "got 0"), ({"seed": -3}, "seed expected an int in .*got -3"),
+                        ({"seed": 0.5}, "seed expected an int")]:
+        with pytest.raises(ShapeError, match=message):
+            init_from(recon, **kw)
+    # the same seed, the same subset (the voxel grid keeps at most the budget)
+    a, b = init_from(recon, max_gaussians=100, seed=3), init_from(recon, max_gaussians=100, seed=3)
+    assert torch.equal(a.means, b.means) and 0 < len(a) <= 100
