@@ -1,4 +1,4 @@
-"""Torch datasets over rendered shards (layout: docs/data.md; item contract: DESIGN.md section 4).
+"""Torch datasets over rendered shards (layout and item contract: docs/data.md).
 
 - ``PairDataset(root, size=224, augment=True, split="train")``: items ``(view1, view2)``, dicts with
   ``img [3, H, W]`` float32 in [0, 1], ``K [3, 3]``, ``cam2world [4, 4]``, ``depth_z [H, W]``,

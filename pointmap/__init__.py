@@ -1,4 +1,4 @@
-"""pointmap: feed-forward 3D reconstruction (DUSt3R/MASt3R family). See docs/ and DESIGN.md.
+"""pointmap: feed-forward 3D reconstruction (DUSt3R/MASt3R family). See docs/ (conventions: docs/conventions.md).
 
     import pointmap as pm
     model = pm.load_model("small")

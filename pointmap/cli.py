@@ -711,7 +711,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                    help="the images come from one camera (same size, same zoom): estimate one focal for all")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
-                   help="keep pixels whose confidence is at least this (absolute, >= 1 for network output)")
+                   help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
                    help="keep pixels at or above this percentile of confidence over all images' unmasked pixels "
                    "(0-100; 50 keeps the most confident half of the scene)")

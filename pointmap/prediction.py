@@ -1,4 +1,4 @@
-"""PairPrediction: what the network returns for a pair of views (a public contract, DESIGN.md 4)."""
+"""PairPrediction: what the network returns for a pair of views (a public contract: docs/conventions.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Reconstruction: a scene made of N posed views with dense depth (a public contract, DESIGN.md 4)."""
+"""Reconstruction: a scene made of N posed views with dense depth (a public contract: docs/conventions.md)."""
 
 from __future__ import annotations
 

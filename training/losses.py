@@ -1,5 +1,5 @@
 """Training losses: cross-view completion (CroCo), confidence-aware pointmap regression (DUSt3R),
-InfoNCE matching on descriptors (MASt3R). Pure functions of tensors; batches follow DESIGN.md 4."""
+InfoNCE matching on descriptors (MASt3R). Pure functions of tensors; batches are the items of data/datasets.py (docs/data.md)."""
 
 from __future__ import annotations
 
