@@ -46,6 +46,8 @@ class TrainConfig:
                                    # camera, as OpenCV's stereo sample: data.PairDataset)
     flip_p: float = 0.0            # probability that a training pair is mirrored left-right (a mirrored scene seen
                                    # by mirrored cameras: data.PairDataset; 0 replays earlier recipes exactly)
+    pad_p: float = 0.0             # probability that each view of a training pair is letterboxed (a band at two
+                                   # edges flat grey and invalid: data.PairDataset; 0 replays earlier recipes)
     temperature: float = 0.05
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
     coarse_temperature: float = 0.1

@@ -112,7 +112,7 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, lr_scale: dict[str,
 
 def check_loop_options(cfg: TrainConfig) -> None:
     """ValueError (one line) for a schedule, ``--decay_by_time``, ``--decay_ckpts``, ``--amp``, ``--crop_link``,
-    ``--grey_p`` or ``--flip_p`` that cannot run as configured."""
+    ``--grey_p``, ``--flip_p`` or ``--pad_p`` that cannot run as configured."""
     if cfg.schedule not in ("cosine", "wsd"):
         raise ValueError(f"--schedule expected 'cosine' or 'wsd', got {cfg.schedule!r}")
     if cfg.schedule == "wsd" and not 0 < cfg.decay_steps <= cfg.steps - cfg.warmup:
@@ -133,6 +133,8 @@ def check_loop_options(cfg: TrainConfig) -> None:
         raise ValueError(f"--grey_p expected a probability in [0, 1], got {cfg.grey_p}")
     if not 0 <= cfg.flip_p <= 1:
         raise ValueError(f"--flip_p expected a probability in [0, 1], got {cfg.flip_p}")
+    if not 0 <= cfg.pad_p <= 1:
+        raise ValueError(f"--pad_p expected a probability in [0, 1], got {cfg.pad_p}")
     if cfg.amp not in ("auto", "bf16", "off"):
         raise ValueError(f"--amp expected 'auto', 'bf16' or 'off', got {cfg.amp!r}")
 

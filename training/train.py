@@ -290,7 +290,8 @@ def main(argv=None) -> int:
         check_model_options(cfg, model)
         lr_scale = grown_lr_scale(cfg, model)
         train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
-                                              crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p),
+                                              crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p,
+                                              pad_p=cfg.pad_p),
                                  cfg.max_rotation)
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all") if cfg.eval_data else None
     except (ValueError, OSError, PointmapError) as e:  # bad flags, --init or --data: one line, before any step

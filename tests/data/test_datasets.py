@@ -115,6 +115,63 @@ def test_a_mirrored_pair_is_the_pair_flipped_left_right_with_consistent_cameras_
         PairDataset(tiny_pairs, size=64, flip_p=-0.1)
 
 
+def _band(changed: torch.Tensor):
+    """The rows (or columns) a letterbox replaced: (axis, pad) when ``changed`` is exactly a band of ``pad`` whole
+    rows (axis 0) or columns (axis 1) at both edges, else None."""
+    for axis in (0, 1):
+        lines = changed.all(1 - axis)
+        pad = int(lines[: len(lines) // 2].sum())
+        band = torch.zeros_like(lines)
+        band[:pad], band[len(lines) - pad:] = True, True
+        expected = band[:, None].expand_as(changed) if axis == 0 else band[None, :].expand_as(changed)
+        if pad > 0 and torch.equal(changed, expected):
+            return axis, pad
+    return None
+
+
+def test_a_letterboxed_view_is_the_view_with_a_flat_invalid_band_and_loses_exactly_the_matches_there(tiny_pairs):
+    from data.datasets import LETTERBOX_KEEP
+
+    plain = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+    boxed = PairDataset(tiny_pairs, size=64, augment=True, split="all", pad_p=1.0)
+    pads = {(64 - round(64 * k)) // 2 for k in LETTERBOX_KEEP}
+    axes, kept_matches = set(), 0
+    for k in range(len(plain)):
+        torch.manual_seed(k)  # the same random stream: the letterbox draws come after every other augmentation
+        p1, p2 = plain[k]
+        torch.manual_seed(k)
+        b1, b2 = boxed[k]
+        kept = []
+        for p, b in ((p1, b1), (p2, b2)):
+            band = _band((b["img"] != p["img"]).any(0))
+            assert band is not None and band[1] in pads
+            axes.add(band[0])
+            pad_px = torch.zeros(64, 64, dtype=torch.bool)
+            if band[0] == 0:
+                pad_px[: band[1]], pad_px[64 - band[1]:] = True, True
+            else:
+                pad_px[:, : band[1]], pad_px[:, 64 - band[1]:] = True, True
+            values = b["img"][:, pad_px]
+            assert bool((values == values[:, :1]).all()) and torch.equal(values[0], values[1])  # one grey level
+            assert not b["valid"][pad_px].any() and bool((b["depth_z"][pad_px] == 0).all())
+            assert torch.equal(b["valid"][~pad_px], p["valid"][~pad_px])
+            assert torch.equal(b["K"], p["K"]) and torch.equal(b["cam2world"], p["cam2world"])
+            kept.append(~pad_px)
+        # the matches: none from view 1's pad, none into view 2's pad, every other one as the plain pair's
+        c, q = b1["corr"], p1["corr"]
+        fin = torch.isfinite(q).all(-1)
+        lands = torch.zeros_like(fin)
+        uv = q[fin].round().long().clamp(0, 63)
+        lands[fin] = kept[1][uv[:, 1], uv[:, 0]]
+        survive = fin & kept[0] & lands
+        assert torch.equal(torch.isfinite(c).all(-1), survive)
+        assert torch.equal(c[survive], q[survive])
+        kept_matches += int(survive.sum())
+    assert axes == {0, 1} and kept_matches > 50  # both orientations drawn; real matches compared
+    with pytest.raises(ValueError, match="pad_p expected a probability"):
+        PairDataset(tiny_pairs, size=64, pad_p=2.0)
+
+
 def test_order_swap_uses_the_stored_reverse_correspondences(tiny_pairs):
     ds = PairDataset(tiny_pairs, size=64, augment=True, split="all", swap_p=1.0, crop_scale=(1.0, 1.0))
     v1, v2 = ds[0]

@@ -438,7 +438,7 @@ def test_an_unknown_amp_mode_is_refused_with_the_choices():
         TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
 
 
-@pytest.mark.parametrize("option", ["crop_link", "grey_p", "flip_p"])
+@pytest.mark.parametrize("option", ["crop_link", "grey_p", "flip_p", "pad_p"])
 def test_a_probability_option_outside_0_to_1_is_refused_before_any_data_is_opened(capsys, option):
     for bad in ("1.5", "-0.2", "nan"):
         with pytest.raises(SystemExit):
