@@ -297,7 +297,7 @@ class PairDataset(Dataset):
     mirrored pair is a valid pair of a mirrored scene, with the same pair geometry up to the reflection.
     pad_p: probability that each view of an augmented pair, on its own, is letterboxed (``_letterbox``: a band at
     two edges flat grey and invalid, as a 4:3, 3:2 or 16:9 photograph padded to the square; drawn last, 0 draws
-    nothing): models trained without it lose 12-16 points of RRA@15 on padded input (benchmarks/bench_letterbox.py).
+    nothing; square items only: the other aspect ratios' items are photographs' own shapes already): models trained without it lose 12-16 points of RRA@15 on padded input (benchmarks/bench_letterbox.py).
     """
 
     def __init__(self, root, size: int = 224, augment: bool = True, split: str = "train", *,
@@ -414,7 +414,8 @@ class PairDataset(Dataset):
                 (f1, d1, K1, T1), (f2, d2, K2, T2) = _mirror(f1, d1, K1, T1), _mirror(f2, d2, K2, T2)
                 corr = corr[:, ::-1].copy()
                 corr[..., 0] = (out_w - 1) - corr[..., 0]
-            if self.pad_p > 0:  # each view letterboxed on its own (drawn last, 0 draws nothing)
+            if self.pad_p > 0 and out_h == out_w:  # each view letterboxed on its own (drawn last, 0 draws nothing;
+                # a square input: what load_images' 224 crop would pad a photograph of another shape to)
                 if rng.random() < self.pad_p:
                     f1, d1, kept1 = _letterbox(rng, f1, d1)
                     corr[~kept1] = np.nan

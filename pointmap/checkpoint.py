@@ -451,7 +451,10 @@ def load_model(src, device="cpu", **kwargs):
 
     ``kwargs`` go to the ONNX runner (e.g. ``providers``). Raises CheckpointError with the reason.
     """
-    device = check_device(device, "load_model: device")  # before any file is read
+    # before any file is read; an ONNX export's device is onnxruntime's to find, so only its name is checked there
+    onnx = isinstance(src, (str, os.PathLike)) and (Path(src).suffix == ".onnx" or
+                                                    (Path(src).is_dir() and any(Path(src).glob("*.onnx"))))
+    device = check_device(device, "load_model: device", available=not onnx)
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
     if not isinstance(src, (str, os.PathLike)):

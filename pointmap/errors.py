@@ -74,11 +74,13 @@ def _fmt(expected: tuple) -> str:
     return "[" + ", ".join("..." if e is Ellipsis else "*" if e is None else str(e) for e in expected) + "]"
 
 
-def check_device(device, name: str = "device") -> str:
+def check_device(device, name: str = "device", *, available: bool = True) -> str:
     """A device torch can use here, as a string: ``auto`` (CUDA, then Apple's MPS, then the CPU, whichever torch
     can use first), ``cpu``, ``cuda``, ``cuda:N``, ``mps`` or a ``torch.device``. A name torch does not know, or a
     device this machine does not have, is refused with the way out (PointmapError), before any model or tensor
-    moves: torch's own error would come later, from deep inside the first ``.to(device)``."""
+    moves: torch's own error would come later, from deep inside the first ``.to(device)``.
+    ``available=False`` checks the name only and keeps ``auto`` as it is (an ONNX model's device is onnxruntime's
+    to find: a CPU-only torch beside onnxruntime-gpu)."""
     import re
 
     import torch
@@ -89,6 +91,12 @@ def check_device(device, name: str = "device") -> str:
         raise PointmapError(f"{name} expected a string (auto, cpu, cuda, cuda:N or mps) or a torch.device, got "
                             f"{type(device).__name__}")
     text = device.strip().lower()
+    if text == "cpu:0":
+        text = "cpu"
+    if not available:
+        if text in ("auto", "cpu", "cuda", "mps", "mps:0") or re.fullmatch(r"cuda:\d+", text):
+            return "mps" if text == "mps:0" else text
+        raise PointmapError(f"{name} expected auto, cpu, cuda, cuda:N or mps, got {device!r}")
     cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
     mps = getattr(torch.backends, "mps", None)
     has_mps = bool(mps is not None and mps.is_available())
@@ -110,9 +118,9 @@ def check_device(device, name: str = "device") -> str:
 
 
 def check_seed(seed, name: str = "seed") -> int:
-    """A random seed: an int from 0 to 2**63 - 1 (what both ``torch.Generator.manual_seed`` and NumPy's
-    ``default_rng`` take), refused with a ShapeError otherwise (a float or a negative seed would fail later, inside
-    one of them, with its own message). Returns it as a Python int."""
-    if not (is_int(seed) and 0 <= seed < 2 ** 63):
-        raise ShapeError(f"{name} expected an int in [0, 2**63), got {seed!r}")
+    """A random seed: an int from 0 to 2**64 - 1 (what both ``torch.Generator.manual_seed`` and NumPy's
+    ``default_rng`` take), refused with a ShapeError otherwise (a float would fail later, inside one of them, with
+    its own message, and a negative seed in NumPy's). Returns it as a Python int."""
+    if not (is_int(seed) and 0 <= seed < 2 ** 64):
+        raise ShapeError(f"{name} expected an int in [0, 2**64), got {seed!r}")
     return int(seed)

@@ -52,6 +52,8 @@ def check_model_device(model, device, caller: str) -> str:
     if isinstance(model, torch.nn.Module):
         p = next(model.parameters(), None)
         want = torch.device(device)
+        if want.type == "cuda" and want.index is None:  # "cuda" is the current CUDA device
+            want = torch.device("cuda", torch.cuda.current_device())
         if p is not None and (p.device.type != want.type or
                               (want.index is not None and p.device.index not in (None, want.index))):
             raise PointmapError(f"{caller}: the model's weights are on {p.device}, device is {device!r}; load it "
@@ -61,9 +63,10 @@ def check_model_device(model, device, caller: str) -> str:
 
 
 @torch.inference_mode()
-def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="cpu", progress=None) -> list:
+def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="cpu", progress=None,
+                 caller: str = "encode_views") -> list:
     """Run the encoder once per image, batching images of equal shape. Returns one Encoded per image."""
-    device = check_model_device(model, device, "encode_views")
+    device = check_model_device(model, device, caller)
     by_shape = defaultdict(list)
     for k, img in enumerate(imgs):
         by_shape[tuple(img.shape)].append(k)
@@ -83,7 +86,7 @@ def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="c
 def pooled_tokens(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
     """[N, D] unit vectors: each image's mean encoder token, a global descriptor (``localize`` ranks references by
     its cosine; views: Views or [3, H, W] tensors)."""
-    enc = encode_views(model, _as_images(views), batch_size, device)
+    enc = encode_views(model, _as_images(views), batch_size, device, caller="pooled_tokens")
     return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1).cpu() for e in enc]), dim=-1)
 
 
@@ -118,7 +121,7 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu", *, encodin
     is encoded once for both); None: the views are encoded here."""
     imgs = _as_images(views)
     if encodings is None:
-        encodings = encode_views(model, imgs, batch_size, device)
+        encodings = encode_views(model, imgs, batch_size, device, caller="image_similarity")
     if isinstance(encodings, (list, tuple)) and any(getattr(getattr(e, "tokens", None), "ndim", 3) == 4
                                                     for e in encodings):  # images, deferred to the pair graph
         raise CheckpointError("image_similarity needs the encoder's tokens, which a single-graph ONNX export does "

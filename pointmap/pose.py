@@ -276,6 +276,7 @@ def translation_from_matches(R, xy1, xy2, K1, K2, threshold_px: float = 2.0, pro
         raise ShapeError(f"R expected a [3, 3] rotation matrix, got {R.tolist() if R.size <= 9 else list(R.shape)}")
     if not (0 < prob < 1 and max_iters >= 1):
         raise ShapeError(f"prob expected in (0, 1) and max_iters >= 1, got {prob} and {max_iters}")
+    seed = check_seed(seed)
     xy1, xy2, K1, K2 = _checked_pixels(xy1, xy2, K1, K2, threshold_px)
     if len(xy1) < 5:
         return None
@@ -287,7 +288,7 @@ def translation_from_matches(R, xy1, xy2, K1, K2, threshold_px: float = 2.0, pro
         return np.abs((n * r1).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12)
 
     thr = threshold_px / K1[0, 0]
-    rng = np.random.default_rng(check_seed(seed))
+    rng = np.random.default_rng(seed)
     best, n_best, iters, done = None, 0, max_iters, 0
     while done < iters:
         k = min(max(1, 2_000_000 // len(A)), 256, iters - done)  # hypotheses per batch: bounded memory

@@ -36,6 +36,11 @@ def test_check_device_takes_names_and_torch_devices_and_refuses_what_this_machin
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     assert check_device("cpu") == "cpu" and check_device(torch.device("cpu")) == "cpu" and check_device("auto") == "cpu"
+    assert check_device("cpu:0") == "cpu" and check_device(torch.device("cpu", 0)) == "cpu"
+    # the name alone (an ONNX model: onnxruntime finds its GPU, whatever torch was built with); auto kept
+    assert check_device("cuda:1", available=False) == "cuda:1" and check_device("auto", available=False) == "auto"
+    with pytest.raises(PointmapError, match="got 'gpu'"):
+        check_device("gpu", available=False)
     for bad, message in [("gpu", "device expected auto, cpu, cuda, cuda:N or mps, got 'gpu'"),
                          (torch.device("cuda:0"), "torch sees 0 CUDA device"), ("mps", "MPS backend is not available"),
                          (0, "device expected a string .* or a torch.device, got int"), (None, "got NoneType")]:
@@ -47,7 +52,7 @@ def test_a_seed_is_an_int_both_torch_and_numpy_generators_take():
     from pointmap.errors import check_seed
 
     assert check_seed(0) == 0 and check_seed(np.int64(7)) == 7 and type(check_seed(np.uint32(7))) is int
-    assert check_seed(2 ** 63 - 1) == 2 ** 63 - 1
-    for bad in (-1, 2 ** 63, 1.0, True, "3", None):
+    assert check_seed(2 ** 64 - 1) == 2 ** 64 - 1
+    for bad in (-1, 2 ** 64, 1.0, True, "3", None):
         with pytest.raises(ShapeError, match="seed expected an int in"):
             check_seed(bad)

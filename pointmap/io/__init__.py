@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, check_seed
 from pointmap.io.colmap import write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
 from pointmap.io.nerfstudio import write_transforms
@@ -41,6 +41,7 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     check_conf_filter(min_conf, conf_percentile)  # every argument before anything is written
     check_point_cap(max_points, "max_points")
     check_point_cap(colmap_max_points, "colmap_max_points")
+    check_seed(seed)
     if "tum" in formats:
         tum_timestamps(recon)
     out = Path(out_dir)

@@ -168,6 +168,15 @@ def test_a_letterboxed_view_is_the_view_with_a_flat_invalid_band_and_loses_exact
         assert torch.equal(c[survive], q[survive])
         kept_matches += int(survive.sum())
     assert axes == {0, 1} and kept_matches > 50  # both orientations drawn; real matches compared
+    # an item of another aspect ratio (AspectBatchSampler's) is a photograph's own shape: never letterboxed
+    assert len(plain.aspects) > 1
+    torch.manual_seed(0)
+    p1, p2 = plain[(0, 1)]
+    torch.manual_seed(0)
+    b1, b2 = boxed[(0, 1)]
+    assert p1["img"].shape[-2] != p1["img"].shape[-1]
+    assert torch.equal(b1["img"], p1["img"]) and torch.equal(b2["img"], p2["img"])
+    assert torch.equal(b1["corr"].isnan(), p1["corr"].isnan())
     with pytest.raises(ValueError, match="pad_p expected a probability"):
         PairDataset(tiny_pairs, size=64, pad_p=2.0)
 

@@ -189,3 +189,17 @@ def test_a_requested_provider_that_onnxruntime_could_not_start_is_reported_not_s
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         assert load_onnx(full_export).providers == ["CPUExecutionProvider"]
+
+
+def test_an_onnx_export_asked_for_a_gpu_is_left_to_onnxruntime_even_when_torch_has_none(split_export, monkeypatch):
+    import pointmap.runtime.onnx as rt
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a CPU-only torch beside onnxruntime-gpu
+    asked = []
+    real = rt.load_onnx
+    monkeypatch.setattr(rt, "load_onnx", lambda path, **kw: asked.append(kw.get("device")) or real(path, **kw))
+    for device in ("cuda", "auto"):  # not refused: auto and cuda select onnxruntime's GPU providers when installed
+        assert isinstance(pm.load_model(split_export, device=device), OnnxPointmapModel)
+    assert asked == ["cuda", "auto"]
+    with pytest.raises(pm.PointmapError, match="load_model: device expected auto, cpu, cuda, cuda:N or mps"):
+        pm.load_model(split_export, device="gpu")

@@ -132,7 +132,7 @@ def test_run_writes_outputs(tmp_path, tiny):
     ({"pose_lr": (1e-3,)}, "pose_lr expected \\(rotation, translation\\) rates >= 0"),
     ({"steps": "3"}, "steps expected an int >= 0, got '3'"),
     ({"time_budget": -1}, "time_budget expected seconds > 0"),
-    ({"seed": 1.5}, "seed expected an int in \\[0, 2\\*\\*63\\), got 1.5"),
+    ({"seed": 1.5}, "seed expected an int in \\[0, 2\\*\\*64\\), got 1.5"),
     ({"seed": -1}, "seed expected an int in .*got -1"),
 ])
 def test_fit_refuses_settings_out_of_their_range_before_any_work(tiny, kw, message):

@@ -82,6 +82,8 @@ def test_init_refuses_a_fractional_budget_and_a_seed_neither_generator_takes():
                         ({"seed": 0.5}, "seed expected an int")]:
         with pytest.raises(ShapeError, match=message):
             init_from(recon, **kw)
-    # the same seed, the same subset (the voxel grid keeps at most the budget)
+    # the same seed, the same subset; another seed, another (the confidence-weighted draw)
     a, b = init_from(recon, max_gaussians=100, seed=3), init_from(recon, max_gaussians=100, seed=3)
     assert torch.equal(a.means, b.means) and 0 < len(a) <= 100
+    c, d = (init_from(recon, max_gaussians=100, downsample="conf", seed=s) for s in (3, 4))
+    assert len(c) == len(d) == 100 and not torch.equal(c.means, d.means)
