@@ -124,3 +124,23 @@ def check_seed(seed, name: str = "seed") -> int:
     if not (is_int(seed) and 0 <= seed < 2 ** 64):
         raise ShapeError(f"{name} expected an int in [0, 2**64), got {seed!r}")
     return int(seed)
+
+
+def check_model_device(model, device, caller: str) -> str:
+    """``device`` checked (``check_device``: a name torch knows, a device this machine has) and, for a torch
+    model, the device its weights are on: the model is not moved (``pm.load_model(..., device=)`` puts it there), so
+    a mismatch is refused here with the way out instead of failing inside its first layer. Returns the device."""
+    import torch
+
+    device = check_device(device, f"{caller}: device")
+    if isinstance(model, torch.nn.Module):
+        p = next(model.parameters(), None)
+        want = torch.device(device)
+        if want.type == "cuda" and want.index is None:  # "cuda" is the current CUDA device
+            want = torch.device("cuda", torch.cuda.current_device())
+        if p is not None and (p.device.type != want.type or
+                              (want.index is not None and p.device.index not in (None, want.index))):
+            raise PointmapError(f"{caller}: the model's weights are on {p.device}, device is {device!r}; load it "
+                                f"there (pm.load_model(..., device={device!r}) or model.to({device!r})) or pass "
+                                f"device={str(p.device)!r}")
+    return device

@@ -12,7 +12,7 @@ from collections import defaultdict
 import torch
 from tqdm.auto import tqdm
 
-from pointmap.errors import CheckpointError, GraphError, ShapeError, is_int
+from pointmap.errors import CheckpointError, GraphError, ShapeError, check_model_device, is_int
 from pointmap.images import View
 from pointmap.pairs import checked_index_pairs
 from pointmap.prediction import PairPrediction
@@ -40,26 +40,6 @@ def directed(pairs) -> list[tuple[int, int]]:
                 seen.add(e)
                 out.append(e)
     return out
-
-
-def check_model_device(model, device, caller: str) -> str:
-    """``device`` checked (``errors.check_device``: a name torch knows, a device this machine has) and, for a torch
-    model, the device its weights are on: the model is not moved (``pm.load_model(..., device=)`` puts it there), so
-    a mismatch is refused here with the way out instead of failing inside its first layer. Returns the device."""
-    from pointmap.errors import PointmapError, check_device
-
-    device = check_device(device, f"{caller}: device")
-    if isinstance(model, torch.nn.Module):
-        p = next(model.parameters(), None)
-        want = torch.device(device)
-        if want.type == "cuda" and want.index is None:  # "cuda" is the current CUDA device
-            want = torch.device("cuda", torch.cuda.current_device())
-        if p is not None and (p.device.type != want.type or
-                              (want.index is not None and p.device.index not in (None, want.index))):
-            raise PointmapError(f"{caller}: the model's weights are on {p.device}, device is {device!r}; load it "
-                                f"there (pm.load_model(..., device={device!r}) or model.to({device!r})) or pass "
-                                f"device={str(p.device)!r}")
-    return device
 
 
 @torch.inference_mode()

@@ -73,8 +73,8 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     ``pm.load_model(..., device=)``); the outputs come back to the CPU."""
     import trimesh
 
+    from pointmap.errors import check_model_device
     from pointmap.images import load_images
-    from pointmap.inference import check_model_device
     from pointmap.matching import match
     from pointmap.pose import focal_from_prediction, pair_pose, relative_pose
     from pointmap.reconstruction import K_to_map

@@ -126,7 +126,8 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     """
     from tqdm import tqdm
 
-    from pointmap.inference import check_model_device, predict_pairs
+    from pointmap.errors import check_model_device
+    from pointmap.inference import predict_pairs
 
     device = check_model_device(model, device, "localize")
     if not isinstance(recon, Reconstruction) or len(recon) == 0:

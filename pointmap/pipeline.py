@@ -206,9 +206,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         model's weights are hashed once, at the start: do not change them from another thread during the run
     """
     from pointmap.checkpoint import model_input_size
-    from pointmap.errors import ShapeError, is_int
+    from pointmap.errors import ShapeError, check_model_device, is_int
     from pointmap.images import crop_to_common, load_images
-    from pointmap.inference import check_model_device, predict_pairs
+    from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs
 
     if align is not None and not isinstance(align, AlignConfig):

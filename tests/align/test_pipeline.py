@@ -270,12 +270,14 @@ def test_single_image_is_a_clear_error(fake_stack):
         reconstruct(None, images[:1], size=48, quiet=True)
 
 
-def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack):
+def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack, monkeypatch):
     _, images, calls = fake_stack
     calls["stop"] = True
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a machine with two GPUs
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     with pytest.raises(StopIteration):
-        reconstruct(None, images, size=48, quiet=True, device="meta")
-    assert calls["kw"]["device"] == "meta" and calls["kw"]["quiet"] is True
+        reconstruct(None, images, size=48, quiet=True, device=torch.device("cuda", 1))
+    assert calls["kw"]["device"] == "cuda:1" and calls["kw"]["quiet"] is True
 
 
 def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
