@@ -66,23 +66,49 @@ def _size_for(width: int, height: int, max_side: int) -> tuple[int, int]:
     return max(1, int(round(width * s))), max(1, int(round(height * s)))
 
 
-def _ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two [H, W, 3] images (kornia, 11x11 Gaussian window)."""
+def _ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean SSIM of two [H, W, 3] images (kornia, 11x11 Gaussian window); with ``mask`` [H, W] bool, the mean of
+    the SSIM map over the kept pixels (their windows may reach into the rest)."""
     import kornia
 
-    return kornia.metrics.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11).mean()
+    m = kornia.metrics.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11)
+    return m.mean() if mask is None else m[0][:, mask].mean()
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
-    l1 = (render - target).abs().mean()
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2,
+                     mask: torch.Tensor | None = None) -> torch.Tensor:
+    """0.8 L1 + 0.2 (1 - SSIM) of [H, W, 3] images (``ssim_weight``); with ``mask`` [H, W] bool, over the kept
+    pixels only (0, still a function of ``render``, when none is kept). The target's pixels outside the mask are
+    replaced by the render's (detached) first, so that no SSIM window near the mask's edge sees what the
+    photograph shows there: the loss does not depend on it at all."""
+    if mask is not None and not bool(mask.any()):
+        return render.sum() * 0.0
+    if mask is not None:
+        target = torch.where(mask[..., None], target, render.detach())
+    diff = (render - target).abs()
+    l1 = diff.mean() if mask is None else diff[mask].mean()
     if ssim_weight <= 0:
         return l1
-    return (1 - ssim_weight) * l1 + ssim_weight * (1 - _ssim(render, target))
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - _ssim(render, target, mask))
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """PSNR in dB of [H, W, 3] images in [0, 1] (``a`` clamped); with ``mask`` [H, W] bool, over the kept pixels
+    (NaN when none is kept)."""
+    sq = (a.clamp(0, 1) - b) ** 2
+    if mask is not None:
+        if not bool(mask.any()):
+            return float("nan")
+        sq = sq[mask]
+    mse = float(sq.mean())
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+def _resize_mask(mask: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[h, w] bool -> [height, width] bool (nearest)."""
+    if tuple(mask.shape) == (height, width):
+        return mask
+    return F.interpolate(mask[None, None].float(), size=(height, width), mode="nearest")[0, 0] > 0.5
 
 
 def _check_image(image, name="image") -> torch.Tensor:
@@ -250,9 +276,15 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         max_side: int | None = None, coarse_frac: float | None = None, lr: dict | None = None,
         pose_lr: tuple = (1e-3, 3e-4), ssim_weight: float = 0.2, densify: bool = False,
         densify_every: int = 100, densify_grad: float = 2e-4, background=None, backend: str = "auto",
-        seed: int = 0, progress: bool = True, time_budget: float | None = None, callback=None) -> SplatFit:
+        seed: int = 0, progress: bool = True, time_budget: float | None = None, callback=None,
+        masked: bool = True) -> SplatFit:
     """Refine ``gaussians`` (and, with ``optimize_poses``, the cameras of views 1..N-1) against the
     reconstruction's images.
+
+    ``masked`` (default): the pixels ``recon.masks`` leaves out (the user's masks, e.g. people or cars that move
+    between the photographs, and any confidence filter the reconstruction keeps) are left out of the photometric
+    loss, as they are out of the initial points, so the Gaussians are not pulled towards them; False fits every
+    pixel. ``history`` then reports each step's PSNR over the kept pixels.
 
     steps / max_side (working resolution, long side) / coarse_frac (fraction of steps at half
     resolution) default to ``auto_budget``. ``lr`` overrides per-parameter learning rates (keys
@@ -269,6 +301,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
                        ssim_weight=ssim_weight, densify_every=densify_every, densify_grad=densify_grad,
                        time_budget=time_budget)
     seed = check_seed(seed)
+    if not isinstance(masked, bool):
+        raise ShapeError(f"masked expected True or False, got {masked!r}")
     t_start = time.perf_counter()
     device = torch.device("cpu")
     n, h, w = recon.depth_z.shape
@@ -287,6 +321,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     K_map = recon.K_map.float()
     data = {lv: ([_resize_image(recon.images[i].float(), *lv) for i in range(n)],
                  scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
+    use_masks = masked and recon.masks is not None and not bool(recon.masks.all())
+    fit_masks = {lv: [_resize_mask(recon.masks[i], *lv) if use_masks else None for i in range(n)] for lv in levels}
     w2c_init = invert_rigid(recon.cam2world.float())
     g0 = gaussians.detach().to(torch.float32)
 
@@ -362,7 +398,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         out = rasterize(*_render_params(g), w2c, Ks[i], lv[0], lv[1], bg, backend=backend)
         if densify:
             out.means2d.retain_grad()
-        loss = photometric_loss(out.image, imgs[i], ssim_weight)
+        mask = fit_masks[lv][i]
+        loss = photometric_loss(out.image, imgs[i], ssim_weight, mask)
         opt.zero_grad(set_to_none=True)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)
@@ -370,7 +407,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         opt.step()
         if pose_opt is not None:
             pose_opt.step()
-        p = psnr(out.image.detach(), imgs[i])
+        p = psnr(out.image.detach(), imgs[i], mask)
         lval = float(loss.detach())
         history.append({"step": it, "view": i, "loss": lval, "psnr": p, "res": lv})
         if bar is not None:
@@ -406,7 +443,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     cfg = {"steps": steps, "steps_run": len(history), "max_side": max_side, "levels": levels,
            "coarse_frac": coarse_frac, "extent": extent, "depth_scale": depth_scale, "backend": backend,
            "n_gaussians": len(final),
-           "optimize_poses": optimize_poses}
+           "optimize_poses": optimize_poses, "masked": use_masks}
     return SplatFit(gaussians=final, cam2world=c2w, cam2world_init=recon.cam2world.float().clone(),
                     K=K_map, size=(w, h), history=history, seconds=time.perf_counter() - t_start, config=cfg)
 

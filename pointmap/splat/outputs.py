@@ -151,7 +151,8 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
     rdir = out_dir / "renders"
     for i in range(n):
         img = res.render(res.cam2world[i], K[i], w, h)
-        train_psnr.append(psnr(img, recon.images[i].float()))
+        # over the pixels the fit was fitted to (the masks', when the fit used them)
+        train_psnr.append(psnr(img, recon.images[i].float(), recon.masks[i] if res.config.get("masked") else None))
         save_png(torch.cat([img, recon.images[i].float()], dim=1), rdir / f"train_{i:03d}.png")
     for i in range(n - 1):
         c2w = interpolate_pose(res.cam2world[i], res.cam2world[i + 1], 0.5)

@@ -159,3 +159,62 @@ def test_run_refuses_an_orbit_it_cannot_write_before_it_fits_or_writes_anything(
     with pytest.raises(ShapeError, match="seed expected an int"):
         run(d["recon"], tmp_path / "out", steps=2, seed="0", quiet=True)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_masked_photometric_loss_is_the_plain_one_over_the_kept_pixels():
+    from pointmap.splat.fit import _ssim, photometric_loss
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(24, 32, 3, generator=g), torch.rand(24, 32, 3, generator=g)
+    everything = torch.ones(24, 32, dtype=torch.bool)
+    assert torch.allclose(photometric_loss(a, b, 0.2, everything), photometric_loss(a, b, 0.2))
+    assert psnr(a, b, everything) == pytest.approx(psnr(a, b))
+    left = torch.zeros(24, 32, dtype=torch.bool)
+    left[:, :16] = True
+    # by hand: the L1 of the kept pixels, and the mean over them of the SSIM map against a target whose other
+    # pixels are the render's (so no window sees them)
+    import kornia
+
+    b_kept = b.clone()
+    b_kept[:, 16:] = a[:, 16:]
+    ssim_map = kornia.metrics.ssim(a.permute(2, 0, 1)[None], b_kept.permute(2, 0, 1)[None], 11)[0]
+    expected = 0.8 * (a[:, :16] - b[:, :16]).abs().mean() + 0.2 * (1 - ssim_map[:, :, :16].mean())
+    assert torch.allclose(photometric_loss(a, b, 0.2, left), expected, atol=1e-6)
+    assert torch.allclose(_ssim(a, b_kept, left), ssim_map[:, :, :16].mean())
+    painted = b.clone()
+    painted[:, 16:] = 0.0  # what the photograph shows outside the mask does not count
+    assert torch.equal(photometric_loss(a, painted, 0.2, left), photometric_loss(a, b, 0.2, left))
+    mse = float(((a[:, :16] - b[:, :16]) ** 2).mean())
+    assert psnr(a, b, left) == pytest.approx(-10 * np.log10(mse))
+    # nothing kept: a zero loss that still back-propagates (a view masked out entirely), and no PSNR
+    r = a.clone().requires_grad_(True)
+    loss = photometric_loss(r, b, 0.2, torch.zeros(24, 32, dtype=torch.bool))
+    loss.backward()
+    assert float(loss) == 0.0 and r.grad is not None and np.isnan(psnr(a, b, left & ~left))
+
+
+def test_a_masked_fit_ignores_what_the_photographs_show_outside_the_masks(tiny):
+    import dataclasses
+
+    d, _, _ = tiny
+    recon = d["recon"]
+    masks = torch.ones(recon.images.shape[:3], dtype=torch.bool)
+    masks[1, 20:50, 30:70] = False  # a passer-by in view 1, masked out by the user
+    painted = recon.images.clone()
+    painted[1, 20:50, 30:70] = torch.tensor([1.0, 0.0, 0.0], dtype=painted.dtype)
+    clean = dataclasses.replace(recon, masks=masks)
+    walked = dataclasses.replace(recon, masks=masks, images=painted)
+    g = init_from(clean, max_gaussians=800)
+
+    def run_fit(r, **kw):
+        torch.manual_seed(0)
+        return fit(r, g, steps=12, max_side=96, coarse_frac=0.0, progress=False, **kw)
+
+    a, b = run_fit(clean), run_fit(walked)
+    assert a.config["masked"] and torch.equal(a.gaussians.sh_dc, b.gaussians.sh_dc)
+    assert torch.equal(a.gaussians.means, b.gaussians.means) and torch.equal(a.cam2world, b.cam2world)
+    # masked=False fits the painted pixels too: the colours move
+    c, e = run_fit(clean, masked=False), run_fit(walked, masked=False)
+    assert not c.config["masked"] and not torch.equal(c.gaussians.sh_dc, e.gaussians.sh_dc)
+    with pytest.raises(ShapeError, match="masked expected True or False, got 'yes'"):
+        fit(recon, g, steps=1, progress=False, masked="yes")
