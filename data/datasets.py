@@ -152,6 +152,14 @@ def _warp_corr(corr, A1, A2, out_w, out_h, src_h, src_w):
     return out
 
 
+def _landing_pixel(corr, out_w, out_h):
+    """(ui, vi) int64 [H, W]: the view-2 pixel each view-1 correspondence lands on (rounded, clipped into the
+    image; NaN read as 0, so mask those out with ``np.isfinite(corr)``)."""
+    ui = np.clip(np.rint(np.nan_to_num(corr[..., 0])), 0, out_w - 1).astype(np.int64)
+    vi = np.clip(np.rint(np.nan_to_num(corr[..., 1])), 0, out_h - 1).astype(np.int64)
+    return ui, vi
+
+
 def _photometric(rng, rgb):
     x = rgb.astype(np.float32) / 255.0
     if rng.random() < 0.8:  # colour jitter
@@ -402,8 +410,7 @@ class PairDataset(Dataset):
         u, v = corr[..., 0], corr[..., 1]
         with np.errstate(invalid="ignore"):
             inside = (u > -0.5) & (u < out_w - 0.5) & (v > -0.5) & (v < out_h - 0.5) & (d1 > 0)
-        ui = np.clip(np.rint(np.nan_to_num(u)), 0, out_w - 1).astype(np.int64)
-        vi = np.clip(np.rint(np.nan_to_num(v)), 0, out_h - 1).astype(np.int64)
+        ui, vi = _landing_pixel(corr, out_w, out_h)
         inside &= d2[vi, ui] > 0
         corr[~inside] = np.nan
         if self.augment:
@@ -421,10 +428,8 @@ class PairDataset(Dataset):
                     corr[~kept1] = np.nan
                 if rng.random() < self.pad_p:
                     f2, d2, kept2 = _letterbox(rng, f2, d2)
-                    lands = np.isfinite(corr).all(-1)
-                    ui = np.clip(np.rint(np.nan_to_num(corr[..., 0])), 0, out_w - 1).astype(np.int64)
-                    vi = np.clip(np.rint(np.nan_to_num(corr[..., 1])), 0, out_h - 1).astype(np.int64)
-                    corr[lands & ~kept2[vi, ui]] = np.nan
+                    ui, vi = _landing_pixel(corr, out_w, out_h)
+                    corr[np.isfinite(corr).all(-1) & ~kept2[vi, ui]] = np.nan
         else:
             f1, f2 = rgb1.astype(np.float32) / 255.0, rgb2.astype(np.float32) / 255.0
         w2c1 = _inv(T1)

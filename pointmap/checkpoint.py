@@ -445,6 +445,11 @@ def shipped_path(src) -> Path | None:
     return None
 
 
+def _is_onnx_export(path: Path) -> bool:
+    """An .onnx file, or a folder holding one (``python -m export``'s output)."""
+    return path.suffix == ".onnx" or (path.is_dir() and any(path.glob("*.onnx")))
+
+
 def load_model(src, device="cpu", **kwargs):
     """Load a model from a preset name with shipped weights, our .safetensors, an official .pth, or an
     ONNX export (file or directory): ``pm.load_model("small")``. Returns an eval-mode model on ``device``.
@@ -452,8 +457,7 @@ def load_model(src, device="cpu", **kwargs):
     ``kwargs`` go to the ONNX runner (e.g. ``providers``). Raises CheckpointError with the reason.
     """
     # before any file is read; an ONNX export's device is onnxruntime's to find, so only its name is checked there
-    onnx = isinstance(src, (str, os.PathLike)) and (Path(src).suffix == ".onnx" or
-                                                    (Path(src).is_dir() and any(Path(src).glob("*.onnx"))))
+    onnx = isinstance(src, (str, os.PathLike)) and _is_onnx_export(Path(src))
     device = check_device(device, "load_model: device", available=not onnx)
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
@@ -470,7 +474,7 @@ def load_model(src, device="cpu", **kwargs):
     path = Path(src)
     if not path.exists():
         raise CheckpointError(f"checkpoint not found: {path}")
-    if path.suffix == ".onnx" or (path.is_dir() and any(path.glob("*.onnx"))):
+    if onnx:
         from pointmap.runtime.onnx import load_onnx
 
         return load_onnx(path, device=device, **kwargs)  # a GPU device selects onnxruntime's GPU providers

@@ -90,31 +90,24 @@ def check_device(device, name: str = "device", *, available: bool = True) -> str
     if not isinstance(device, str):
         raise PointmapError(f"{name} expected a string (auto, cpu, cuda, cuda:N or mps) or a torch.device, got "
                             f"{type(device).__name__}")
-    text = device.strip().lower()
-    if text == "cpu:0":
-        text = "cpu"
-    if not available:
-        if text in ("auto", "cpu", "cuda", "mps", "mps:0") or re.fullmatch(r"cuda:\d+", text):
-            return "mps" if text == "mps:0" else text
+    text = {"cpu:0": "cpu", "mps:0": "mps"}.get(device.strip().lower(), device.strip().lower())
+    if not (text in ("auto", "cpu", "cuda", "mps") or re.fullmatch(r"cuda:\d+", text)):
         raise PointmapError(f"{name} expected auto, cpu, cuda, cuda:N or mps, got {device!r}")
+    if not available:
+        return text
     cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
     mps = getattr(torch.backends, "mps", None)
     has_mps = bool(mps is not None and mps.is_available())
     if text == "auto":
         return "cuda" if cuda else "mps" if has_mps else "cpu"
-    if text == "cpu":
-        return text
-    if text == "cuda" or re.fullmatch(r"cuda:\d+", text):
+    if text.startswith("cuda"):
         k = int(text.split(":")[1]) if ":" in text else 0
         if k >= cuda:
             raise PointmapError(f"{name} {device}: torch sees {cuda} CUDA device(s) here"
                                 f"{'' if cuda else ' (torch.cuda.is_available() is False)'}; use cpu or auto")
-        return text
-    if text in ("mps", "mps:0"):
-        if not has_mps:
-            raise PointmapError(f"{name} {device}: torch's MPS backend is not available here; use cpu or auto")
-        return "mps"
-    raise PointmapError(f"{name} expected auto, cpu, cuda, cuda:N or mps, got {device!r}")
+    elif text == "mps" and not has_mps:
+        raise PointmapError(f"{name} {device}: torch's MPS backend is not available here; use cpu or auto")
+    return text
 
 
 def check_seed(seed, name: str = "seed") -> int:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pointmap.errors import ShapeError, check_seed, is_int, is_number
+from pointmap.errors import ShapeError, check_device, check_seed, is_int, is_number
 from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, scale_intrinsics
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
@@ -38,8 +38,6 @@ from pointmap.splat.rasterize import rasterize
 def auto_budget(n_views: int, map_size: tuple[int, int], device: str | torch.device = "cpu") -> dict:
     """Working resolution (long side), steps and Gaussian count for a scene of ``n_views`` views whose
     maps are ``map_size`` = (width, height)."""
-    from pointmap.errors import check_device
-
     long_side = max(map_size)
     if torch.device(check_device(device, "auto_budget: device")).type == "cuda":
         return {"max_side": min(long_side, 512), "steps": 1000, "max_gaussians": None, "coarse_frac": 0.0}
@@ -81,9 +79,9 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
     pixels only (0, still a function of ``render``, when none is kept). The target's pixels outside the mask are
     replaced by the render's (detached) first, so that no SSIM window near the mask's edge sees what the
     photograph shows there: the loss does not depend on it at all."""
-    if mask is not None and not bool(mask.any()):
-        return render.sum() * 0.0
     if mask is not None:
+        if not bool(mask.any()):
+            return render.sum() * 0.0
         target = torch.where(mask[..., None], target, render.detach())
     diff = (render - target).abs()
     l1 = diff.mean() if mask is None else diff[mask].mean()
