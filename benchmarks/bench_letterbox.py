@@ -4,8 +4,10 @@ Each square render's central 4:3 band (landscape: the middle rows; portrait: the
 photograph. "crop" is what ``load_images`` does at the square sizes: the band's centre square, resized to the
 network's size (a landscape + portrait pair: both cut to their common square). "pad" letterboxes the band at the
 network's size, the pad filled with one grey value and its confidence zeroed before the pose is taken, as VGGT
-pads. The pose is the pointmaps' (``pm.relative_pose`` both ways); the truth is the render's. A row for the whole
-square render gives the ceiling both approaches lose from.
+pads. "whole" gives the network the band itself at its own shape (its short side cut to whole patches: 224 x 160
+at 224), as ``load_images`` prepares photographs at the non-square sizes and as ``reconstruct`` runs a landscape +
+portrait pair (each view at its own shape). The pose is the pointmaps' (``pm.relative_pose`` both ways); the truth
+is the render's. A row for the whole square render gives the ceiling every approach loses from.
 
     python benchmarks/bench_letterbox.py --data HELDOUT_SHARDS --model small [--pairs 100] [--pad-values 0,0.5]
 """
@@ -50,6 +52,13 @@ def crop_to(img: torch.Tensor, S: int, side: int | None = None) -> torch.Tensor:
     return F.interpolate(c[None], size=(S, S), mode="bicubic", align_corners=False, antialias=True)[0].clamp(0, 1)
 
 
+def whole(img: torch.Tensor, patch: int = 16) -> torch.Tensor:
+    """[3, h, w] centre-cropped to whole patches on both sides (no resize)."""
+    h, w = img.shape[-2:]
+    hh, ww = h // patch * patch, w // patch * patch
+    return img[:, (h - hh) // 2:(h - hh) // 2 + hh, (w - ww) // 2:(w - ww) // 2 + ww]
+
+
 def pad_to(img: torch.Tensor, S: int, value: float) -> tuple[torch.Tensor, torch.Tensor]:
     """[3, h, w] centred on an S x S canvas of ``value``; returns (image, [S, S] float mask, 1 on the image)."""
     h, w = img.shape[-2:]
@@ -92,9 +101,10 @@ def run(model, dataset, n_pairs: int, pad_values: list[float]) -> dict:
             o1, o2 = (("landscape", "landscape"), ("portrait", "portrait"), ("landscape", "portrait"))[
                 COMBOS.index(combo)]
             b1, b2 = band(v1["img"], o1), band(v2["img"], o2)
-            side = min(*b1.shape[-2:], *b2.shape[-2:])  # the square both contain (crop_to_common)
+            side = min(*b1.shape[-2:], *b2.shape[-2:])  # the square both contain
             out.setdefault((combo, "crop"), []).append(
                 pair_errors(model, crop_to(b1, S, side), crop_to(b2, S, side), None, None, gt))
+            out.setdefault((combo, "whole"), []).append(pair_errors(model, whole(b1), whole(b2), None, None, gt))
             for value in pad_values:
                 (a, ma), (b, mb) = pad_to(b1, S, value), pad_to(b2, S, value)
                 out.setdefault((combo, f"pad {value:g}"), []).append(pair_errors(model, a, b, ma, mb, gt))
@@ -107,7 +117,8 @@ def main(argv=None) -> int:
     p.add_argument("--model", default="small")
     p.add_argument("--pairs", type=int, default=100)
     p.add_argument("--size", type=int, default=None, help="render size read (default: the model's training size)")
-    p.add_argument("--pad-values", default="0,0.5", help="grey levels in [0, 1] to pad with, comma-separated")
+    p.add_argument("--pad-values", default="0,0.5", help="grey levels in [0, 1] to pad with, comma-separated ('' for "
+                   "no padded rows)")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
     try:

@@ -190,24 +190,3 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) ->
     if not views:
         raise ImageError("load_images expected at least one image, got none")
     return views
-
-
-def crop_to_common(views: list[View]) -> tuple[list[View], tuple[int, int]]:
-    """Centre-crop every view to the largest (h, w) they all contain (whole patches, since each side is), so
-    that images of different sizes or orientations (portrait and landscape) can form one Reconstruction;
-    ``map_from_original`` follows each crop, so intrinsics stay exact in original pixels. Returns (views, (h, w));
-    views already of one shape are returned as they are."""
-    if not views:
-        raise ImageError("crop_to_common expected at least one view, got none")
-    h = min(v.shape[0] for v in views)
-    w = min(v.shape[1] for v in views)
-    out = []
-    for v in views:
-        dy, dx = (v.shape[0] - h) // 2, (v.shape[1] - w) // 2
-        if (dy, dx) == (0, 0) and v.shape == (h, w):
-            out.append(v)
-            continue
-        sx, sy, left, top = v.map_from_original
-        out.append(View(img=v.img[:, dy: dy + h, dx: dx + w].contiguous(), original_size=v.original_size,
-                        map_from_original=(sx, sy, left + dx, top + dy), name=v.name, index=v.index))
-    return out, (h, w)

@@ -53,7 +53,7 @@ QUERY_CHUNK = 8  # queries predicted together by localize (their pairs' descript
 
 def reference_views(recon: Reconstruction) -> list[View]:
     """The reconstruction's own network inputs as Views (the pixel grid its depth maps live on)."""
-    return [View(img=recon.images[k].permute(2, 0, 1).float().contiguous(), original_size=tuple(recon.original_sizes[k]),
+    return [View(img=recon.crop(recon.images, k).permute(2, 0, 1).float().contiguous(), original_size=tuple(recon.original_sizes[k]),
                  map_from_original=tuple(float(x) for x in recon.map_from_original[k]), name=recon.names[k], index=k)
             for k in range(len(recon))]
 
@@ -65,9 +65,8 @@ def query_views(recon: Reconstruction, images) -> list[View]:
     images = list(images)
     if images and all(isinstance(v, View) for v in images):
         return images
-    h, w = recon.images.shape[1:3]
-    size = (recon.info.get("pipeline") or {}).get("size") or max(h, w)
-    return load_images(images, size=int(size), square_ok=h == w)
+    size = (recon.info.get("pipeline") or {}).get("size") or max(max(s) for s in recon.map_sizes)
+    return load_images(images, size=int(size), square_ok=any(vw == vh for vw, vh in recon.map_sizes))
 
 
 @torch.inference_mode()
@@ -83,11 +82,11 @@ def depth_scale(recon: Reconstruction, ref: int, pred, min_conf: float = 0.0) ->
     """Reconstruction units per prediction unit: the median over the reference's valid pixels of its depth in the
     reconstruction over the pair's view-1 depth (same pixel grid). NaN when fewer than 16 pixels agree."""
     z_pred = pred.pts1_cam1[0, ..., 2].double()
-    z_rec = recon.depth_z[ref].double()
+    z_rec = recon.crop(recon.depth_z, ref).double()
     if z_pred.shape != z_rec.shape:
         raise ShapeError(f"the pair's view-1 map is {list(z_pred.shape)} but reference {ref}'s depth is "
                          f"{list(z_rec.shape)}: the reference must be paired at its own network size")
-    ok = recon.valid(min_conf)[ref] & (z_pred > 0) & torch.isfinite(z_pred)
+    ok = recon.crop(recon.valid(min_conf), ref) & (z_pred > 0) & torch.isfinite(z_pred)
     if int(ok.sum()) < 16:
         return float("nan")
     return float((z_rec[ok] / z_pred[ok]).median())

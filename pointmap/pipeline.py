@@ -16,6 +16,7 @@ import torch
 from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.io.points import check_conf_filter, confidence_mask
+from pointmap.reconstruction import to_canvas
 
 # Measured on the 2-core development VM (docs/alignment.md, "Benchmarks"); rough, CPU only.
 ALIGN_SECONDS_PER_EDGE_PIXEL_ITER = 6e-8
@@ -133,8 +134,9 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
             "memory_gb": (preds_bytes + stack_bytes + chunk_bytes + n_images * P * 200) / 1e9}
 
 
-def masks_to_maps(masks, views) -> torch.Tensor:
-    """Per-image masks (True = keep) at the ORIGINAL size (H, W) or at the map size -> [N, h, w] bool."""
+def masks_to_maps(masks, views) -> list:
+    """Per-image masks (True = keep) at the ORIGINAL size (H, W) or at the map size -> one [h, w] bool map per
+    image, at its own map size."""
     from pointmap.align.inputs import as_mask
 
     if not hasattr(masks, "__len__") or isinstance(masks, (str, bytes)):
@@ -156,7 +158,7 @@ def masks_to_maps(masks, views) -> torch.Tensor:
         u = ((torch.arange(w) + 0.5 + left) / sx - 0.5).round().long().clamp(0, W - 1)
         vv = ((torch.arange(h) + 0.5 + top) / sy - 0.5).round().long().clamp(0, H - 1)
         out.append(m[vv][:, u])
-    return torch.stack(out)
+    return out
 
 
 def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> None:
@@ -187,8 +189,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         (``pairs_from_similarity``; for photos in no particular order), or a list / [M, 2] array of (i, j) image
         index pairs (``pairs_from_list``: connected; recorded as the graph "given")
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
-        Images of different sizes or orientations are centre-cropped to the largest shape they all contain
-        (``crop_to_common``; reported unless ``quiet``)
+        Images of different sizes or orientations (portrait among landscape) are taken whole: each pair is
+        inferred at its images' own shapes and the Reconstruction holds the views on one canvas
+        (``recon.map_sizes``; the padding is never a point)
     K / cam2world / pose_mask: known intrinsics (ORIGINAL pixels) / poses, as ``global_align`` takes them
     masks: optional per-image bool masks (True = keep), original or map size; masked pixels are left
         out of the alignment and of the exports
@@ -207,7 +210,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     """
     from pointmap.checkpoint import model_input_size
     from pointmap.errors import ShapeError, check_model_device, is_int
-    from pointmap.images import crop_to_common, load_images
+    from pointmap.images import load_images
     from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs
 
@@ -231,12 +234,6 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     cfg = align or AlignConfig(quiet=quiet)
     size = model_input_size(model) if size is None else size
     views = load_images(paths_or_arrays, size=size)
-    shapes = sorted({v.shape for v in views})
-    if len(shapes) > 1:
-        views, hw = crop_to_common(views)
-        if not quiet:
-            print(f"pointmap: the images have {len(shapes)} network shapes (h, w) {shapes}; each is centre-cropped "
-                  f"to {hw}, the largest all contain", file=sys.stderr)
     n = len(views)
     if n < 2:
         raise GraphError(f"reconstruct needs at least 2 images, got {n}")
@@ -271,7 +268,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     else:
         graph = auto_graph(n) if graph == "auto" else graph
         pairs = make_pairs(n, graph)
-    cost = estimate_cost(n, len(pairs), views[0].shape, model, cfg, device, epipolar, refine, retrieval)
+    largest = max((v.shape for v in views), key=lambda hw: hw[0] * hw[1])  # images of several sizes: the upper bound
+    cost = estimate_cost(n, len(pairs), largest, model, cfg, device, epipolar, refine, retrieval)
     if cache is not None:  # pairs already on disk cost a read, not the network: the estimate says so
         from pointmap.inference import directed
 
@@ -326,8 +324,13 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
                                fixed_intrinsics=fixed_K)
         lap("sparse")
-    # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it down)
-    keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=user_masks)
+    # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it
+    # down), on the views' own pixels (not a canvas's padding)
+    within = recon.regions if recon.padded else None
+    if user_masks is not None:
+        kept = to_canvas(user_masks, fill=False)[0]
+        within = kept if within is None else kept & within
+    keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=within)
     recon.masks = keep
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None

@@ -52,6 +52,7 @@ class Reconstruction:
     original_sizes: list | None = None
     names: list | None = None
     masks: torch.Tensor | None = None
+    map_sizes: list | None = None
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -108,6 +109,13 @@ class Reconstruction:
             raise ShapeError(f"masks expected [{n}, {h}, {w}], got {list(self.masks.shape)}")
         if self.masks is not None and self.masks.dtype != torch.bool:
             raise ShapeError(f"masks expected dtype bool (True: keep the pixel), got {self.masks.dtype}")
+        sizes = [(w, h)] * n if self.map_sizes is None else self.map_sizes
+        if not (hasattr(sizes, "__len__") and len(sizes) == n and all(
+                hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) for x in s) and 0 < s[0] <= w and 0 < s[1] <= h
+                for s in sizes)):
+            raise ShapeError(f"map_sizes expected {n} (width, height) pairs of ints within the {w}x{h} canvas, got "
+                             f"{list(sizes)[:4] if hasattr(sizes, '__len__') else type(sizes).__name__}")
+        self.map_sizes = [(int(a), int(b)) for a, b in sizes]
         pinhole = is_pinhole_K(self.K)
         if not bool(pinhole.all()):
             bad = [int(i) for i in (~pinhole).nonzero().flatten()]
@@ -122,6 +130,27 @@ class Reconstruction:
 
     def __len__(self) -> int:
         return int(self.depth_z.shape[0])
+
+    @property
+    def padded(self) -> bool:
+        """Whether some view is smaller than the canvas (images of different sizes)."""
+        h, w = self.depth_z.shape[1:]
+        return any(s != (w, h) for s in self.map_sizes)
+
+    @property
+    def regions(self) -> torch.Tensor:
+        """[N, h, w] bool: each view's own pixels (False on the canvas's padding; all True unless ``padded``)."""
+        n, h, w = self.depth_z.shape
+        out = torch.zeros(n, h, w, dtype=torch.bool)
+        for k, (vw, vh) in enumerate(self.map_sizes):
+            out[k, :vh, :vw] = True
+        return out
+
+    def crop(self, maps: torch.Tensor, k: int) -> torch.Tensor:
+        """View ``k``'s own pixels of a per-view canvas map ``maps`` [N, h, w, ...] (e.g. ``recon.images``):
+        [h_k, w_k, ...]."""
+        vw, vh = self.map_sizes[k]
+        return maps[k, :vh, :vw]
 
     @property
     def K_map(self) -> torch.Tensor:
@@ -140,10 +169,13 @@ class Reconstruction:
         return self.images
 
     def valid(self, min_conf: float = 0.0) -> torch.Tensor:
-        """[N, h, w] bool: depth present, confidence above ``min_conf``, inside the user mask."""
+        """[N, h, w] bool: depth present, confidence above ``min_conf``, inside the user mask and the view's own
+        pixels (``regions``)."""
         ok = (self.depth_z > 0) & (self.conf > min_conf)
         if self.masks is not None:
             ok = ok & self.masks
+        if self.padded:
+            ok = ok & self.regions
         return ok
 
     def transformed(self, scale: float, R, t) -> Reconstruction:
@@ -177,6 +209,25 @@ class Reconstruction:
         from pointmap.io import save_reconstruction
 
         return save_reconstruction(self, out_dir, formats=formats, **kwargs)
+
+
+def to_canvas(maps: list, fill=0) -> tuple[torch.Tensor, list]:
+    """Per-view maps [h_k, w_k, ...] of possibly different sizes -> one [N, h, w, ...] tensor (h, w the largest
+    of each), each map at the top-left (so its pixel coordinates, and its intrinsics, stay as they were) and
+    ``fill`` elsewhere; with the (width, height) of each, ``Reconstruction.map_sizes``."""
+    if not maps:
+        raise ShapeError("to_canvas expected at least one map, got none")
+    if len({(m.dtype, tuple(m.shape[2:])) for m in maps}) != 1:
+        raise ShapeError(f"to_canvas expected maps of one dtype and trailing shape, got "
+                         f"{sorted({(str(m.dtype), tuple(m.shape)) for m in maps})[:4]}")
+    sizes = [(int(m.shape[1]), int(m.shape[0])) for m in maps]
+    h, w = max(s[1] for s in sizes), max(s[0] for s in sizes)
+    if all(s == (w, h) for s in sizes):
+        return torch.stack(maps), sizes
+    out = torch.full((len(maps), h, w, *maps[0].shape[2:]), fill, dtype=maps[0].dtype)
+    for k, m in enumerate(maps):
+        out[k, :m.shape[0], :m.shape[1]] = m
+    return out, sizes
 
 
 def K_to_map(K: torch.Tensor, map_from_original: torch.Tensor) -> torch.Tensor:

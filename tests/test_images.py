@@ -99,23 +99,6 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
         pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=500)
 
 
-def test_crop_to_common_cuts_portrait_and_landscape_to_one_shape_and_keeps_the_transform_exact():
-    from pointmap.images import crop_to_common
-
-    land, port = np.zeros((480, 640, 3), np.uint8), np.zeros((640, 480, 3), np.uint8)
-    land[300:304, 400:404] = 255
-    port[200:204, 100:104] = 255
-    views, hw = crop_to_common(pm.load_images([land, port], size=512))
-    assert hw == (384, 384) and [v.shape for v in views] == [(384, 384)] * 2
-    for v, (x, y) in zip(views, [(401.5, 301.5), (101.5, 201.5)]):  # each dot lands where the transform says
-        sx, sy, left, top = v.map_from_original
-        ys, xs = np.nonzero(v.img[0].numpy() > 0.5)
-        assert abs(xs.mean() - ((x + 0.5) * sx - 0.5 - left)) < 0.5
-        assert abs(ys.mean() - ((y + 0.5) * sy - 0.5 - top)) < 0.5
-    same = pm.load_images([land, land], size=512)
-    assert crop_to_common(same)[0][0] is same[0]
-
-
 def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the_conversion_to_use():
     rng = np.random.default_rng(0)
     arr = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)

@@ -36,7 +36,7 @@ from pointmap.align.objective import chunk_size_for
 from pointmap.align.params import AlignParams
 from pointmap.errors import GraphError, PointmapError, ShapeError, is_int, is_number
 from pointmap.geometry.focal import focal_from_pointmap
-from pointmap.reconstruction import K_to_original, Reconstruction
+from pointmap.reconstruction import K_to_original, Reconstruction, to_canvas
 
 INITS = ("averaging", "mst")
 
@@ -135,7 +135,9 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                  pose_mask=None, quiet: bool | None = None) -> Reconstruction:
     """Align pairwise pointmaps into one scene.
 
-    views: list of ``pm.View`` (or [3, h, w] images at the maps' resolution)
+    views: list of ``pm.View`` (or [3, h, w] images at the maps' resolution), of one size or several (portrait
+        among landscape: each view is aligned at its own size, and the Reconstruction holds them on one canvas,
+        ``recon.map_sizes``)
     preds: {(i, j): PairPrediction} with batch size 1, ideally both orders (as ``predict_pairs`` gives)
     K: known intrinsics in ORIGINAL image pixels: [3, 3] shared, [N, 3, 3], or {index: [3, 3]}
     cam2world: known OpenCV camera-to-world poses: [N, 4, 4] (all, or those where ``pose_mask``),
@@ -152,9 +154,6 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     if n < 2:
         raise GraphError(f"global alignment needs at least 2 images, got {n}; for a single image run the "
                          "model on (img, img) and use pred.pts1_cam1 (its own camera frame) directly")
-    if len(set(info.shapes)) != 1:
-        raise ShapeError("images of different sizes cannot form one Reconstruction yet (it stores "
-                         f"[N, h, w] maps); got sizes (h, w) {sorted(set(info.shapes))}")
     keys = check_preds(preds, n, info.shapes)
     check_connected(n, keys)
     K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
@@ -272,13 +271,15 @@ def _build(info, c2w, intr, depths, confs, unit, known_poses, K_given, K_known, 
     for i in range(n):
         if K_known[i]:
             K_orig[i] = K_given[i].to(torch.float32)
-    depth_z = torch.stack([d * unit for d in depths]).float()
-    conf = torch.stack(confs).float()
+    # images of different sizes share one canvas, each at its top-left (Reconstruction.map_sizes); padding has
+    # no depth and no confidence
+    depth_z, map_sizes = to_canvas([(d * unit).float() for d in depths])
+    conf = to_canvas([c.float() for c in confs])[0]
     for name, t in (("cam2world", cam2world), ("K", K_orig), ("depth_z", depth_z)):
         if not torch.isfinite(t).all():
             raise PointmapError(f"alignment produced non-finite {name}; the predictions are degenerate "
                                 "(check confidences and that pairs overlap)")
-    return Reconstruction(images=torch.stack(info.images), cam2world=cam2world, K=K_orig, depth_z=depth_z,
+    return Reconstruction(images=to_canvas(info.images)[0], map_sizes=map_sizes, cam2world=cam2world, K=K_orig, depth_z=depth_z,
                           conf=conf, map_from_original=info.map_from_original.float(),
                           original_sizes=list(info.original_sizes), names=list(info.names),
                           info={"align": report})

@@ -69,7 +69,7 @@ def _unpack(m):
 
 def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed: int = 0):
     """Flatten {(i, j): matches} into tensors, keeping matches inside both images with depth at xy_i."""
-    n, h, w = recon.depth_z.shape
+    n = len(recon)
     if not isinstance(matches, dict):
         raise ShapeError(f"matches expected a dict {{(i, j): matches}}, got {type(matches).__name__}")
     for key in matches:
@@ -82,7 +82,7 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
             continue
         xy1, xy2, score = _unpack(m)
         keep = (score > cfg.min_score) & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
-        for xy in (xy1, xy2):
+        for xy, (w, h) in ((xy1, recon.map_sizes[i]), (xy2, recon.map_sizes[j])):  # inside each view's own map
             keep &= (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
         idx = keep.nonzero()[:, 0]
         if len(idx) > cfg.max_matches_per_pair:
@@ -138,7 +138,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     pose_free = torch.tensor([k not in fixed_poses for k in range(n)], dtype=torch.float64)[:, None]
     f_free = torch.tensor([cfg.optimize_focal and k not in fixed_K for k in range(n)], dtype=torch.float64)
     pp_free = torch.tensor([cfg.optimize_pp and k not in fixed_K for k in range(n)], dtype=torch.float64)[:, None]
-    size = torch.tensor([float(recon.depth_z.shape[2]), float(recon.depth_z.shape[1])], dtype=torch.float64)
+    size = torch.tensor(recon.map_sizes, dtype=torch.float64)  # [N, 2] (w, h): a principal-point step is 1% of it
     xi = torch.zeros(n, 6, dtype=torch.float64, requires_grad=True)
     dlf = torch.zeros(n, dtype=torch.float64, requires_grad=True)
     dpp = torch.zeros(n, 2, dtype=torch.float64, requires_grad=True)

@@ -34,6 +34,7 @@ def write_npz(path, recon) -> None:
         "pts_world": recon.pts_world.float().numpy(),
         "map_from_original": recon.map_from_original.float().numpy(),
         "original_sizes": np.asarray(recon.original_sizes, dtype=np.int64),
+        "map_sizes": np.asarray(recon.map_sizes, dtype=np.int64),
         "names": np.asarray(recon.names), "info_json": np.asarray(json.dumps(_jsonable(recon.info))),
     }
     if recon.masks is not None:
@@ -70,6 +71,8 @@ def load_npz(path):
             return Reconstruction(**t, original_sizes=[tuple(int(v) for v in s) for s in z["original_sizes"]],
                                   names=[str(s) for s in z["names"]],
                                   masks=torch.from_numpy(z["masks"]) if "masks" in z.files else None,
+                                  # files from before mixed sizes: every view fills the canvas
+                                  map_sizes=z["map_sizes"].tolist() if "map_sizes" in z.files else None,
                                   info=json.loads(str(z["info_json"])))
     except ShapeError as e:  # arrays that do not make a reconstruction
         raise PointmapError(f"{path}: not a valid reconstruction: {e}") from None

@@ -282,7 +282,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     ``masked`` (default): the pixels ``recon.masks`` leaves out (the user's masks, e.g. people or cars that move
     between the photographs, and any confidence filter the reconstruction keeps) are left out of the photometric
     loss, as they are out of the initial points, so the Gaussians are not pulled towards them; False fits every
-    pixel. ``history`` then reports each step's PSNR over the kept pixels.
+    pixel. ``history`` then reports each step's PSNR over the kept pixels. The canvas padding of a
+    reconstruction from images of several sizes (``recon.map_sizes``) is never fitted, masked or not.
 
     steps / max_side (working resolution, long side) / coarse_frac (fraction of steps at half
     resolution) default to ``auto_budget``. ``lr`` overrides per-parameter learning rates (keys
@@ -319,8 +320,12 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     K_map = recon.K_map.float()
     data = {lv: ([_resize_image(recon.images[i].float(), *lv) for i in range(n)],
                  scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
-    use_masks = masked and recon.masks is not None and not bool(recon.masks.all())
-    fit_masks = {lv: [_resize_mask(recon.masks[i], *lv) if use_masks else None for i in range(n)] for lv in levels}
+    keep = recon.masks if masked else None
+    if recon.padded:  # images of several sizes: each view's canvas padding is never fitted
+        keep = recon.regions if keep is None else keep & recon.regions
+    use_masks = keep is not None and not bool(keep.all())
+    user_masked = masked and recon.masks is not None and not bool(recon.masks.all())
+    fit_masks = {lv: [_resize_mask(keep[i], *lv) if use_masks else None for i in range(n)] for lv in levels}
     w2c_init = invert_rigid(recon.cam2world.float())
     g0 = gaussians.detach().to(torch.float32)
 
@@ -441,7 +446,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     cfg = {"steps": steps, "steps_run": len(history), "max_side": max_side, "levels": levels,
            "coarse_frac": coarse_frac, "extent": extent, "depth_scale": depth_scale, "backend": backend,
            "n_gaussians": len(final),
-           "optimize_poses": optimize_poses, "masked": use_masks}
+           "optimize_poses": optimize_poses, "masked": user_masked}
     return SplatFit(gaussians=final, cam2world=c2w, cam2world_init=recon.cam2world.float().clone(),
                     K=K_map, size=(w, h), history=history, seconds=time.perf_counter() - t_start, config=cfg)
 

@@ -150,17 +150,19 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
     train_psnr = []
     rdir = out_dir / "renders"
     for i in range(n):
-        img = res.render(res.cam2world[i], K[i], w, h)
+        vw, vh = recon.map_sizes[i]  # each view at its own size (a canvas of several sizes pads the smaller)
+        img = res.render(res.cam2world[i], K[i], vw, vh)
+        photo = recon.crop(recon.images, i).float()
         # over the pixels the fit was fitted to (the masks', when the fit used them)
-        train_psnr.append(psnr(img, recon.images[i].float(), recon.masks[i] if res.config.get("masked") else None))
-        save_png(torch.cat([img, recon.images[i].float()], dim=1), rdir / f"train_{i:03d}.png")
+        train_psnr.append(psnr(img, photo, recon.crop(recon.masks, i) if res.config.get("masked") else None))
+        save_png(torch.cat([img, photo], dim=1), rdir / f"train_{i:03d}.png")
     for i in range(n - 1):
         c2w = interpolate_pose(res.cam2world[i], res.cam2world[i + 1], 0.5)
-        save_png(res.render(c2w, K[i], w, h), rdir / f"novel_{i:03d}.png")
+        save_png(res.render(c2w, K[i], *recon.map_sizes[i]), rdir / f"novel_{i:03d}.png")
     paths["renders"] = rdir
     if orbit and orbit_frames > 0:
         center = scene_center(res)
-        frames = [res.render(T, K[0], w, h) for T in orbit_poses(res.cam2world[0], center, orbit_frames)]
+        frames = [res.render(T, K[0], *recon.map_sizes[0]) for T in orbit_poses(res.cam2world[0], center, orbit_frames)]
         paths["orbit"] = save_orbit(frames, out_dir / orbit)
     cams = {"names": list(recon.names), "cam2world_refined": res.cam2world.tolist(),
             "cam2world_init": res.cam2world_init.tolist(), "K": recon.K.float().tolist(),

@@ -63,11 +63,13 @@ def texture(pts_world: np.ndarray) -> np.ndarray:
                                  np.sin(2.7 * pts_world[..., 2] + 0.5 * pts_world[..., 0])], -1)
 
 
-def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0)):
-    """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal."""
+def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0), shapes=None):
+    """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal. ``shapes``: one
+    (h, w) per view (portrait among landscape); the per-view maps are then lists, not stacked arrays."""
     rng = np.random.default_rng(seed)
+    shapes = shapes or [(h, w)] * n
     cams, Ks, depths = [], [], []
-    for k in range(n):
+    for k, (h, w) in enumerate(shapes):
         ang = 2 * math.pi * k / n * 0.6 + rng.uniform(-0.1, 0.1)
         centre = np.array([3.0 * math.cos(ang), rng.uniform(-0.8, 0.8), 3.0 * math.sin(ang)])
         target = rng.uniform(-0.5, 0.5, 3)
@@ -79,11 +81,11 @@ def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=
         depths.append(ray_cast(T, K, h, w))
     cam2world = np.stack(cams)
     K = np.stack(Ks)
-    depth = np.stack(depths)
-    pts_cam = depth_to_cam(depth, K)
-    pts_world = pts_cam @ np.transpose(cam2world[:, None, :3, :3], (0, 1, 3, 2)) + cam2world[:, None, None, :3, 3]
-    images = texture(pts_world)
-    return {"cam2world": cam2world, "K": K, "depth": depth, "pts_world": pts_world, "images": images}
+    pts_world = [depth_to_cam(d[None], k[None])[0] @ T[:3, :3].T + T[:3, 3] for d, k, T in zip(depths, Ks, cams)]
+    images = [texture(p) for p in pts_world]
+    if len(set(shapes)) == 1:
+        depths, pts_world, images = np.stack(depths), np.stack(pts_world), np.stack(images)
+    return {"cam2world": cam2world, "K": K, "depth": depths, "pts_world": pts_world, "images": images}
 
 
 def depth_to_cam(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -183,9 +185,8 @@ def with_descriptors(preds, sc, dim=24, seed=0):
         desc.append(torch.from_numpy(f / np.linalg.norm(f, axis=-1, keepdims=True)).float())
     out = {}
     for (i, j), p in preds.items():
-        ones = torch.ones_like(p.conf1)
-        out[(i, j)] = dataclasses.replace(p, desc1=desc[i][None], desc2=desc[j][None], desc_conf1=ones,
-                                          desc_conf2=ones.clone())
+        out[(i, j)] = dataclasses.replace(p, desc1=desc[i][None], desc2=desc[j][None], desc_conf1=torch.ones_like(p.conf1),
+                                          desc_conf2=torch.ones_like(p.conf2))
     return out
 
 
@@ -194,8 +195,9 @@ def gt_matches(sc, i, j, step=3, outliers=0.0, seed=0, occluded: bool = False):
     ``occluded`` every point in front of camera j inside its image (hidden points still obey the epipolar
     constraint); ``outliers``: that share of xy2 moved to random pixels."""
     rng = np.random.default_rng(seed)
-    h, w = sc["depth"].shape[1:]
+    h, w = sc["depth"][i].shape  # image i's grid; matches land inside image j's own size
     v, u = np.mgrid[1:h:step, 1:w:step]
+    h, w = sc["depth"][j].shape
     pw = sc["pts_world"][i][v, u].reshape(-1, 3)
     w2c = np.linalg.inv(sc["cam2world"][j])
     pc = pw @ w2c[:3, :3].T + w2c[:3, 3]

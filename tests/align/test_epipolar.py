@@ -546,3 +546,18 @@ def test_masked_pixels_give_no_matches(mid_scene):
         masked[key] = dataclasses.replace(p, desc_conf1=c1, desc_conf2=c2)
     half = refine_epipolar(views, masked, recon, config=cfg).info["epipolar"]["matches"]
     assert 0 < half < 0.7 * full
+
+
+def test_the_stage_refines_views_of_several_sizes_and_keeps_their_canvas():
+    shapes = [(64, 96), (96, 64), (64, 96), (96, 64), (64, 96)]  # (h, w): portrait among landscape
+    sc = make_scene(5, shapes=shapes, seed=61, focal_range=(76.0, 104.0))
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, [(i, j) for i in range(5) for j in range(i + 1, 5)], seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    recon = global_align(views, preds, config=AlignConfig(quiet=True))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["median_residual_after"] < 0.5 * rep["median_residual_before"]
+    rot, dirs = direction_errors(out.cam2world.double().numpy(), sc["cam2world"])
+    assert rot < 15 and dirs < 15
+    assert out.map_sizes == recon.map_sizes == [(w, h) for h, w in shapes]
+    assert not (out.depth_z > 0)[~out.regions].any()

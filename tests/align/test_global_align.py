@@ -210,3 +210,19 @@ def test_a_shared_focal_is_one_parameter_that_the_loss_moves():
     uv = torch.rand(n, P, 2) * 10
     params.world_points(uv)[..., 0].sum().backward()
     assert params.log_f.grad is not None and float(params.log_f.grad.abs()) > 0
+
+
+def test_portrait_and_landscape_views_are_aligned_whole_and_held_on_one_canvas():
+    shapes = [(32, 48), (48, 32), (32, 48), (48, 32), (32, 32)]  # (h, w): landscape, portrait, square
+    sc = make_scene(5, shapes=shapes, seed=4)
+    recon = global_align(views_of(sc), gt_preds(sc, complete_pairs(5), seed=5), config=QUIET)
+    assert tuple(recon.depth_z.shape) == (5, 48, 48) and recon.map_sizes == [(w, h) for h, w in shapes]
+    rot, centre, a = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    assert rot < 0.1 and centre < 0.005, (rot, centre)
+    assert np.abs(recon.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1).max() < 0.005
+    assert np.allclose(recon.K[:, :2, 2].numpy(), sc["K"][:, :2, 2])  # each principal point at its own centre
+    for k, (h, w) in enumerate(shapes):
+        own = recon.crop(recon.depth_z, k).numpy()
+        assert own.shape == (h, w) and np.median(np.abs(own * a / sc["depth"][k] - 1)) < 1e-3
+        pad = ~recon.regions[k]
+        assert (recon.depth_z[k][pad] == 0).all() and (recon.conf[k][pad] == 0).all() and not recon.valid()[k][pad].any()

@@ -158,3 +158,24 @@ def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_nu
             localize(None, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
     loc = localize(None, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
     assert loc.ref == [3, 0]
+
+
+def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own_size(monkeypatch):
+    from pointmap.localize import reference_views
+    from pointmap.reconstruction import to_canvas
+
+    shapes = [(32, 48), (48, 32), (32, 48), (48, 32), (32, 48)]  # views 0..3 reconstructed, 4 the query
+    sc = make_scene(5, shapes=shapes, seed=7)
+    as_t = [torch.from_numpy(x).float() for x in sc["depth"][:4]]
+    depth, sizes = to_canvas(as_t)
+    recon = Reconstruction(images=to_canvas([torch.from_numpy(x).float() for x in sc["images"][:4]])[0],
+                           cam2world=torch.from_numpy(sc["cam2world"][:4]), K=torch.from_numpy(sc["K"][:4]),
+                           depth_z=depth, conf=to_canvas([torch.full_like(d, 3.0) for d in as_t])[0], map_sizes=sizes)
+    refs = reference_views(recon)
+    assert [v.shape for v in refs] == shapes[:4] and torch.equal(refs[1].img.permute(1, 2, 0),
+                                                                 torch.from_numpy(sc["images"][1]).float())
+    monkeypatch.setitem(sys.modules, "pointmap.inference", types.SimpleNamespace(
+        predict_pairs=lambda model, views, pairs, batch_size=8, **kw: gt_preds(sc, pairs, seed=3), encode_views=None))
+    query = (sc["images"][4] * 255).round().astype(np.uint8)
+    loc = localize(None, recon, [query], refs=[[1]], quiet=True)  # paired with the portrait reference
+    assert_at_true_pose(loc.cam2world[0], sc, 4, 1.0)

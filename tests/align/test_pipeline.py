@@ -18,7 +18,8 @@ from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstr
 
 @pytest.fixture
 def fake_stack(monkeypatch, request):
-    sc = make_scene(5, 32, 48, seed=51)
+    portrait = "portrait" in request.node.name  # views 1 and 3 portrait (48 high, 32 wide) among landscape
+    sc = make_scene(5, 32, 48, seed=51, shapes=[(48, 32) if k % 2 else (32, 48) for k in range(5)] if portrait else None)
     calls = {"descriptors": "descriptors" in request.node.name,
              "varied": "varied_confidences" in request.node.name}  # a little noise: confidences 3 + U(0, 1)
 
@@ -146,7 +147,7 @@ def test_masks_to_maps_from_original_size():
                        ([np.full((h, w), 0.5)], "mask 0 expected bools")):  # 0.5 was quietly True
         with pytest.raises(ValueError, match=named):
             masks_to_maps(bad, views)
-    assert masks_to_maps([(mm.numpy() * 255).astype(np.uint8)], views).equal(mm[None])  # a 0 / 255 mask image
+    assert masks_to_maps([(mm.numpy() * 255).astype(np.uint8)], views)[0].equal(mm)  # a 0 / 255 mask image
 
 
 def test_auto_graph_and_estimates():
@@ -289,15 +290,20 @@ def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
     assert calls["shapes"][0] == (16, 32)  # 48x32 by the long side to 32 -> 32x21, cropped to whole patches
 
 
-def test_portrait_and_landscape_images_are_cropped_to_one_shape_before_the_inference(fake_stack, capsys):
-    _, images, calls = fake_stack
-    calls["stop"] = True
-    mixed = images[:2] + [np.ascontiguousarray(images[2].transpose(1, 0, 2))]  # a portrait 32x48 among 48x32
-    with pytest.raises(StopIteration):
-        reconstruct(None, mixed, size=48, align=AlignConfig(quiet=True))
-    assert calls["shapes"] == [(32, 32)] * 3
-    assert "centre-cropped to (32, 32)" in capsys.readouterr().err
+def test_portrait_and_landscape_images_with_varied_confidences_are_inferred_and_aligned_whole(fake_stack, tmp_path):
+    sc, images, calls = fake_stack
+    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), conf_percentile=50, quiet=True)
+    assert calls["shapes"] == [im.shape[:2] for im in images]  # no crop: each image at its own shape
+    assert recon.map_sizes == [(im.shape[1], im.shape[0]) for im in images] and recon.depth_z.shape[1:] == (48, 48)
+    rot, centre, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    assert rot < 0.1 and centre < 0.005
+    # the percentile is over the views' own pixels (the padding's confidence 0 would halve what it keeps)
+    own = int(recon.regions.sum())
+    assert not (recon.masks & ~recon.regions).any() and abs(int(recon.masks.sum()) - own / 2) <= 0.01 * own
+    recon.save(tmp_path, formats=("ply",))
+    from pointmap.io import read_ply
 
+    assert len(read_ply(tmp_path / "points.ply")["x"]) == int(recon.valid().sum())
 
 def test_masks_reach_the_descriptor_confidence_that_matching_weighs():
     import torch

@@ -7,7 +7,7 @@ from align_scene import gt_matches, make_scene, pose_errors
 
 from pointmap.align.sparse import SparseConfig, refine_matches
 from pointmap.geometry.rotations import axis_angle_to_matrix
-from pointmap.reconstruction import Reconstruction
+from pointmap.reconstruction import Reconstruction, to_canvas
 
 CFG = SparseConfig(quiet=True)
 
@@ -24,9 +24,11 @@ def perturbed_recon(sc, seed=0, rot_deg=0.5, focal=0.02, depth_noise=0.01):
     K = torch.from_numpy(sc["K"]).clone()
     K[:, 0, 0] *= 1 + focal
     K[:, 1, 1] *= 1 + focal
-    depth = torch.from_numpy(sc["depth"] * (1 + depth_noise * rng.standard_normal(sc["depth"].shape)))
-    return Reconstruction(images=torch.from_numpy(sc["images"]).float(), cam2world=c2w.float(), K=K.float(),
-                          depth_z=depth.float(), conf=torch.full(depth.shape, 3.0))
+    depth, sizes = to_canvas([torch.from_numpy(d * (1 + depth_noise * rng.standard_normal(d.shape))).float()
+                              for d in sc["depth"]])  # views of several sizes: on one canvas
+    return Reconstruction(images=to_canvas([torch.from_numpy(im).float() for im in sc["images"]])[0],
+                          cam2world=c2w.float(), K=K.float(), depth_z=depth, conf=torch.full(depth.shape, 3.0),
+                          map_sizes=sizes)
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +60,23 @@ def test_refine_recovers_poses_and_focals(scene):
     assert rot < 0.15 and centre < 0.002 and focal < 0.004, (rot, centre, focal, rot0, c0, f0)
     assert rot < rot0 / 3 and focal < f0 / 4 and centre < c0 / 4
     assert torch.isfinite(out.depth_z).all()
+
+
+def test_views_of_several_sizes_are_refined_each_within_its_own_map():
+    sc = make_scene(5, shapes=[(32, 48), (48, 32), (32, 48), (48, 32), (32, 48)], seed=41)
+    start = perturbed_recon(sc)
+    rot0, c0, f0 = _errors(start, sc)
+    matches = _matches(sc)
+    out = refine_matches(start, matches, config=CFG)
+    rot, centre, focal = _errors(out, sc)
+    assert out.info["sparse"]["median_reproj_px_after"] < 0.05 and rot < rot0 / 3 and focal < f0 / 4
+    assert out.map_sizes == start.map_sizes
+    # a match landing in a portrait view's padding (x beyond its 32 columns, inside the 48-wide canvas) is dropped
+    xy1, xy2, score = matches[(0, 1)]
+    others = {k: v for k, v in matches.items() if k != (0, 1)}
+    stray = {(0, 1): (xy1[:1], np.array([[40.0, 10.0]]), score[:1]), **others}
+    count = [refine_matches(start, m, config=CFG).info["sparse"]["num_matches"] for m in (stray, others)]
+    assert count[0] == count[1]
 
 
 def test_refine_is_robust_to_outlier_matches(scene):

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from benchmarks.bench_letterbox import band, crop_to, main, pad_to
+from benchmarks.bench_letterbox import band, crop_to, main, pad_to, whole
 
 
 def test_the_band_is_the_central_four_by_three_strip_and_padding_puts_it_back_with_a_mask_of_exactly_it():
@@ -15,6 +15,8 @@ def test_the_band_is_the_central_four_by_three_strip_and_padding_puts_it_back_wi
     # the crop of a band is the render's own centre square, resized: of an already square band, the image itself
     assert torch.allclose(crop_to(img, 64), img.clamp(0, 1), atol=1e-5)
     assert crop_to(land, 64).shape == (3, 64, 64)
+    # whole: the band as it is, its sides cut to whole patches about the centre (56 -> 48 rows)
+    assert torch.equal(whole(land), land) and torch.equal(whole(img[:, 4:60]), img[:, 8:56])
 
 
 def test_the_letterbox_benchmark_scores_every_pair_kind_both_ways_and_refuses_bad_pad_values(scenes_and_model,
@@ -27,7 +29,7 @@ def test_the_letterbox_benchmark_scores_every_pair_kind_both_ways_and_refuses_ba
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         rows[(cells[0], cells[1])] = cells
     kinds = ("landscape + landscape", "portrait + portrait", "landscape + portrait")
-    assert set(rows) == {("whole square render", "-")} | {(k, m) for k in kinds for m in ("crop", "pad 0", "pad 0.5")}
+    assert set(rows) == {("whole square render", "-")} | {(k, m) for k in kinds for m in ("crop", "whole", "pad 0", "pad 0.5")}
     assert all(r[2] == "2" and 0 <= float(r[3].rstrip("%")) <= 100 for r in rows.values())
     # both same-orientation crops are the render's centre square: the same input, the same errors
     assert rows[(kinds[0], "crop")][3:] == rows[(kinds[1], "crop")][3:]

@@ -667,3 +667,35 @@ def test_global_align_refuses_float_colours_on_the_0_255_scale_and_reads_uint8_v
         parse_views([img, img * 255])
     info = parse_views([(img * 255).round().to(torch.uint8).numpy()])
     assert torch.allclose(info.images[0], img.permute(1, 2, 0), atol=0.5 / 255)
+
+
+def test_a_canvas_of_several_image_sizes_exports_only_each_views_own_pixels_and_round_trips(tmp_path):
+    import dataclasses
+
+    from pointmap.errors import ShapeError
+    from pointmap.reconstruction import Reconstruction, to_canvas
+
+    recon = make_recon(n=3, h=24, w=32)  # depth and confidence everywhere, padding included
+    sizes = [(32, 24), (16, 24), (32, 8)]  # views 1 and 2 fill part of the 32x24 canvas
+    padded = dataclasses.replace(recon, map_sizes=sizes)
+    assert padded.padded and not recon.padded
+    own = torch.zeros(3, 24, 32, dtype=torch.bool)
+    own[0], own[1, :, :16], own[2, :8] = True, True, True
+    assert torch.equal(padded.regions, own) and torch.equal(padded.valid(), recon.valid() & own)
+    assert padded.crop(padded.depth_z, 1).shape == (24, 16) and padded.crop(padded.images, 2).shape == (8, 32, 3)
+    pts = select_points(padded)
+    assert len(pts.xyz) == int((recon.valid() & own).sum())
+    for k, (w, h) in enumerate(sizes):  # every point from inside its view's own map
+        uv = pts.uv_map[pts.image == k]
+        assert (uv[:, 0] < w).all() and (uv[:, 1] < h).all()
+    save_reconstruction(padded, tmp_path, formats=("npz", "ply"))
+    back = load_npz(tmp_path / "reconstruction.npz")
+    assert back.map_sizes == sizes and len(read_ply(tmp_path / "points.ply")["x"]) == len(pts.xyz)
+    # the canvas: each map at its top-left, the rest filled
+    canvas, got = to_canvas([torch.ones(2, 3), torch.ones(4, 1)], fill=0)
+    assert got == [(3, 2), (1, 4)] and canvas.shape == (2, 4, 3) and int(canvas.sum()) == 10
+    assert torch.equal(canvas[1, :, 0], torch.ones(4)) and canvas[1, 0, 1] == 0
+    for bad in ([(33, 24)] * 3, [(32, 24)] * 2, [(0, 24)] * 3, [(32.0, 24)] * 3, "32x24"):
+        with pytest.raises(ShapeError, match="map_sizes expected 3 .width, height. pairs of ints within the 32x24"):
+            Reconstruction(images=recon.images, cam2world=recon.cam2world, K=recon.K, depth_z=recon.depth_z,
+                           conf=recon.conf, map_sizes=bad)

@@ -218,3 +218,34 @@ def test_a_masked_fit_ignores_what_the_photographs_show_outside_the_masks(tiny):
     assert not c.config["masked"] and not torch.equal(c.gaussians.sh_dc, e.gaussians.sh_dc)
     with pytest.raises(ShapeError, match="masked expected True or False, got 'yes'"):
         fit(recon, g, steps=1, progress=False, masked="yes")
+
+
+def test_the_canvas_padding_of_views_of_several_sizes_is_neither_a_gaussian_nor_fitted(tiny):
+    import dataclasses
+
+    d, _, _ = tiny
+    recon = d["recon"]  # 96 x 72 maps; views 1 and 2 made smaller, as a portrait and a wide photograph would be
+    sizes = [(96, 72), (60, 72), (96, 40)]
+    pad = ~dataclasses.replace(recon, map_sizes=sizes).regions
+
+    def padded_with(colour, depth, conf):
+        images, depth_z, c = recon.images.clone(), recon.depth_z.clone(), recon.conf.clone()
+        images[pad] = torch.tensor(colour, dtype=images.dtype)
+        depth_z[pad], c[pad] = depth, conf
+        return dataclasses.replace(recon, images=images, depth_z=depth_z, conf=c, map_sizes=sizes)
+
+    red, green = padded_with([1.0, 0.0, 0.0], 5.0, 9.0), padded_with([0.0, 1.0, 0.0], 0.0, 0.0)
+    g_red, g_green = init_from(red, max_gaussians=800), init_from(green, max_gaussians=800)
+    assert torch.equal(g_red.means, g_green.means) and torch.equal(g_red.sh_dc, g_green.sh_dc)
+
+    def run_fit(r, **kw):
+        torch.manual_seed(0)
+        return fit(r, g_green, steps=12, max_side=96, coarse_frac=0.0, progress=False, **kw)
+
+    for masked in (True, False):  # the padding is out of the loss whether or not the user's masks are used
+        a, b = run_fit(red, masked=masked), run_fit(green, masked=masked)
+        assert torch.equal(a.gaussians.sh_dc, b.gaussians.sh_dc) and torch.equal(a.gaussians.means, b.gaussians.means)
+        assert torch.equal(a.cam2world, b.cam2world)
+    # the same views filling the canvas: the painted pixels are fitted, and the colours move
+    c = run_fit(dataclasses.replace(red, map_sizes=None))
+    assert not torch.equal(c.gaussians.sh_dc, run_fit(dataclasses.replace(green, map_sizes=None)).gaussians.sh_dc)
