@@ -31,16 +31,21 @@ def check_colour_range(img: torch.Tensor, what: str, tol: float = 0.01) -> None:
 class Reconstruction:
     """Posed views with depth, confidence and colour; buildable by hand (e.g. from ground truth).
 
-    images:    [N, h, w, 3] float in [0, 1] (the maps' resolution, i.e. the network input)
+    images:    [N, h, w, 3] float in [0, 1] (the maps' resolution, i.e. the network input; with ``map_sizes``,
+        the canvas)
     cam2world: [N, 4, 4] OpenCV camera-to-world
     K:         [N, 3, 3] intrinsics in ORIGINAL image pixels (see ``map_from_original``)
     depth_z:   [N, h, w] z-depth, 0 = no value
     conf:      [N, h, w] confidence (>= 1 for network output; anything > 0 when hand-made)
     map_from_original: [N, 4] (sx, sy, left, top): a map pixel u_map = (u_orig + 0.5) * sx - 0.5 - left;
         identity (1, 1, 0, 0) when the maps are at the original resolution (the default)
-    original_sizes: list of (width, height) of the original images; defaults to the map size
+    original_sizes: list of (width, height) of the original images; defaults to each view's map size
     names: image names (file names for COLMAP export); default ``view_000.png`` ...
     masks: optional [N, h, w] bool, pixels to keep (e.g. user masks); None keeps all
+    map_sizes: (width, height) of each view's own map, anchored at the top-left of the [h, w] canvas that
+        images of different sizes (portrait among landscape) share; the canvas pixels outside it are padding
+        (``global_align`` leaves depth 0 and confidence 0 there; whatever a hand-made one holds is ignored): never
+        valid, left out of every export and of the Gaussian fit. None: every view fills the canvas
     """
 
     images: torch.Tensor
@@ -91,8 +96,15 @@ class Reconstruction:
         if not (bool(torch.isfinite(mfo).all()) and bool((mfo[:, :2] > 0).all())):
             raise ShapeError(f"map_from_original expected finite rows (sx, sy, left, top) with sx, sy > 0, got "
                              f"{mfo.tolist()}")
+        sizes = [(w, h)] * n if self.map_sizes is None else self.map_sizes
+        if not (hasattr(sizes, "__len__") and len(sizes) == n and all(
+                hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) for x in s) and 0 < s[0] <= w and 0 < s[1] <= h
+                for s in sizes)):
+            raise ShapeError(f"map_sizes expected {n} (width, height) pairs of ints within the {w}x{h} canvas, got "
+                             f"{list(sizes)[:4] if hasattr(sizes, '__len__') else type(sizes).__name__}")
+        self.map_sizes = [(int(a), int(b)) for a, b in sizes]
         if self.original_sizes is None:
-            self.original_sizes = [(w, h)] * n
+            self.original_sizes = list(self.map_sizes)
         if len(self.original_sizes) != n or not all(
                 len(s) == 2 and all(is_int(x) and x > 0 for x in s) for s in self.original_sizes):
             raise ShapeError(f"original_sizes expected {n} (width, height) pairs of positive ints, got "
@@ -109,13 +121,6 @@ class Reconstruction:
             raise ShapeError(f"masks expected [{n}, {h}, {w}], got {list(self.masks.shape)}")
         if self.masks is not None and self.masks.dtype != torch.bool:
             raise ShapeError(f"masks expected dtype bool (True: keep the pixel), got {self.masks.dtype}")
-        sizes = [(w, h)] * n if self.map_sizes is None else self.map_sizes
-        if not (hasattr(sizes, "__len__") and len(sizes) == n and all(
-                hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) for x in s) and 0 < s[0] <= w and 0 < s[1] <= h
-                for s in sizes)):
-            raise ShapeError(f"map_sizes expected {n} (width, height) pairs of ints within the {w}x{h} canvas, got "
-                             f"{list(sizes)[:4] if hasattr(sizes, '__len__') else type(sizes).__name__}")
-        self.map_sizes = [(int(a), int(b)) for a, b in sizes]
         pinhole = is_pinhole_K(self.K)
         if not bool(pinhole.all()):
             bad = [int(i) for i in (~pinhole).nonzero().flatten()]

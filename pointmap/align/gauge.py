@@ -137,9 +137,8 @@ def scale_to_depth(recon, depth, *, min_pixels: int = 50):
         inside = (cv[:, None] >= 0) & (cv[:, None] < dh) & (cu[None] >= 0) & (cu[None] < dw)
         measured = np.where(inside, d.astype(np.float64)[np.clip(cv, 0, dh - 1)][:, np.clip(cu, 0, dw - 1)], 0.0)
         ours = recon.depth_z[i].double().numpy()
-        keep = inside & np.isfinite(measured) & (measured > 0) & (ours > 0)
-        if recon.masks is not None:
-            keep &= recon.masks[i].numpy()
+        # ours: depth present, inside the user's masks and the view's own pixels (not a canvas's padding)
+        keep = inside & np.isfinite(measured) & (measured > 0) & (ours > 0) & recon.valid()[i].numpy()
         r = np.log(measured[keep] / ours[keep])
         per_image.append(float(np.exp(np.median(r))) if r.size else None)
         ratios.append(r)

@@ -59,6 +59,22 @@ def _resize_image(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
     return x[0].permute(1, 2, 0).contiguous()
 
 
+def _level_view(recon: Reconstruction, maps: torch.Tensor, i: int, level: tuple, resize) -> torch.Tensor:
+    """View ``i``'s map (``maps`` [N, h, w, ...], the canvas) at a working level (width, height) of the canvas:
+    the view's own pixels resized on their own (``resize``: ``_resize_image`` or ``_resize_mask``) to their share
+    of the level, at its top-left, and zero (False) on the padding, so that no filter mixes padding into the
+    view's edge."""
+    h, w = recon.depth_z.shape[1:]
+    own = recon.crop(maps, i).float() if maps.dtype != torch.bool else recon.crop(maps, i)
+    if not recon.padded:
+        return resize(own, *level)
+    vw, vh = recon.map_sizes[i]
+    ow, oh = max(1, round(vw * level[0] / w)), max(1, round(vh * level[1] / h))
+    out = torch.zeros(level[1], level[0], *own.shape[2:], dtype=own.dtype)
+    out[:oh, :ow] = resize(own, ow, oh)
+    return out
+
+
 def _size_for(width: int, height: int, max_side: int) -> tuple[int, int]:
     s = min(1.0, max_side / max(width, height))
     return max(1, int(round(width * s))), max(1, int(round(height * s)))
@@ -318,14 +334,15 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     # images and intrinsics at each resolution level
     levels = _levels(w, h, max_side, 0.5 if coarse_frac > 0 else 0.0)
     K_map = recon.K_map.float()
-    data = {lv: ([_resize_image(recon.images[i].float(), *lv) for i in range(n)],
-                 scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
-    keep = recon.masks if masked else None
-    if recon.padded:  # images of several sizes: each view's canvas padding is never fitted
-        keep = recon.regions if keep is None else keep & recon.regions
-    use_masks = keep is not None and not bool(keep.all())
     user_masked = masked and recon.masks is not None and not bool(recon.masks.all())
-    fit_masks = {lv: [_resize_mask(keep[i], *lv) if use_masks else None for i in range(n)] for lv in levels}
+    data = {lv: ([_level_view(recon, recon.images, i, lv, _resize_image) for i in range(n)],
+                 scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
+    # the pixels fitted at each level: the user's masks (when used) within each view's own region (images of
+    # several sizes: the canvas padding is never fitted)
+    keep = recon.masks if user_masked else torch.ones(recon.depth_z.shape, dtype=torch.bool)
+    use_masks = user_masked or recon.padded
+    fit_masks = {lv: [_level_view(recon, keep, i, lv, _resize_mask) if use_masks else None for i in range(n)]
+                 for lv in levels}
     w2c_init = invert_rigid(recon.cam2world.float())
     g0 = gaussians.detach().to(torch.float32)
 

@@ -77,3 +77,13 @@ def test_maps_that_cannot_be_used_are_refused_in_one_line():
         pm.scale_to_depth(recon, [np.ones((75, 100, 3)), None, None])
     with pytest.raises(pm.PointmapError, match="at least 50 pixels .*got 0"):
         pm.scale_to_depth(recon, [np.zeros((75, 100)), None, None])
+
+
+def test_a_canvas_padding_is_not_read_even_where_it_holds_depth():
+    import dataclasses
+
+    recon = recon_with_field()
+    recon.depth_z[1, :, 16:] *= 10  # view 1 fills the left half of the canvas; its padding holds a wrong depth
+    padded = dataclasses.replace(recon, map_sizes=[(32, 24), (16, 24), (32, 24)])
+    _, rep = pm.scale_to_depth(padded, [measured(100, 75)] * 3)
+    assert rep["per_image"][1] == pytest.approx(S, rel=0.01) and rep["spread"] < 0.02

@@ -695,6 +695,14 @@ def test_a_canvas_of_several_image_sizes_exports_only_each_views_own_pixels_and_
     canvas, got = to_canvas([torch.ones(2, 3), torch.ones(4, 1)], fill=0)
     assert got == [(3, 2), (1, 4)] and canvas.shape == (2, 4, 3) and int(canvas.sum()) == 10
     assert torch.equal(canvas[1, :, 0], torch.ones(4)) and canvas[1, 0, 1] == 0
+    # built directly: each view's original size defaults to its own map's, as the COLMAP cameras say
+    direct = Reconstruction(images=recon.images, cam2world=recon.cam2world, K=recon.K, depth_z=recon.depth_z,
+                            conf=recon.conf, map_sizes=sizes)
+    assert direct.original_sizes == sizes
+    save_reconstruction(direct, tmp_path / "direct", formats=("colmap_txt",))
+    cams = [ln.split() for ln in (tmp_path / "direct" / "sparse" / "0" / "cameras.txt").read_text().splitlines()
+            if ln and not ln.startswith("#")]
+    assert [(int(c[2]), int(c[3])) for c in cams] == sizes
     for bad in ([(33, 24)] * 3, [(32, 24)] * 2, [(0, 24)] * 3, [(32.0, 24)] * 3, "32x24"):
         with pytest.raises(ShapeError, match="map_sizes expected 3 .width, height. pairs of ints within the 32x24"):
             Reconstruction(images=recon.images, cam2world=recon.cam2world, K=recon.K, depth_z=recon.depth_z,
