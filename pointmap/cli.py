@@ -464,7 +464,8 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
-                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device, cache=cache)
+                        epipolar=not args.no_epipolar, quiet=args.quiet, device=args.device, cache=cache,
+                        whole=args.whole)
     if scene.get("depths") is not None:  # into the measured depth's units
         from pointmap.align.gauge import scale_to_depth
 
@@ -671,6 +672,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--out", required=True)
     r.add_argument("--model", default=DEFAULT_MODEL)
     r.add_argument("--size", type=int, default=None)
+    r.add_argument("--whole", action="store_true",
+                   help="every photograph at its own shape, even at 224 (the long side to --size, e.g. 224x160 for a "
+                        "4:3 landscape) instead of 224's square crop, which drops a quarter of a 4:3 photograph")
     r.add_argument("--graph", default="auto", help="auto, complete, swin-K, logwin-K, oneref-I, retrieval-K (each "
                    "image with its K most similar by the encoder: photos in no particular order)")
     r.add_argument("--pairs", default=None, metavar="FILE",

@@ -127,17 +127,21 @@ def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
     return [_read(src, i)[0].size for i, src in enumerate(_as_list(paths_or_arrays, "image_sizes"))]
 
 
-def prepare(im, size: int, *, square_ok: bool = False):
+def prepare(im, size: int, *, square_ok: bool = False, whole: bool = False):
     """Resize and centre-crop a PIL RGB image as the official ``load_images`` does.
 
     size 224: short side to 224, centre square crop. Other sizes: long side to ``size``, centre crop to
-    multiples of 16 (a square image becomes 4:3 landscape unless ``square_ok``).
+    multiples of 16 (a square image becomes 4:3 landscape unless ``square_ok``). ``whole``: at every size, the long
+    side to ``size`` and each side cut to whole patches about the centre (a square stays square): the photograph's
+    whole field of view at its own shape.
     Returns (PIL image, (sx, sy, left, top)).
     """
     from PIL import Image
 
     W, H = im.size
-    if size == 224:
+    square = size == 224 and not whole
+    square_ok = square_ok or whole
+    if square:
         S = min(W, H)
     else:
         S = max(W, H)
@@ -148,7 +152,7 @@ def prepare(im, size: int, *, square_ok: bool = False):
     resample = Image.LANCZOS if S > size else Image.BICUBIC
     im = im.resize((new_w, new_h), resample)
     cx, cy = new_w // 2, new_h // 2
-    if size == 224:
+    if square:
         half = min(cx, cy)
         left, top, right, bottom = cx - half, cy - half, cx + half, cy + half
     else:
@@ -161,8 +165,10 @@ def prepare(im, size: int, *, square_ok: bool = False):
     return im, (new_w / W, new_h / H, float(int(left)), float(int(top)))
 
 
-def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) -> list[View]:
-    """Read images (paths, HxWx3 uint8 arrays or PIL images) and prepare them for the network.
+def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False, whole: bool = False) -> list[View]:
+    """Read images (paths, HxWx3 uint8 arrays or PIL images) and prepare them for the network (``prepare``:
+    224 crops each to a square, as the official code; ``whole=True`` keeps each photograph's field of view at its own
+    shape at every size, e.g. 224 x 160 for a 4:3 landscape at 224).
 
     Example:
         >>> views = load_images([np.zeros((480, 640, 3), np.uint8)], size=512)
@@ -172,6 +178,9 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) ->
     paths_or_arrays = _as_list(paths_or_arrays, "load_images")
     if not is_input_size(size):
         raise ImageError(f"size expected 224 or a multiple of {PATCH} (e.g. 512), got {size!r}")
+    for name, flag in (("square_ok", square_ok), ("whole", whole)):
+        if not isinstance(flag, bool):
+            raise ImageError(f"{name} expected True or False, got {flag!r}")
     views = []
     for i, src in enumerate(paths_or_arrays):
         im, name = _read(src, i)
@@ -179,7 +188,7 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False) ->
         if min(W, H) < PATCH:
             raise ImageError(f"image {name} is {W}x{H}: smaller than one {PATCH}x{PATCH} patch")
         try:
-            prepared, transform = prepare(im, size, square_ok=square_ok)
+            prepared, transform = prepare(im, size, square_ok=square_ok, whole=whole)
         except ImageError as e:
             raise ImageError(f"image {name}: {e}") from None
         if min(prepared.size) < PATCH:

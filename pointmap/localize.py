@@ -60,13 +60,16 @@ def reference_views(recon: Reconstruction) -> list[View]:
 
 def query_views(recon: Reconstruction, images) -> list[View]:
     """``images`` prepared for the network as ``recon``'s own were: at the size ``reconstruct`` recorded
-    (``info["pipeline"]["size"]``; for a hand-made reconstruction, the long side of its maps). Views (from an
+    (``info["pipeline"]["size"]``, whole or cropped as ``["whole"]`` says; for a hand-made reconstruction, the long
+    side of its maps). Views (from an
     earlier call) are returned as they are."""
     images = list(images)
     if images and all(isinstance(v, View) for v in images):
         return images
-    size = (recon.info.get("pipeline") or {}).get("size") or max(max(s) for s in recon.map_sizes)
-    return load_images(images, size=int(size), square_ok=any(vw == vh for vw, vh in recon.map_sizes))
+    pipeline = recon.info.get("pipeline") or {}
+    size = pipeline.get("size") or max(max(s) for s in recon.map_sizes)
+    return load_images(images, size=int(size), square_ok=any(vw == vh for vw, vh in recon.map_sizes),
+                       whole=bool(pipeline.get("whole", False)))
 
 
 @torch.inference_mode()

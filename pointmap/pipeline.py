@@ -180,7 +180,7 @@ def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> No
 def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None, batch_size: int = 8,
                 K=None, cam2world=None, pose_mask=None, masks=None, min_conf: float | None = None,
                 conf_percentile: float | None = None, align: AlignConfig | None = None, refine=False,
-                epipolar=True, quiet: bool = False, device: str = "cpu", cache=None):
+                epipolar=True, quiet: bool = False, device: str = "cpu", cache=None, whole: bool = False):
     """Photos to a Reconstruction.
 
     graph: "auto" (see ``auto_graph``), any ``make_pairs`` name ("complete", "swin-3", "logwin-3", ...), or
@@ -192,6 +192,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         Images of different sizes or orientations (portrait among landscape) are taken whole: each pair is
         inferred at its images' own shapes and the Reconstruction holds the views on one canvas
         (``recon.map_sizes``; the padding is never a point)
+    whole: every photograph at its own shape, even at 224 (``load_images(whole=True)``: the long side to ``size``,
+        224 x 160 for a 4:3 landscape, instead of the square crop that drops a quarter of it); recorded, so that
+        ``pointmap.localize`` prepares new photographs alike
     K / cam2world / pose_mask: known intrinsics (ORIGINAL pixels) / poses, as ``global_align`` takes them
     masks: optional per-image bool masks (True = keep), original or map size; masked pixels are left
         out of the alignment and of the exports
@@ -233,7 +236,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
     cfg = align or AlignConfig(quiet=quiet)
     size = model_input_size(model) if size is None else size
-    views = load_images(paths_or_arrays, size=size)
+    views = load_images(paths_or_arrays, size=size, whole=whole)
     n = len(views)
     if n < 2:
         raise GraphError(f"reconstruct needs at least 2 images, got {n}")
@@ -335,7 +338,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None
                              for src in paths_or_arrays]
-    recon.info["pipeline"] = {"size": size, "graph": graph, "pairs": len(pairs), "pair_list": [list(p) for p in pairs],
+    recon.info["pipeline"] = {"size": size, "whole": whole, "graph": graph, "pairs": len(pairs), "pair_list": [list(p) for p in pairs],
                               "estimate": cost, "min_conf": min_conf,
                               "conf_percentile": conf_percentile, "refined": bool(refine),
                               "epipolar": bool(recon.info.get("epipolar", {}).get("applied", False)),

@@ -385,6 +385,24 @@ def test_no_epipolar_turns_the_pose_refinement_on_matches_off(tiny, tmp_path, mo
     assert seen == [True, False]
 
 
+def test_whole_reaches_reconstruct_and_is_recorded_for_localize(tiny, tmp_path, monkeypatch):
+    import json
+
+    import pointmap.pipeline
+
+    weights, folder = tiny
+    seen = []
+    real = pointmap.pipeline.reconstruct
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["whole"]) or real(*a, **k))
+    for extra in ([], ["--whole"]):
+        out = tmp_path / f"out{len(extra)}"
+        assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                     "--export", "npz", "--no-epipolar", *extra]) == 0
+        info = json.loads(str(np.load(out / "reconstruction.npz", allow_pickle=False)["info_json"]))
+        assert info["pipeline"]["whole"] is bool(extra)
+    assert seen == [False, True]
+
+
 def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, capsys):
     import pointmap.pipeline
 

@@ -109,3 +109,20 @@ def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the
         pm.load_images([torch.zeros(3, 64, 64)])
     with pytest.raises(pm.ImageError, match="expected a list of image paths, arrays or PIL images, got int"):
         pm.load_images(123)
+
+
+def test_whole_keeps_each_photographs_field_of_view_at_its_own_shape_even_at_224_with_the_transform_exact():
+    land, port, square = np.zeros((480, 640, 3), np.uint8), np.zeros((640, 480, 3), np.uint8), np.zeros((300, 300, 3), np.uint8)
+    land[300:304, 400:404] = 255
+    port[200:204, 100:104] = 255
+    views = pm.load_images([land, port, square], size=224, whole=True)
+    assert [v.shape for v in views] == [(160, 224), (224, 160), (224, 224)]  # 224 x 168 cut to whole patches
+    for v, (x, y) in zip(views, [(401.5, 301.5), (101.5, 201.5)]):  # each dot lands where the transform says
+        sx, sy, left, top = v.map_from_original
+        ys, xs = np.nonzero(v.img[0].numpy() > 0.5)
+        assert abs(xs.mean() - ((x + 0.5) * sx - 0.5 - left)) < 0.5
+        assert abs(ys.mean() - ((y + 0.5) * sy - 0.5 - top)) < 0.5
+    assert [v.shape for v in pm.load_images([land, square], size=224)] == [(224, 224)] * 2  # the default: squares
+    assert pm.load_images([square], size=512, whole=True)[0].shape == (512, 512)  # not cut to 4:3
+    with pytest.raises(pm.ImageError, match="whole expected True or False, got 'yes'"):
+        pm.load_images([land], size=224, whole="yes")

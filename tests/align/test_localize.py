@@ -179,3 +179,14 @@ def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own
     query = (sc["images"][4] * 255).round().astype(np.uint8)
     loc = localize(None, recon, [query], refs=[[1]], quiet=True)  # paired with the portrait reference
     assert_at_true_pose(loc.cam2world[0], sc, 4, 1.0)
+
+
+def test_queries_are_prepared_whole_when_the_reconstruction_was(scene):
+    from pointmap.localize import query_views
+
+    _, recon, _, _, _ = scene
+    wide = np.zeros((48, 96, 3), np.uint8)
+    recon.info["pipeline"] = {"size": 224, "whole": True}
+    assert query_views(recon, [wide])[0].shape == (112, 224)
+    recon.info["pipeline"] = {"size": 224}  # an earlier file, or reconstruct's default: the square crop
+    assert query_views(recon, [wide])[0].shape == (224, 224)

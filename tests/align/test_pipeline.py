@@ -290,6 +290,16 @@ def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
     assert calls["shapes"][0] == (16, 32)  # 48x32 by the long side to 32 -> 32x21, cropped to whole patches
 
 
+def test_whole_photographs_reach_the_inference_at_their_own_shape_and_the_default_crops_them_square(fake_stack):
+    _, _, calls = fake_stack
+    calls["stop"] = True
+    wide = [np.zeros((48, 96, 3), np.uint8)] * 3  # 2:1 photographs
+    for whole, shape in ((True, (112, 224)), (False, (224, 224))):
+        with pytest.raises(StopIteration):
+            reconstruct(None, wide, size=224, quiet=True, whole=whole)
+        assert calls["shapes"] == [shape] * 3
+
+
 def test_portrait_and_landscape_images_with_varied_confidences_are_inferred_and_aligned_whole(fake_stack, tmp_path):
     sc, images, calls = fake_stack
     recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), conf_percentile=50, quiet=True)
