@@ -329,10 +329,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         lap("sparse")
     # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it
     # down), on the views' own pixels (not a canvas's padding)
-    within = recon.regions if recon.padded else None
+    within = recon.regions
     if user_masks is not None:
-        kept = to_canvas(user_masks, fill=False)[0]
-        within = kept if within is None else kept & within
+        within = within & to_canvas(user_masks, fill=False)[0]
     keep = confidence_mask(recon.conf, min_conf, conf_percentile, within=within)
     recon.masks = keep
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model

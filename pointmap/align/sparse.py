@@ -131,7 +131,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
         fixed_poses = [int(torch.bincount(torch.cat([I, J]), minlength=n).argmax())]
     fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in (fixed_intrinsics or ())}
     K0 = recon.K_map.double()
-    unit = float(recon.depth_z[recon.valid() if recon.padded else recon.depth_z > 0].double().median())
+    unit = float(recon.depth_z[(recon.depth_z > 0) & recon.regions].double().median())
     base = recon.cam2world.double().clone()
     base[:, :3, 3] /= unit
     d0 = recon.depth_z.double()[I, xy_i[:, 1].round().long(), xy_i[:, 0].round().long()] / unit

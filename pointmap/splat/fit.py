@@ -65,7 +65,7 @@ def _level_view(recon: Reconstruction, maps: torch.Tensor, i: int, level: tuple,
     of the level, at its top-left, and zero (False) on the padding, so that no filter mixes padding into the
     view's edge."""
     h, w = recon.depth_z.shape[1:]
-    own = recon.crop(maps, i).float() if maps.dtype != torch.bool else recon.crop(maps, i)
+    own = recon.crop(maps, i)
     if not recon.padded:
         return resize(own, *level)
     vw, vh = recon.map_sizes[i]
@@ -335,7 +335,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     levels = _levels(w, h, max_side, 0.5 if coarse_frac > 0 else 0.0)
     K_map = recon.K_map.float()
     user_masked = masked and recon.masks is not None and not bool(recon.masks.all())
-    data = {lv: ([_level_view(recon, recon.images, i, lv, _resize_image) for i in range(n)],
+    images = recon.images.float()
+    data = {lv: ([_level_view(recon, images, i, lv, _resize_image) for i in range(n)],
                  scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
     # the pixels fitted at each level: the user's masks (when used) within each view's own region (images of
     # several sizes: the canvas padding is never fitted)
