@@ -370,53 +370,44 @@ def test_each_folder_skips_hidden_folders_and_its_own_output_and_survives_any_sc
     assert "1 of 2 scenes failed" in capsys.readouterr().err
 
 
-def test_no_epipolar_turns_the_pose_refinement_on_matches_off(tiny, tmp_path, monkeypatch):
+def _reconstruct_recording(tiny, tmp_path, monkeypatch, read, variants, *common):
+    """``pointmap reconstruct`` of the tiny folder once per list of extra arguments in ``variants`` (after
+    ``common``), with ``pipeline.reconstruct`` wrapped to record ``read(its keyword arguments)``; each run must
+    succeed and write its npz. Returns (the recorded values, the loaded npz files)."""
     import pointmap.pipeline
 
     weights, folder = tiny
-    seen = []
+    seen, saved = [], []
     real = pointmap.pipeline.reconstruct
-    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["epipolar"]) or real(*a, **k))
-    for extra in ([], ["--no-epipolar"]):
-        out = tmp_path / f"out{len(extra)}"
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(read(k)) or real(*a, **k))
+    for n, extra in enumerate(variants):
+        out = tmp_path / f"out{n}"
         assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
-                     "--export", "npz", *extra]) == 0
-        assert (out / "reconstruction.npz").exists()
+                     "--export", "npz", *common, *extra]) == 0
+        saved.append(np.load(out / "reconstruction.npz", allow_pickle=False))
+    return seen, saved
+
+
+def test_no_epipolar_turns_the_pose_refinement_on_matches_off(tiny, tmp_path, monkeypatch):
+    seen, _ = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["epipolar"], ([], ["--no-epipolar"]))
     assert seen == [True, False]
 
 
 def test_whole_reaches_reconstruct_and_is_recorded_for_localize(tiny, tmp_path, monkeypatch):
     import json
 
-    import pointmap.pipeline
-
-    weights, folder = tiny
-    seen = []
-    real = pointmap.pipeline.reconstruct
-    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["whole"]) or real(*a, **k))
-    for extra in ([], ["--whole"]):
-        out = tmp_path / f"out{len(extra)}"
-        assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
-                     "--export", "npz", "--no-epipolar", *extra]) == 0
-        info = json.loads(str(np.load(out / "reconstruction.npz", allow_pickle=False)["info_json"]))
-        assert info["pipeline"]["whole"] is bool(extra)
+    seen, saved = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["whole"], ([], ["--whole"]),
+                                         "--no-epipolar")
     assert seen == [False, True]
+    assert [json.loads(str(f["info_json"]))["pipeline"]["whole"] for f in saved] == [False, True]
 
 
 def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, capsys):
-    import pointmap.pipeline
-
-    weights, folder = tiny
-    seen = []
-    real = pointmap.pipeline.reconstruct
-    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["align"].init) or real(*a, **k))
-    for extra in ([], ["--align-init", "mst"]):
-        out = tmp_path / f"out{len(extra)}"
-        assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
-                     "--export", "npz", *extra]) == 0
-        info = np.load(out / "reconstruction.npz", allow_pickle=False)
-        assert info["cam2world"].shape[0] >= 2
+    seen, saved = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["align"].init,
+                                         ([], ["--align-init", "mst"]))
     assert seen == ["averaging", "mst"]
+    assert all(f["cam2world"].shape[0] >= 2 for f in saved)
+    folder = tiny[1]
     with pytest.raises(SystemExit):
         main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--align-init", "tree"])
     assert "invalid choice: 'tree'" in capsys.readouterr().err
@@ -592,21 +583,16 @@ def test_a_retrieval_graph_pairs_the_photographs_by_similarity_end_to_end(tiny, 
 
 def test_a_pairs_file_names_the_pairs_by_path_or_unique_file_name_and_reconstruct_runs_exactly_them(tiny, tmp_path,
                                                                                                    monkeypatch):
-    import pointmap.pipeline
-    from pointmap.io import load_npz
+    import json
 
-    weights, folder = tiny
+    folder = tiny[1]
     pairs = tmp_path / "pairs.txt"
     pairs.write_text(f"# from a retrieval\n\na.jpg b.PNG\n{folder / 'c.png'} photos/b.PNG\n  b.PNG a.jpg  \n")
-    seen = []
-    real = pointmap.pipeline.reconstruct
-    monkeypatch.setattr(pointmap.pipeline, "reconstruct", lambda *a, **k: seen.append(k["graph"]) or real(*a, **k))
-    out = tmp_path / "r"
-    assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
-                 "--export", "npz", "--pairs", str(pairs)]) == 0
+    seen, saved = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["graph"], ([],), "--pairs",
+                                         str(pairs))
     # the folder's images sorted by name: a.jpg, b.PNG, c.png; (b, a) is (a, b)
     assert seen == [[(0, 1), (1, 2)]]
-    info = load_npz(out / "reconstruction.npz").info["pipeline"]
+    info = json.loads(str(saved[0]["info_json"]))["pipeline"]
     assert info["graph"] == "given" and info["pairs"] == 2
 
 

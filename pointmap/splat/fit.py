@@ -60,19 +60,13 @@ def _resize_image(img: torch.Tensor, width: int, height: int) -> torch.Tensor:
 
 
 def _level_view(recon: Reconstruction, maps: torch.Tensor, i: int, level: tuple, resize) -> torch.Tensor:
-    """View ``i``'s map (``maps`` [N, h, w, ...], the canvas) at a working level (width, height) of the canvas:
-    the view's own pixels resized on their own (``resize``: ``_resize_image`` or ``_resize_mask``) to their share
-    of the level, at its top-left, and zero (False) on the padding, so that no filter mixes padding into the
-    view's edge."""
+    """View ``i``'s own pixels of ``maps`` ([N, h, w, ...], the canvas) at a working level (width, height) of the
+    canvas: resized on their own (``resize``: ``_resize_image`` or ``_resize_mask``) to their share of the level
+    (the whole level for a view that fills the canvas). A view smaller than the canvas is rendered and fitted at
+    that share only: no filter mixes the canvas padding into its edge and no pixel of it is rendered."""
     h, w = recon.depth_z.shape[1:]
-    own = recon.crop(maps, i)
-    if not recon.padded:
-        return resize(own, *level)
     vw, vh = recon.map_sizes[i]
-    ow, oh = max(1, round(vw * level[0] / w)), max(1, round(vh * level[1] / h))
-    out = torch.zeros(level[1], level[0], *own.shape[2:], dtype=own.dtype)
-    out[:oh, :ow] = resize(own, ow, oh)
-    return out
+    return resize(recon.crop(maps, i), max(1, round(vw * level[0] / w)), max(1, round(vh * level[1] / h)))
 
 
 def _size_for(width: int, height: int, max_side: int) -> tuple[int, int]:
@@ -338,12 +332,10 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     images = recon.images.float()
     data = {lv: ([_level_view(recon, images, i, lv, _resize_image) for i in range(n)],
                  scale_intrinsics(K_map, lv[0] / w, lv[1] / h)) for lv in levels}
-    # the pixels fitted at each level: the user's masks (when used) within each view's own region (images of
-    # several sizes: the canvas padding is never fitted)
-    keep = recon.masks if user_masked else torch.ones(recon.depth_z.shape, dtype=torch.bool)
-    use_masks = user_masked or recon.padded
-    fit_masks = {lv: [_level_view(recon, keep, i, lv, _resize_mask) if use_masks else None for i in range(n)]
-                 for lv in levels}
+    # the pixels fitted at each level: each view's own (images of several sizes: the canvas padding is neither
+    # rendered nor fitted), within the user's masks when they are used
+    fit_masks = {lv: [_level_view(recon, recon.masks, i, lv, _resize_mask) if user_masked else None
+                      for i in range(n)] for lv in levels}
     w2c_init = invert_rigid(recon.cam2world.float())
     g0 = gaussians.detach().to(torch.float32)
 
@@ -416,7 +408,8 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
             w2c = se3_exp(xi) @ w2c_init[i]
         else:
             w2c = w2c_init[i]
-        out = rasterize(*_render_params(g), w2c, Ks[i], lv[0], lv[1], bg, backend=backend)
+        vh, vw = imgs[i].shape[:2]  # the view's own share of the level (its top-left: the same intrinsics)
+        out = rasterize(*_render_params(g), w2c, Ks[i], vw, vh, bg, backend=backend)
         if densify:
             out.means2d.retain_grad()
         mask = fit_masks[lv][i]
@@ -430,7 +423,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
             pose_opt.step()
         p = psnr(out.image.detach(), imgs[i], mask)
         lval = float(loss.detach())
-        history.append({"step": it, "view": i, "loss": lval, "psnr": p, "res": lv})
+        history.append({"step": it, "view": i, "loss": lval, "psnr": p, "res": lv, "size": (vw, vh)})
         if bar is not None:
             bar.set_postfix(loss=f"{lval:.4f}", psnr=f"{p:.2f}")
             bar.update(1)

@@ -248,6 +248,11 @@ def test_the_canvas_padding_of_views_of_several_sizes_is_neither_a_gaussian_nor_
         a, b = run_fit(red, **kw), run_fit(green, **kw)
         assert torch.equal(a.gaussians.sh_dc, b.gaussians.sh_dc) and torch.equal(a.gaussians.means, b.gaussians.means)
         assert torch.equal(a.cam2world, b.cam2world)
+    # each view is rendered at its own share of the working size (its top-left), never at the canvas's
+    a = run_fit(green, max_side=48, coarse_frac=0.0)
+    assert {v: {h["size"] for h in a.history if h["view"] == v} for v in range(3)} == \
+        {0: {(48, 36)}, 1: {(30, 36)}, 2: {(48, 20)}}
     # the same views filling the canvas: the painted pixels are fitted, and the colours move
     c = run_fit(dataclasses.replace(red, map_sizes=None))
+    assert {h["size"] for h in c.history} == {(96, 72)}
     assert not torch.equal(c.gaussians.sh_dc, run_fit(dataclasses.replace(green, map_sizes=None)).gaussians.sh_dc)
