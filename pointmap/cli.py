@@ -104,8 +104,10 @@ def pair_summary(npz: Path) -> str:
         return "relative pose: not found (too few confident pixels)"
     angle = float(torch.rad2deg(rotation_angle(T[:3, :3])))
     t = torch.nn.functional.normalize(T[:3, 3], dim=0, eps=1e-12)
-    f1 = float(z["focal1"]) / z["map_from_original1"][0]
-    f2 = float(z["focal2"]) / z["map_from_original2"][0]
+    # focals in original pixels; files written before session 48 (no focal_units) stored the maps' pixels
+    f1, f2 = float(z["focal1"]), float(z["focal2"])
+    if "focal_units" not in z:
+        f1, f2 = f1 / z["map_from_original1"][0], f2 / z["map_from_original2"][0]
     return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "
             f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward"
             f"{'; refined on the matches' if 'refined_on_matches' in z and bool(z['refined_on_matches']) else ''}"
@@ -407,6 +409,10 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     video = any(is_video(i) for i in inputs)
     times: dict = {}
     images = expand_images(inputs, out / "frames", args.stride, args.max_frames, times)
+    if len(images) < 2:  # said now, before the model loads, and for a video in its own terms
+        how = (f"; the video gave {len(images)} frame(s) at --stride {args.stride} / --max-frames {args.max_frames}: "
+               "a smaller --stride keeps more" if video else "")
+        raise PointmapError(f"a reconstruction needs at least 2 images, got {len(images)} from {inputs}{how}")
     timestamps = video_timestamps(inputs, images, times)
     graph = args.graph
     if video and graph == "auto":  # frames in time order: sequential windows, no wrap-around pairs

@@ -80,9 +80,16 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     from pointmap.reconstruction import K_to_map
 
     if focal is not None:
-        focal = tuple(float(f) for f in focal)
+        given = focal
+        try:
+            focal = tuple(float(f) for f in focal)
+        except (TypeError, ValueError):  # one number, a string: said with what was given
+            raise ShapeError(f"focal expected two positive focal lengths in pixels (f1, f2), got {given!r}") from None
         if len(focal) != 2 or not all(np.isfinite(f) and f > 0 for f in focal):
-            raise ShapeError(f"focal expected two positive focal lengths in pixels, got {focal}")
+            raise ShapeError(f"focal expected two positive focal lengths in pixels (f1, f2), got {focal}")
+    if not isinstance(out, (str, Path)):
+        raise ShapeError(f"out expected a folder path, got {type(out).__name__}")
+    out = Path(out)
     device = check_model_device(model, device, "write_pair_outputs")
     views = load_images([path1, path2], size=size)
     img1, img2 = views[0].img[None].to(device), views[1].img[None].to(device)
@@ -112,7 +119,11 @@ def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet
     arrays = dict(pts1_cam1=pred.pts1_cam1[0].numpy(), pts2_cam1=pred.pts2_cam1[0].numpy(),
                   conf1=pred.conf1[0].numpy(), conf2=pred.conf2[0].numpy(), img1=rgb1, img2=rgb2,
                   matches_xy1=m.xy1.numpy(), matches_xy2=m.xy2.numpy(), matches_score=m.score.numpy(),
-                  cam2world_2_in_1=cam2world_2.numpy(), focal1=focal1.numpy(), focal2=focal2.numpy(),
+                  cam2world_2_in_1=cam2world_2.numpy(),
+                  # the focals in each ORIGINAL image's pixels (DESIGN: reported intrinsics are the user's images');
+                  # times map_from_original[0] they are the maps' (the pointmaps' pixel grid)
+                  focal1=(focal1 / views[0].map_from_original[0]).numpy(),
+                  focal2=(focal2 / views[1].map_from_original[0]).numpy(), focal_units=np.array("original"),
                   focal_given=np.array(focal is not None), refined_on_matches=np.array(refined_on_matches),
                   map_from_original1=np.array(views[0].map_from_original),
                   map_from_original2=np.array(views[1].map_from_original))

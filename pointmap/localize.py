@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from pointmap.errors import GraphError, PointmapError, ShapeError, is_int
@@ -139,10 +140,18 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     images = list(_as_list(images, "localize"))  # one image (a path, an array) is a list of one, as load_images takes
     if not images:
         raise PointmapError("localize expected a non-empty list of images (paths or arrays)")
+    patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
+    odd = [f"view {k}: {vw}x{vh}" for k, (vw, vh) in enumerate(recon.map_sizes) if vw % patch or vh % patch]
+    if odd:  # the references go through the network at their map size (a hand-made reconstruction's maps, say)
+        raise ShapeError(f"localize pairs the queries with the reconstruction's views at their map size, which must "
+                         f"be a multiple of the model's patch size {patch}; got {', '.join(odd[:3])}")
     queries = query_views(recon, images)
     m, n = len(queries), len(recon)
     if K is not None:
-        K = torch.as_tensor(K, dtype=torch.float64)
+        try:
+            K = torch.as_tensor(np.asarray(K, dtype=np.float64))
+        except (TypeError, ValueError):  # ragged or non-numeric: said with the layout expected
+            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, got {K!r}") from None
         K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
         if tuple(K.shape) != (m, 3, 3) or not bool(is_pinhole_K(K).all()):
             raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, "
@@ -152,6 +161,10 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         if not (is_int(n_refs) and n_refs >= 1):
             raise PointmapError(f"n_refs expected an int >= 1, got {n_refs!r}")
         refs = rank_references(model, refs_views, queries, n_refs, device=device)
+    if is_int(refs):  # one reference for one query, as one image is a list of one
+        refs = [refs]
+    if not isinstance(refs, (list, tuple)):
+        raise GraphError(f"refs expected, for each of the {m} queries, a list of view indices, got {refs!r}")
     refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r] if hasattr(r, "__iter__") else r
             for r in refs]
     if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
@@ -159,7 +172,6 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
                          f"got {refs}")
     views = refs_views + [replace(q, index=n + k) for k, q in enumerate(queries)]
-    patch = getattr(getattr(model, "cfg", None), "patch_size", 16)
     out = torch.full((m, 4, 4), float("nan"), dtype=torch.float64)
     K_orig = K.clone() if K is not None else torch.full((m, 3, 3), float("nan"), dtype=torch.float64)
     used, confs, scales = [-1] * m, [float("nan")] * m, [float("nan")] * m

@@ -196,8 +196,14 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
     from pointmap.atomic import atomic_path
     from pointmap.images import read_rgb
 
+    if not isinstance(K, dict) or not isinstance(distortions, dict):
+        raise PointmapError(f"K and distortions expected dicts {{photograph index: value}}, got "
+                            f"{type(K).__name__} and {type(distortions).__name__}")
     paths, K = list(paths), dict(K)
     masks = None if masks is None else list(masks)
+    if masks is not None and len(masks) != len(paths):
+        raise PointmapError(f"masks expected one entry (an array or None) per photograph, {len(paths)}, "
+                            f"got {len(masks)}")
     bad = [k for k in list(distortions) + list(K) if not (isinstance(k, (int, np.integer)) and 0 <= k < len(paths))]
     if bad:
         raise PointmapError(f"distortions and K expected photograph indices in 0..{len(paths) - 1}, got {bad}")
@@ -221,6 +227,10 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
         K_new = pinhole_for(K[k], dist, (w, h))
         out = undistort(rgb, K[k], dist, K_new)
         target = out_dir / Path(paths[k]).name
+        if target.resolve() == Path(paths[k]).resolve():  # e.g. a re-run on an earlier run's undistorted/ folder
+            raise PointmapError(f"{paths[k]} would be overwritten by its own undistorted copy: its folder is the "
+                                f"output folder {out_dir}; these photographs were undistorted already, or give "
+                                "another output folder")
         with atomic_path(target) as tmp:
             params = [cv2.IMWRITE_JPEG_QUALITY, 95] if tmp.suffix.lower() in (".jpg", ".jpeg") else []
             if not cv2.imwrite(str(tmp), np.ascontiguousarray(out[..., ::-1]), params):

@@ -1,6 +1,7 @@
 """`pointmap pair` end to end on two images, with a tiny model saved to disk."""
 
 import numpy as np
+import pytest
 import torch
 
 import pointmap as pm
@@ -45,8 +46,24 @@ def test_the_pair_command_stores_given_focals_and_refuses_malformed_ones(tmp_pat
     assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", "70,90"]) == 0
     assert "focal 70 / 90 px (original pixels, given)" in capsys.readouterr().out
     z = np.load(out / "pair.npz")
-    assert bool(z["focal_given"]) and abs(float(z["focal1"]) / z["map_from_original1"][0] - 70) < 1e-3
-    assert abs(float(z["focal2"]) / z["map_from_original2"][0] - 90) < 1e-3
+    # stored in the original images' pixels, as given (the maps' are those times map_from_original)
+    assert bool(z["focal_given"]) and str(z["focal_units"]) == "original"
+    assert abs(float(z["focal1"]) - 70) < 1e-3 and abs(float(z["focal2"]) - 90) < 1e-3
+    # a file written before the focals were stored in original pixels (the maps' pixels, no focal_units) reads alike
+    from pointmap.cli import pair_summary
+
+    old = {k: z[k] for k in z.files if k != "focal_units"}
+    old["focal1"], old["focal2"] = z["focal1"] * z["map_from_original1"][0], z["focal2"] * z["map_from_original2"][0]
+    np.savez(tmp_path / "old.npz", **old)
+    assert "focal 70 / 90 px (original pixels, given)" in pair_summary(tmp_path / "old.npz")
+    # called directly, malformed focals and output folders are refused before the model runs
+    from pointmap.errors import ShapeError
+    from pointmap.io_pair import write_pair_outputs
+
+    for bad_focal, bad_out, message in ((500.0, out, "two positive focal lengths in pixels .* got 500.0"),
+                                        (None, 3, "out expected a folder path, got int")):
+        with pytest.raises(ShapeError, match=message):
+            write_pair_outputs(None, *ims, bad_out, focal=bad_focal)
     assert np.isfinite(z["cam2world_2_in_1"]).all() or np.isnan(z["cam2world_2_in_1"]).all()
     for bad in ("abc", "-5", "1,2,3", "nan"):
         assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", bad]) == 2

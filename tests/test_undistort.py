@@ -159,3 +159,12 @@ def test_undistort_photos_writes_the_distorted_ones_with_their_masks_and_leaves_
     rotated[0, 2], rotated[1, 2] = 119.5, 300.0  # a portrait camera's K for this landscape photograph
     with pytest.raises(PointmapError, match=r"principal point at \(119.5, 300.0\), outside it"):
         undistort_photos(paths, {0: rotated}, {0: LENSES[0]}, tmp_path / "out")
+    with pytest.raises(PointmapError, match="masks expected one entry .* per photograph, 2, got 1"):
+        undistort_photos(paths, {0: K}, {0: LENSES[0]}, tmp_path / "out", [None])
+    with pytest.raises(PointmapError, match="K and distortions expected dicts .* got NoneType and dict"):
+        undistort_photos(paths, None, {0: LENSES[0]}, tmp_path / "out")
+    # a re-run on the undistorted folder itself, written to the same folder: refused, the photograph kept
+    before = (tmp_path / "out" / "a.png").read_bytes()
+    with pytest.raises(PointmapError, match="would be overwritten by its own undistorted copy"):
+        undistort_photos(new_paths, {0: K, 1: K}, {0: LENSES[0]}, tmp_path / "out")
+    assert (tmp_path / "out" / "a.png").read_bytes() == before

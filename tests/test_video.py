@@ -90,6 +90,18 @@ def test_two_videos_of_one_file_name_are_refused_before_their_frames_overwrite_e
     assert not (tmp_path / "frames").exists()
 
 
+def test_a_video_that_gives_one_frame_is_refused_in_its_own_terms_before_the_model_loads(tmp_path, capsys,
+                                                                                          monkeypatch):
+    import pointmap.checkpoint
+    from pointmap.cli import main
+
+    video = _video(tmp_path / "short.avi", n=5)
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    assert main(["--quiet", "reconstruct", str(video), "-o", str(tmp_path / "out"), "--stride", "10"]) == 2  # a usage error
+    err = capsys.readouterr().err
+    assert "needs at least 2 images, got 1" in err and "the video gave 1 frame(s) at --stride 10" in err
+
+
 def test_a_video_reconstruction_writes_its_frames_times_in_seconds_to_the_tum_trajectory(tmp_path):
     import torch
 

@@ -131,6 +131,17 @@ def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
     one = localize(None, recon, queries[0], refs=[[3]], quiet=True)
     assert len(one.names) == 1
     assert torch.equal(one.cam2world, localize(None, recon, [queries[0]], refs=[[3]], quiet=True).cam2world)
+    # and one reference index for it is its list of one
+    assert torch.equal(one.cam2world, localize(None, recon, queries[0], refs=3, quiet=True).cam2world)
+    with pytest.raises(GraphError, match="a list of view indices, got 'near'"):
+        localize(None, recon, queries, refs="near", quiet=True)
+    with pytest.raises(ShapeError, match=r"K expected \[3, 3\] or \[2, 3, 3\] .* got \[\[1, 2, 3\], \[4, 5\]"):
+        localize(None, recon, queries, refs=[[1], [2]], K=[[1, 2, 3], [4, 5]], quiet=True)
+    # maps the network cannot take (not multiples of the patch size), e.g. a hand-made reconstruction's
+    odd = Reconstruction(images=recon.images[:, :30, :45], cam2world=recon.cam2world, K=recon.K,
+                         depth_z=recon.depth_z[:, :30, :45], conf=recon.conf[:, :30, :45])
+    with pytest.raises(ShapeError, match="multiple of the model's patch size 16; got view 0: 45x30"):
+        localize(None, odd, queries, refs=[[1], [2]], quiet=True)
     for bad in (0, True):  # (a bool is not a count)
         with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
             localize(None, recon, queries, n_refs=bad, quiet=True)
