@@ -106,3 +106,20 @@ def test_the_reconstruct_command_holds_given_focals_fixed_with_the_principal_poi
         assert main([*args, "--focal", bad]) == 2
         err = capsys.readouterr().err
         assert "--focal expected F or 3 comma-separated values" in err and bad in err
+
+
+def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):
+    import cv2
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    rng = np.random.default_rng(2)
+    for name, shape in (("wide.png", (60, 80, 3)), ("tall.png", (80, 60, 3))):
+        cv2.imwrite(str(tmp_path / name), rng.integers(0, 255, shape, dtype=np.uint8))
+    out = tmp_path / "out"
+    assert main(["pair", str(tmp_path / "wide.png"), str(tmp_path / "tall.png"), "-o", str(out), "--model",
+                 str(weights), "--size", "64"]) == 0
+    z = np.load(out / "pair.npz")
+    assert z["pts1_cam1"].shape == (48, 64, 3) and z["pts2_cam1"].shape == (64, 48, 3)
+    assert z["img1"].shape == (48, 64, 3) and z["img2"].shape == (64, 48, 3)
+    assert "focal" in capsys.readouterr().out
