@@ -360,7 +360,8 @@ def test_each_folder_skips_hidden_folders_and_its_own_output_and_survives_any_sc
     shutil.copytree(folder, scenes / ".ipynb_checkpoints")
     shutil.copytree(folder, scenes / "__MACOSX")
     (scenes / "broken").mkdir()
-    (scenes / "broken" / "x.png").write_bytes(b"not a png")  # fails inside the scene, not in the argument checks
+    for name in ("x.png", "y.png"):  # fails inside the scene (reading), not in the argument checks
+        (scenes / "broken" / name).write_bytes(b"not a png")
     args = ["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(scenes / "out"), "--model", str(weights),
             "--size", "64", "--export", "npz"]
     assert main(args) == 1
