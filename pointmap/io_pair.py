@@ -62,7 +62,7 @@ def write_png(path: Path, rgb: np.ndarray) -> Path:
     return path
 
 
-def write_pair_outputs(model, path1, path2, out: Path, *, size: int = 512, quiet: bool = False,
+def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512, quiet: bool = False,
                        focal: tuple | None = None, device="cpu") -> list[Path]:
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
 

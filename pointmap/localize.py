@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numpy as np
 import torch
 
 from pointmap.errors import GraphError, PointmapError, ShapeError, is_int
@@ -149,7 +148,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     m, n = len(queries), len(recon)
     if K is not None:
         try:
-            K = torch.as_tensor(np.asarray(K, dtype=np.float64))
+            K = torch.as_tensor(K, dtype=torch.float64)
         except (TypeError, ValueError):  # ragged or non-numeric: said with the layout expected
             raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, got {K!r}") from None
         K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
