@@ -95,6 +95,9 @@ def graph_specs(model: PointmapNet, split: bool, compute_dtype: torch.dtype = to
             "desc_conf1": 1, "desc_conf2": 2}
     pix = {}
     for n in outs:
+        if n == "cam2_to_cam1":  # the pose head's transform: one per pair
+            pix[n] = ["batch", 4, 4]
+            continue
         v = view[n]
         tail = [3] if n.startswith("pts") else [cfg.desc_dim] if n in ("desc1", "desc2") else []
         pix[n] = ["batch", f"height{v}", f"width{v}", *tail]

@@ -102,13 +102,18 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
                   matches: list | None = None, keep: float = 0.7, seed: int = 0) -> torch.Tensor:
     """View 2's cam2world in view 1's camera frame, [B, 4, 4] (translation in the prediction's units).
 
-    - ``pred_reverse`` (the prediction of (view 2, view 1)) given: confidence-weighted Procrustes both ways,
-      averaged: view 2's own-frame pointmap (reverse pass) onto its pointmap in view 1's frame (forward pass),
-      and view 1's own-frame pointmap (forward) onto its pointmap in view 2's frame (reverse), inverted. The
-      rotation is the chordal mean of the two, the translation (camera 2's centre, in the forward pass's units)
-      their mean (one way alone when the other has fewer than 3 usable pixels). Its rotation is the inverse of
-      ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No intrinsics needed. On held-out pairs the average
-      beats either direction alone (docs/models.md).
+    - ``pred_reverse`` (the prediction of (view 2, view 1)) given, for a model with a pose head (both passes
+      carry ``cam2_to_cam1``): the head's transforms of both passes, averaged: the forward one and the reverse
+      one inverted, its translation brought to the forward pass's units by the ratio of view 1's own-frame
+      pointmaps in the two passes (mean distance to camera 1). Otherwise confidence-weighted Procrustes both
+      ways, averaged: view 2's own-frame pointmap (reverse pass) onto its pointmap in view 1's frame (forward
+      pass), and view 1's own-frame pointmap (forward) onto its pointmap in view 2's frame (reverse), inverted.
+      Either way the rotation is the chordal mean of the two, the translation (camera 2's centre, in the
+      forward pass's units) their mean (one way alone when the other is missing: fewer than 3 usable pixels,
+      or a non-finite transform). Its rotation is the inverse of ``relative_pose(pred_reverse,
+      pred_reverse=pred)``'s. No intrinsics needed. On held-out pairs the average beats either direction alone,
+      and the pose head's beats the Procrustes of its pointmaps, which compares view 2's own-frame points of
+      two passes whose small disagreements turn short baselines (docs/models.md).
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
       camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
@@ -156,13 +161,17 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
                 raise ShapeError(f"pred_reverse's pointmaps {list(own2.shape)}, {list(pred_reverse.pts2_cam1[b].shape)}"
                                  f" must match pred's view 2, view 1: {list(pts2.shape)}, "
                                  f"{list(pred.pts1_cam1[b].shape)}")
-            fwd = _own_onto_other(own2, pred_reverse.conf1[b], pts2, conf2, keep)
-            bwd = _own_onto_other(pred.pts1_cam1[b].detach().float().cpu(), pred.conf1[b],
-                                  pred_reverse.pts2_cam1[b].detach().float().cpu(), pred_reverse.conf2[b], keep)
-            # bwd maps view 1's own frame (forward units) into camera 2's frame (reverse units): inverted, camera
-            # 2's centre in camera 1's frame is -R_b^T t_b / s_b (forward units), its orientation R_b^T
-            estimates = ([] if fwd is None else [(fwd[1], fwd[2])]) + \
-                        ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
+            if pred.cam2_to_cam1 is not None and pred_reverse.cam2_to_cam1 is not None:
+                estimates = _head_estimates(pred.cam2_to_cam1[b], pred_reverse.cam2_to_cam1[b],
+                                            pred.pts1_cam1[b], pred_reverse.pts2_cam1[b])
+            else:
+                fwd = _own_onto_other(own2, pred_reverse.conf1[b], pts2, conf2, keep)
+                bwd = _own_onto_other(pred.pts1_cam1[b].detach().float().cpu(), pred.conf1[b],
+                                      pred_reverse.pts2_cam1[b].detach().float().cpu(), pred_reverse.conf2[b], keep)
+                # bwd maps view 1's own frame (forward units) into camera 2's frame (reverse units): inverted,
+                # camera 2's centre in camera 1's frame is -R_b^T t_b / s_b (forward units), its orientation R_b^T
+                estimates = ([] if fwd is None else [(fwd[1], fwd[2])]) + \
+                            ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
             if not estimates:
                 continue
             out[b] = torch.eye(4)
@@ -172,6 +181,29 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)
             if pose is not None:
                 out[b] = torch.from_numpy(pose).float()
+    return out
+
+
+def _head_estimates(T_fwd: torch.Tensor, T_rev: torch.Tensor, own1_fwd: torch.Tensor, pts1_rev: torch.Tensor) -> list:
+    """[(R, t)] float64 of camera 2 in camera 1's frame from a pose head's transforms of both passes: ``T_fwd``
+    (cam2 -> cam1, forward units) and ``T_rev`` (cam1 -> cam2, reverse units) inverted, its translation scaled
+    by the mean distance to camera 1 of view 1's own-frame points in the forward pass (``own1_fwd``) over the
+    reverse pass's (``pts1_rev``, view 1's points in camera 2's frame, moved back by the inverted ``T_rev``).
+    A transform or scale that is not finite is left out (an empty list when neither is usable)."""
+    out = []
+    T_fwd, T_rev = T_fwd.detach().double().cpu(), T_rev.detach().double().cpu()
+    if bool(torch.isfinite(T_fwd).all()):
+        out.append((T_fwd[:3, :3], T_fwd[:3, 3]))
+    if bool(torch.isfinite(T_rev).all()):
+        R_inv = T_rev[:3, :3].T
+        t_inv = -R_inv @ T_rev[:3, 3]
+        own1_rev = pts1_rev.detach().double().cpu() @ R_inv.T + t_inv
+        own1_fwd = own1_fwd.detach().double().cpu()
+        ok = torch.isfinite(own1_rev).all(-1) & torch.isfinite(own1_fwd).all(-1)
+        if bool(ok.any()):
+            scale = own1_fwd[ok].norm(dim=-1).mean() / own1_rev[ok].norm(dim=-1).mean()
+            if bool(torch.isfinite(scale)) and scale > 0:
+                out.append((R_inv, t_inv * scale))
     return out
 
 

@@ -9,6 +9,9 @@ import torch
 from pointmap.errors import ShapeError
 
 
+OPTIONAL_FIELDS = ("desc1", "desc2", "desc_conf1", "desc_conf2", "cam2_to_cam1")  # None for models without them
+
+
 @dataclass
 class PairPrediction:
     """Both views' pointmaps in view 1's camera frame (OpenCV, see docs/conventions.md).
@@ -18,6 +21,9 @@ class PairPrediction:
     conf1, conf2: [B, H, W] confidences (>= 1 for the official heads)
     desc1, desc2: [B, H, W, D] unit descriptors, or None for models without a descriptor head
     desc_conf1, desc_conf2: [B, H, W] descriptor confidences, or None
+    cam2_to_cam1: [B, 4, 4] the rigid transform a pose head predicts from camera 2's frame to camera 1's (view 2's
+        cam2world in view 1's frame, in the pointmaps' units; for such models ``pts2_cam1`` is view 2's own-frame
+        pointmap moved by it), or None for models without a pose head
     """
 
     pts1_cam1: torch.Tensor
@@ -28,11 +34,12 @@ class PairPrediction:
     desc2: torch.Tensor | None = None
     desc_conf1: torch.Tensor | None = None
     desc_conf2: torch.Tensor | None = None
+    cam2_to_cam1: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
             t = getattr(self, f.name)
-            if not isinstance(t, torch.Tensor) and (t is not None or not f.name.startswith("desc")):
+            if not isinstance(t, torch.Tensor) and (t is not None or f.name not in OPTIONAL_FIELDS):
                 raise ShapeError(f"{f.name} expected a torch.Tensor, got {type(t).__name__}")
         for v, pts, conf in (("1", self.pts1_cam1, self.conf1), ("2", self.pts2_cam1, self.conf2)):
             if pts.ndim != 4 or pts.shape[-1] != 3:
@@ -59,6 +66,9 @@ class PairPrediction:
                 dims.add(int(d.shape[-1]))
             if len(dims) != 1:
                 raise ShapeError(f"desc1 and desc2 expected the same descriptor length D, got {sorted(dims)}")
+        if self.cam2_to_cam1 is not None and tuple(self.cam2_to_cam1.shape) != (self.pts1_cam1.shape[0], 4, 4):
+            raise ShapeError(f"cam2_to_cam1 expected [{self.pts1_cam1.shape[0]}, 4, 4] (one transform per pair), got "
+                             f"{list(self.cam2_to_cam1.shape)}")
 
     @property
     def batch_size(self) -> int:

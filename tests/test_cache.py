@@ -40,6 +40,22 @@ def test_a_second_run_reads_every_pair_from_the_cache_without_the_encoder_and_ge
     assert half[(0, 1)].pts1_cam1.dtype == torch.float16 and half[(0, 1)].desc1 is None
 
 
+def test_a_pose_head_models_transform_is_cached_and_kept_without_the_descriptors(tmp_path):
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"].replace(pose_head=True)).eval()
+    with torch.no_grad():
+        model.pose_head.out.weight.normal_(0, 0.3)  # far from the identity it starts at
+    vs = views(3, [(48, 64)] * 3)
+    pairs = [(0, 1), (2, 1)]
+    fresh = pm.predict_pairs(model, vs, pairs, quiet=True, keep_desc=False)
+    assert fresh[(0, 1)].desc1 is None and fresh[(0, 1)].cam2_to_cam1.shape == (1, 4, 4)
+    assert not torch.allclose(fresh[(0, 1)].cam2_to_cam1, torch.eye(4))
+    cache = PredictionCache(tmp_path, model)
+    pm.predict_pairs(model, vs, pairs, quiet=True, cache=cache)
+    back = pm.predict_pairs(model, vs, pairs, quiet=True, cache=PredictionCache(tmp_path, model), keep_desc=False)
+    same(fresh, back)
+
+
 def test_a_changed_image_or_other_weights_miss_and_only_the_missing_pairs_are_predicted(tiny_model, tmp_path):
     vs = views(4)
     pairs = [(0, 1), (1, 2), (2, 3)]

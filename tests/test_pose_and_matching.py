@@ -92,6 +92,43 @@ def test_the_two_pass_pose_averages_both_directions_and_its_rotation_inverts_the
     assert r < 1e-3 and t < 1e-2
 
 
+def _with_head(pred, T):
+    from dataclasses import replace
+
+    return replace(pred, cam2_to_cam1=T[None].float())
+
+
+def test_a_pose_heads_transforms_of_both_passes_are_the_pose_and_not_the_procrustes_of_their_points():
+    p1, p2, _, d2, gt = two_views()
+    own2 = depth_to_points_cam(d2, K)
+    # the reverse pass's own-frame view 2 is 8% deeper at the top than the forward pass's: a disagreement that
+    # turns the Procrustes of the points, while both passes' pose heads have the true transform
+    warp = 1 + 0.08 * torch.linspace(1, 0, H, dtype=torch.float64)[:, None, None]
+    fwd = _with_head(as_pred(p1, p2), gt)
+    rev_T = invert_rigid(gt).clone()
+    rev_T[:3, 3] *= 0.5  # the reverse pass's units: half the forward's
+    rev = _with_head(as_pred(own2 * warp * 0.5, transform_points(invert_rigid(gt), p1) * 0.5), rev_T)
+    est = pm.relative_pose(fwd, pred_reverse=rev)[0].double()
+    assert pose_errors(est, gt)[0] < 1e-3 and torch.allclose(est[:3, 3], gt[:3, 3], atol=1e-4)
+    plain = pm.relative_pose(as_pred(p1, p2), pred_reverse=as_pred(rev.pts1_cam1[0], rev.pts2_cam1[0]))[0]
+    assert pose_errors(plain, gt)[1] > 1  # the same points without the transforms: the Procrustes is off
+    # one transform off by 10 degrees: the mean is 5 off, and the swapped call's rotation is its inverse
+    err = torch.eye(4, dtype=torch.float64)
+    err[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(10)], dtype=torch.float64))
+    rev10 = _with_head(rev, err @ rev_T)
+    est10 = pm.relative_pose(fwd, pred_reverse=rev10)[0].double()
+    assert abs(pose_errors(est10, gt)[0] - 5.0) < 0.05
+    back = invert_rigid(pm.relative_pose(rev10, pred_reverse=fwd)[0].double())
+    assert relative_rotation_error_deg(back[:3, :3], est10[:3, :3]) < 1e-3
+    # a transform that is not finite: the other alone
+    nan_fwd = _with_head(fwd, gt * float("nan"))
+    one = pm.relative_pose(nan_fwd, pred_reverse=rev)[0].double()
+    assert pose_errors(one, gt)[0] < 1e-3 and torch.allclose(one[:3, 3], gt[:3, 3], atol=1e-4)
+    # only one pass with a transform (predictions of different models): the Procrustes of the points
+    mixed = pm.relative_pose(fwd, pred_reverse=as_pred(rev.pts1_cam1[0], rev.pts2_cam1[0]))[0]
+    assert torch.allclose(mixed, plain)
+
+
 def test_degenerate_predictions_give_nan_poses_not_exceptions():
     zeros = torch.zeros(H, W, 3, dtype=torch.float64)
     est = pm.relative_pose(as_pred(zeros, zeros), K2=K)
@@ -517,6 +554,23 @@ def test_a_prediction_refuses_descriptors_that_do_not_come_in_fours_fit_the_grid
     with pytest.raises(pm.ShapeError, match="pts1_cam1 expected a torch.Tensor, got ndarray"):
         pm.PairPrediction(pts[0].numpy(), *pts[1:])
     assert pm.PairPrediction(*pts, desc1=d, desc2=d, desc_conf1=dc, desc_conf2=dc).has_desc
+
+
+def test_a_predictions_pose_head_transform_is_one_4x4_per_pair_and_follows_slices_and_concatenation():
+    p1, p2, *_ = two_views()
+    pts = (p1[None].float().expand(3, -1, -1, -1), p2[None].float().expand(3, -1, -1, -1), torch.ones(3, H, W),
+           torch.ones(3, H, W))
+    T = torch.eye(4).expand(3, 4, 4).clone()
+    T[:, 0, 3] = torch.arange(3.0)
+    with pytest.raises(pm.ShapeError, match=r"cam2_to_cam1 expected \[3, 4, 4\] \(one transform per pair\), "
+                                            r"got \[4, 4\]"):
+        pm.PairPrediction(*pts, cam2_to_cam1=T[0])
+    with pytest.raises(pm.ShapeError, match="cam2_to_cam1 expected a torch.Tensor, got ndarray"):
+        pm.PairPrediction(*pts, cam2_to_cam1=T.numpy())
+    pred = pm.PairPrediction(*pts, cam2_to_cam1=T)
+    assert torch.equal(pred[2].cam2_to_cam1, T[2:]) and "cam2_to_cam1" in pred.as_dict()
+    assert torch.equal(pm.PairPrediction.cat([pred[0], pred[2]]).cam2_to_cam1, T[[0, 2]])
+    assert pm.PairPrediction(*pts).cam2_to_cam1 is None
 
 
 def test_intrinsics_with_a_zero_or_nan_focal_are_refused_not_turned_into_a_nan_pose():

@@ -150,12 +150,13 @@ class PointmapNet(nn.Module):
         local2 = None if local2 is None else local2.float()
         o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p, local1), self.cfg)
         o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p, local2), self.cfg)
+        T = None
         if self.pose_head is not None:  # o2["pts"] is in view 2's own frame: move it into view 1's
             T = self.pose_head(tok1[-1], tok2[-1], grid1, grid2, o1["pts"])
             o2["pts"] = transform_points(T, o2["pts"])
         return PairPrediction(pts1_cam1=o1["pts"], pts2_cam1=o2["pts"], conf1=o1["conf"], conf2=o2["conf"],
                               desc1=o1.get("desc"), desc2=o2.get("desc"),
-                              desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"))
+                              desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"), cam2_to_cam1=T)
 
     def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
         """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""

@@ -39,7 +39,8 @@ FORMAT = "pointmap-onnx/1"
 SIDECAR = "pointmap_export.json"          # next to the graphs; also embedded in each graph's metadata
 METADATA_KEY = "pointmap"                 # ModelProto.metadata_props key holding the sidecar JSON
 FULL_GRAPH, ENCODER_GRAPH, DECODER_GRAPH = "model.onnx", "encoder.onnx", "decoder.onnx"
-PRED_FIELDS = ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2")
+PRED_FIELDS = ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2",
+               "cam2_to_cam1")
 
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
@@ -54,8 +55,10 @@ _AUTO_ORDER = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecuti
 
 
 def output_names(cfg: ModelConfig) -> list[str]:
-    """Graph outputs of a full or decoder graph, in this order (PairPrediction field names)."""
-    return list(PRED_FIELDS if cfg.has_desc else PRED_FIELDS[:4])
+    """Graph outputs of a full or decoder graph, in this order (PairPrediction field names): the pointmaps and
+    confidences, the descriptors (models with a descriptor head), the pose head's transform (with a pose head)."""
+    return list(PRED_FIELDS[:4]) + (list(PRED_FIELDS[4:8]) if cfg.has_desc else []) + \
+        (["cam2_to_cam1"] if cfg.pose_head else [])
 
 
 def _ort():
@@ -190,6 +193,10 @@ class OnnxPointmapModel:
                 self._sessions[f] = ort.InferenceSession(str(gp), sess_options=so, providers=provs)
             except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
+        # an export written before the pose head's transform was a graph output (session 49) lacks it: the
+        # prediction then has no cam2_to_cam1, and relative_pose falls back to the pointmaps' Procrustes
+        have = {o.name for o in self._sessions[files[-1]].get_outputs()}
+        self._out_names = [n for n in self._out_names if n in have or n != "cam2_to_cam1"]
         self.providers = next(iter(self._sessions.values())).get_providers()
         wanted = [p[0] if isinstance(p, tuple) else p for p in provs]
         for f, sess in self._sessions.items():  # onnxruntime falls back to the CPU with at most a log line: say so

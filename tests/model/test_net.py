@@ -114,8 +114,12 @@ def test_the_pose_head_moves_view_twos_own_points_rigidly_into_view_one():
         with_pose.pose_head.out.weight.normal_(0, 0.5)  # a trained-looking head: a far-from-identity pose
     img1, img2 = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32)
     with torch.no_grad():
-        moved, own = with_pose(img1, img2).pts2_cam1[0].reshape(-1, 3), local(img1, img2).pts2_cam1[0].reshape(-1, 3)
+        pred = with_pose(img1, img2)
+        moved, own = pred.pts2_cam1[0].reshape(-1, 3), local(img1, img2).pts2_cam1[0].reshape(-1, 3)
     assert not torch.allclose(moved, own, atol=1e-3)
+    assert local(img1, img2).cam2_to_cam1 is None  # no pose head, no transform
+    T = pred.cam2_to_cam1[0].double()  # the transform the prediction carries is the one that moved them
+    assert torch.allclose(moved.double(), own.double() @ T[:3, :3].T + T[:3, 3], atol=1e-5)
     dist = lambda p: (p.double()[:, None] - p.double()[None]).norm(dim=-1)  # noqa: E731
     assert torch.allclose(dist(moved), dist(own), atol=1e-5)  # all distances kept: a rigid motion
 
