@@ -8,7 +8,6 @@ import torch
 
 from pointmap.errors import ShapeError
 
-
 OPTIONAL_FIELDS = ("desc1", "desc2", "desc_conf1", "desc_conf2", "cam2_to_cam1")  # None for models without them
 
 

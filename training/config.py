@@ -62,6 +62,8 @@ class TrainConfig:
                                    # --lr, weight decay included (they start at 0; AdamW moves every weight by
                                    # about the same step, so at 1 they stay near 0 for thousands of steps:
                                    # docs/training.md, Growing a model)
+    train_only: str = ""           # "PREFIX[,PREFIX...]": only parameters whose names start with one of these train
+                                   # (e.g. "pose_head"); the rest is frozen (unchanged, no gradient computed)
     mask_ratio: float = 0.9        # pretraining
     ckpt_every: int = 200
     ckpt_minutes: float = 10.0     # also checkpoint when this much wall time passed since the last one (0: off), so

@@ -264,6 +264,25 @@ def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
     return {n: cfg.grown_lr for n in names}
 
 
+def freeze_except(model: PointmapNet, train_only: str) -> int:
+    """``--train_only``: parameters whose names start with none of the comma-separated prefixes stop requiring
+    gradients (the optimizer leaves them out, autograd stops before them). Returns how many tensors still train;
+    ValueError (one line) for an empty prefix or one that names no parameter. "" changes nothing."""
+    if not train_only:
+        return sum(1 for _ in model.parameters())
+    prefixes = [p.strip() for p in train_only.split(",")]
+    names = [n for n, _ in model.named_parameters()]
+    for pre in prefixes:
+        if not pre or not any(n.startswith(pre) for n in names):
+            raise ValueError(f"--train_only {train_only!r}: {pre!r} names no parameter of this model (prefixes of "
+                             f"names such as {names[0]!r} or {names[-1]!r})")
+    kept = 0
+    for n, p in model.named_parameters():
+        p.requires_grad_(n.startswith(tuple(prefixes)))
+        kept += p.requires_grad
+    return kept
+
+
 def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
     """Options that depend on the architecture, checked before any data is opened."""
     if cfg.attn_weight > 0 and cfg.attn_heads > model.cfg.dec_heads:
@@ -289,6 +308,7 @@ def main(argv=None) -> int:
         model = build_model(cfg)
         check_model_options(cfg, model)
         lr_scale = grown_lr_scale(cfg, model)
+        trainable = freeze_except(model, cfg.train_only)
         train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
                                               crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p,
                                               pad_p=cfg.pad_p),
@@ -303,6 +323,8 @@ def main(argv=None) -> int:
     if lr_scale:
         print(f"--grown_lr {cfg.grown_lr}: {len(lr_scale)} tensors (the output projections of the blocks grown from "
               f"{cfg.grown_from})", file=sys.stderr)
+    if cfg.train_only:
+        print(f"--train_only {cfg.train_only}: {trainable} parameter tensors train, the rest is frozen", file=sys.stderr)
     extra = lineage_extra(model)
     try:
         result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale, extra=extra)

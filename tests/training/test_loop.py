@@ -923,3 +923,22 @@ def test_a_sigterm_during_the_last_update_keeps_its_decay_checkpoint_and_the_res
     assert rows[-1].startswith("8,")
     fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, step, eval_fn)  # once is enough
     assert evals == [1]
+
+
+def test_train_only_trains_the_named_parameters_and_leaves_every_other_weight_bit_identical(tmp_path):
+    from training.train import freeze_except
+
+    model, _ = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    kept = freeze_except(model, "pose_head")
+    assert kept == sum(1 for n, _ in model.named_parameters() if n.startswith("pose_head")) > 0
+    cfg = dataclasses.replace(config(tmp_path, 3), pose_weight=1.0, pose_dir_weight=0.5, attn_weight=0.5,
+                              train_only="pose_head")
+    fit(cfg, model, PlanePairs(6), collate, make_step(cfg))
+    moved = {n for n, p in model.named_parameters() if not torch.equal(p, before[n])}
+    assert moved and all(n.startswith("pose_head") for n in moved)
+    assert freeze_except(model, "") == len(before)  # "" leaves the flags as they are
+    with pytest.raises(ValueError, match="'pose_heads' names no parameter"):
+        freeze_except(model, "pose_head,pose_heads")
+    with pytest.raises(ValueError, match="'' names no parameter"):
+        freeze_except(model, "pose_head,")
