@@ -15,8 +15,10 @@ true intrinsics (the rendered sets' K is in the images' own pixels, which the 22
 one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
 '+S' for the sparse refinement on matches (``refine_matches``), '+E' for the epipolar pose refinement on the
 model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default; '+E-' for that stage without its
-cheirality residuals, as before session 33) and '+T' for DUSt3R's
-spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one. The table gives RRA@15 / RTA@15 / median
+cheirality residuals, as before session 33), '+T' for DUSt3R's
+spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one
+and '+P' for the averaging start from the Procrustes of the pointmaps even when the model has a pose head
+(``AlignConfig(pose_head=False)``, as before session 49). The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
@@ -58,25 +60,26 @@ def per_pair_path(prefix: str, method: str) -> Path:
 
 
 def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | None]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+E1', 'auto+T' ... -> (AlignConfig
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+E1', 'auto+T', 'auto+P' ... -> (AlignConfig
     (quiet), whether the true intrinsics are given, whether the sparse refinement on matches follows, the epipolar
     pose refinement's config or None)."""
     body, *flags = s.split("+")
     stages = {"E", "E-", "E1"}
-    if any(f not in ("K", "F", "S", "T", *stages) for f in flags) or len(set(flags)) < len(flags) \
+    if any(f not in ("K", "F", "S", "T", "P", *stages) for f in flags) or len(set(flags)) < len(flags) \
             or len(stages & set(flags)) > 1:
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
                                          "on matches, as reconstruct), '+E-' (the same without its cheirality "
-                                         "residuals) or '+E1' (with them, one descent: session 33's stage) and/or '+T' "
-                                         "(spanning-tree start)")
+                                         "residuals) or '+E1' (with them, one descent: session 33's stage), '+T' "
+                                         "(spanning-tree start) and/or '+P' (the averaging start from the "
+                                         "pointmaps' Procrustes, not the pose head)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
-                      init="mst" if "T" in flags else "averaging", quiet=True)
+                      init="mst" if "T" in flags else "averaging", pose_head="P" not in flags, quiet=True)
     epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags) if stages & set(flags) \
         else None
     return cfg, "K" in flags, "S" in flags, epipolar

@@ -9,7 +9,8 @@ edges spreads the error instead of accumulating it. Three linear least-squares p
 times by a Cauchy function of its residuals (iteratively reweighted least squares), on the edge scores:
 
 1. rotations: Procrustes of image j's own map (its best edge as first view) onto the edge's map of j gives Q_e,
-   j's camera axes in i's frame; minimise sum_e w_e ||R_j - R_i Q_e||_F^2 (chordal, linear, one solve per row
+   j's camera axes in i's frame (with a pose head, the edge's own transform gives Q_e and t_e below: the
+   Procrustes compares two passes' regressions of j, whose disagreement turns short baselines, session 49); minimise sum_e w_e ||R_j - R_i Q_e||_F^2 (chordal, linear, one solve per row
    of R) with the root image's R = I, then project each R onto SO(3);
 2. scales: each image's own map has an unknown scale lambda in world units; the edge's map of i is sigma_e times
    i's own map and its map of j is s_e times j's (the same Procrustes), so log lambda_j - log lambda_i =
@@ -42,10 +43,11 @@ CENTRE_SIGMA = 0.2       # ... of its centre residual, relative to the edge's ba
 IRLS_ITERS = 4
 
 
-def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64):
+def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64, pose_head: bool = True):
     """Per directed edge e = (i, j): (Q [E, 3, 3] j's axes in i's frame, t [E, 3] j's centre in i's frame at the
     edge's scale, s [E] the edge's map of j over j's own map, sigma [E] the edge's map of i over i's own map), all
-    float64. Non-finite where a Procrustes failed."""
+    float64. Non-finite where a Procrustes failed. Q and t are the pose head's transforms (``stack.T``) when the
+    stack has them and ``pose_head``; else, as s, from the Procrustes of j's own map onto the edge's."""
     dt = torch.float64
     own_t = torch.as_tensor(own, dtype=torch.long)
     Q, t, s, sigma = [], [], [], []
@@ -63,6 +65,8 @@ def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64):
         w = stack.w_i[sl].to(dt) * stack.w_i[oi].to(dt)
         sigma.append((w * (p * q).sum(-1)).sum(-1) / (w * q.square().sum(-1)).sum(-1).clamp_min(1e-30))
     Q, t, s, sigma = torch.cat(Q), torch.cat(t), torch.cat(s), torch.cat(sigma)
+    if pose_head and stack.T is not None:
+        Q, t = stack.T[:, :3, :3].clone(), stack.T[:, :3, 3].clone()
     return Q, t, s, sigma
 
 
@@ -161,14 +165,15 @@ def average_centres(n: int, i: np.ndarray, j: np.ndarray, d: np.ndarray, w: np.n
     return C
 
 
-def init_averaging(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
-    """The alignment's start from motion averaging (module docstring); intrinsics as given [N]. GraphError for
+def init_averaging(stack: EdgeStack, fx, fy, cx, cy, pose_head: bool = True) -> InitResult:
+    """The alignment's start from motion averaging (module docstring); intrinsics as given [N]; ``pose_head``:
+    the edges' relative motions from the pose head's transforms when the stack has them. GraphError for
     a graph that cannot be averaged: not connected, or not connected by the edges whose relative motion came out
     usable (finite, positive scales); an image never first in a pair; a non-finite result."""
     n = stack.uv.shape[0]
     dt = torch.float64
     own = own_maps(n, stack)
-    Q, t, s, sigma = edge_motions(stack, own)
+    Q, t, s, sigma = edge_motions(stack, own, pose_head=pose_head)
     i, j = stack.i.numpy(), stack.j.numpy()
     w = stack.score.double().numpy().copy()
     ok = (torch.isfinite(Q).flatten(1).all(1) & torch.isfinite(t).all(1) & (s > 0) & (sigma > 0)).numpy()

@@ -56,6 +56,8 @@ class EdgeStack:
     pix_valid: [N, P] bool, real (non-padding) pixels
     score:     [E] edge score mean(conf_i) * mean(conf_j)
     stride:    subsampling stride used
+    T:         [E, 4, 4] float64 the pose head's transform of each edge (camera j -> camera i, prediction scale)
+               when every prediction carries one (``PairPrediction.cam2_to_cam1``), else None
     """
 
     i: torch.Tensor
@@ -70,6 +72,7 @@ class EdgeStack:
     stride: int
     keys: list
     num_terms: float | None = None
+    T: torch.Tensor | None = None
 
     @property
     def num_edges(self) -> int:
@@ -174,9 +177,11 @@ def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: 
         c1, c2 = (torch.where(torch.isfinite(c), c, torch.zeros_like(c)).mean()
                   for c in (p.conf1.detach().double(), p.conf2.detach().double()))
         score[e] = c1 * c2
+    heads = [preds[k].cam2_to_cam1 for k in keys]
+    T = None if any(h is None for h in heads) else torch.cat([h.detach().to("cpu", torch.float64) for h in heads])
     return EdgeStack(i=torch.tensor([k[0] for k in keys]), j=torch.tensor([k[1] for k in keys]),
                      pred_i=pred_i, pred_j=pred_j, w_i=w_i, w_j=w_j, uv=uv, pix_valid=pix_valid,
-                     score=score, stride=stride, keys=list(keys))
+                     score=score, stride=stride, keys=list(keys), T=T)
 
 
 def drop_empty_edges(stack: EdgeStack, conf_transform: str = "log") -> EdgeStack:
@@ -195,7 +200,8 @@ def drop_empty_edges(stack: EdgeStack, conf_transform: str = "log") -> EdgeStack
     keep = alive.nonzero()[:, 0]
     return EdgeStack(i=stack.i[keep], j=stack.j[keep], pred_i=stack.pred_i[keep], pred_j=stack.pred_j[keep],
                      w_i=stack.w_i[keep], w_j=stack.w_j[keep], uv=stack.uv, pix_valid=stack.pix_valid,
-                     score=stack.score[keep], stride=stack.stride, keys=[stack.keys[e] for e in keep.tolist()])
+                     score=stack.score[keep], stride=stack.stride, keys=[stack.keys[e] for e in keep.tolist()],
+                     T=None if stack.T is None else stack.T[keep])
 
 
 def check_connected(n_images: int, keys: list) -> None:

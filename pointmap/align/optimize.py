@@ -62,6 +62,9 @@ class AlignConfig:
         cropped alike, and K given for all images (one focal) or none (``check_one_camera``)
     init: the start of the optimisation: 'averaging' (default: every edge at once, rotation, scale and centre
         averaging; pointmap.align.averaging) or 'mst' (DUSt3R's maximum spanning tree: one edge per image, chained)
+    pose_head: the averaging start takes each edge's rotation and centre from the pose head's transform when every
+        prediction carries one (``PairPrediction.cam2_to_cam1``; False: the Procrustes of the pointmaps, as
+        before session 49; models without a pose head always use it)
     quiet: no progress bar
     """
 
@@ -80,6 +83,7 @@ class AlignConfig:
     fuse_iters: int = 1
     shared_focal: bool = False
     init: str = "averaging"
+    pose_head: bool = True
     quiet: bool = False
 
     def __post_init__(self):
@@ -111,7 +115,7 @@ class AlignConfig:
         number("early_stop_tol", positive=False)
         number("early_stop_window", positive=True, integer=True)
         number("fuse_iters", positive=False, integer=True)
-        for name in ("shared_focal", "quiet"):
+        for name in ("shared_focal", "pose_head", "quiet"):
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
 
@@ -175,7 +179,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     init, init_used = None, cfg.init
     if cfg.init == "averaging":
         try:
-            init = init_averaging(stack, fx, fy, cx, cy)
+            init = init_averaging(stack, fx, fy, cx, cy, pose_head=cfg.pose_head)
         except GraphError as err:  # the graph is connected (checked above): the averaging itself failed
             warnings.warn(f"global_align: the motion-averaging start failed ({err}); starting from the spanning "
                           "tree instead", stacklevel=2)

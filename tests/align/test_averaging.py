@@ -188,8 +188,8 @@ def test_a_failed_averaging_falls_back_to_the_spanning_tree_with_a_warning(monke
 
     real = averaging.edge_motions
 
-    def broken(stack, own, chunk=64):
-        Q, t, s, sigma = real(stack, own, chunk)
+    def broken(stack, own, chunk=64, **kw):
+        Q, t, s, sigma = real(stack, own, chunk, **kw)
         bad = (stack.i == 3) | (stack.j == 3)
         return torch.where(bad[:, None, None], torch.nan, Q), t, s, sigma
 
@@ -216,3 +216,29 @@ def test_complete_graph_start_agrees_with_the_tree_when_predictions_are_exact():
     a = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, optimizer="none", init="averaging"))
     b = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, optimizer="none", init="mst"))
     assert torch.allclose(a.cam2world, b.cam2world, atol=1e-3)
+
+
+def test_the_averaging_start_takes_each_edges_motion_from_the_pose_head_when_the_predictions_carry_one():
+    """Every prediction's view-2 map is turned 8 degrees about view 1 (the Procrustes of the maps is off) while its
+    pose head has the true transform: the start from the heads is exact, the start from the maps is not, and
+    pose_head=False (or a model without a head) gives the maps' start."""
+    from dataclasses import replace
+
+    sc = make_scene(4, 24, 32, seed=0)
+    preds = gt_preds(sc, complete_pairs(4), seed=2, pair_rot_deg=8.0)
+    c2w, pw = sc["cam2world"], sc["pts_world"]
+    heads = {}
+    for (i, j), p in preds.items():
+        w2c = np.linalg.inv(c2w[i])
+        own1 = pw[i] @ w2c[:3, :3].T + w2c[:3, 3]
+        s = float(p.pts1_cam1.double().norm() / torch.from_numpy(own1).norm())  # the prediction's scale
+        T = torch.from_numpy(w2c @ c2w[j])
+        T[:3, 3] *= s
+        heads[(i, j)] = replace(p, cam2_to_cam1=T[None].float())
+    start = lambda ps, **kw: global_align(views_of(sc), ps, config=AlignConfig(quiet=True, optimizer="none",  # noqa: E731
+                                                                                  **kw)).cam2world.numpy()
+    rot_head, centre_head, _ = pose_errors(start(heads), c2w)
+    rot_maps, centre_maps, _ = pose_errors(start(heads, pose_head=False), c2w)
+    assert rot_head < 0.05 and centre_head < 1e-3  # 0.011 degrees, 2e-8 of the scene (the solver's ridge)
+    assert rot_maps > 1.0 and centre_maps > 0.01  # 4.5 degrees, 3% of the scene
+    assert np.allclose(start(preds), start(heads, pose_head=False))

@@ -101,7 +101,8 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
     assert parse_setting("auto+E")[3].second_descent and not parse_setting("auto+E1")[3].second_descent
     assert parse_setting("auto+E1")[3].cheirality  # with them, in one descent (session 33's stage)
     assert cfg.init == "averaging" and parse_setting("auto+T+E")[0].init == "mst"  # the library's start, or the tree's
-    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "rank", "log:sgd"):
+    assert cfg.pose_head and not parse_setting("auto+P+E")[0].pose_head  # the heads' motions, or the maps'
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "auto+P+P", "rank", "log:sgd"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
 
