@@ -105,15 +105,16 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     - ``pred_reverse`` (the prediction of (view 2, view 1)) given, for a model with a pose head (both passes
       carry ``cam2_to_cam1``): the head's transforms of both passes, averaged: the forward one and the reverse
       one inverted, its translation brought to the forward pass's units by the ratio of view 1's own-frame
-      pointmaps in the two passes (mean distance to camera 1). Otherwise confidence-weighted Procrustes both
-      ways, averaged: view 2's own-frame pointmap (reverse pass) onto its pointmap in view 1's frame (forward
-      pass), and view 1's own-frame pointmap (forward) onto its pointmap in view 2's frame (reverse), inverted.
-      Either way the rotation is the chordal mean of the two, the translation (camera 2's centre, in the
-      forward pass's units) their mean (one way alone when the other is missing: fewer than 3 usable pixels,
-      or a non-finite transform). Its rotation is the inverse of ``relative_pose(pred_reverse,
-      pred_reverse=pred)``'s. No intrinsics needed. On held-out pairs the average beats either direction alone,
-      and the pose head's beats the Procrustes of its pointmaps, which compares view 2's own-frame points of
-      two passes whose small disagreements turn short baselines (docs/models.md).
+      pointmaps in the two passes (mean distance to camera 1); the translation keeps the heads' direction and
+      takes the length of the pointmaps' (below), as the head's baselines come out short. Otherwise
+      confidence-weighted Procrustes both ways, averaged: view 2's own-frame pointmap (reverse pass) onto its
+      pointmap in view 1's frame (forward pass), and view 1's own-frame pointmap (forward) onto its pointmap in
+      view 2's frame (reverse), inverted. Either way the rotation is the chordal mean of the two, the
+      translation (camera 2's centre, in the forward pass's units) their mean (one way alone when the other is
+      missing: fewer than 3 usable pixels, or a non-finite transform). Its rotation is the inverse of
+      ``relative_pose(pred_reverse, pred_reverse=pred)``'s. No intrinsics needed. On held-out pairs the average
+      beats either direction alone, and the pose head's beats the Procrustes of its pointmaps, which compares
+      view 2's own-frame points of two passes whose small disagreements turn short baselines (docs/models.md).
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
       camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
@@ -161,27 +162,35 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
                 raise ShapeError(f"pred_reverse's pointmaps {list(own2.shape)}, {list(pred_reverse.pts2_cam1[b].shape)}"
                                  f" must match pred's view 2, view 1: {list(pts2.shape)}, "
                                  f"{list(pred.pts1_cam1[b].shape)}")
+            fwd = _own_onto_other(own2, pred_reverse.conf1[b], pts2, conf2, keep)
+            bwd = _own_onto_other(pred.pts1_cam1[b].detach().float().cpu(), pred.conf1[b],
+                                  pred_reverse.pts2_cam1[b].detach().float().cpu(), pred_reverse.conf2[b], keep)
+            # bwd maps view 1's own frame (forward units) into camera 2's frame (reverse units): inverted,
+            # camera 2's centre in camera 1's frame is -R_b^T t_b / s_b (forward units), its orientation R_b^T
+            estimates = ([] if fwd is None else [(fwd[1], fwd[2])]) + \
+                        ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
+            heads = []
             if pred.cam2_to_cam1 is not None and pred_reverse.cam2_to_cam1 is not None:
-                estimates = _head_estimates(pred.cam2_to_cam1[b], pred_reverse.cam2_to_cam1[b],
-                                            pred.pts1_cam1[b], pred_reverse.pts2_cam1[b])
-            else:
-                fwd = _own_onto_other(own2, pred_reverse.conf1[b], pts2, conf2, keep)
-                bwd = _own_onto_other(pred.pts1_cam1[b].detach().float().cpu(), pred.conf1[b],
-                                      pred_reverse.pts2_cam1[b].detach().float().cpu(), pred_reverse.conf2[b], keep)
-                # bwd maps view 1's own frame (forward units) into camera 2's frame (reverse units): inverted,
-                # camera 2's centre in camera 1's frame is -R_b^T t_b / s_b (forward units), its orientation R_b^T
-                estimates = ([] if fwd is None else [(fwd[1], fwd[2])]) + \
-                            ([] if bwd is None else [(bwd[1].T, -bwd[1].T @ bwd[2] / bwd[0])])
-            if not estimates:
+                heads = _head_estimates(pred.cam2_to_cam1[b], pred_reverse.cam2_to_cam1[b],
+                                        pred.pts1_cam1[b], pred_reverse.pts2_cam1[b])
+            if not (estimates or heads):
                 continue
+            R, t = _mean_motion(heads or estimates)
+            if heads and estimates:  # the head's direction, the points' baseline (the head's is ~0.6 of the truth)
+                t = t / t.norm().clamp_min(1e-12) * _mean_motion(estimates)[1].norm()
             out[b] = torch.eye(4)
-            out[b, :3, :3] = project_to_rotation(sum(R for R, _ in estimates)).float()  # chordal mean
-            out[b, :3, 3] = (sum(t for _, t in estimates) / len(estimates)).float()
+            out[b, :3, :3] = R.float()
+            out[b, :3, 3] = t.float()
         else:
             pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)
             if pose is not None:
                 out[b] = torch.from_numpy(pose).float()
     return out
+
+
+def _mean_motion(estimates: list):
+    """(chordal mean rotation, mean translation) of a non-empty list of (R, t)."""
+    return project_to_rotation(sum(R for R, _ in estimates)), sum(t for _, t in estimates) / len(estimates)
 
 
 def _head_estimates(T_fwd: torch.Tensor, T_rev: torch.Tensor, own1_fwd: torch.Tensor, pts1_rev: torch.Tensor) -> list:

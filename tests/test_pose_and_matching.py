@@ -109,9 +109,16 @@ def test_a_pose_heads_transforms_of_both_passes_are_the_pose_and_not_the_procrus
     rev_T[:3, 3] *= 0.5  # the reverse pass's units: half the forward's
     rev = _with_head(as_pred(own2 * warp * 0.5, transform_points(invert_rigid(gt), p1) * 0.5), rev_T)
     est = pm.relative_pose(fwd, pred_reverse=rev)[0].double()
-    assert pose_errors(est, gt)[0] < 1e-3 and torch.allclose(est[:3, 3], gt[:3, 3], atol=1e-4)
+    assert max(pose_errors(est, gt)) < 1e-3
     plain = pm.relative_pose(as_pred(p1, p2), pred_reverse=as_pred(rev.pts1_cam1[0], rev.pts2_cam1[0]))[0]
     assert pose_errors(plain, gt)[1] > 1  # the same points without the transforms: the Procrustes is off
+    # ... but its baseline length is what the translation keeps (the head's own comes out short on real data)
+    assert abs(float(est[:3, 3].norm()) - float(plain[:3, 3].double().norm())) < 1e-5
+    short_fwd, short_rev = gt.clone(), rev_T.clone()
+    short_fwd[:3, 3] *= 0.3
+    short_rev[:3, 3] *= 0.3
+    short = pm.relative_pose(_with_head(fwd, short_fwd), pred_reverse=_with_head(rev, short_rev))[0]
+    assert torch.allclose(short, est.float(), atol=1e-6)  # heads with 0.3 of the baseline: the same pose
     # one transform off by 10 degrees: the mean is 5 off, and the swapped call's rotation is its inverse
     err = torch.eye(4, dtype=torch.float64)
     err[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.radians(10)], dtype=torch.float64))
@@ -123,7 +130,7 @@ def test_a_pose_heads_transforms_of_both_passes_are_the_pose_and_not_the_procrus
     # a transform that is not finite: the other alone
     nan_fwd = _with_head(fwd, gt * float("nan"))
     one = pm.relative_pose(nan_fwd, pred_reverse=rev)[0].double()
-    assert pose_errors(one, gt)[0] < 1e-3 and torch.allclose(one[:3, 3], gt[:3, 3], atol=1e-4)
+    assert max(pose_errors(one, gt)) < 1e-3
     # only one pass with a transform (predictions of different models): the Procrustes of the points
     mixed = pm.relative_pose(fwd, pred_reverse=as_pred(rev.pts1_cam1[0], rev.pts2_cam1[0]))[0]
     assert torch.allclose(mixed, plain)

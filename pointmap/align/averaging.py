@@ -46,8 +46,9 @@ IRLS_ITERS = 4
 def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64, pose_head: bool = True):
     """Per directed edge e = (i, j): (Q [E, 3, 3] j's axes in i's frame, t [E, 3] j's centre in i's frame at the
     edge's scale, s [E] the edge's map of j over j's own map, sigma [E] the edge's map of i over i's own map), all
-    float64. Non-finite where a Procrustes failed. Q and t are the pose head's transforms (``stack.T``) when the
-    stack has them and ``pose_head``; else, as s, from the Procrustes of j's own map onto the edge's."""
+    float64. Non-finite where a Procrustes failed. From the Procrustes of j's own map onto the edge's, except,
+    when the stack has the pose head's transforms (``stack.T``) and ``pose_head``, Q and t's direction: those are
+    the head's (t keeps the Procrustes' length: the head's baselines come out short, session 49)."""
     dt = torch.float64
     own_t = torch.as_tensor(own, dtype=torch.long)
     Q, t, s, sigma = [], [], [], []
@@ -65,8 +66,10 @@ def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64, pose_head: b
         w = stack.w_i[sl].to(dt) * stack.w_i[oi].to(dt)
         sigma.append((w * (p * q).sum(-1)).sum(-1) / (w * q.square().sum(-1)).sum(-1).clamp_min(1e-30))
     Q, t, s, sigma = torch.cat(Q), torch.cat(t), torch.cat(s), torch.cat(sigma)
-    if pose_head and stack.T is not None:
-        Q, t = stack.T[:, :3, :3].clone(), stack.T[:, :3, 3].clone()
+    if pose_head and stack.T is not None:  # the head's rotation and direction, the maps' baseline length
+        length = t.norm(dim=1, keepdim=True)
+        Q = stack.T[:, :3, :3].clone()
+        t = stack.T[:, :3, 3] / stack.T[:, :3, 3].norm(dim=1, keepdim=True).clamp_min(1e-12) * length
     return Q, t, s, sigma
 
 
