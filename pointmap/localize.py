@@ -3,7 +3,8 @@ its keyframes, a photograph taken later, a test view to evaluate novel-view synt
 
 Each query is paired with reference views of the reconstruction (given, or the most similar by their encoder
 tokens); for each pair the network's pointmaps give the query's pose in the reference camera's frame (PnP with
-a known K, else Procrustes both ways and the focal from the query's own pointmap), and the reference's depth
+a known K, else both passes' pose (the pose head's transforms, or Procrustes for models without one) and the focal
+from the query's own pointmap), and the reference's depth
 in the reconstruction gives the scale: the pair's view-1 depth is matched to it (median ratio), so the pose
 lands in the reconstruction's world and units. The references are tried in order (the most similar first) and
 the first that gives a pose is kept: the others are fallbacks. (Confidences are not comparable across pairs:
