@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ShapeError, check_seed, is_int
-from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
+from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, transform_points
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
 from pointmap.geometry.rotations import project_to_rotation
@@ -204,15 +204,14 @@ def _head_estimates(T_fwd: torch.Tensor, T_rev: torch.Tensor, own1_fwd: torch.Te
     if bool(torch.isfinite(T_fwd).all()):
         out.append((T_fwd[:3, :3], T_fwd[:3, 3]))
     if bool(torch.isfinite(T_rev).all()):
-        R_inv = T_rev[:3, :3].T
-        t_inv = -R_inv @ T_rev[:3, 3]
-        own1_rev = pts1_rev.detach().double().cpu() @ R_inv.T + t_inv
+        T_inv = invert_rigid(T_rev)
+        own1_rev = transform_points(T_inv, pts1_rev.detach().double().cpu())
         own1_fwd = own1_fwd.detach().double().cpu()
         ok = torch.isfinite(own1_rev).all(-1) & torch.isfinite(own1_fwd).all(-1)
         if bool(ok.any()):
             scale = own1_fwd[ok].norm(dim=-1).mean() / own1_rev[ok].norm(dim=-1).mean()
             if bool(torch.isfinite(scale)) and scale > 0:
-                out.append((R_inv, t_inv * scale))
+                out.append((T_inv[:3, :3], T_inv[:3, 3] * scale))
     return out
 
 

@@ -266,8 +266,9 @@ def grown_lr_scale(cfg: TrainConfig, model: PointmapNet) -> dict[str, float]:
 
 def freeze_except(model: PointmapNet, train_only: str) -> int:
     """``--train_only``: parameters whose names start with none of the comma-separated prefixes stop requiring
-    gradients (the optimizer leaves them out, autograd stops before them). Returns how many tensors still train;
-    ValueError (one line) for an empty prefix or one that names no parameter. "" changes nothing."""
+    gradients (the optimizer leaves them out, autograd stops before them). Returns how many tensors train after
+    it; "" changes no flag and returns the count of all parameter tensors. ValueError (one line) for an empty
+    prefix or one that names no parameter."""
     if not train_only:
         return sum(1 for _ in model.parameters())
     prefixes = [p.strip() for p in train_only.split(",")]

@@ -9,9 +9,10 @@ edges spreads the error instead of accumulating it. Three linear least-squares p
 times by a Cauchy function of its residuals (iteratively reweighted least squares), on the edge scores:
 
 1. rotations: Procrustes of image j's own map (its best edge as first view) onto the edge's map of j gives Q_e,
-   j's camera axes in i's frame (with a pose head, the edge's own transform gives Q_e and t_e below: the
-   Procrustes compares two passes' regressions of j, whose disagreement turns short baselines, session 49); minimise sum_e w_e ||R_j - R_i Q_e||_F^2 (chordal, linear, one solve per row
-   of R) with the root image's R = I, then project each R onto SO(3);
+   j's camera axes in i's frame (with a pose head, the edge's own transform gives Q_e and the direction of t_e
+   below: the Procrustes compares two passes' regressions of j, whose disagreement turns short baselines,
+   session 49); minimise sum_e w_e ||R_j - R_i Q_e||_F^2 (chordal, linear, one solve per row of R) with the
+   root image's R = I, then project each R onto SO(3);
 2. scales: each image's own map has an unknown scale lambda in world units; the edge's map of i is sigma_e times
    i's own map and its map of j is s_e times j's (the same Procrustes), so log lambda_j - log lambda_i =
    log(s_e / sigma_e), with lambda_root = 1. The edge's own scale is then m_e = lambda_i / sigma_e;

@@ -62,9 +62,10 @@ class AlignConfig:
         cropped alike, and K given for all images (one focal) or none (``check_one_camera``)
     init: the start of the optimisation: 'averaging' (default: every edge at once, rotation, scale and centre
         averaging; pointmap.align.averaging) or 'mst' (DUSt3R's maximum spanning tree: one edge per image, chained)
-    pose_head: the averaging start takes each edge's rotation and centre from the pose head's transform when every
-        prediction carries one (``PairPrediction.cam2_to_cam1``; False: the Procrustes of the pointmaps, as
-        before session 49; models without a pose head always use it)
+    pose_head: the averaging start takes each edge's rotation and the direction of its centre from the pose head's
+        transform when every prediction carries one (``PairPrediction.cam2_to_cam1``; the length stays the
+        Procrustes'); False: the Procrustes of the pointmaps, as before session 49 (models without a pose head
+        always use it)
     quiet: no progress bar
     """
 
