@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from pointmap.errors import ShapeError, check_seed, is_int
-from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, transform_points
+from pointmap.geometry.cameras import K_LAYOUT, head_translation, invert_rigid, is_pinhole_K, transform_points
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
 from pointmap.geometry.rotations import project_to_rotation
@@ -176,8 +176,8 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             if not (estimates or heads):
                 continue
             R, t = _mean_motion(heads or estimates)
-            if heads and estimates:  # the head's direction, the points' baseline (the head's is ~0.6 of the truth)
-                t = t / t.norm().clamp_min(1e-12) * _mean_motion(estimates)[1].norm()
+            if heads and estimates:  # the head's direction, the points' baseline
+                t = head_translation(t, _mean_motion(estimates)[1])
             out[b] = torch.eye(4)
             out[b, :3, :3] = R.float()
             out[b, :3, 3] = t.float()

@@ -35,6 +35,7 @@ from pointmap.align.edges import EdgeStack, check_connected
 from pointmap.align.init import InitResult, edge_similarities, own_maps
 from pointmap.align.objective import rays, world_points
 from pointmap.errors import GraphError
+from pointmap.geometry.cameras import head_translation
 from pointmap.geometry.procrustes import weighted_procrustes
 from pointmap.geometry.rotations import project_to_rotation, rotation_angle
 
@@ -68,9 +69,8 @@ def edge_motions(stack: EdgeStack, own: list[int], chunk: int = 64, pose_head: b
         sigma.append((w * (p * q).sum(-1)).sum(-1) / (w * q.square().sum(-1)).sum(-1).clamp_min(1e-30))
     Q, t, s, sigma = torch.cat(Q), torch.cat(t), torch.cat(s), torch.cat(sigma)
     if pose_head and stack.T is not None:  # the head's rotation and direction, the maps' baseline length
-        length = t.norm(dim=1, keepdim=True)
         Q = stack.T[:, :3, :3].clone()
-        t = stack.T[:, :3, 3] / stack.T[:, :3, 3].norm(dim=1, keepdim=True).clamp_min(1e-12) * length
+        t = head_translation(stack.T[:, :3, 3], t)
     return Q, t, s, sigma
 
 

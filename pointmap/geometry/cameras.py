@@ -90,6 +90,14 @@ def invert_rigid(T: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def head_translation(t_head: torch.Tensor, t_points: torch.Tensor) -> torch.Tensor:
+    """Camera translations [..., 3] with the pose head's direction (``t_head`` [..., 3]) and the length of the
+    pointmaps' own estimate (``t_points`` [..., 3], e.g. a Procrustes'): the rule of ``relative_pose`` and of
+    the global alignment's start. The head's directions are the better ones, its baselines come out short (about
+    0.6 of the truth, session 49, docs/training-log.md)."""
+    return t_head / t_head.norm(dim=-1, keepdim=True).clamp_min(1e-12) * t_points.norm(dim=-1, keepdim=True)
+
+
 def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
     """[...] bool: whether each [..., 4, 4] ``T`` is a rigid transform [R t; 0 0 0 1]: R^T R within ``atol`` of the
     identity with det +1 (>= 0.99), the last row within 1e-6 of (0, 0, 0, 1)."""
