@@ -7,12 +7,18 @@
 
 --amp adds bf16-autocast rows (training --amp bf16) next to the float32 ones, with each mode's first-step loss.
 --recipe shipped times the shipped model's step (pose head; attention, coarse and pose losses on).
+--baseline-code DIR times the same step with another checkout's code (e.g. `git worktree add /tmp/base HEAD~1`),
+in a subprocess of the same run, and prints its rows beside this checkout's with the speed ratio. "cpu s/step" is
+the process's CPU time per step (all threads): on a shared machine it moves less than the wall time.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -21,7 +27,8 @@ import torch
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# the code under test: this checkout, or (set by --baseline-code for its subprocess) another one
+sys.path.insert(0, os.environ.get("POINTMAP_BENCH_CODE") or str(Path(__file__).resolve().parents[1]))
 
 import pointmap as pm  # noqa: E402
 from benchmarks.bench_inference import matmul_ceiling  # noqa: E402
@@ -38,8 +45,8 @@ def synthetic_batch(B, H, W):
 
 
 def time_modes(model, step, batch, a) -> list:
-    """(parameters, GFLOP count, mode, median s/step, first step s, first loss) per mode (eager / compiled,
-    float32 / bf16 autocast) of one model's training step."""
+    """(parameters, GFLOP count, mode, median s/step, median CPU s/step, first step s, first loss) per mode
+    (eager / compiled, float32 / bf16 autocast) of one model's training step."""
     with sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as fc:  # attention counted as matmuls
         loss, _ = step(model, batch, 0)
         loss.backward()
@@ -62,12 +69,13 @@ def time_modes(model, step, batch, a) -> list:
         t0 = time.perf_counter()
         loss = one()  # warm-up (compilation, for a compiled model)
         first = time.perf_counter() - t0
-        times = []
+        times, cpu = [], []
         for _ in range(a.steps):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             one()
             times.append(time.perf_counter() - t)
-        return statistics.median(times), first, loss
+            cpu.append(time.process_time() - c)
+        return statistics.median(times), statistics.median(cpu), first, loss
 
     compiled = torch.compile(model) if a.compile else None
     rows = []
@@ -77,6 +85,20 @@ def time_modes(model, step, batch, a) -> list:
         if compiled is not None:
             rows.append((n, flops, f"torch.compile, {precision}", *timed(compiled, amp)))
     return rows
+
+
+def baseline_rows(a, code: str) -> list:
+    """time_modes' rows of the same step with the code of another checkout ``code``: this script run in a
+    subprocess with that checkout first on its path (POINTMAP_BENCH_CODE), its rows returned as JSON."""
+    args = [sys.executable, str(Path(__file__).resolve()), "--preset", a.preset, "--size", str(a.size), "--batch",
+            str(a.batch), "--threads", str(a.threads), "--steps", str(a.steps), "--recipe", a.recipe, "--rows-json"]
+    args += (["--compile"] if a.compile else []) + (["--amp"] if a.amp else []) + \
+        (["--depths", *a.depths] if a.depths else [])
+    env = {**os.environ, "POINTMAP_BENCH_CODE": str(Path(code).resolve())}
+    done = subprocess.run(args, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"the baseline checkout {code} failed to time its step:\n{done.stderr[-2000:]}")
+    return [tuple(r) for r in json.loads(done.stdout.strip().splitlines()[-1])]
 
 
 def main(argv=None) -> int:
@@ -95,15 +117,25 @@ def main(argv=None) -> int:
     p.add_argument("--depths", nargs="+", default=None, metavar="ENC,DEC",
                    help="time the preset at these encoder,decoder depths, one set of rows each (e.g. 6,4 8,8: "
                         "a model grown by training.grow against the one it grew from)")
+    p.add_argument("--baseline-code", default=None, metavar="DIR",
+                   help="another checkout of the project (e.g. a git worktree of an earlier commit): the same "
+                        "step timed with its code first, its rows beside this checkout's")
+    p.add_argument("--rows-json", action="store_true", help=argparse.SUPPRESS)  # a baseline subprocess's output
     a = p.parse_args(argv)
+    if a.steps < 1:
+        p.error(f"--steps expected >= 1, got {a.steps}")
+    if a.baseline_code and not (Path(a.baseline_code) / "pointmap" / "__init__.py").is_file():
+        p.error(f"--baseline-code expected a checkout of this project (a directory with pointmap/__init__.py), "
+                f"got {a.baseline_code}")
     torch.set_num_threads(a.threads)
-    ceiling = matmul_ceiling()
     try:
         depths = [tuple(int(x) for x in d.split(",")) for d in a.depths] if a.depths else [None]
         if any(d is not None and (len(d) != 2 or min(d) < 1) for d in depths):
             raise ValueError
     except ValueError:
         p.error(f"--depths expected ENC,DEC pairs of positive integers, got {a.depths}")
+    rows = [("baseline", *r) for r in baseline_rows(a, a.baseline_code)] if a.baseline_code else []
+    ceiling = matmul_ceiling()
     preset = pm.PRESETS[a.preset]
     if a.recipe == "shipped":
         preset = preset.replace(pose_head=True)
@@ -112,7 +144,7 @@ def main(argv=None) -> int:
     else:
         cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
     batch = synthetic_batch(a.batch, a.size, a.size)
-    rows = []
+    own = []
     for d in depths:
         torch.manual_seed(0)
         try:
@@ -122,19 +154,33 @@ def main(argv=None) -> int:
         name = a.preset if d is None else f"{a.preset} {d[0]}/{d[1]} blocks"
         model = pm.PointmapNet(arch).train()
         step = make_step(cfg)  # its forward taps bind to the first model they see: one per model
-        rows += [(name, *r) for r in time_modes(model, step, batch, a)]
-    print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s, recipe {a.recipe}\n")
-    print("| model | parameters | mode | input | batch | first step s | s/step | pairs/s | GFLOP/step | GFLOP/s "
-          "| % ceiling | first loss |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, n, flops, mode, t, first, loss in rows:
-        print(f"| {name} | {n / 1e6:.2f}M | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | "
-              f"{a.batch / t:.2f} | {flops / 1e9:.1f} | {flops / t / 1e9:.1f} | {100 * flops / t / 1e9 / ceiling:.0f}% "
-              f"| {loss:.4f} |")
+        own += [(name, *r) for r in time_modes(model, step, batch, a)]
+    if a.rows_json:
+        print(json.dumps(own))
+        return 0
+    rows += [("this", *r) for r in own]
+    print(f"threads {a.threads}, float32 matmul ceiling {ceiling:.1f} GFLOP/s, recipe {a.recipe}"
+          + (f", baseline code {a.baseline_code}" if a.baseline_code else "") + "\n")
+    print("| code | model | parameters | mode | input | batch | first step s | s/step | cpu s/step | pairs/s "
+          "| GFLOP/step | GFLOP/s | % ceiling | first loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for code, name, n, flops, mode, t, cpu, first, loss in rows:
+        print(f"| {code} | {name} | {n / 1e6:.2f}M | {mode} | {a.size}x{a.size} | {a.batch} | {first:.1f} | {t:.2f} | "
+              f"{cpu:.2f} | {a.batch / t:.2f} | {flops / 1e9:.1f} | {flops / t / 1e9:.1f} | "
+              f"{100 * flops / t / 1e9 / ceiling:.0f}% | {loss:.4f} |")
     print()
-    for name, _, _, mode, t, _, _ in rows[1:]:
-        print(f"{name}, {mode} / {rows[0][0]}, {rows[0][3]} speed: {rows[0][4] / t:.2f}x")
-    t = rows[0][4]  # the first row's s/step
+    if a.baseline_code:  # each of this checkout's rows against the baseline's row of the same model and mode
+        base = {(r[1], r[4]): r for r in rows if r[0] == "baseline"}
+        for _, name, _, _, mode, t, cpu, _, _ in (r for r in rows if r[0] == "this"):
+            b = base.get((name, mode))
+            if b is not None:
+                print(f"{name}, {mode}: this / baseline speed {b[5] / t:.2f}x (wall), {b[6] / cpu:.2f}x (CPU time)")
+    else:
+        first = rows[0]
+        for _, name, _, _, mode, t, cpu, _, _ in rows[1:]:
+            print(f"{name}, {mode} / {first[1]}, {first[4]} speed: {first[5] / t:.2f}x (wall), "
+                  f"{first[6] / cpu:.2f}x (CPU time)")
+    t = own[0][4]  # this checkout's first row's s/step
     if a.data:
         from data.datasets import PairDataset
 

@@ -40,7 +40,7 @@ def rotate_half_2d(x: torch.Tensor) -> torch.Tensor:
     """Within each of the two halves [a | b] of the last dim, return [-b | a]."""
     *lead, D = x.shape
     x = x.reshape(*lead, 2, 2, D // 4)
-    a, b = x[..., 0, :], x[..., 1, :]
+    a, b = x.unbind(-2)  # unbind, not two selects: its backward is one stack, not a zero-filled copy per half
     return torch.stack([-b, a], dim=-2).reshape(*lead, D)
 
 
@@ -94,7 +94,7 @@ class Attention(nn.Module):
     def forward(self, x: torch.Tensor, rope: tuple) -> torch.Tensor:
         B, N, C = x.shape
         qkv = self.qkv(x).reshape(B, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
-        q, k, v = qkv[0], qkv[1], qkv[2]
+        q, k, v = qkv.unbind(0)
         cos, sin = rope
         q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
         x = F.scaled_dot_product_attention(q, k, v)

@@ -215,12 +215,17 @@ def regress_conf(x: torch.Tensor, mode: tuple) -> torch.Tensor:
 def postprocess(raw: torch.Tensor, cfg: ModelConfig) -> dict:
     """Raw head channels [B, C, H, W] -> dict of channels-last outputs (see PairPrediction)."""
     fmap = raw.permute(0, 2, 3, 1)
-    out = {"pts": regress_points(fmap[..., 0:3], cfg.depth_mode), "conf": regress_conf(fmap[..., 3], cfg.conf_mode)}
+    # channels: points (3), confidence (1), then descriptors (desc_dim) and their confidence (1); split, not
+    # sliced: a slice's backward zero-fills and copies the whole map, once per slice
+    sizes = [3, 1] + ([cfg.desc_dim] + [1] * int(cfg.two_confs) if cfg.has_desc else [])
+    rest = fmap.shape[-1] - sum(sizes)
+    parts = fmap.split(sizes + [rest] if rest > 0 else sizes, dim=-1)
+    out = {"pts": regress_points(parts[0], cfg.depth_mode), "conf": regress_conf(parts[1].squeeze(-1), cfg.conf_mode)}
     if cfg.has_desc:
-        desc = fmap[..., 4: 4 + cfg.desc_dim]
+        desc = parts[2]
         out["desc"] = desc / desc.norm(dim=-1, keepdim=True)
         if cfg.two_confs:
-            out["desc_conf"] = regress_conf(fmap[..., 4 + cfg.desc_dim], cfg.desc_conf_mode)
+            out["desc_conf"] = regress_conf(parts[3].squeeze(-1), cfg.desc_conf_mode)
         else:
             out["desc_conf"] = out["conf"].clone()
     return out

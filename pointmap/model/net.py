@@ -38,6 +38,12 @@ class Encoded:
     def __getitem__(self, idx) -> Encoded:
         return Encoded(self.tokens[idx], self.grid, None if self.local is None else self.local[idx])
 
+    def split(self, sizes: list) -> list:
+        """Consecutive batch slices of these sizes (``Tensor.split``: in training, one backward that concatenates,
+        where indexing would zero-fill and copy the whole batch once per slice)."""
+        local = [None] * len(sizes) if self.local is None else self.local.split(sizes)
+        return [Encoded(t, self.grid, loc) for t, loc in zip(self.tokens.split(sizes), local)]
+
     @staticmethod
     def cat(encs: list) -> Encoded:
         """Concatenate along the batch (all on the same grid)."""
@@ -179,7 +185,7 @@ class PointmapNet(nn.Module):
         if img1.shape[-2:] == img2.shape[-2:]:
             both = self._encode(torch.cat([img1, img2], dim=0))  # checked above
             B = img1.shape[0]
-            enc1, enc2 = both[:B], both[B:]
+            enc1, enc2 = both.split([B, B])
         else:
             enc1, enc2 = self._encode(img1), self._encode(img2)
         return self.decode_pair(enc1, enc2)
