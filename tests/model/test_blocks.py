@@ -88,3 +88,34 @@ def test_cross_attention_scores_are_the_logits_forward_softmaxes():
     assert s.shape == (2, 4, 6, 12)
     assert torch.allclose(att(x, y, rx, ry), by_hand, atol=1e-5)
     assert torch.equal(att.scores(x, y, rx, ry, heads=2), s[:, :2])
+
+
+def postprocess_reference(raw, cfg):
+    """The head's channels read one slice at a time: points 0-2, confidence 3, descriptors, their confidence."""
+    from torch.nn.functional import normalize
+
+    f = raw.permute(0, 2, 3, 1)
+    out = {"pts": regress_points(f[..., 0:3], cfg.depth_mode), "conf": regress_conf(f[..., 3], cfg.conf_mode)}
+    out["desc"] = normalize(f[..., 4:4 + cfg.desc_dim], dim=-1, eps=0.0)
+    out["desc_conf"] = regress_conf(f[..., 4 + cfg.desc_dim], cfg.desc_conf_mode)
+    return out
+
+
+def test_the_head_channels_split_gives_the_slice_by_slice_outputs_and_gradients():
+    from pointmap.model.heads import postprocess
+
+    cfg = PRESETS["test"]
+    assert cfg.has_desc and cfg.two_confs
+    torch.manual_seed(0)
+    raw = torch.randn(2, 4 + cfg.desc_dim + 1, 5, 6, dtype=torch.float64, requires_grad=True)
+    weights = {k: torch.randn_like(v) for k, v in postprocess_reference(raw, cfg).items()}
+    grads = []
+    for fn in (postprocess, postprocess_reference):
+        out = fn(raw, cfg)
+        assert set(out) == set(weights)
+        sum((out[k] * w).sum() for k, w in weights.items()).backward()
+        grads.append((raw.grad.clone(), {k: v.detach() for k, v in out.items()}))
+        raw.grad = None
+    assert torch.allclose(grads[0][0], grads[1][0], atol=1e-12)
+    for k in weights:
+        assert torch.allclose(grads[0][1][k], grads[1][1][k], atol=1e-12), k
