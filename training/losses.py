@@ -155,9 +155,9 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
     _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
     if not (is_int(n_corr) and n_corr >= 1):
         raise ShapeError(f"matching_loss expected n_corr >= 1, got {n_corr!r}")
-    B, H1, W1, _ = desc1.shape
+    B, H1, W1, D = desc1.shape
     H2, W2 = desc2.shape[1:3]
-    losses, accs = [], []
+    sel1, sel2, counts = [], [], []  # rows of the flattened batch: pair b's pixels are b * H * W + index
     for b in range(B):
         c = corr[b].reshape(-1, 2)
         ok = torch.isfinite(c).all(-1)
@@ -171,11 +171,17 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
         idx2 = (v2[idx1] * W2 + u2[idx1]).long()
         # one view-2 pixel may be hit twice: keep the first, so that targets are unique
         idx2, first = _unique_first(idx2)
-        idx1 = idx1[first]
-        d1 = desc1[b].reshape(-1, desc1.shape[-1])[idx1].float()
-        d2 = desc2[b].reshape(-1, desc2.shape[-1])[idx2].float()
+        sel1.append(b * H1 * W1 + idx1[first])
+        sel2.append(b * H2 * W2 + idx2)
+        counts.append(len(idx2))
+    losses, accs, rows1, rows2 = [], [], (), ()
+    if counts:  # one gather per view for the whole batch: indexing pair by pair would zero-fill a gradient buffer
+        # of the whole descriptor batch for every pair in the backward pass
+        rows1 = desc1.reshape(-1, D)[torch.cat(sel1).to(desc1.device)].float().split(counts)
+        rows2 = desc2.reshape(-1, D)[torch.cat(sel2).to(desc2.device)].float().split(counts)
+    for d1, d2 in zip(rows1, rows2):
         logits = d1 @ d2.T / temperature
-        target = torch.arange(len(idx1), device=logits.device)
+        target = torch.arange(len(d1), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
         accs.append((logits.argmax(1) == target).float().mean())
     if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
