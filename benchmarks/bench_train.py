@@ -103,7 +103,7 @@ def baseline_rows(a, code: str) -> list:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="small")
+    p.add_argument("--preset", default="small", choices=sorted(pm.PRESETS))
     p.add_argument("--size", type=int, default=224)
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--threads", type=int, default=2)
@@ -134,8 +134,6 @@ def main(argv=None) -> int:
             raise ValueError
     except ValueError:
         p.error(f"--depths expected ENC,DEC pairs of positive integers, got {a.depths}")
-    rows = [("baseline", *r) for r in baseline_rows(a, a.baseline_code)] if a.baseline_code else []
-    ceiling = matmul_ceiling()
     preset = pm.PRESETS[a.preset]
     if a.recipe == "shipped":
         preset = preset.replace(pose_head=True)
@@ -143,14 +141,18 @@ def main(argv=None) -> int:
                           coarse_weight=1.0, attn_weight=0.5, attn_heads=2, pose_weight=1.0, pose_dir_weight=0.5)
     else:
         cfg = TrainConfig(data="x", preset=a.preset, n_corr=1024)
-    batch = synthetic_batch(a.batch, a.size, a.size)
-    own = []
+    archs = []  # every architecture checked before anything is timed (the baseline's subprocess included)
     for d in depths:
-        torch.manual_seed(0)
         try:
-            arch = preset if d is None else preset.replace(enc_depth=d[0], dec_depth=d[1])
+            archs.append((d, preset if d is None else preset.replace(enc_depth=d[0], dec_depth=d[1])))
         except pm.CheckpointError as e:  # e.g. a DPT head below 4 decoder blocks
             p.error(f"--depths {d[0]},{d[1]}: {e}")
+    rows = [("baseline", *r) for r in baseline_rows(a, a.baseline_code)] if a.baseline_code else []
+    ceiling = None if a.rows_json else matmul_ceiling()  # a baseline's subprocess reports rows only
+    batch = synthetic_batch(a.batch, a.size, a.size)
+    own = []
+    for d, arch in archs:
+        torch.manual_seed(0)
         name = a.preset if d is None else f"{a.preset} {d[0]}/{d[1]} blocks"
         model = pm.PointmapNet(arch).train()
         step = make_step(cfg)  # its forward taps bind to the first model they see: one per model

@@ -230,6 +230,7 @@ def test_camera_axes_convert_between_opencv_opengl_and_pytorch3d_keeping_the_cam
 
 
 def test_head_translation_takes_the_head_direction_and_the_points_length():
+    from pointmap.errors import ShapeError
     from pointmap.geometry.cameras import head_translation
 
     t_head = torch.tensor([[0.0, 0.0, 0.3], [0.6, 0.8, 0.0]], dtype=torch.float64)
@@ -238,3 +239,5 @@ def test_head_translation_takes_the_head_direction_and_the_points_length():
     assert torch.allclose(out, torch.tensor([[0.0, 0.0, 2.0], [3.0, 4.0, 0.0]], dtype=torch.float64))
     assert torch.allclose(head_translation(t_head[0], t_points[0]), out[0])  # unbatched [3]
     assert torch.equal(head_translation(torch.zeros(3), torch.ones(3)), torch.zeros(3))  # no direction: zero, not NaN
+    with pytest.raises(ShapeError, match=r"\[2, 3\] and \[3\]"):  # one length for every edge: refused
+        head_translation(t_head, t_points[0])

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from pointmap.model.blocks import apply_rope, patch_positions, rope_tables
@@ -96,18 +97,22 @@ def postprocess_reference(raw, cfg):
 
     f = raw.permute(0, 2, 3, 1)
     out = {"pts": regress_points(f[..., 0:3], cfg.depth_mode), "conf": regress_conf(f[..., 3], cfg.conf_mode)}
-    out["desc"] = normalize(f[..., 4:4 + cfg.desc_dim], dim=-1, eps=0.0)
-    out["desc_conf"] = regress_conf(f[..., 4 + cfg.desc_dim], cfg.desc_conf_mode)
+    if cfg.has_desc:
+        out["desc"] = normalize(f[..., 4:4 + cfg.desc_dim], dim=-1, eps=0.0)
+        out["desc_conf"] = (regress_conf(f[..., 4 + cfg.desc_dim], cfg.desc_conf_mode) if cfg.two_confs
+                            else out["conf"])
     return out
 
 
-def test_the_head_channels_split_gives_the_slice_by_slice_outputs_and_gradients():
+@pytest.mark.parametrize("name, extra", [("test", 0), ("test", 2), ("test_one_conf", 0), ("dust3r_224_linear", 0),
+                                         ("dust3r_224_linear", 1)])
+def test_the_head_channels_split_gives_the_slice_by_slice_outputs_and_gradients(name, extra):
     from pointmap.model.heads import postprocess
 
-    cfg = PRESETS["test"]
-    assert cfg.has_desc and cfg.two_confs
+    cfg = PRESETS["test"].replace(two_confs=False) if name == "test_one_conf" else PRESETS[name]
+    known = 4 + (cfg.desc_dim + int(cfg.two_confs) if cfg.has_desc else 0)
     torch.manual_seed(0)
-    raw = torch.randn(2, 4 + cfg.desc_dim + 1, 5, 6, dtype=torch.float64, requires_grad=True)
+    raw = torch.randn(2, known + extra, 5, 6, dtype=torch.float64, requires_grad=True)  # extra: ignored channels
     weights = {k: torch.randn_like(v) for k, v in postprocess_reference(raw, cfg).items()}
     grads = []
     for fn in (postprocess, postprocess_reference):

@@ -118,21 +118,25 @@ def test_matching_loss_without_correspondences_is_a_differentiable_zero():
 
 def test_matching_loss_of_a_batch_is_the_mean_of_its_pairs_losses_with_the_same_gradients():
     torch.manual_seed(1)
-    B, H, W, D = 3, 6, 8, 16
-    desc1 = torch.nn.functional.normalize(torch.randn(B, H, W, D, dtype=torch.float64), dim=-1).requires_grad_()
-    desc2 = torch.nn.functional.normalize(torch.randn(B, H, W, D, dtype=torch.float64), dim=-1).requires_grad_()
-    corr = torch.stack([torch.rand(B, H, W) * (W - 1), torch.rand(B, H, W) * (H - 1)], dim=-1).double()
+    B, H1, W1, H2, W2, D = 3, 6, 8, 5, 7, 16  # views of different sizes: each has its own row offsets
+    desc1 = torch.nn.functional.normalize(torch.randn(B, H1, W1, D, dtype=torch.float64), dim=-1).requires_grad_()
+    desc2 = torch.nn.functional.normalize(torch.randn(B, H2, W2, D, dtype=torch.float64), dim=-1).requires_grad_()
+    corr = torch.stack([torch.rand(B, H1, W1) * (W2 - 1), torch.rand(B, H1, W1) * (H2 - 1)], dim=-1).double()
     corr[1] = float("nan")  # pair 1 has no correspondence: left out of the mean
     corr[2, :2] = float("nan")
-    loss, acc = matching_loss(desc1, desc2, corr, n_corr=10_000, temperature=0.1)
+    # n_corr 12 of ~30-48 co-visible pixels: each pair draws a subset from the generator, in pair order
+    loss, acc = matching_loss(desc1, desc2, corr, n_corr=12, temperature=0.1,
+                              generator=torch.Generator().manual_seed(5))
     grads = torch.autograd.grad(loss, (desc1, desc2))
-    per_pair = [matching_loss(desc1[b:b + 1], desc2[b:b + 1], corr[b:b + 1], n_corr=10_000, temperature=0.1)[0]
-                for b in (0, 2)]  # one pair at a time: the obviously-correct reference
+    g = torch.Generator().manual_seed(5)  # one pair at a time, the same draws: the obviously-correct reference
+    per_pair = [matching_loss(desc1[b:b + 1], desc2[b:b + 1], corr[b:b + 1], n_corr=12, temperature=0.1,
+                              generator=g)[0] for b in (0, 2)]
     reference = torch.stack(per_pair).mean()
     assert torch.allclose(loss, reference, atol=1e-12)
-    for g, r in zip(grads, torch.autograd.grad(reference, (desc1, desc2))):
-        assert torch.allclose(g, r, atol=1e-12)
-    assert grads[0][1].abs().max() == 0 and grads[0][0].abs().max() > 0
+    for got, want in zip(grads, torch.autograd.grad(reference, (desc1, desc2))):
+        assert torch.allclose(got, want, atol=1e-12)
+    assert grads[0][1].abs().max() == 0 and grads[0][0].abs().max() > 0 and grads[1][2].abs().max() > 0
+    assert 0 < (grads[0][0].abs().sum(-1) > 0).sum() <= 12  # a subset of view 1's pixels, at most n_corr
 
 
 def _cells(codes: torch.Tensor, p: int) -> torch.Tensor:
