@@ -18,7 +18,9 @@ model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by defaul
 cheirality residuals, as before session 33), '+T' for DUSt3R's
 spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one
 and '+P' for the averaging start from the Procrustes of the pointmaps even when the model has a pose head
-(``AlignConfig(pose_head=False)``, as before session 49). The table gives RRA@15 / RTA@15 / median
+(``AlignConfig(pose_head=False)``, as before session 49), '+H<weight>' or '+H<weight>@<rot>,<dir>' for the pose
+heads' prior on the cameras at that weight and those Cauchy widths in degrees (``AlignConfig.head_prior``,
+``head_prior_deg``; '+H0' turns it off). The table gives RRA@15 / RTA@15 / median
 errors per set and overall, and the median focal error of each view (GA only; 0 when the intrinsics are given).
 ``--per-pair PREFIX`` also writes every camera pair's errors, one CSV per method (PREFIX-pairwise.csv,
 PREFIX-GA_log.csv, ...), so that two methods can be compared pair by pair with benchmarks/paired.py.
@@ -65,21 +67,36 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
     pose refinement's config or None)."""
     body, *flags = s.split("+")
     stages = {"E", "E-", "E1"}
+    prior = [f for f in flags if f.startswith("H")]
+    flags = [f for f in flags if not f.startswith("H")]
+    prior_cfg = {}
+    try:  # 'H<weight>' or 'H<weight>@<rotation deg>,<direction deg>'
+        if prior:
+            w, _, widths = prior[0][1:].partition("@")
+            prior_cfg["head_prior"] = float(w)
+            if widths:
+                prior_cfg["head_prior_deg"] = tuple(float(x) for x in widths.split(","))
+        prior_ok = AlignConfig(**prior_cfg) is not None
+    except (ValueError, PointmapError):
+        prior_ok = False
     if any(f not in ("K", "F", "S", "T", "P", *stages) for f in flags) or len(set(flags)) < len(flags) \
-            or len(stages & set(flags)) > 1:
+            or len(stages & set(flags)) > 1 or len(prior) > 1 or not prior_ok:
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
                                          "on matches, as reconstruct), '+E-' (the same without its cheirality "
                                          "residuals) or '+E1' (with them, one descent: session 33's stage), '+T' "
-                                         "(spanning-tree start) and/or '+P' (the averaging start from the "
-                                         "pointmaps' Procrustes, not the pose head)")
+                                         "(spanning-tree start), '+P' (the averaging start from the "
+                                         "pointmaps' Procrustes, not the pose head) and/or '+H<weight>[@<rot>,<dir>]' (the "
+                                         "pose heads' prior at that weight and widths in degrees, e.g. +H0.1, "
+                                         "+H0.1@10,20; +H0: off)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
     if opt not in ("", "adam", "lbfgs", "none"):
         raise argparse.ArgumentTypeError(f"setting {s!r}: optimizer expected adam, lbfgs or none after ':'")
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
-                      init="mst" if "T" in flags else "averaging", pose_head="P" not in flags, quiet=True)
+                      init="mst" if "T" in flags else "averaging", pose_head="P" not in flags, quiet=True,
+                      **prior_cfg)
     epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags) if stages & set(flags) \
         else None
     return cfg, "K" in flags, "S" in flags, epipolar

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from pointmap.align.head_prior import HeadPrior
 from pointmap.align.objective import loss_and_grad
 from pointmap.align.params import AlignParams
 
@@ -27,11 +28,18 @@ def _lr_at(cfg: AlignConfig, it: int) -> float:
     raise ValueError(f"schedule expected 'cosine', 'linear' or 'constant', got {cfg.schedule!r}")
 
 
-def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int) -> dict:
-    """Optimise in place; returns the convergence report (the best iterate is restored)."""
+def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int, prior: HeadPrior | None = None) -> dict:
+    """Optimise in place; returns the convergence report (the best iterate is restored). ``prior``: the pose
+    heads' prior on the cameras (pointmap.align.head_prior), added to the dense objective."""
     def closure_value() -> float:
         s, R, t = params.pw()
-        return loss_and_grad(params.world_points(stack.uv), s, R, t, stack, chunk)
+        value = loss_and_grad(params.world_points(stack.uv), s, R, t, stack, chunk)
+        if prior is not None and prior.num_edges:
+            p = prior.loss(params.cam2world())
+            if p.requires_grad:
+                p.backward()
+            value += float(p.detach())
+        return value
 
     t0 = time.perf_counter()
     history: list[float] = []
@@ -39,8 +47,7 @@ def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int) -> dict:
     reason = "max iterations"
     if cfg.optimizer == "none" or cfg.niter <= 0:
         with torch.no_grad():
-            s, R, t = params.pw()
-            v = loss_and_grad(params.world_points(stack.uv), s, R, t, stack, chunk)
+            v = closure_value()
         return {"iterations": 0, "init_loss": v, "final_loss": v, "converged": False,
                 "stop_reason": "optimizer='none'", "history": [v], "seconds": 0.0}
     from tqdm.auto import tqdm
@@ -95,8 +102,7 @@ def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int) -> dict:
     bar.close()
     # evaluate the last iterate too (Adam's step after the last recorded loss)
     with torch.no_grad():
-        s, R, t = params.pw()
-        last = loss_and_grad(params.world_points(stack.uv), s, R, t, stack, chunk)
+        last = closure_value()
     if math.isfinite(last) and last < best[0]:
         best = (last, None)
     if best[1] is not None:

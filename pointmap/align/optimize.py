@@ -29,6 +29,7 @@ from pointmap.align.edges import (
 )
 from pointmap.align.fuse import fuse_depth
 from pointmap.align.gauge import anchor_to_first, apply_similarity, similarity_to_known
+from pointmap.align.head_prior import head_prior
 from pointmap.align.init import init_mst, own_maps
 from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
 from pointmap.align.loop import run
@@ -66,6 +67,9 @@ class AlignConfig:
         transform when every prediction carries one (``PairPrediction.cam2_to_cam1``; the length stays the
         Procrustes'); False: the Procrustes of the pointmaps, as before session 49 (models without a pose head
         always use it)
+    head_prior: weight of the pose heads' prior on the cameras during the dense optimisation (with ``pose_head``
+        and predictions that carry the heads' transforms; 0: off; pointmap.align.head_prior)
+    head_prior_deg: its Cauchy widths (rotation, translation direction), in degrees
     quiet: no progress bar
     """
 
@@ -85,6 +89,8 @@ class AlignConfig:
     shared_focal: bool = False
     init: str = "averaging"
     pose_head: bool = True
+    head_prior: float = 0.0
+    head_prior_deg: tuple[float, float] = (10.0, 20.0)
     quiet: bool = False
 
     def __post_init__(self):
@@ -116,6 +122,11 @@ class AlignConfig:
         number("early_stop_tol", positive=False)
         number("early_stop_window", positive=True, integer=True)
         number("fuse_iters", positive=False, integer=True)
+        number("head_prior", positive=False)
+        d = self.head_prior_deg
+        if not (isinstance(d, (tuple, list)) and len(d) == 2 and all(is_number(x) and 0 < x < 180 for x in d)):
+            raise ShapeError(f"AlignConfig.head_prior_deg expected two angles in (0, 180) degrees (rotation, "
+                             f"direction), got {d!r}")
         for name in ("shared_focal", "pose_head", "quiet"):
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
@@ -215,7 +226,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                          pw_t / unit, scale_free=not scale_fixed, shared_focal=cfg.shared_focal)
     seconds_init = time.perf_counter() - t_init
     chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
-    report = run(params, stack, cfg, chunk)
+    prior = head_prior(stack, cfg.head_prior, *cfg.head_prior_deg) if cfg.pose_head else None
+    report = run(params, stack, cfg, chunk, prior)
     if report["stop_reason"] == "non-finite loss":  # stopped early: the poses are the best iterate's, not converged
         cause = "NaN or inf in the predictions" + (f", or too high a learning rate (lr={cfg.lr})"
                                                    if cfg.optimizer == "adam" else "")
@@ -238,6 +250,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                           "scale_fixed_by_known_poses": scale_fixed, "init": init_used, "root": init.root,
                           "tree": init.tree,
                           "conf_transform": conf_transform,
+                          "head_prior_edges": 0 if prior is None else prior.num_edges,
                           "known_pose_indices": sorted(known_poses),
                           "known_K_indices": [k for k in range(n) if K_known[k]],
                           "config": asdict(cfg)})
