@@ -80,7 +80,7 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
     except (ValueError, PointmapError):
         prior_ok = False
     if any(f not in ("K", "F", "S", "T", "P", *stages) for f in flags) or len(set(flags)) < len(flags) \
-            or len(stages & set(flags)) > 1 or len(prior) > 1 or not prior_ok:
+            or len(stages & set(flags)) > 1 or len(prior) > 1 or not prior_ok or (prior and "P" in flags):
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
                                          "on matches, as reconstruct), '+E-' (the same without its cheirality "
@@ -88,7 +88,7 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
                                          "(spanning-tree start), '+P' (the averaging start from the "
                                          "pointmaps' Procrustes, not the pose head) and/or '+H<weight>[@<rot>,<dir>]' (the "
                                          "pose heads' prior at that weight and widths in degrees, e.g. +H0.1, "
-                                         "+H0.1@10,20; +H0: off)")
+                                         "+H0.1@10,20; +H0: off; not with +P, which has no head)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")

@@ -280,6 +280,8 @@ def cmd_reconstruct(args) -> int:
                             "fixes its scale to the poses': use one")
     if args.cache_half and args.cache is None:
         raise PointmapError("--cache-half sets how --cache DIR stores predictions: give --cache")
+    if args.head_prior is not None and not (math.isfinite(args.head_prior) and args.head_prior >= 0):
+        raise PointmapError(f"--head-prior expected a finite weight >= 0 (0: off), got {args.head_prior}")
     if args.cache is not None:
         writable_dir(Path(args.cache).expanduser(), "--cache")
     if not args.each_folder:
@@ -466,7 +468,8 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
     from pointmap.align import AlignConfig
     from pointmap.pipeline import reconstruct
 
-    align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet)
+    align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet,
+                        **({} if args.head_prior is None else {"head_prior": args.head_prior}))
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
                         conf_percentile=args.conf_percentile, align=align, refine=args.refine,
@@ -731,6 +734,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--align-init", dest="align_init", default="averaging", choices=["averaging", "mst"],
                    help="the alignment's start: averaging (default: rotations, scales and centres averaged over every "
                         "pair) or mst (DUSt3R's spanning tree, one pair per image; drifts on long sequences)")
+    r.add_argument("--head-prior", dest="head_prior", type=float, default=None, metavar="W",
+                   help="weight of the pose heads' prior on the cameras during alignment (models with a pose head; "
+                        "0: off; default: AlignConfig's; docs/alignment.md)")
     r.add_argument("--refine", action="store_true", help="sparse refinement on reciprocal matches after alignment")
     r.add_argument("--no-epipolar", dest="no_epipolar", action="store_true",
                    help="skip the pose refinement on the model's coarse matches that follows alignment (the poses "

@@ -414,6 +414,18 @@ def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, ca
     assert "invalid choice: 'tree'" in capsys.readouterr().err
 
 
+def test_head_prior_reaches_the_alignment_and_a_negative_weight_is_refused(tiny, tmp_path, monkeypatch, capsys):
+    from pointmap.align import AlignConfig
+
+    seen, _ = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["align"].head_prior,
+                                     ([], ["--head-prior", "0.5"], ["--head-prior", "2"]), "--no-epipolar")
+    assert seen == [AlignConfig().head_prior, 0.5, 2.0]
+    weights, folder = tiny
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--model", str(weights), "--size", "64",
+                 "--head-prior", "-1"]) != 0
+    assert "--head-prior expected a finite weight >= 0 (0: off), got -1.0" in capsys.readouterr().err
+
+
 def test_align_init_offers_exactly_the_alignments_starts():
     from pointmap.align.optimize import INITS
     from pointmap.cli import build_parser

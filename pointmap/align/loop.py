@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pointmap.align.head_prior import HeadPrior
 from pointmap.align.objective import loss_and_grad
 from pointmap.align.params import AlignParams
 
 if TYPE_CHECKING:
+    from pointmap.align.head_prior import HeadPrior
     from pointmap.align.optimize import AlignConfig
 
 

@@ -68,7 +68,8 @@ class AlignConfig:
         Procrustes'); False: the Procrustes of the pointmaps, as before session 49 (models without a pose head
         always use it)
     head_prior: weight of the pose heads' prior on the cameras during the dense optimisation (with ``pose_head``
-        and predictions that carry the heads' transforms; 0: off; pointmap.align.head_prior)
+        and predictions that all carry the heads' transforms; 0: off; pointmap.align.head_prior). The report's
+        losses include it; ``head_prior_loss`` is its share at the end
     head_prior_deg: its Cauchy widths (rotation, translation direction), in degrees
     quiet: no progress bar
     """
@@ -124,9 +125,10 @@ class AlignConfig:
         number("fuse_iters", positive=False, integer=True)
         number("head_prior", positive=False)
         d = self.head_prior_deg
-        if not (isinstance(d, (tuple, list)) and len(d) == 2 and all(is_number(x) and 0 < x < 180 for x in d)):
-            raise ShapeError(f"AlignConfig.head_prior_deg expected two angles in (0, 180) degrees (rotation, "
+        if not (isinstance(d, (tuple, list)) and len(d) == 2 and all(is_number(x) and 0.01 <= x < 180 for x in d)):
+            raise ShapeError(f"AlignConfig.head_prior_deg expected two angles in [0.01, 180) degrees (rotation, "
                              f"direction), got {d!r}")
+        object.__setattr__(self, "head_prior_deg", tuple(float(x) for x in d))  # hashable, as the rest
         for name in ("shared_focal", "pose_head", "quiet"):
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
@@ -226,8 +228,11 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                          pw_t / unit, scale_free=not scale_fixed, shared_focal=cfg.shared_focal)
     seconds_init = time.perf_counter() - t_init
     chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
-    prior = head_prior(stack, cfg.head_prior, *cfg.head_prior_deg) if cfg.pose_head else None
+    prior = head_prior(stack, cfg.head_prior, *cfg.head_prior_deg, pose_free=pose_free,
+                       dtype=params.base_cam2world.dtype) if cfg.pose_head else None
     report = run(params, stack, cfg, chunk, prior)
+    with torch.no_grad():  # the losses above include the prior; its own share at the kept iterate
+        report["head_prior_loss"] = float(prior.loss(params.cam2world())) if prior is not None else 0.0
     if report["stop_reason"] == "non-finite loss":  # stopped early: the poses are the best iterate's, not converged
         cause = "NaN or inf in the predictions" + (f", or too high a learning rate (lr={cfg.lr})"
                                                    if cfg.optimizer == "adam" else "")

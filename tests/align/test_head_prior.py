@@ -31,7 +31,8 @@ def _edges(n):
 
 
 def _reference(c2w, i, j, T, score, weight, rot_deg, dir_deg):
-    """The prior edge by edge, from the angles themselves (acos) and the chord 2 sin(theta / 2)."""
+    """The prior edge by edge, from the angles themselves (acos) and the chord 2 sin(theta / 2) (without the
+    baseline floor: the tests that compare give the prior a negligible one, or baselines far above it)."""
     rho = lambda theta, s_deg: chord(s_deg) ** 2 * math.log1p((2 * math.sin(theta / 2)) ** 2 / chord(s_deg) ** 2)  # noqa: E731
     total, wsum = 0.0, float(score.sum())
     for e in range(len(i)):
@@ -52,7 +53,7 @@ def test_the_prior_equals_a_per_edge_reference_in_plain_angles():
     noisy = _cameras(len(i), 1)  # heads that disagree with the cameras by large and small amounts
     noisy[:, :3, 3] *= torch.rand(len(i), 1, dtype=torch.float64, generator=torch.Generator().manual_seed(2)) + 0.1
     score = torch.rand(len(i), dtype=torch.float64, generator=torch.Generator().manual_seed(3)) + 0.2
-    prior = HeadPrior(i, j, noisy, score, 0.7, 10.0, 20.0, dtype=torch.float64)
+    prior = HeadPrior(i, j, noisy, score, 0.7, 10.0, 20.0, dtype=torch.float64, baseline_floor=1e-9)
     assert float(prior.loss(c2w)) == pytest.approx(_reference(c2w, i, j, noisy, score, 0.7, 10.0, 20.0), rel=1e-9)
 
 
@@ -62,31 +63,59 @@ def test_the_prior_is_zero_with_zero_gradient_where_cameras_and_heads_agree():
     i, j = _edges(n)
     T = torch.linalg.inv(c2w[i]) @ c2w[j]
     T[:, :3, 3] *= 0.6  # the heads' baselines come out short: only directions count
-    prior = HeadPrior(i, j, T, torch.ones(len(i), dtype=torch.float64), 1.0, 10.0, 20.0, dtype=torch.float64)
+    prior = HeadPrior(i, j, T, torch.ones(len(i), dtype=torch.float64), 1.0, 10.0, 20.0, dtype=torch.float64,
+                      baseline_floor=1e-9)
     x = c2w.clone().requires_grad_(True)
     loss = prior.loss(x)
     loss.backward()
     assert float(loss.detach()) < 1e-20 and float(x.grad.abs().max()) < 1e-9
-    # one camera turned by 5 degrees: the loss is that rotation's share, and it grows with the turn
+    # one camera turned by 5 degrees: the loss is that rotation's share (and the directions it turns), and it grows
+    # with the turn
     turned = c2w.clone()
     turned[0, :3, :3] = axis_angle_to_matrix(torch.tensor([0.0, math.radians(5), 0.0], dtype=torch.float64)) @ c2w[0, :3, :3]
     turned2 = c2w.clone()
     turned2[0, :3, :3] = axis_angle_to_matrix(torch.tensor([0.0, math.radians(10), 0.0], dtype=torch.float64)) @ c2w[0, :3, :3]
     assert 0 < float(prior.loss(turned)) < float(prior.loss(turned2))
+    assert float(prior.loss(turned)) == pytest.approx(_reference(turned, i, j, T, torch.ones(len(i)), 1.0, 10.0, 20.0),
+                                                      rel=1e-6)
 
 
-def test_edges_with_unusable_transforms_or_zero_scores_are_left_out():
-    n = 3
+def test_edges_with_unusable_transforms_zero_scores_or_two_known_cameras_are_left_out():
+    n = 4
     c2w = _cameras(n, 7)
     i, j = _edges(n)
+    T = _cameras(len(i), 8)  # heads that disagree with the cameras
+    T[1, 0, 0] = float("nan")  # edge (0, 2)
+    T[2, :3, 3] = 0.0  # (0, 3): no direction
+    score = torch.rand(len(i), dtype=torch.float64, generator=torch.Generator().manual_seed(9)) + 0.2
+    score[4] = 0.0  # (1, 2)
+    pose_free = torch.tensor([False, False, True, True])  # cameras 0 and 1 known: edges (0, 1), (1, 0) cannot move
+    prior = HeadPrior(i, j, T, score, 1.0, 10.0, 20.0, dtype=torch.float64, pose_free=pose_free, baseline_floor=1e-9)
+    keep = torch.ones(len(i), dtype=torch.bool)
+    keep[[1, 2, 4]] = False
+    keep &= pose_free[i] | pose_free[j]
+    assert prior.num_edges == int(keep.sum()) == len(i) - 5
+    assert float(prior.loss(c2w)) == pytest.approx(_reference(c2w, i[keep], j[keep], T[keep], score[keep], 1.0, 10.0,
+                                                              20.0), rel=1e-9)
+
+
+def test_a_baseline_far_below_the_floor_has_a_direction_term_that_fades_instead_of_stiffening():
+    """Two cameras 1e-6 apart (a pan) and a head that points elsewhere: the gradient on the centre stays bounded
+    (it would be ~1e6 times the direction term's pull without the floor), and at a baseline well above the floor the
+    term is the reference's."""
+    c2w = _cameras(2, 11)
+    i, j = torch.tensor([0]), torch.tensor([1])
     T = torch.linalg.inv(c2w[i]) @ c2w[j]
-    T[0, 0, 0] = float("nan")
-    T[1, :3, 3] = 0.0  # no direction
-    score = torch.ones(len(i), dtype=torch.float64)
-    score[2] = 0.0
-    prior = HeadPrior(i, j, T, score, 1.0, 10.0, 20.0, dtype=torch.float64)
-    assert prior.num_edges == len(i) - 3
-    assert math.isfinite(float(prior.loss(c2w)))
+    T[0, :3, 3] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    prior = HeadPrior(i, j, T, torch.ones(1, dtype=torch.float64), 1.0, 10.0, 20.0, dtype=torch.float64)
+    close = c2w.clone()
+    close[1, :3, 3] = close[0, :3, 3] + 1e-6 * torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    x = close.clone().requires_grad_(True)
+    prior.loss(x).backward()
+    assert float(x.grad[:, :3, 3].norm()) < 100
+    far = c2w.clone()
+    far[1, :3, 3] = far[0, :3, 3] + 100 * (c2w[1, :3, 3] - c2w[0, :3, 3]) / (c2w[1, :3, 3] - c2w[0, :3, 3]).norm()
+    assert float(prior.loss(far)) == pytest.approx(_reference(far, i, j, T, torch.ones(1), 1.0, 10.0, 20.0), rel=1e-4)
 
 
 def _scene_with_true_heads(pair_rot_deg):
@@ -106,30 +135,55 @@ def _scene_with_true_heads(pair_rot_deg):
     return sc, preds, heads
 
 
-def test_with_true_heads_and_turned_pointmaps_the_prior_keeps_the_cameras_near_the_heads():
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgs"])
+def test_with_true_heads_and_turned_pointmaps_the_prior_keeps_the_cameras_near_the_heads(optimizer):
     sc, preds, heads = _scene_with_true_heads(8.0)
-    align = lambda ps, **kw: global_align(views_of(sc), ps, config=AlignConfig(quiet=True, niter=150, **kw))  # noqa: E731
-    free = align(heads)
+    align = lambda ps, **kw: global_align(views_of(sc), ps, config=AlignConfig(quiet=True, niter=150,  # noqa: E731
+                                                                                  optimizer=optimizer, **kw))
+    free = align(heads, head_prior=0.0)
     held = align(heads, head_prior=1.0)
     rot_free = pose_errors(free.cam2world.numpy(), sc["cam2world"])[0]
     rot_held = pose_errors(held.cam2world.numpy(), sc["cam2world"])[0]
     assert rot_held < 0.5 * rot_free, (rot_held, rot_free)
     assert held.info["align"]["head_prior_edges"] == 12 and free.info["align"]["head_prior_edges"] == 0
+    assert 0 < held.info["align"]["head_prior_loss"] <= held.info["align"]["final_loss"]
+    assert free.info["align"]["head_prior_loss"] == 0.0
     # pose_head=False (the Procrustes start) and models without a head have no prior
     assert align(heads, head_prior=1.0, pose_head=False).info["align"]["head_prior_edges"] == 0
     assert align(preds, head_prior=1.0).info["align"]["head_prior_edges"] == 0
+
+
+def test_the_start_alone_reports_the_priors_share_and_known_cameras_stay_exactly_where_given():
+    sc, _, heads = _scene_with_true_heads(8.0)
+    start = global_align(views_of(sc), heads, config=AlignConfig(quiet=True, optimizer="none", head_prior=1.0))
+    assert start.info["align"]["iterations"] == 0 and start.info["align"]["head_prior_loss"] < 1e-6  # true heads
+    known = torch.from_numpy(sc["cam2world"][:2]).float()
+    r = global_align(views_of(sc), heads, cam2world={0: known[0], 1: known[1]},
+                     config=AlignConfig(quiet=True, niter=50, head_prior=1.0))
+    assert torch.equal(r.cam2world[:2], known)
+    assert r.info["align"]["head_prior_edges"] == 10  # 12 directed edges less the two between the known cameras
 
 
 @pytest.mark.parametrize("bad", [{"head_prior": -0.1}, {"head_prior": float("nan")}, {"head_prior_deg": (10.0,)},
                                  {"head_prior_deg": (0.0, 20.0)}, {"head_prior_deg": (10.0, 180.0)},
                                  {"head_prior_deg": "10,20"}])
 def test_a_bad_head_prior_setting_is_refused_with_what_was_expected(bad):
-    with pytest.raises(ShapeError, match="head_prior"):
+    with pytest.raises(ShapeError, match=r"AlignConfig\.head_prior.* expected .*, got "):
         AlignConfig(**bad)
 
 
-def test_the_chord_of_an_angle_is_the_residual_of_a_rotation_by_that_angle():
-    R = axis_angle_to_matrix(torch.tensor([[0.3, -0.2, 0.5]], dtype=torch.float64))
-    theta = float(rotation_angle(R)[0])
-    assert float((R[0] - torch.eye(3, dtype=torch.float64)).square().sum() / 2) == pytest.approx(
-        chord(math.degrees(theta)) ** 2, rel=1e-12)
+def test_head_prior_widths_given_as_a_list_are_kept_as_a_tuple():
+    cfg = AlignConfig(head_prior_deg=[5, 30])
+    assert cfg.head_prior_deg == (5.0, 30.0) and isinstance(hash(cfg), int)
+
+
+def test_the_rotation_residual_is_the_squared_chord_of_the_angle_between_camera_and_head():
+    c2w = _cameras(2, 12)
+    turn = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
+    T = torch.linalg.inv(c2w[:1]) @ c2w[1:]
+    T[0, :3, :3] = T[0, :3, :3] @ turn  # the head's rotation off by ``turn``
+    prior = HeadPrior(torch.tensor([0]), torch.tensor([1]), T, torch.ones(1, dtype=torch.float64), 1.0, 10.0, 20.0,
+                      dtype=torch.float64)
+    rot, dirs = prior.residuals(c2w)
+    assert float(rot[0]) == pytest.approx(chord(math.degrees(float(rotation_angle(turn)))) ** 2, rel=1e-12)
+    assert float(dirs[0]) < 1e-8  # the direction is the head's (the floor shortens u by ~1e-5 of |u|)
