@@ -76,7 +76,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
             prior_cfg["head_prior"] = float(w)
             if widths:
                 prior_cfg["head_prior_deg"] = tuple(float(x) for x in widths.split(","))
-        prior_ok = AlignConfig(**prior_cfg) is not None
+        AlignConfig(**prior_cfg)  # the weight and widths checked by AlignConfig itself
+        prior_ok = True
     except (ValueError, PointmapError):
         prior_ok = False
     if any(f not in ("K", "F", "S", "T", "P", *stages) for f in flags) or len(set(flags)) < len(flags) \

@@ -34,7 +34,7 @@ def run(params: AlignParams, stack, cfg: AlignConfig, chunk: int, prior: HeadPri
     def closure_value() -> float:
         s, R, t = params.pw()
         value = loss_and_grad(params.world_points(stack.uv), s, R, t, stack, chunk)
-        if prior is not None and prior.num_edges:
+        if prior is not None:  # a prior without edges adds a constant 0
             p = prior.loss(params.cam2world())
             if p.requires_grad:
                 p.backward()

@@ -68,9 +68,9 @@ class AlignConfig:
         Procrustes'); False: the Procrustes of the pointmaps, as before session 49 (models without a pose head
         always use it)
     head_prior: weight of the pose heads' prior on the cameras during the dense optimisation (with ``pose_head``
-        and predictions that all carry the heads' transforms; 0: off; 0.1, the default since session 51, was
-        chosen on a tuning set and checked on the held-out sets: docs/alignment.md; pointmap.align.head_prior). The report's
-        losses include it; ``head_prior_loss`` is its share at the end
+        and predictions that all carry the heads' transforms; 0: off; pointmap.align.head_prior). The default, 0.1
+        since session 51, was chosen on a tuning set and checked on the held-out sets (docs/alignment.md). The
+        report's losses include it; ``head_prior_loss`` is its share at the end
     head_prior_deg: its Cauchy widths (rotation, translation direction), in degrees
     quiet: no progress bar
     """

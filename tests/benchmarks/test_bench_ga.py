@@ -107,6 +107,21 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
             parse_setting(bad)
 
 
+def test_a_setting_sets_the_pose_heads_prior_and_refuses_a_bad_one():
+    import argparse
+
+    from benchmarks.bench_ga import parse_setting
+    from pointmap.align import AlignConfig
+
+    assert parse_setting("auto+E")[0].head_prior == AlignConfig().head_prior  # the library's default
+    cfg, _, _, epipolar = parse_setting("auto+H0.3@5,30+E")
+    assert (cfg.head_prior, cfg.head_prior_deg, epipolar is not None) == (0.3, (5.0, 30.0), True)
+    assert parse_setting("auto+E+H0")[0].head_prior == 0.0
+    for bad in ("auto+H-1", "auto+Hx", "auto+H0.1+H0.2", "auto+H1@0,20", "auto+H1@10", "auto+P+H0.1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="H<weight>"):
+            parse_setting(bad)
+
+
 def test_the_ga_benchmark_refuses_a_missing_set_and_an_impossible_size_before_running(scenes_and_model, tmp_path,
                                                                                       capsys):
     data, model_path = scenes_and_model
