@@ -1,0 +1,141 @@
+"""The ship rule of docs/models.md, checked from the files a card run writes: does a candidate replace the
+shipped model?
+
+    bash benchmarks/model_card.sh OLD.safetensors DATA 1 old_pairs.csv > old.txt
+    bash benchmarks/model_card.sh NEW.safetensors DATA 1 new_pairs.csv > new.txt
+    python benchmarks/bench_ga.py --model OLD.safetensors --data ... --settings auto+E --per-pair old_ga  # optional,
+    python benchmarks/bench_ga.py --model NEW.safetensors --data ... --settings auto+E --per-pair new_ga  # likewise
+    python benchmarks/ship_rule.py --incumbent old.txt old_pairs.csv --candidate new.txt new_pairs.csv \\
+        [--ga old_ga-GA_auto+E.csv new_ga-GA_auto+E.csv] [--names v49h v52h]
+
+The rule (docs/training-log.md, session 42), one row per criterion; the candidate ships when the count passes and
+no other criterion fails:
+
+1. **count**: the candidate's exact count (rotations + directions within 15 degrees, of the pointmaps' pose and of
+   the pipeline's, over the four card sets: ``compare_cards.exact_count``) exceeds the incumbent's;
+2. **pair by pair**: none of ``paired.py``'s four pooled McNemar tests (rotation, direction, the pipeline's
+   rotation and direction, over every shared pair) goes against the candidate at p < 0.05;
+3. **depth**: the candidate's AbsRel, averaged over the eval sets both cards hold, is at most 0.01 above the
+   incumbent's;
+4. **global alignment** (with ``--ga``): neither rotations nor directions within 15 degrees are significantly fewer
+   (McNemar p < 0.05) over the camera pairs both files hold;
+5. **real photographs**: not every real set (``real_*`` in the per-pair files) has the candidate's directions worse
+   by more than 15 degrees (the median over the set's pairs of the candidate's error minus the incumbent's).
+
+Criteria 4 and 5 read "not checked" when their files or sets are missing. Nothing here runs a model. Exit status:
+0 when the candidate ships, 1 when it does not, 2 for input that cannot be read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.compare_cards import EVAL_SETS, exact_count, parse_card  # noqa: E402
+from benchmarks.paired import paired, read_per_pair  # noqa: E402
+
+ALPHA = 0.05          # McNemar's significance level
+ABSREL_SLACK = 0.01   # the depth criterion's allowance
+REAL_DIR_SLACK = 15.0  # degrees: a real set is "worse" beyond this median direction loss
+POOLED = ("rotation", "direction", "pipeline rotation", "pipeline direction")
+
+
+def _significant_losses(res: dict, errors: tuple) -> list[str]:
+    """The pooled rows of a ``paired`` result that go against B (the candidate) at p < ALPHA."""
+    return [f"{e} {r['a_hits']} -> {r['b_hits']} (p {r['mcnemar_p']:.3g})" for e in errors
+            if (r := res.get(("all", e))) is not None and r["a_only"] > r["b_only"] and r["mcnemar_p"] < ALPHA]
+
+
+def _pooled(res: dict, errors: tuple) -> str:
+    return "; ".join(f"{e} {res[('all', e)]['a_hits']} -> {res[('all', e)]['b_hits']} "
+                     f"(p {res[('all', e)]['mcnemar_p']:.3g})" for e in errors if ("all", e) in res)
+
+
+def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga: tuple | None = None) -> list:
+    """[(criterion, incumbent's figure, candidate's figure, verdict True / False / None (not checked), detail)]
+    for the parsed cards (``compare_cards.parse_card``), per-pair files (``paired.read_per_pair``) and, optionally,
+    the two ``bench_ga.py`` per-pair files read the same way."""
+    rows = []
+    ci, cc = exact_count(inc_pairs), exact_count(cand_pairs)
+    if ci is None or cc is None:
+        rows.append(("count", ci, cc, None, "a per-pair file lacks a card set or the pipeline's columns"))
+    else:
+        rows.append(("count", ci, cc, cc > ci, f"{cc - ci:+d} pairs"))
+
+    res, _ = paired(inc_pairs, cand_pairs)
+    losses = _significant_losses(res, POOLED)
+    rows.append(("pair by pair", "", "", not losses,
+                 ("significant losses: " + "; ".join(losses)) if losses else _pooled(res, POOLED)))
+
+    sets = [s for s in EVAL_SETS if "AbsRel" in inc_card["eval"].get(s, {}) and "AbsRel" in cand_card["eval"].get(s, {})]
+    if sets:
+        ai = sum(inc_card["eval"][s]["AbsRel"] for s in sets) / len(sets)
+        ac = sum(cand_card["eval"][s]["AbsRel"] for s in sets) / len(sets)
+        rows.append(("depth AbsRel (mean)", round(ai, 4), round(ac, 4), ac - ai <= ABSREL_SLACK,
+                     f"{ac - ai:+.4f} over {', '.join(sets)} (allowed +{ABSREL_SLACK})"))
+    else:
+        rows.append(("depth AbsRel (mean)", None, None, None, "the cards share no eval set with an AbsRel"))
+
+    if ga is None:
+        rows.append(("global alignment", None, None, None, "no --ga files"))
+    else:
+        gres, _ = paired(*ga)
+        glosses = _significant_losses(gres, ("rotation", "direction"))
+        rows.append(("global alignment", "", "", not glosses,
+                     ("significant losses: " + "; ".join(glosses)) if glosses
+                     else _pooled(gres, ("rotation", "direction"))))
+
+    real = sorted({s for s, e in res if s.startswith("real") and e == "direction"})
+    if not real:
+        rows.append(("real photographs", None, None, None, "no real_* set in both per-pair files"))
+    else:
+        diffs = {s: res[(s, "direction")]["median_diff"] for s in real}
+        worse = [s for s, d in diffs.items() if math.isfinite(d) and d > REAL_DIR_SLACK]
+        rows.append(("real photographs", "", "", len(worse) < len(real),
+                     "median direction change " + ", ".join(f"{s} {d:+.1f}" for s, d in diffs.items())
+                     + f" (fails only if every set is worse by > {REAL_DIR_SLACK:g} degrees)"))
+    return rows
+
+
+def ships(rows: list) -> bool:
+    """The verdict: the count passes and no criterion fails."""
+    return rows[0][3] is True and all(r[3] is not False for r in rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--incumbent", nargs=2, required=True, metavar=("CARD", "PAIRS"),
+                   help="the shipped model's model_card.sh output and per-pair CSV")
+    p.add_argument("--candidate", nargs=2, required=True, metavar=("CARD", "PAIRS"),
+                   help="the candidate's model_card.sh output and per-pair CSV")
+    p.add_argument("--ga", nargs=2, metavar=("INCUMBENT", "CANDIDATE"), default=None,
+                   help="the two models' bench_ga.py per-pair CSVs of one setting (e.g. X-GA_auto+E.csv)")
+    p.add_argument("--names", nargs=2, metavar=("INCUMBENT", "CANDIDATE"), default=("incumbent", "candidate"))
+    a = p.parse_args(argv)
+    try:
+        inc_card, cand_card = (parse_card(Path(f).read_text()) for f in (a.incumbent[0], a.candidate[0]))
+        inc_pairs, cand_pairs = read_per_pair(a.incumbent[1]), read_per_pair(a.candidate[1])
+        ga = None if a.ga is None else (read_per_pair(a.ga[0]), read_per_pair(a.ga[1]))
+        rows = check(inc_card, inc_pairs, cand_card, cand_pairs, ga)
+    except (OSError, ValueError) as e:  # CardError, PairedError, or a figure that is not a number
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    verdicts = {True: "PASS", False: "FAIL", None: "not checked"}
+    print(f"| criterion | {a.names[0]} | {a.names[1]} | verdict | detail |")
+    print("|---|---|---|---|---|")
+    for name, vi, vc, ok, detail in rows:
+        print(f"| {name} | {'-' if vi is None else vi} | {'-' if vc is None else vc} | {verdicts[ok]} | {detail} |")
+    ok = ships(rows)
+    unchecked = [r[0] for r in rows if r[3] is None]
+    print(f"\n{a.names[1]} {'ships' if ok else 'does not ship'} under the rule"
+          + (f" (not checked: {', '.join(unchecked)})." if ok and unchecked else "."))
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

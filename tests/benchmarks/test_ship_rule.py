@@ -1,0 +1,90 @@
+import json
+
+import pytest
+
+from benchmarks.compare_cards import parse_card
+from benchmarks.paired import read_per_pair
+from benchmarks.ship_rule import check, main, ships
+from training.evaluate import PairResult, write_per_pair
+
+CARD_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646", "bench_s525252")
+
+
+def _card(tmp_path, name, absrel):
+    lines = []
+    for s, a in zip(("eval_s424242", "eval_p4_s434343", "eval_cam_s464646"), absrel):
+        lines += [f"== {s}", json.dumps({"RRA15": 60.0, "RTA15": 20.0, "AbsRel": a})]
+    f = tmp_path / f"{name}.txt"
+    f.write_text("\n".join(lines) + "\n")
+    return f
+
+
+def _pairs(tmp_path, name, hits, n=20, real_dir=(10.0,)):
+    """A per-pair file over the four card sets: in each set the first ``hits`` pairs have every error at 5
+    degrees (four hits each), the rest at 40; a real set with the given direction errors."""
+    f = tmp_path / f"{name}.csv"
+    for s in CARD_SETS:
+        write_per_pair(f, s, [PairResult(i, *((5.0, 5.0, 10.0, 5.0, 5.0) if i < hits else (40.0, 40.0, 10.0, 40.0, 40.0)))
+                              for i in range(n)])
+    write_per_pair(f, "real_rig", [PairResult(i, 3.0, d, 0.3, 3.0, d) for i, d in enumerate(real_dir)])
+    return f
+
+
+def test_a_candidate_with_more_pairs_and_no_significant_loss_ships(tmp_path, capsys):
+    inc = (_card(tmp_path, "inc", (0.30, 0.27, 0.36)), _pairs(tmp_path, "inc", 10))
+    cand = (_card(tmp_path, "cand", (0.30, 0.27, 0.36)), _pairs(tmp_path, "cand", 11))
+    rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--names", "old", "new"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "new ships under the rule (not checked: global alignment)." in out
+    assert "| count | 160 | 176 | PASS | +16 pairs |" in out  # 4 sets x 10 pairs x 4 errors, then 4 x 11 x 4
+
+
+def test_a_candidate_with_fewer_pairs_or_a_significant_loss_does_not_ship(tmp_path):
+    inc_card, cand_card = (parse_card(_card(tmp_path, n, (0.3, 0.3, 0.3)).read_text()) for n in ("i", "c"))
+    fewer = check(inc_card, read_per_pair(_pairs(tmp_path, "i", 10)), cand_card,
+                  read_per_pair(_pairs(tmp_path, "c", 9)))
+    assert fewer[0][3] is False and not ships(fewer)
+    # more pairs in all, but every pair that had the pointmaps' pose right loses it (40 discordant pairs, all
+    # against), while the pipeline's pose gains twice as many: the count rises and the rotation loss stops it
+    inc = read_per_pair(_pairs(tmp_path, "i2", 10, n=40))
+    cand = {k: ((40.0,) * 2 + (10.0,) + v[3:] if k[0] != "real_rig" and k[1] < 10 else v) for k, v in inc.items()}
+    cand = {k: (v[:3] + (5.0, 5.0) if k[0] != "real_rig" and 10 <= k[1] < 30 else v) for k, v in cand.items()}
+    rows = check(inc_card, inc, cand_card, cand)
+    by = {r[0]: r for r in rows}
+    assert by["count"][1] < by["count"][2]  # the pipeline's gains outnumber the pointmaps' losses
+    assert by["pair by pair"][3] is False and "significant losses: rotation" in by["pair by pair"][4]
+    assert not ships(rows)
+
+
+def test_depth_global_alignment_and_the_real_photographs_each_can_stop_a_ship(tmp_path):
+    inc_pairs = read_per_pair(_pairs(tmp_path, "i", 10, real_dir=(10.0, 12.0)))
+    cand_pairs = read_per_pair(_pairs(tmp_path, "c", 11, real_dir=(30.0, 40.0)))
+    inc_card = parse_card(_card(tmp_path, "i", (0.30, 0.27, 0.36)).read_text())
+    worse_depth = parse_card(_card(tmp_path, "c", (0.32, 0.28, 0.37)).read_text())
+    rows = {r[0]: r for r in check(inc_card, inc_pairs, worse_depth, cand_pairs)}
+    assert rows["depth AbsRel (mean)"][3] is False  # +0.0133 on average, over the 0.01 allowed
+    assert rows["real photographs"][3] is False and "real_rig +24.0" in rows["real photographs"][4]
+    # global alignment: 12 camera pairs lost, none won, is significant (p = 2 / 2^12)
+    ga_a = {("eval_s424242", i): (5.0, 5.0, 10.0, float("nan"), float("nan")) for i in range(30)}
+    ga_b = {k: ((40.0,) + v[1:] if k[1] < 12 else v) for k, v in ga_a.items()}
+    same_depth = parse_card(_card(tmp_path, "c2", (0.30, 0.27, 0.36)).read_text())
+    level_real = read_per_pair(_pairs(tmp_path, "c3", 11, real_dir=(10.0, 12.0)))
+    rows = check(inc_card, inc_pairs, same_depth, level_real, ga=(ga_a, ga_b))
+    by = {r[0]: r for r in rows}
+    assert by["global alignment"][3] is False and "rotation 30 -> 18" in by["global alignment"][4]
+    assert not ships(rows)
+    rows = check(inc_card, inc_pairs, same_depth, level_real, ga=(ga_a, ga_a))
+    assert ships(rows) and all(r[3] is True for r in rows)
+
+
+def test_unreadable_inputs_exit_with_status_2_and_say_what_was_expected(tmp_path, capsys):
+    good = _pairs(tmp_path, "p", 10)
+    not_a_card = tmp_path / "x.txt"
+    not_a_card.write_text("hello\n")
+    rc = main(["--incumbent", str(not_a_card), str(good), "--candidate", str(not_a_card), str(good)])
+    assert rc == 2 and "expected the output of benchmarks/model_card.sh" in capsys.readouterr().err
+    card = _card(tmp_path, "c", (0.3, 0.3, 0.3))
+    rc = main(["--incumbent", str(card), str(tmp_path / "missing.csv"), "--candidate", str(card), str(good)])
+    assert rc == 2 and "missing.csv" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--incumbent", str(card)])
