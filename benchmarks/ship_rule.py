@@ -44,15 +44,14 @@ REAL_DIR_SLACK = 15.0  # degrees: a real set is "worse" beyond this median direc
 POOLED = ("rotation", "direction", "pipeline rotation", "pipeline direction")
 
 
-def _significant_losses(res: dict, errors: tuple) -> list[str]:
-    """The pooled rows of a ``paired`` result that go against B (the candidate) at p < ALPHA."""
-    return [f"{e} {r['a_hits']} -> {r['b_hits']} (p {r['mcnemar_p']:.3g})" for e in errors
-            if (r := res.get(("all", e))) is not None and r["a_only"] > r["b_only"] and r["mcnemar_p"] < ALPHA]
-
-
-def _pooled(res: dict, errors: tuple) -> str:
-    return "; ".join(f"{e} {res[('all', e)]['a_hits']} -> {res[('all', e)]['b_hits']} "
-                     f"(p {res[('all', e)]['mcnemar_p']:.3g})" for e in errors if ("all", e) in res)
+def _mcnemar_row(criterion: str, res: dict, errors: tuple) -> tuple:
+    """A criterion row from the pooled ("all") rows of a ``paired`` result: it fails when any of ``errors`` goes
+    against B (the candidate) at McNemar p < ALPHA; the detail names those losses, or every pooled row."""
+    pooled = [(e, res[("all", e)]) for e in errors if ("all", e) in res]
+    text = {e: f"{e} {r['a_hits']} -> {r['b_hits']} (p {r['mcnemar_p']:.3g})" for e, r in pooled}
+    losses = [text[e] for e, r in pooled if r["a_only"] > r["b_only"] and r["mcnemar_p"] < ALPHA]
+    return (criterion, "", "", not losses,
+            ("significant losses: " + "; ".join(losses)) if losses else "; ".join(text.values()))
 
 
 def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga: tuple | None = None) -> list:
@@ -67,9 +66,7 @@ def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga
         rows.append(("count", ci, cc, cc > ci, f"{cc - ci:+d} pairs"))
 
     res, _ = paired(inc_pairs, cand_pairs)
-    losses = _significant_losses(res, POOLED)
-    rows.append(("pair by pair", "", "", not losses,
-                 ("significant losses: " + "; ".join(losses)) if losses else _pooled(res, POOLED)))
+    rows.append(_mcnemar_row("pair by pair", res, POOLED))
 
     sets = [s for s in EVAL_SETS if "AbsRel" in inc_card["eval"].get(s, {}) and "AbsRel" in cand_card["eval"].get(s, {})]
     if sets:
@@ -83,11 +80,7 @@ def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga
     if ga is None:
         rows.append(("global alignment", None, None, None, "no --ga files"))
     else:
-        gres, _ = paired(*ga)
-        glosses = _significant_losses(gres, ("rotation", "direction"))
-        rows.append(("global alignment", "", "", not glosses,
-                     ("significant losses: " + "; ".join(glosses)) if glosses
-                     else _pooled(gres, ("rotation", "direction"))))
+        rows.append(_mcnemar_row("global alignment", paired(*ga)[0], ("rotation", "direction")))
 
     real = sorted({s for s, e in res if s.startswith("real") and e == "direction"})
     if not real:
