@@ -252,7 +252,14 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
         return None
     n1 = cv2.undistortPoints(xy1[:, None], K1, None)[:, 0]
     n2 = cv2.undistortPoints(xy2[:, None], K2, None)[:, 0]
-    E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=prob, threshold=threshold_px / K1[0, 0])
+    try:
+        E, mask = cv2.findEssentialMat(n1, n2, np.eye(3), method=cv2.RANSAC, prob=prob,
+                                       threshold=threshold_px / K1[0, 0])
+    except cv2.error:
+        # The inputs were checked above, so OpenCV's errors here are its solver's: OpenCV 5.1 asserts inside the
+        # five-point polynomial solve (solvePoly) on degenerate samples, e.g. no motion, where 4.x and 5.0 return
+        # no solution. Both mean the same thing.
+        return None
     if E is None or E.shape != (3, 3):
         return None
     n_front, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
