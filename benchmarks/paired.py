@@ -14,10 +14,17 @@ writes one per alignment method) on
 - for the errors themselves: the median of B's error minus A's over the pairs, the pairs where B is lower /
   higher, and the sign test's exact two-sided p-value.
 
+Two breakdowns on request: ``--by-rotation`` repeats the pooled comparison within bins of the pairs' true
+rotation (0-15, 15-30, 30-45, 45-60, over 60 degrees: where a gain or a loss sits, narrow pairs or wide ones), and
+``--scene-size N`` compares the models scene by scene: each set's pairs taken N at a time in their order (a
+scene of V views has V (V - 1) / 2 camera pairs, which ``bench_ga.py`` writes in a row: 6 for the card sets' 4
+views), each scene's mean rotation and direction error, and the sign test over scenes (a model better on a
+few scenes by much and worse on many by little shows here, not in the pair counts).
+
 A small p (say < 0.05) says the difference is unlikely to be a draw of these pairs; it says nothing about the
 draw of the training run that made each model (two runs of one recipe differ too).
 
-    python benchmarks/paired.py v17.csv v21.csv --names v17 v21 [--tol 15]
+    python benchmarks/paired.py v17.csv v21.csv --names v17 v21 [--tol 15] [--by-rotation] [--scene-size 6]
 """
 
 from __future__ import annotations
@@ -75,10 +82,16 @@ def binomial_two_sided(k: int, n: int) -> float:
     return min(1.0, 2 * tail)
 
 
+def _median(values: list) -> float:
+    v = sorted(values)
+    mid = len(v) // 2
+    return float("nan") if not v else v[mid] if len(v) % 2 else (v[mid - 1] + v[mid]) / 2
+
+
 def compare_errors(a: list, b: list, tol: float) -> dict:
     """Paired comparison of two models' errors (degrees) on the same pairs. NaN errors (a direction that is
-    not defined) drop the pair from this comparison. Returns {"pairs", "a_hits", "b_hits", "a_only",
-    "b_only", "mcnemar_p", "median_diff" (B - A), "b_lower", "b_higher", "sign_p"}."""
+    not defined) drop the pair from this comparison. Returns {"pairs", "a_median", "b_median", "a_hits", "b_hits",
+    "a_only", "b_only", "mcnemar_p", "median_diff" (B - A), "b_lower", "b_higher", "sign_p"}."""
     if len(a) != len(b):
         raise ValueError(f"a and b expected the same pairs, got {len(a)} and {len(b)} errors")
     both = [(x, y) for x, y in zip(a, b) if math.isfinite(x) and math.isfinite(y)]
@@ -86,11 +99,10 @@ def compare_errors(a: list, b: list, tol: float) -> dict:
     b_only = sum(y < tol <= x for x, y in both)
     diffs = sorted(y - x for x, y in both)
     lower, higher = sum(d < 0 for d in diffs), sum(d > 0 for d in diffs)
-    mid = len(diffs) // 2
-    median = (float("nan") if not diffs else diffs[mid] if len(diffs) % 2 else (diffs[mid - 1] + diffs[mid]) / 2)
-    return {"pairs": len(both), "a_hits": sum(x < tol for x, _ in both), "b_hits": sum(y < tol for _, y in both),
+    return {"pairs": len(both), "a_median": _median([x for x, _ in both]), "b_median": _median([y for _, y in both]),
+            "a_hits": sum(x < tol for x, _ in both), "b_hits": sum(y < tol for _, y in both),
             "a_only": a_only, "b_only": b_only, "mcnemar_p": binomial_two_sided(min(a_only, b_only), a_only + b_only),
-            "median_diff": median, "b_lower": lower, "b_higher": higher,
+            "median_diff": _median(diffs), "b_lower": lower, "b_higher": higher,
             "sign_p": binomial_two_sided(min(lower, higher), lower + higher)}
 
 
@@ -101,10 +113,7 @@ def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
     ``pm.pair_pose`` reports) for the sets where both files hold them."""
     if any(k[0] == "all" for k in (*a, *b)):
         raise PairedError("a set named 'all' clashes with the pooled row; rename it")
-    shared = sorted(set(a) & set(b))
-    if not shared:
-        raise PairedError(f"the two files share no (set, pair): sets {sorted({s for s, _ in a})} and "
-                          f"{sorted({s for s, _ in b})}")
+    shared = _shared(a, b)
     notes = []
     for name, mine, other in (("A", a, b), ("B", b, a)):
         alone = sorted({s for s, _ in set(mine) - set(other)})
@@ -114,11 +123,76 @@ def paired(a: dict, b: dict, tol: float = 15.0) -> tuple[dict, list]:
     out = {}
     for s in sorted({k[0] for k in shared}) + ["all"]:
         keys = [k for k in shared if s == "all" or k[0] == s]
-        for col, what in ((0, "rotation"), (1, "direction"), (3, "pipeline rotation"), (4, "pipeline direction")):
+        for col, what in ERRORS:
             r = compare_errors([a[k][col] for k in keys], [b[k][col] for k in keys], tol)
             if col < 3 or r["pairs"]:
                 out[(s, what)] = r
     return out, notes
+
+
+ROTATION_EDGES = (0.0, 15.0, 30.0, 45.0, 60.0, 180.0)
+ERRORS = ((0, "rotation"), (1, "direction"), (3, "pipeline rotation"), (4, "pipeline direction"))
+
+
+def _shared(a: dict, b: dict) -> list:
+    shared = sorted(set(a) & set(b))
+    if not shared:
+        raise PairedError(f"the two files share no (set, pair): sets {sorted({s for s, _ in a})} and "
+                          f"{sorted({s for s, _ in b})}")
+    return shared
+
+
+def by_true_rotation(a: dict, b: dict, tol: float = 15.0, edges=ROTATION_EDGES) -> dict:
+    """{(bin label, error): compare_errors(...)} over the pairs both files hold, all sets pooled, binned by the
+    pair's true rotation (degrees; a bin holds lo <= true < hi, the last one hi too); pairs whose true rotation
+    is unknown (NaN) are left out. PairedError when the two files give a shared pair different true rotations
+    (more than 0.01 degrees apart: files of different pairs under the same names)."""
+    if len(edges) < 2 or any(not lo < hi for lo, hi in zip(edges, edges[1:])):
+        raise ValueError(f"edges expected at least two increasing values, got {list(edges)}")
+    shared = _shared(a, b)
+    for k in shared:
+        ta, tb = a[k][2], b[k][2]
+        if math.isfinite(ta) and math.isfinite(tb) and abs(ta - tb) > 0.01:
+            raise PairedError(f"pair {k[1]} of {k[0]}: true rotations {ta:.3f} and {tb:.3f} differ; the two files "
+                              "are not of the same pairs")
+    out = {}
+    for i, (lo, hi) in enumerate(zip(edges, edges[1:])):
+        last = i == len(edges) - 2
+        keys = [k for k in shared if lo <= a[k][2] < hi or (last and a[k][2] == hi)]
+        label = f"{lo:g}-{hi:g}"
+        for col, what in ERRORS:
+            r = compare_errors([a[k][col] for k in keys], [b[k][col] for k in keys], tol)
+            if col < 3 or r["pairs"]:
+                out[(label, what)] = r
+    return out
+
+
+def by_scene(a: dict, b: dict, size: int) -> dict:
+    """{(set, error): compare_errors(...) of the scenes' mean errors} per set and for "all": each set's shared
+    pairs in index order taken ``size`` at a time (pair k in scene k // size), a scene's error the mean over its
+    pairs (a scene with an undefined error in either file is left out of that error's comparison). The hit
+    counts compare the means against the tolerance 15; read the sign test. PairedError when a set's shared pairs
+    are not whole scenes of ``size`` (pairs missing, or scenes of another view count)."""
+    if not isinstance(size, int) or size < 1:
+        raise ValueError(f"size expected an int >= 1 (camera pairs per scene), got {size!r}")
+    shared = _shared(a, b)
+    scenes: dict = {}
+    for k in shared:
+        scenes.setdefault((k[0], k[1] // size), []).append(k)
+    for (s, n), keys in scenes.items():
+        if [k[1] for k in keys] != list(range(n * size, n * size + size)):
+            raise PairedError(f"set {s}: scene {n} expected pairs {n * size}..{n * size + size - 1} in both files, "
+                              f"got {[k[1] for k in keys]}; is --scene-size right?")
+    out = {}
+    for s in sorted({k[0] for k in shared}) + ["all"]:
+        groups = [keys for (name, _), keys in sorted(scenes.items()) if s == "all" or name == s]
+        for col, what in ERRORS:
+            ma = [sum(a[k][col] for k in g) / len(g) for g in groups]
+            mb = [sum(b[k][col] for k in g) / len(g) for g in groups]
+            r = compare_errors(ma, mb, 15.0)
+            if col < 3 or r["pairs"]:
+                out[(s, what)] = r
+    return out
 
 
 def main(argv=None) -> int:
@@ -127,12 +201,21 @@ def main(argv=None) -> int:
     p.add_argument("b", type=Path, help="model B's per-pair CSV")
     p.add_argument("--names", nargs=2, default=None, metavar=("A", "B"), help="the two models' names")
     p.add_argument("--tol", type=float, default=15.0, help="degrees: the RRA / RTA threshold (default 15)")
+    p.add_argument("--by-rotation", dest="by_rotation", action="store_true",
+                   help="also compare within bins of the pairs' true rotation (all sets pooled)")
+    p.add_argument("--scene-size", dest="scene_size", type=int, default=None, metavar="N",
+                   help="also compare scene by scene, each set's pairs taken N at a time (6 for 4-view scenes)")
     args = p.parse_args(argv)
     if not args.tol > 0:
         p.error(f"--tol expected > 0, got {args.tol}")
+    if args.scene_size is not None and args.scene_size < 1:
+        p.error(f"--scene-size expected an int >= 1, got {args.scene_size}")
     na, nb = args.names or (args.a.stem, args.b.stem)
     try:
-        res, notes = paired(read_per_pair(args.a), read_per_pair(args.b), args.tol)
+        a, b = read_per_pair(args.a), read_per_pair(args.b)
+        res, notes = paired(a, b, args.tol)
+        bins = by_true_rotation(a, b, args.tol) if args.by_rotation else None
+        scenes = by_scene(a, b, args.scene_size) if args.scene_size else None
     except PairedError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -144,6 +227,20 @@ def main(argv=None) -> int:
         print(f"| {s} | {what} | {r['pairs']} | {r['a_hits']} | {r['b_hits']} | {r['a_only']} | {r['b_only']} | "
               f"{r['mcnemar_p']:.3g} | {r['median_diff']:+.1f} | {r['b_lower']} / {r['b_higher']} | "
               f"{r['sign_p']:.3g} |")
+    if bins is not None:
+        print(f"\nBy true rotation (degrees), all sets pooled:\n\n| true rotation | error | pairs | {na} within {t} | "
+              f"{nb} within {t} | McNemar p | median {na} / {nb} | median {nb} - {na} | sign p |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for (label, what), r in bins.items():
+            print(f"| {label} | {what} | {r['pairs']} | {r['a_hits']} | {r['b_hits']} | {r['mcnemar_p']:.3g} | "
+                  f"{r['a_median']:.1f} / {r['b_median']:.1f} | {r['median_diff']:+.1f} | {r['sign_p']:.3g} |")
+    if scenes is not None:
+        print(f"\nScene by scene ({args.scene_size} pairs each), the mean error over a scene's pairs:\n\n"
+              f"| set | error | scenes | {nb} lower / higher | median {nb} - {na} | sign p |")
+        print("|---|---|---|---|---|---|")
+        for (s, what), r in scenes.items():
+            print(f"| {s} | {what} | {r['pairs']} | {r['b_lower']} / {r['b_higher']} | {r['median_diff']:+.2f} | "
+                  f"{r['sign_p']:.3g} |")
     for n in notes:
         print(f"\nnote: {n}")
     return 0

@@ -1,9 +1,19 @@
 import itertools
 import math
+import random
 
 import pytest
 
-from benchmarks.paired import PairedError, binomial_two_sided, compare_errors, main, paired, read_per_pair
+from benchmarks.paired import (
+    PairedError,
+    binomial_two_sided,
+    by_scene,
+    by_true_rotation,
+    compare_errors,
+    main,
+    paired,
+    read_per_pair,
+)
 from training.evaluate import PairResult, write_per_pair
 
 
@@ -148,3 +158,54 @@ def test_the_pipeline_pose_is_compared_only_on_the_sets_where_both_files_hold_it
     assert res[("all", "pipeline rotation")]["pairs"] == 6
     assert main([str(a), str(b), "--names", "old", "new"]) == 0
     assert "| eval_a | pipeline rotation | 6 | 0 | 6 | 0 | 6 | 0.0312 | -27.0 | 6 / 0 | 0.0312 |" in capsys.readouterr().out
+
+
+def test_the_true_rotation_bins_hold_the_same_comparisons_as_filtering_the_pairs_by_hand(tmp_path):
+    rng = random.Random(3)
+    true = [0.0, 14.9, 15.0, 29.0, 30.0, 44.0, 45.0, 59.9, 60.0, 120.0, 180.0, float("nan")] * 3
+    rows_a = [PairResult(k, rng.uniform(0, 40), rng.uniform(0, 90), t) for k, t in enumerate(true)]
+    rows_b = [PairResult(k, rng.uniform(0, 40), rng.uniform(0, 90), t) for k, t in enumerate(true)]
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    write_per_pair(a, "eval_a", rows_a)
+    write_per_pair(b, "eval_a", rows_b)
+    res = by_true_rotation(read_per_pair(a), read_per_pair(b))
+    for label, lo, hi in (("0-15", 0, 15), ("15-30", 15, 30), ("30-45", 30, 45), ("45-60", 45, 60), ("60-180", 60, 181)):
+        ks = [k for k, t in enumerate(true) if lo <= t < hi]  # NaN fails both comparisons: in no bin
+        for col, what in ((1, "rotation"), (2, "direction")):
+            want = compare_errors([rows_a[k][col] for k in ks], [rows_b[k][col] for k in ks], 15.0)
+            assert res[(label, what)] == want
+    assert sum(res[(lab, "rotation")]["pairs"] for lab in ("0-15", "15-30", "30-45", "45-60", "60-180")) == 33
+    assert ("0-15", "pipeline rotation") not in res  # neither file holds the pipeline's pose
+    write_per_pair(b, "eval_a", [r._replace(true_rot=r.true_rot + 1) for r in rows_b])
+    with pytest.raises(PairedError, match="true rotations"):
+        by_true_rotation(read_per_pair(a), read_per_pair(b))
+    with pytest.raises(ValueError, match="increasing"):
+        by_true_rotation(read_per_pair(a), read_per_pair(a), edges=(0, 30, 30))
+
+
+def test_scenes_are_compared_by_their_mean_errors_and_partial_scenes_are_refused(tmp_path, capsys):
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    # scene 0: B far better on one pair; scenes 1 and 2: B a little worse on every pair
+    write_per_pair(a, "ga_x", [PairResult(k, 90.0 if k == 0 else 10.0, 40.0, 30.0) for k in range(9)])
+    write_per_pair(b, "ga_x", [PairResult(k, 1.0 if k == 0 else 11.0, 40.0, 30.0) for k in range(9)])
+    write_per_pair(a, "ga_y", [PairResult(k, 10.0, 40.0, 30.0) for k in range(3)])
+    write_per_pair(b, "ga_y", [PairResult(k, 9.0, 40.0, 30.0) for k in range(3)])
+    res = by_scene(read_per_pair(a), read_per_pair(b), 3)
+    r = res[("ga_x", "rotation")]
+    assert r["pairs"] == 3 and (r["b_lower"], r["b_higher"]) == (1, 2)
+    assert r["a_median"] == pytest.approx(10.0) and r["b_median"] == pytest.approx(11.0)
+    assert r["median_diff"] == pytest.approx(1.0)
+    assert res[("ga_x", "direction")]["b_lower"] == 0 and res[("ga_x", "direction")]["b_higher"] == 0
+    assert res[("all", "rotation")]["pairs"] == 4 and res[("all", "rotation")]["b_lower"] == 2
+    # pair for pair, the same files: B gets 1 more pair under 15 degrees and loses none
+    assert paired(read_per_pair(a), read_per_pair(b))[0][("ga_x", "rotation")]["b_only"] == 1
+    with pytest.raises(PairedError, match="is --scene-size right"):
+        by_scene(read_per_pair(a), read_per_pair(b), 4)  # 9 pairs are not whole scenes of 4
+    with pytest.raises(ValueError, match="int >= 1"):
+        by_scene(read_per_pair(a), read_per_pair(b), 0)
+    assert main([str(a), str(b), "--names", "old", "new", "--scene-size", "3", "--by-rotation"]) == 0
+    out = capsys.readouterr().out
+    assert "| ga_x | rotation | 3 | 1 / 2 | +1.00 | 1 |" in out
+    assert "| 30-45 | rotation | 12 | 11 | 12 | 1 | 10.0 / 11.0 |" in out
+    assert main([str(a), str(b), "--scene-size", "4"]) == 2
+    assert "is --scene-size right" in capsys.readouterr().err
