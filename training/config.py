@@ -56,6 +56,8 @@ class TrainConfig:
     desc_stem: int = 0             # > 0: build --preset with a descriptor stem of this many channels (DescStem)
     pose_weight: float = 0.0       # weight of the direct loss on the pose head's transform (losses.pose_loss)
     pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
+    focal_weight: float = 0.0      # weight of |log focal error| of view 1's own-frame pointmap (losses.focal_loss;
+                                   # 0 = off, which replays earlier recipes exactly)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
     grown_from: str = ""           # "ENC,DEC": the --init model's last growth (training.grow) was from these depths
     grown_lr: float = 1.0          # ... and the output projections that growth zeroed train at this multiple of
@@ -142,7 +144,8 @@ class TrainConfig:
             p.error("--init_heads fresh needs --init (the checkpoint whose encoder/decoder to start from)")
         if cfg.conf_reset and not cfg.init:
             p.error("--conf_reset restarts the confidence of an --init model; a model from scratch starts fresh anyway")
-        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "conf_reset"):
+        for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "focal_weight",
+                     "conf_reset"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.grown_lr <= 0:

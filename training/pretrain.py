@@ -48,7 +48,7 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
 # settings of pointmap training that pretraining would ignore: refused when set, rather than dropped silently
 TRAIN_ONLY = ("init", "init_heads", "conf_reset", "metric", "match_weight", "n_corr", "max_rotation", "grey_p",
               "flip_p", "pad_p", "temperature", "coarse_weight", "coarse_temperature", "attn_weight", "pose_head", "desc_stem",
-              "pose_weight", "pose_dir_weight", "attn_heads", "alpha")
+              "pose_weight", "pose_dir_weight", "focal_weight", "attn_heads", "alpha")
 
 
 def main(argv=None) -> int:

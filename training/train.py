@@ -22,6 +22,7 @@ from training.loop import TERMINATED_EXIT, fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
+    focal_loss,
     matching_loss,
     patch_matching_loss,
     pose_loss,
@@ -217,6 +218,10 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
         lp, d = pose_loss(_fp32(taps.pose), pred, view1, view2, metric=cfg.metric, dir_weight=cfg.pose_dir_weight)
         loss = loss + cfg.pose_weight * lp
         details.update(pose_loss=float(lp.detach()), **d)
+    if cfg.focal_weight > 0:
+        lf, d = focal_loss(pred.pts1_cam1, view1["K"], view1["valid"])
+        loss = loss + cfg.focal_weight * lf
+        details.update(focal_loss=float(lf.detach()), **d)
     if cfg.attn_weight > 0:
         net = getattr(model, "module", model)
         counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])

@@ -233,6 +233,20 @@ def test_the_direction_term_reaches_the_loss_through_the_pose_weight(tmp_path):
     assert d["pose_loss"] > d0["pose_loss"]
 
 
+def test_the_focal_term_is_added_with_its_weight_and_reaches_the_pointmap_head(tmp_path):
+    model, batch = seeded_model_and_batch()
+    with torch.no_grad():  # a fresh head puts every point behind the camera: no focal to measure; move them in front
+        model.downstream_head1.dpt.head[4].bias[2] += 3.0
+    base, d0 = make_step(config(tmp_path, 1))(model, batch, 0)
+    both, d = make_step(dataclasses.replace(config(tmp_path, 1), focal_weight=0.5))(model, batch, 0)
+    assert "focal_loss" not in d0 and d["focal_loss"] > 0 and d["focal_log_err"] > 0
+    assert abs(float(both.detach()) - float(base.detach()) - 0.5 * d["focal_loss"]) < 1e-4
+    both.backward()
+    assert any(float(p.grad.abs().sum()) > 0 for n, p in model.named_parameters() if "head" in n and p.grad is not None)
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--focal_weight", "-1"])
+
+
 def test_with_attention_supervision_the_pose_heads_correspondence_field_is_supervised_too(tmp_path):
     model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True))
     loss, d = make_step(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, attn_weight=0.5))(model, batch, 0)

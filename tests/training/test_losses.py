@@ -11,6 +11,7 @@ from training.losses import (
     cell_correspondence_counts,
     completion_loss,
     cross_attention_loss,
+    focal_loss,
     gt_points_cam1,
     matching_loss,
     patch_matching_loss,
@@ -335,3 +336,57 @@ def test_the_losses_refuse_inputs_that_would_give_a_wrong_value_or_a_deep_error(
         patch_matching_loss(d, d, corr, patch=8, temperature=0.0)
     with pytest.raises(ShapeError, match="H and W multiples of 16"):
         completion_loss(torch.zeros(1, 4, 768), torch.zeros(1, 3, 40, 40), torch.ones(1, 4, dtype=torch.bool), 16)
+
+
+def _scene_points(B=2, H=12, W=16, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    depth = 2 + torch.rand(B, H, W, generator=g)
+    K = torch.tensor([[[20.0, 0, 7.0], [0, 20.0, 5.5], [0, 0, 1]], [[31.0, 0, 8.0], [0, 31.0, 5.0], [0, 0, 1]]])[:B]
+    return depth_to_points_cam(depth, K), K, torch.ones(B, H, W, dtype=torch.bool)
+
+
+def test_the_focal_loss_is_zero_for_true_points_and_the_log_of_the_factor_a_field_of_view_is_off_by():
+    pts, K, valid = _scene_points()
+    loss, d = focal_loss(pts, K, valid)
+    assert float(loss) < 1e-5 and d["focal_log_err"] < 1e-5
+    wide = pts.clone()
+    wide[..., :2] *= 1.25  # x / z 1.25x too large: a focal 1.25x too short, whatever the depth scale
+    loss, d = focal_loss(3 * wide.requires_grad_(), K, valid)
+    assert float(loss.detach()) == pytest.approx(math.log(1.25), abs=1e-4)
+    loss.backward()
+    assert wide.grad is not None and float(wide.grad.abs().sum()) > 0
+    # only the valid pixels count: corrupt the invalid ones
+    bad = pts.clone()
+    valid = valid.clone()
+    valid[:, :, :4] = False
+    bad[:, :, :4, :2] *= 5
+    assert float(focal_loss(bad, K, valid)[0]) < 1e-5
+
+
+def test_the_focal_loss_measures_the_l1_focal_a_brute_force_search_finds():
+    pts, K, valid = _scene_points(B=1, seed=1)
+    g = torch.Generator().manual_seed(2)
+    noisy = pts * (1 + 0.05 * torch.randn(pts.shape, generator=g))
+    noisy[0, :3, :5, :2] *= 4  # outlier pixels the L1 estimate resists
+    loss, _ = focal_loss(noisy, K, valid, iters=30)
+    H, W = valid.shape[1:]
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    p = torch.stack([u - K[0, 0, 2], v - K[0, 1, 2]], -1)
+    r = (noisy[0, ..., :2] / noisy[0, ..., 2:]).double()
+    grid = torch.linspace(10, 40, 30001, dtype=torch.float64)
+    cost = torch.stack([(p - f * r).norm(dim=-1).sum() for f in grid])
+    best = float(grid[cost.argmin()])
+    assert math.exp(float(loss)) * 20.0 == pytest.approx(best, rel=2e-3) or \
+        math.exp(-float(loss)) * 20.0 == pytest.approx(best, rel=2e-3)
+
+
+def test_the_focal_loss_without_a_usable_pixel_is_a_differentiable_zero():
+    pts, K, valid = _scene_points()
+    pts = pts.clone().requires_grad_()
+    loss, d = focal_loss(pts, K, torch.zeros_like(valid))
+    assert float(loss) == 0 and math.isnan(d["focal_log_err"])
+    loss.backward()
+    assert pts.grad is not None and float(pts.grad.abs().sum()) == 0
+    behind = pts.detach().clone()
+    behind[..., 2] *= -1  # every point behind the camera
+    assert float(focal_loss(behind, K, valid)[0]) == 0
