@@ -29,9 +29,12 @@ def _pnp(pts_cam1: np.ndarray, uv: np.ndarray, K: np.ndarray, iters: int, reproj
 
     if len(pts_cam1) < 6:
         return None, 0
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        pts_cam1.astype(np.float64), uv.astype(np.float64), K.astype(np.float64), None,
-        iterationsCount=iters, reprojectionError=reproj, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            pts_cam1.astype(np.float64), uv.astype(np.float64), K.astype(np.float64), None,
+            iterationsCount=iters, reprojectionError=reproj, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:  # SQPnP asserts on degenerate samples (e.g. every pixel the same): no pose, as below
+        return None, 0
     if not ok or inliers is None:
         return None, 0
     R, _ = cv2.Rodrigues(rvec)

@@ -599,3 +599,14 @@ def test_matching_and_pose_refuse_what_is_not_a_prediction():
         pm.match_coarse(as_pred(p1, p2).as_dict())
     with pytest.raises(pm.ShapeError, match="pred_reverse expected a PairPrediction .*got tuple"):
         pm.relative_pose(as_pred(p1, p2), pred_reverse=(p2, p1))
+
+
+def test_pnp_on_a_degenerate_sample_returns_no_pose_rather_than_an_opencv_assertion():
+    from pointmap.pose import _pnp
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    pts = np.random.default_rng(0).uniform(-1, 1, (20, 3)) + [0, 0, 4]
+    assert _pnp(pts, np.full((20, 2), 30.0), K, 100, 2.0) == (None, 0)  # every pixel the same (SQPnP asserts)
+    uv = pts[:, :2] / pts[:, 2:] * 100 + 50  # a camera at the origin sees them: found, every point an inlier
+    c2w, n = _pnp(pts, uv, K, 100, 2.0)
+    assert n == 20 and np.allclose(c2w, np.eye(4), atol=1e-6)
