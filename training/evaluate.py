@@ -229,6 +229,21 @@ def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return (f / K[:, 0, 0].double() - 1).abs()
 
 
+def focal_slope(f_est, f_true) -> float:
+    """Least-squares slope of log(estimated focal) on log(true focal) over views (sequences of pixels): 1 when the
+    estimates follow the truth (or a constant factor of it), 0 when they are one focal whatever the image (session
+    55: v54h 0.07-0.17). Views without a positive finite estimate are left out; NaN when fewer than two remain or
+    the true focals are all equal."""
+    e, t = torch.as_tensor(f_est, dtype=torch.float64), torch.as_tensor(f_true, dtype=torch.float64)
+    if e.shape != t.shape or e.ndim != 1:
+        raise ValueError(f"f_est and f_true expected two [N] sequences, got {list(e.shape)} and {list(t.shape)}")
+    ok = torch.isfinite(e) & (e > 0) & torch.isfinite(t) & (t > 0)
+    x, y = t[ok].log(), e[ok].log()
+    if len(x) < 2 or float((x - x.mean()).square().sum()) == 0:
+        return float("nan")
+    return float(((x - x.mean()) * (y - y.mean())).sum() / (x - x.mean()).square().sum())
+
+
 def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> float:
     """Fraction of reciprocal matches whose view-2 pixel is within ``tol`` px of the GT correspondence
     (only matches whose view-1 pixel has a GT correspondence count). A pair without any
@@ -260,6 +275,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     chance is 1 / patches;
     ``conf_spread`` / ``conf_order``: mean / median over pairs of ``confidence_order`` (view 1);
     ``focal_err``: median over both views of ``focal_error`` (each view's focal from its own-frame pointmap);
+    ``focal_slope``: ``focal_slope`` of those focals against the true ones (1: they follow the image);
     ``fwd_corr``/``fwd_sign``: ``forward_agreement`` of the estimated translation directions (the forward
     component, which per-view focal lengths had hidden from training);
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
@@ -276,6 +292,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     rot_p, tr_p = {}, {}  # pair_pose: refined on its matches with its own focals (what the pipeline reports), by index
     order = []  # the dataset index of each entry of rot_err / tr_err / angle_gt (batches regroup by shape)
     focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
+    focal_est, focal_true = [], []  # the same focals and the true ones (focal_slope)
     n = min(n_pairs, len(dataset))
     for s in range(0, n, batch_size):
         groups: dict = {}
@@ -298,6 +315,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
             focal_errs += focal_error(pred.pts1_cam1, v1["K"]).tolist() + focal_error(pred_rev.pts1_cam1, v2["K"]).tolist()
+            for own, v in ((pred, v1), (pred_rev, v2)):
+                focal_est += focal_from_pointmap(own.pts1_cam1.float()).tolist()
+                focal_true += v["K"][:, 0, 0].tolist()
             angle_gt += torch.rad2deg(rotation_angle(cam2world_gt[..., :3, :3])).tolist()
             t_pred.append(cam2world_pred[..., :3, 3].double())
             t_true.append(cam2world_gt[..., :3, 3])
@@ -350,6 +370,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
             "fwd_corr": fwd_corr, "fwd_sign": fwd_sign, "RRA15_under30": under30, "RRA15_over45": over45,
             "focal_err": float(torch.tensor(focal_errs).nanmedian()) if focal_errs else float("nan"),
+            "focal_slope": focal_slope(focal_est, focal_true) if focal_est else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             "conf_spread": float(torch.tensor(spreads).nanmean()) if spreads else float("nan"),

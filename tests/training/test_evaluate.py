@@ -27,6 +27,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert math.isnan(ev["fwd_corr"]) or -1 <= ev["fwd_corr"] <= 1
     assert math.isnan(ev["fwd_sign"]) or 0 <= ev["fwd_sign"] <= 1
     assert math.isfinite(ev["focal_err"]) and ev["focal_err"] >= 0
+    assert "focal_slope" in ev  # its value: test_the_focal_slope_is_one_...
     # PlanePairs only translate: every pair is in the under-30-degree group, none in the over-45 one
     assert ev["RRA15_under30"] == ev["RRA15"] and math.isnan(ev["RRA15_over45"])
     assert 0 <= ev["RRA15_matches"] <= 100 and 0 <= ev["RTA15_matches"] <= 100 and 0 <= ev["RTA15_refined"] <= 100 and 0 <= ev["RRA15_refined"] <= 100
@@ -342,3 +343,22 @@ def test_a_view_whose_focal_cannot_be_estimated_counts_as_a_full_error_not_as_mi
     K[:, 2, 2] = 1
     err = focal_error(pts, K)
     assert math.isfinite(float(err[0])) and float(err[1]) == 1.0
+
+
+def test_the_focal_slope_is_one_for_focals_that_follow_the_truth_and_zero_for_one_focal_everywhere():
+    import numpy as np
+
+    from training.evaluate import focal_slope
+
+    true = [120.0, 150.0, 200.0, 260.0, 400.0]
+    assert focal_slope([1.1 * f for f in true], true) == pytest.approx(1.0)  # a constant factor: still 1
+    assert focal_slope([210.0] * 5, true) == pytest.approx(0.0, abs=1e-12)
+    rng = np.random.default_rng(0)
+    est = np.exp(4.6 + 0.15 * np.log(true) + 0.1 * rng.standard_normal(5))
+    assert focal_slope(est.tolist(), true) == pytest.approx(np.polyfit(np.log(true), np.log(est), 1)[0])
+    # views without an estimate are left out; fewer than two, or one true focal, say nothing
+    assert focal_slope([float("nan"), 0.0, 200.0, 260.0, 400.0], true) == pytest.approx(1.0)
+    assert math.isnan(focal_slope([float("nan")] * 4 + [5.0], true))
+    assert math.isnan(focal_slope([1.0, 2.0], [100.0, 100.0]))
+    with pytest.raises(ValueError, match="two \\[N\\] sequences"):
+        focal_slope([1.0, 2.0], [1.0])
