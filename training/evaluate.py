@@ -225,8 +225,12 @@ def focal_error(pts_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     if pts_cam.ndim != 4 or pts_cam.shape[-1] != 3 or K.shape != (pts_cam.shape[0], 3, 3):
         raise ValueError(f"pts_cam [B, H, W, 3] and K [B, 3, 3] expected, got {list(pts_cam.shape)} and "
                          f"{list(K.shape)}")
-    f = focal_from_pointmap(pts_cam.float()).double().nan_to_num(0.0)  # no estimate counts as a 100% error
-    return (f / K[:, 0, 0].double() - 1).abs()
+    return _focal_rel_error(focal_from_pointmap(pts_cam.float()), K[:, 0, 0])
+
+
+def _focal_rel_error(f: torch.Tensor, f_true: torch.Tensor) -> torch.Tensor:
+    """|f / f_true - 1|, float64; no estimate (NaN) counts as a 100% error."""
+    return (f.double().nan_to_num(0.0) / f_true.double() - 1).abs()
 
 
 def focal_slope(f_est, f_true) -> float:
@@ -314,9 +318,10 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             te = translation_angle_deg(cam2world_pred[..., :3, 3].double(), cam2world_gt[..., :3, 3])
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
-            focal_errs += focal_error(pred.pts1_cam1, v1["K"]).tolist() + focal_error(pred_rev.pts1_cam1, v2["K"]).tolist()
-            for own, v in ((pred, v1), (pred_rev, v2)):
-                focal_est += focal_from_pointmap(own.pts1_cam1.float()).tolist()
+            for own, v in ((pred, v1), (pred_rev, v2)):  # each view's focal once (focal_error's estimate)
+                f = focal_from_pointmap(own.pts1_cam1.float())
+                focal_errs += _focal_rel_error(f, v["K"][:, 0, 0]).tolist()
+                focal_est += f.tolist()
                 focal_true += v["K"][:, 0, 0].tolist()
             angle_gt += torch.rad2deg(rotation_angle(cam2world_gt[..., :3, :3])).tolist()
             t_pred.append(cam2world_pred[..., :3, 3].double())

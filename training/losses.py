@@ -154,23 +154,16 @@ def focal_loss(pts_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor, iter
     every image (session 55: slope 0.14 of log predicted on log true focal); this term asks for the image's own.
     Images without a usable pixel are left out; (zero, details) when none is usable. Returns (loss, details with
     the mean |log ratio|)."""
-    from pointmap.geometry.focal import focal_from_pointmap
+    from pointmap.geometry.focal import focal_rays, solve_focal
 
-    B, H, W, _ = pts_cam.shape
-    pp = K[:, :2, 2].to(pts_cam.dtype)
+    B = pts_cam.shape[0]
     f_true = K[:, 0, 0].to(pts_cam.dtype)
-    with torch.no_grad():
-        f0 = focal_from_pointmap(pts_cam.detach(), valid, pp=pp, iters=iters)
-    v, u = torch.meshgrid(torch.arange(H, dtype=pts_cam.dtype, device=pts_cam.device),
-                          torch.arange(W, dtype=pts_cam.dtype, device=pts_cam.device), indexing="ij")
-    p = torch.stack([u, v], -1)[None] - pp[:, None, None, :]                        # [B, H, W, 2]
-    z = pts_cam[..., 2:3]
-    ok = valid & (z[..., 0] > 0) & torch.isfinite(pts_cam).all(-1)
-    r = torch.where(ok[..., None], pts_cam[..., :2] / torch.where(ok[..., None], z, torch.ones_like(z)),
-                    torch.zeros_like(p))
-    with torch.no_grad():  # the L1 estimate's weights at its solution (1 / pixel residual)
-        w = ok.to(p.dtype) / (p - f0.nan_to_num(1.0)[:, None, None, None] * r).norm(dim=-1).clamp_min(1e-3)
-    f = (w[..., None] * r * p).sum((1, 2, 3)) / (w[..., None] * r * r).sum((1, 2, 3)).clamp_min(1e-12)
+    p, r, ok = focal_rays(pts_cam, valid, K[:, :2, 2].to(pts_cam.dtype))
+    with torch.no_grad():  # the L1 estimate and its weights at its solution (1 / pixel residual)
+        w0 = ok.to(p.dtype)
+        f0 = solve_focal(p, r.detach(), w0, iters)
+        w = w0 / (p - f0.nan_to_num(1.0)[:, None, None] * r.detach()).norm(dim=-1).clamp_min(1e-3)
+    f = solve_focal(p, r, w, 0)
     use = torch.isfinite(f0) & (f > 0) & (f_true > 0)
     if not bool(use.any()):
         return pts_cam.sum() * 0.0, {"focal_log_err": float("nan")}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from pointmap.errors import ShapeError
+from pointmap.geometry.cameras import pixel_grid
 
 
 def focal_from_pointmap(pts_cam: torch.Tensor, valid: torch.Tensor | None = None, *, pp=None,
@@ -35,19 +36,32 @@ def focal_from_pointmap(pts_cam: torch.Tensor, valid: torch.Tensor | None = None
         pp = pp.expand(B, 2) if tuple(pp.shape) == (2,) else pp
         if tuple(pp.shape) != (B, 2):
             raise ShapeError(f"pp expected (cx, cy) or [{B}, 2], got {list(pp.shape)}")
-    v, u = torch.meshgrid(torch.arange(H, dtype=dtype, device=pts_cam.device),
-                          torch.arange(W, dtype=dtype, device=pts_cam.device), indexing="ij")
-    p = torch.stack([u, v], -1)[None] - pp[:, None, None, :]  # [B, H, W, 2]
+    p, r, ok = focal_rays(pts_cam, valid, pp)
+    w0 = ok.to(dtype) if weights is None else ok.to(dtype) * weights.reshape(B, -1)
+    return solve_focal(p, r, w0, iters)
+
+
+def focal_rays(pts_cam: torch.Tensor, valid: torch.Tensor | None, pp: torch.Tensor):
+    """What the focal is solved from, for camera-frame points [B, H, W, 3] and principal points ``pp`` [B, 2]
+    (pixels): each pixel's offset from the principal point p [B, H*W, 2], its point's x / z and y / z r
+    [B, H*W, 2] (0 where unusable), and ``ok`` [B, H*W], the usable pixels (finite, in front of the camera, inside
+    ``valid`` [B, H, W] when given). Differentiable in the points (no division by z <= 0). No input checks: the
+    callers' (``focal_from_pointmap``; ``training.losses.focal_loss``)."""
+    B, H, W, _ = pts_cam.shape
+    p = pixel_grid(H, W, device=pts_cam.device, dtype=pts_cam.dtype)[None] - pp[:, None, None, :]  # [B, H, W, 2]
     z = pts_cam[..., 2:3]
-    r = pts_cam[..., :2] / z
+    r = pts_cam[..., :2] / torch.where(z > 0, z, torch.ones_like(z))
     ok = torch.isfinite(r).all(-1) & (z[..., 0] > 0)
     if valid is not None:
         ok = ok & valid
-    w0 = ok.to(dtype) if weights is None else ok.to(dtype) * weights
     r = torch.where(ok[..., None], r, torch.zeros_like(r))
-    p = p.expand_as(r).reshape(B, -1, 2)
-    r = r.reshape(B, -1, 2)
-    w0 = w0.reshape(B, -1)
+    return p.expand_as(r).reshape(B, -1, 2), r.reshape(B, -1, 2), ok.reshape(B, -1)
+
+
+def solve_focal(p: torch.Tensor, r: torch.Tensor, w0: torch.Tensor, iters: int) -> torch.Tensor:
+    """[B] focal minimising the w0-weighted sum of |p - f r| (``focal_rays``' p, r [B, N, 2], weights w0 [B, N]):
+    the weighted least-squares focal, then ``iters`` Weiszfeld steps toward the L1 one (0: least squares alone,
+    differentiable in p, r and w0). NaN for an image whose weights are all 0."""
     f = (w0[..., None] * r * p).sum((1, 2)) / (w0[..., None] * r * r).sum((1, 2)).clamp_min(1e-12)
     for _ in range(iters):
         resid = (p - f[:, None, None] * r).norm(dim=-1)
