@@ -98,6 +98,9 @@ def graph_specs(model: PointmapNet, split: bool, compute_dtype: torch.dtype = to
         if n == "cam2_to_cam1":  # the pose head's transform: one per pair
             pix[n] = ["batch", 4, 4]
             continue
+        if n in ("focal1", "focal2"):  # the focal head's: one per view
+            pix[n] = ["batch"]
+            continue
         v = view[n]
         tail = [3] if n.startswith("pts") else [cfg.desc_dim] if n in ("desc1", "desc2") else []
         pix[n] = ["batch", f"height{v}", f"width{v}", *tail]

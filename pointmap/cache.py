@@ -29,7 +29,8 @@ from pointmap.prediction import PairPrediction
 log = logging.getLogger(__name__)
 
 FORMAT = "pointmap-pair-prediction"
-VERSION = "3"  # 3: pose-head models also store cam2_to_cam1 (session 49); older files are misses
+VERSION = "4"  # 3: pose-head models also store cam2_to_cam1 (session 49); 4: focal1 / focal2 (session 56); older
+# files are misses
 
 
 @functools.lru_cache(maxsize=1)

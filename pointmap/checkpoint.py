@@ -27,7 +27,7 @@ WEIGHTS_DIR = Path(__file__).parent / "weights"
 # its weights' licence; fine-tuning, averaging and export carry it on (training.train, training.ship, export).
 OFFICIAL_LICENCE = "CC-BY-NC-SA-4.0"
 FORMAT = "pointmap/1"
-HEAD_PREFIXES = ("downstream_head", "pose_head", "desc_stem")  # everything else is the trunk (encoder, decoders)
+HEAD_PREFIXES = ("downstream_head", "pose_head", "focal_head", "desc_stem")  # everything else is the trunk (encoder, decoders)
 
 # --------------------------------------------------------------------------------------------------
 # constructor strings: AsymmetricCroCo3DStereo(pos_embed='RoPE100', img_size=(512, 512), ...)

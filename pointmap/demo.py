@@ -35,14 +35,13 @@ def gt_depth_on_map(depth_orig: np.ndarray, transform, shape) -> np.ndarray:
 
 def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False, device="cpu") -> dict:
     """Pairwise predictions on one scene: relative pose, focal and depth errors against the ground truth."""
-    from pointmap.geometry.focal import focal_from_pointmap
     from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg
     from pointmap.images import load_images
     from pointmap.inference import predict_pairs
     from pointmap.io_pair import color_range, colorize, draw_matches, write_png
     from pointmap.matching import match
     from pointmap.pairs import make_pairs
-    from pointmap.pose import pair_pose
+    from pointmap.pose import focal_from_prediction, pair_pose
 
     gt = np.load(scene / "gt.npz")
     paths = sorted(scene.glob("view-*.png"))
@@ -66,7 +65,7 @@ def evaluate_scene(model, scene: Path, out: Path, size: int, quiet: bool = False
         valid = (d_gt > 0) & (z > 0)
         scale = np.median(d_gt[valid] / z[valid]) if valid.any() else np.nan
         absrel = float(np.mean(np.abs(z[d_gt > 0].clip(0) * scale - d_gt[d_gt > 0]) / d_gt[d_gt > 0]))
-        f_map = float(focal_from_pointmap(pred.pts1_cam1.float())[0].nan_to_num(0.0))  # none: a 100% error
+        f_map = float(focal_from_prediction(pred)[0].nan_to_num(0.0))  # none: a 100% error
         f_orig = f_map / views[i].map_from_original[0]
         f_err = abs(f_orig - gt["K"][i][0, 0]) / gt["K"][i][0, 0] * 100
         m = match(pred)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import sys
 from collections import defaultdict
+from dataclasses import replace
 
 import torch
 from tqdm.auto import tqdm
@@ -191,8 +192,7 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
                 for b, e in enumerate(chunk):
                     cache.put(keys[e], pred[b])
             if not keep_desc:
-                pred = PairPrediction(pred.pts1_cam1, pred.pts2_cam1, pred.conf1, pred.conf2,
-                                      cam2_to_cam1=pred.cam2_to_cam1)
+                pred = replace(pred, desc1=None, desc2=None, desc_conf1=None, desc_conf2=None)
             pred = pred.map(lambda t: t.cpu())
             for b, e in enumerate(chunk):
                 out[e] = pred[b].map(lambda t: t.to(store_dtype)) if store_dtype else pred[b]

@@ -445,7 +445,15 @@ def _refine_rt(R0, t0, r1, r2, scale: float, prior: float, max_evals: int, round
 
 
 def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:
-    """[B] focal of view 1 (its own-frame pointmap) by Weiszfeld; view 2 needs the reverse prediction."""
+    """[B] focal of view ``view`` in pixels of its pointmap (principal point at the centre): the focal head's
+    (``pred.focal1`` / ``focal2``) for a model with one, else view 1's own-frame pointmap's (Weiszfeld); view 2
+    of a model without a focal head needs the reverse prediction."""
+    check_prediction(pred)
+    if view not in (1, 2):
+        raise ShapeError(f"view expected 1 or 2, got {view!r}")
+    head = pred.focal1 if view == 1 else pred.focal2
+    if head is not None:
+        return head.detach().float()
     if view != 1:
         raise ShapeError("only view 1's pointmap is in its own frame; run the reverse pair for view 2")
     return focal_from_pointmap(pred.pts1_cam1.float())

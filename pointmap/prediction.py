@@ -8,7 +8,8 @@ import torch
 
 from pointmap.errors import ShapeError
 
-OPTIONAL_FIELDS = ("desc1", "desc2", "desc_conf1", "desc_conf2", "cam2_to_cam1")  # None for models without them
+OPTIONAL_FIELDS = ("desc1", "desc2", "desc_conf1", "desc_conf2", "cam2_to_cam1", "focal1", "focal2")  # None
+# for models without them
 
 
 @dataclass
@@ -23,6 +24,9 @@ class PairPrediction:
     cam2_to_cam1: [B, 4, 4] the rigid transform a pose head predicts from camera 2's frame to camera 1's (view 2's
         cam2world in view 1's frame, in the pointmaps' units; for such models ``pts2_cam1`` is view 2's own-frame
         pointmap moved by it), or None for models without a pose head
+    focal1, focal2: [B] each view's focal in pixels of its pointmap's grid (principal point at the centre), from a
+        focal head, or None for models without one (``pointmap.pose.focal_from_prediction`` then reads view 1's
+        focal off its own-frame pointmap)
     """
 
     pts1_cam1: torch.Tensor
@@ -34,6 +38,8 @@ class PairPrediction:
     desc_conf1: torch.Tensor | None = None
     desc_conf2: torch.Tensor | None = None
     cam2_to_cam1: torch.Tensor | None = None
+    focal1: torch.Tensor | None = None
+    focal2: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -68,6 +74,10 @@ class PairPrediction:
         if self.cam2_to_cam1 is not None and tuple(self.cam2_to_cam1.shape) != (self.pts1_cam1.shape[0], 4, 4):
             raise ShapeError(f"cam2_to_cam1 expected [{self.pts1_cam1.shape[0]}, 4, 4] (one transform per pair), got "
                              f"{list(self.cam2_to_cam1.shape)}")
+        for n in ("focal1", "focal2"):
+            f = getattr(self, n)
+            if f is not None and tuple(f.shape) != (self.pts1_cam1.shape[0],):
+                raise ShapeError(f"{n} expected [{self.pts1_cam1.shape[0]}] (one focal per pair), got {list(f.shape)}")
 
     @property
     def batch_size(self) -> int:

@@ -610,3 +610,23 @@ def test_pnp_on_a_degenerate_sample_returns_no_pose_rather_than_an_opencv_assert
     uv = pts[:, :2] / pts[:, 2:] * 100 + 50  # a camera at the origin sees them: found, every point an inlier
     c2w, n = _pnp(pts, uv, K, 100, 2.0)
     assert n == 20 and np.allclose(c2w, np.eye(4), atol=1e-6)
+
+
+def test_a_focal_heads_focals_are_one_per_pair_and_the_focal_the_pipeline_reads():
+    from pointmap.geometry.focal import focal_from_pointmap
+    from pointmap.pose import focal_from_prediction
+
+    p1, p2, *_ = two_views()
+    pts = (p1[None].float().expand(2, -1, -1, -1), p2[None].float().expand(2, -1, -1, -1), torch.ones(2, H, W),
+           torch.ones(2, H, W))
+    with pytest.raises(pm.ShapeError, match=r"focal1 expected \[2\] \(one focal per pair\), got \[2, 1\]"):
+        pm.PairPrediction(*pts, focal1=torch.ones(2, 1), focal2=torch.ones(2))
+    plain = pm.PairPrediction(*pts)
+    assert torch.equal(focal_from_prediction(plain), focal_from_pointmap(pts[0]))  # no head: the pointmap's
+    with pytest.raises(pm.ShapeError, match="run the reverse pair for view 2"):
+        focal_from_prediction(plain, view=2)
+    pred = pm.PairPrediction(*pts, focal1=torch.tensor([100.0, 110.0]), focal2=torch.tensor([120.0, 130.0]))
+    assert focal_from_prediction(pred).tolist() == [100.0, 110.0]
+    assert focal_from_prediction(pred, view=2).tolist() == [120.0, 130.0]
+    assert torch.equal(pred[1].focal2, torch.tensor([130.0])) and "focal1" in pred.as_dict()
+    assert torch.equal(pm.PairPrediction.cat([pred[1], pred[0]]).focal1, torch.tensor([110.0, 100.0]))

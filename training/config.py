@@ -58,6 +58,10 @@ class TrainConfig:
     pose_dir_weight: float = 0.0   # within the pose loss: weight of the translation-direction term (0 = off)
     focal_weight: float = 0.0      # weight of |log focal error| of view 1's own-frame pointmap (losses.focal_loss;
                                    # 0 = off, which replays earlier recipes exactly)
+    focal_head: bool = False       # build the model with a focal head (model.heads.FocalHead; needs --pose_head or
+                                   # an --init with one); an --init without one starts it fresh, where it returns
+                                   # the pointmap's own focal (its read-out starts at zero)
+    focal_head_weight: float = 0.0  # weight of the focal head's |log focal error|, both views (losses.focal_head_loss)
     attn_heads: int = 1            # supervised heads per decoder layer (the first ones; the rest stay free)
     grown_from: str = ""           # "ENC,DEC": the --init model's last growth (training.grow) was from these depths
     grown_lr: float = 1.0          # ... and the output projections that growth zeroed train at this multiple of
@@ -145,7 +149,7 @@ class TrainConfig:
         if cfg.conf_reset and not cfg.init:
             p.error("--conf_reset restarts the confidence of an --init model; a model from scratch starts fresh anyway")
         for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "focal_weight",
-                     "conf_reset"):
+                     "focal_head_weight", "conf_reset"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.grown_lr <= 0:

@@ -12,7 +12,7 @@ from pointmap.geometry.cameras import invert_rigid, transform_points
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.rotations import relative_rotation_error_deg, rotation_angle, translation_angle_deg
 from pointmap.matching import match, match_coarse
-from pointmap.pose import pair_pose, refine_pose_with_matches, relative_pose
+from pointmap.pose import focal_from_prediction, pair_pose, refine_pose_with_matches, relative_pose
 from training.losses import patch_matching_loss
 
 
@@ -319,7 +319,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             # view 2's depth in its own frame, through the estimated pose (depth_ratio)
             own2_z = transform_points(invert_rigid(cam2world_pred.double()), pred.pts2_cam1.double())[..., 2]
             for own, v in ((pred, v1), (pred_rev, v2)):  # each view's focal once (focal_error's estimate)
-                f = focal_from_pointmap(own.pts1_cam1.float())
+                f = focal_from_prediction(own)  # the focal the pipeline uses (a focal head's, if any)
                 focal_errs += _focal_rel_error(f, v["K"][:, 0, 0]).tolist()
                 focal_est += f.tolist()
                 focal_true += v["K"][:, 0, 0].tolist()

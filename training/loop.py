@@ -86,7 +86,7 @@ class StepBatches(torch.utils.data.Sampler):
 
 
 # -- optimisation ---------------------------------------------------------------------------------
-NO_DECAY_SUFFIXES = ("pose_head.query",)  # learned embeddings, like tokens
+NO_DECAY_SUFFIXES = ("pose_head.query", "focal_head.query")  # learned embeddings, like tokens
 
 
 def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, lr_scale: dict[str, float] | None = None

@@ -171,6 +171,22 @@ def focal_loss(pts_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor, iter
     return err.sum() / B, {"focal_log_err": float(err.detach().mean())}
 
 
+def focal_head_loss(pred, K1: torch.Tensor, K2: torch.Tensor):
+    """Mean |log(f / f_true)| of a focal head's estimates (``pred.focal1``, ``pred.focal2`` [B], pixels of each
+    view's pointmap) against the true intrinsics ``K1``, ``K2`` [B, 3, 3] (fx), over both views. Returns (loss,
+    details with the mean |log ratio| of each view). ShapeError for a prediction without focals."""
+    if pred.focal1 is None or pred.focal2 is None:
+        raise ShapeError("focal_head_loss needs a model with a focal head (PairPrediction.focal1 / focal2 are None)")
+    B = pred.batch_size
+    for name, K in (("K1", K1), ("K2", K2)):
+        if tuple(K.shape) != (B, 3, 3):
+            raise ShapeError(f"focal_head_loss expected {name} [{B}, 3, 3], got {list(K.shape)}")
+    e1 = (pred.focal1.clamp_min(1e-6).log() - K1[:, 0, 0].to(pred.focal1.dtype).log()).abs()
+    e2 = (pred.focal2.clamp_min(1e-6).log() - K2[:, 0, 0].to(pred.focal2.dtype).log()).abs()
+    return (e1.mean() + e2.mean()) / 2, {"focal_head_err1": float(e1.detach().mean()),
+                                         "focal_head_err2": float(e2.detach().mean())}
+
+
 def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, n_corr: int = 2048,
                   temperature: float = 0.05, generator: torch.Generator | None = None):
     """InfoNCE in both directions on descriptors of corresponding pixels (MASt3R).

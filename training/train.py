@@ -22,6 +22,7 @@ from training.loop import TERMINATED_EXIT, fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
+    focal_head_loss,
     focal_loss,
     matching_loss,
     patch_matching_loss,
@@ -56,6 +57,8 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
     ``--init_heads fresh`` builds ``--preset`` and takes only the trunk (and heads whose shapes match) from
     ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R."""
     preset = PRESETS[cfg.preset].replace(pose_head=True) if cfg.pose_head else PRESETS[cfg.preset]
+    if cfg.focal_head:
+        preset = preset.replace(focal_head=True)
     if cfg.desc_stem:
         preset = preset.replace(desc_stem=cfg.desc_stem)
     if not cfg.init:
@@ -75,6 +78,11 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
         if cfg.desc_stem and model_cfg.desc_stem != cfg.desc_stem:
             raise CheckpointError(f"--init {cfg.init} has desc_stem {model_cfg.desc_stem}, --desc_stem asks for "
                                   f"{cfg.desc_stem}: add --init_heads fresh to start a new one")
+        if cfg.focal_head and not model_cfg.focal_head:  # a new focal head on a trained model: it starts fresh
+            model_cfg = model_cfg.replace(focal_head=True)  # (returning the pointmap's focal until it trains)
+            fresh = {k: v for k, v in PointmapNet(model_cfg).state_dict().items() if k.startswith("focal_head.")}
+            state = {**state, **fresh}
+            print(f"--init {cfg.init}: a fresh focal head added ({len(fresh)} tensors)", file=sys.stderr)
         model = PointmapNet(model_cfg)
         load_state_strict(model, state, allow_missing_heads=kind == "pretrain", source=cfg.init)
     if cfg.conf_reset:
@@ -222,6 +230,10 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
         lf, d = focal_loss(pred.pts1_cam1, view1["K"], view1["valid"])
         loss = loss + cfg.focal_weight * lf
         details.update(focal_loss=float(lf.detach()), **d)
+    if cfg.focal_head_weight > 0:
+        lh, d = focal_head_loss(pred, view1["K"], view2["K"])
+        loss = loss + cfg.focal_head_weight * lh
+        details.update(focal_head_loss=float(lh.detach()), **d)
     if cfg.attn_weight > 0:
         net = getattr(model, "module", model)
         counts = cell_correspondence_counts(view1["corr"], net.cfg.patch_size, view2["img"].shape[-2:])
@@ -297,11 +309,14 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
         raise ValueError("--pose_weight needs a model with a pose head (--pose_head true)")
     if cfg.pose_dir_weight > 0 and cfg.pose_weight <= 0:
         raise ValueError("--pose_dir_weight weighs a term of the pose loss: it needs --pose_weight > 0")
-    if model.cfg.pose_head and cfg.pose_weight <= 0 and cfg.task == "train":
+    focal_only = bool(cfg.train_only) and all(p.strip().startswith("focal_head") for p in cfg.train_only.split(","))
+    if model.cfg.pose_head and cfg.pose_weight <= 0 and cfg.task == "train" and not focal_only:
         # pts2_cam1 = T * head2: any rigid motion can move between the two without changing the regression loss,
         # so only a loss on T pins head 2 to view 2's own frame
         raise ValueError("a model with a pose head needs --pose_weight > 0 (the pointmap loss alone does not fix "
-                         "which frame view 2's head predicts in)")
+                         "which frame view 2's head predicts in; unless only the focal head trains)")
+    if cfg.focal_head_weight > 0 and not model.cfg.focal_head:
+        raise ValueError("--focal_head_weight needs a model with a focal head (--focal_head true)")
 
 
 def main(argv=None) -> int:

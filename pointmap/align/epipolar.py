@@ -487,7 +487,8 @@ def _pair_list(preds: dict) -> list:
 
 
 def own_focals(preds: dict, n: int) -> np.ndarray:
-    """[N] per image: the median of the Weiszfeld focals of its own-frame pointmaps (NaN when it has none)."""
+    """[N] per image: the median of its focals over the pairs it leads (``focal_from_prediction``: a focal head's,
+    else the Weiszfeld focal of its own-frame pointmap; NaN when it has none)."""
     from pointmap.pose import focal_from_prediction
 
     per = [[] for _ in range(n)]

@@ -136,14 +136,15 @@ class AlignConfig:
 
 
 def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
-    """Fill unknown focals by Weiszfeld on each image's own full-resolution map (fx = fy)."""
+    """Fill unknown focals (fx = fy): a focal head's, else Weiszfeld on each image's own full-resolution map."""
     own = own_maps(len(shapes), stack)
     for n in range(len(shapes)):
         h, w = shapes[n]
         if not known[n]:
             cx[n], cy[n] = (w - 1) / 2, (h - 1) / 2
             p = preds[stack.keys[own[n]]]
-            f = focal_from_pointmap(p.pts1_cam1.detach().double(), weights=p.conf1.detach().double().clamp_min(0))
+            f = p.focal1.detach().double() if p.focal1 is not None else \
+                focal_from_pointmap(p.pts1_cam1.detach().double(), weights=p.conf1.detach().double().clamp_min(0))
             f = float(f[0])
             fx[n] = fy[n] = f if math.isfinite(f) and f > 0 else max(h, w)
     return fx, fy, cx, cy

@@ -43,6 +43,8 @@ class ModelConfig:
                                   # cam2 -> cam1 transform; pts2_cam1 is their composition (rigid by construction)
     desc_stem: int = 0            # > 0: channels of a full-resolution convolutional stem whose local features each
                                   # descriptor head fuses into its output (0: none, as the official heads)
+    focal_head: bool = False      # a head predicting each view's focal from its tokens and own-frame pointmap
+                                  # (PairPrediction.focal1 / focal2); needs pose_head (view 2's own-frame points)
 
     def __post_init__(self) -> None:
         for name in ("img_mean", "img_std", "dpt_layer_dims", "depth_mode", "conf_mode", "desc_conf_mode"):
@@ -75,9 +77,11 @@ class ModelConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 errors.append(f"{name} expected a positive integer, got {v!r}")
-        for name in ("two_confs", "metric", "pose_head"):
+        for name in ("two_confs", "metric", "pose_head", "focal_head"):
             if not isinstance(getattr(self, name), bool):
                 errors.append(f"{name} expected true or false, got {getattr(self, name)!r}")
+        if self.focal_head is True and self.pose_head is not True:
+            errors.append("focal_head needs pose_head (the focal of view 2 is read off its own-frame pointmap)")
         if "dpt" in self.head and self.patch_size != 16:
             errors.append(f"a DPT head needs patch_size 16 (its upsampling is built for it), got {self.patch_size}")
         if self.head not in HEADS:

@@ -348,3 +348,69 @@ class PoseHead(nn.Module):
         T[:, :3, 3] = o[:, 6:9] * scale[:, None]
         T[:, 3, 3] = 1
         return T
+
+
+class FocalHead(nn.Module):
+    """One view's focal [B] (pixels of its pointmap's grid) from its last decoder tokens and own-frame pointmap.
+
+    The pointmap's own focal (``focal_from_pointmap``: principal point at the centre, the L1 fit of pixel offsets
+    to the points' x / z, y / z; no gradient) is the starting estimate; the head reads, for every token, its patch
+    centre, the mean ray of its points and that ray's offset from the pinhole fit (where the pointmap bends away
+    from one focal), and the token itself, pools them with a learned query and multiplies the estimate by the
+    exponential of a correction in [-3, 3]. The read-out starts at zero: a fresh head returns the pointmap's
+    focal, so adding it to a trained model changes nothing until it is trained (``--focal_head_weight``). Why a
+    head: the regression loss measures the pointmap's shape after normalising its scale, where one focal for
+    every image costs little, and the model learned nearly that (session 55: slope 0.14 of log predicted on log
+    true focal), while the pipeline's translation needs the focal (RTA@15 doubles with the true one).
+    """
+
+    n_freq = 6
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        d = cfg.dec_dim
+        self.patch = cfg.patch_size
+        self.embed = Mlp(4 * self.n_freq + 5, d, d)
+        self.tok_proj = nn.Linear(d, d)
+        self.query = nn.Parameter(torch.zeros(1, 1, d))
+        self.blocks = nn.ModuleList([PoolBlock(d, cfg.dec_heads) for _ in range(2)])
+        self.norm = LayerNorm(d)
+        self.out = nn.Linear(d, 1)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        nn.init.normal_(self.query, std=0.02)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    @staticmethod
+    def base_focal(pts: torch.Tensor) -> torch.Tensor:
+        """[B] the pointmap's own focal (no gradient); max(H, W) (a 53-degree view) where it has none."""
+        from pointmap.geometry.focal import focal_from_pointmap
+
+        with torch.no_grad():
+            f = focal_from_pointmap(pts.detach().float())
+        # max(H, W) as a tensor op (a Python number would be fixed at the example size in an exported graph)
+        side = torch.maximum(f.new_ones(pts.shape[1]).sum(), f.new_ones(pts.shape[2]).sum())
+        return torch.where(torch.isfinite(f) & (f > 0), f, side.expand_as(f)).to(pts.dtype)
+
+    def forward(self, tok: torch.Tensor, grid: tuple, pts: torch.Tensor) -> torch.Tensor:
+        """tok [B, N, C] last decoder tokens; pts [B, H, W, 3] the view's points in its own frame."""
+        B = tok.shape[0]
+        h, w = grid
+        half = torch.maximum(tok.new_ones(h).sum(), tok.new_ones(w).sum()) * (self.patch / 2)  # (see base_focal)
+        f0 = self.base_focal(pts)
+        c = patch_centres(h, w, device=tok.device, dtype=tok.dtype)  # [N, 2], the long side spans [-1, 1]
+        X = F.avg_pool2d(pts.detach().permute(0, 3, 1, 2), self.patch).flatten(2).transpose(1, 2)  # [B, N, 3]
+        z = X[..., 2:3]
+        ok = torch.isfinite(X).all(-1, keepdim=True) & (z > 1e-6)
+        ray = torch.where(ok, X[..., :2] / torch.where(ok, z, torch.ones_like(z)), torch.zeros_like(z))
+        resid = (ray * (f0 / half)[:, None, None] - c).clamp(-4, 4)  # the pinhole fit's miss, in centre units
+        zmean = torch.where(ok, z, torch.zeros_like(z)).sum(1, keepdim=True) / ok.sum(1, keepdim=True).clamp_min(1)
+        logz = torch.where(ok, (z / zmean.clamp_min(1e-6)).clamp_min(1e-6).log(), torch.zeros_like(z)).clamp(-4, 4)
+        feat = torch.cat([fourier(c, self.n_freq).expand(B, -1, -1), ray.clamp(-4, 4), resid, logz], dim=-1)
+        x = self.embed(feat) + self.tok_proj(tok)
+        q = self.query.expand(B, -1, -1)
+        for blk in self.blocks:
+            q = blk(q, x)
+        return f0 * self.out(self.norm(q[:, 0]))[:, 0].clamp(-3, 3).exp()

@@ -13,7 +13,7 @@ from pointmap.errors import ShapeError
 from pointmap.geometry.cameras import transform_points
 from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
 from pointmap.model.config import ModelConfig
-from pointmap.model.heads import DescStem, DownstreamHead, PoseHead, postprocess
+from pointmap.model.heads import DescStem, DownstreamHead, FocalHead, PoseHead, postprocess
 from pointmap.prediction import PairPrediction
 
 
@@ -83,6 +83,7 @@ class PointmapNet(nn.Module):
         self.downstream_head1 = DownstreamHead(cfg)
         self.downstream_head2 = DownstreamHead(cfg)
         self.pose_head = PoseHead(cfg) if cfg.pose_head else None
+        self.focal_head = FocalHead(cfg) if cfg.focal_head else None
         self.desc_stem = DescStem(cfg.desc_stem, cfg.patch_size) if cfg.desc_stem else None
         self.register_buffer("img_mean", torch.tensor(cfg.img_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("img_std", torch.tensor(cfg.img_std).view(1, 3, 1, 1), persistent=False)
@@ -92,6 +93,8 @@ class PointmapNet(nn.Module):
         nn.init.xavier_uniform_(w.view(w.shape[0], -1))
         if self.pose_head is not None:
             self.pose_head.reset_parameters()
+        if self.focal_head is not None:
+            self.focal_head.reset_parameters()
         if self.desc_stem is not None:
             self.downstream_head1.reset_fuse()
             self.downstream_head2.reset_fuse()
@@ -156,13 +159,17 @@ class PointmapNet(nn.Module):
         local2 = None if local2 is None else local2.float()
         o1 = postprocess(self.downstream_head1(tok1, grid1[0] * p, grid1[1] * p, local1), self.cfg)
         o2 = postprocess(self.downstream_head2(tok2, grid2[0] * p, grid2[1] * p, local2), self.cfg)
-        T = None
+        T = f1 = f2 = None
+        if self.focal_head is not None:  # (needs the pose head: o2["pts"] is still in view 2's own frame here)
+            f1 = self.focal_head(tok1[-1], grid1, o1["pts"])
+            f2 = self.focal_head(tok2[-1], grid2, o2["pts"])
         if self.pose_head is not None:  # o2["pts"] is in view 2's own frame: move it into view 1's
             T = self.pose_head(tok1[-1], tok2[-1], grid1, grid2, o1["pts"])
             o2["pts"] = transform_points(T, o2["pts"])
         return PairPrediction(pts1_cam1=o1["pts"], pts2_cam1=o2["pts"], conf1=o1["conf"], conf2=o2["conf"],
                               desc1=o1.get("desc"), desc2=o2.get("desc"),
-                              desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"), cam2_to_cam1=T)
+                              desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"), cam2_to_cam1=T,
+                              focal1=f1, focal2=f2)
 
     def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
         """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""

@@ -40,7 +40,7 @@ SIDECAR = "pointmap_export.json"          # next to the graphs; also embedded in
 METADATA_KEY = "pointmap"                 # ModelProto.metadata_props key holding the sidecar JSON
 FULL_GRAPH, ENCODER_GRAPH, DECODER_GRAPH = "model.onnx", "encoder.onnx", "decoder.onnx"
 PRED_FIELDS = ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2",
-               "cam2_to_cam1")
+               "cam2_to_cam1", "focal1", "focal2")
 
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
@@ -56,9 +56,10 @@ _AUTO_ORDER = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecuti
 
 def output_names(cfg: ModelConfig) -> list[str]:
     """Graph outputs of a full or decoder graph, in this order (PairPrediction field names): the pointmaps and
-    confidences, the descriptors (models with a descriptor head), the pose head's transform (with a pose head)."""
+    confidences, the descriptors (models with a descriptor head), the pose head's transform (with a pose head),
+    both views' focals (with a focal head)."""
     return list(PRED_FIELDS[:4]) + (list(PRED_FIELDS[4:8]) if cfg.has_desc else []) + \
-        (["cam2_to_cam1"] if cfg.pose_head else [])
+        (["cam2_to_cam1"] if cfg.pose_head else []) + (["focal1", "focal2"] if cfg.focal_head else [])
 
 
 def _ort():

@@ -218,6 +218,26 @@ def test_a_pose_head_model_exports_with_parity(tmp_path):
     assert old.cam2_to_cam1 is None and torch.allclose(old.pts1_cam1, model(img1, img2).pts1_cam1, atol=1e-4)
 
 
+def test_a_focal_head_model_exports_both_focals_with_parity(tmp_path):
+    torch.manual_seed(0)
+    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True, focal_head=True)).eval()
+    with torch.no_grad():
+        model.focal_head.out.weight.normal_(0, 0.3)  # a correction that depends on the image
+        for h in (model.downstream_head1, model.downstream_head2):  # points in front: a focal to start from
+            h.dpt.head[4].bias[2] += 6.0
+    export_model(model, tmp_path / "focal", parity="quick", quiet=True)
+    runner = pm.load_model(tmp_path / "focal")
+    report = check_parity(model, runner, [(64, 96, 96, 64, 2)])
+    assert report["passed"], report["cases"]
+    assert {"focal1", "focal2"} <= set(report["cases"][0]["outputs"])
+    img1, img2 = torch.rand(2, 3, 64, 96), torch.rand(2, 3, 96, 64)
+    with torch.no_grad():
+        want = model(img1, img2)
+    got = runner(img1, img2)
+    assert got.focal1.shape == (2,) and torch.allclose(got.focal1, want.focal1, rtol=1e-3)
+    assert torch.allclose(got.focal2, want.focal2, rtol=1e-3)
+
+
 @pytest.mark.parametrize("extra, module", [(dict(pose_head=True), "pose_head.out"),
                                            (dict(desc_stem=4), "downstream_head1.desc_fuse")])
 def test_the_half_precision_graph_keeps_the_pose_head_and_the_descriptor_fuse_in_float32(extra, module):

@@ -316,3 +316,65 @@ def test_a_model_built_from_a_name_or_nothing_is_refused_with_the_way_to_build_i
         PointmapNet(None)
     with pytest.raises(CheckpointError, match="a model config expected a dict, got NoneType"):
         ModelConfig.from_dict(None)
+
+
+def _focal_pair(seed=0):
+    """A pose-head model with a focal head, and the same weights without it; its pointmaps put every point in front
+    of the camera (a fresh head's are behind it: no focal to read)."""
+    torch.manual_seed(seed)
+    with_focal = PointmapNet(pm.PRESETS["test"].replace(pose_head=True, focal_head=True)).eval()
+    with torch.no_grad():
+        for h in (with_focal.downstream_head1, with_focal.downstream_head2):
+            h.dpt.head[4].bias[2] += 6.0
+    plain = PointmapNet(pm.PRESETS["test"].replace(pose_head=True)).eval()
+    plain.load_state_dict({k: v for k, v in with_focal.state_dict().items() if not k.startswith("focal_head")})
+    return with_focal, plain
+
+
+def test_a_fresh_focal_head_returns_each_views_pointmap_focal_and_changes_nothing_else():
+    from pointmap.geometry.cameras import invert_rigid, transform_points
+    from pointmap.geometry.focal import focal_from_pointmap
+
+    with_focal, plain = _focal_pair()
+    img1, img2 = torch.rand(2, 3, 32, 48), torch.rand(2, 3, 32, 48)
+    with torch.no_grad():
+        a, b = with_focal(img1, img2), plain(img1, img2)
+    assert torch.equal(a.pts1_cam1, b.pts1_cam1) and torch.equal(a.pts2_cam1, b.pts2_cam1)
+    assert b.focal1 is None and b.focal2 is None
+    own2 = transform_points(invert_rigid(b.cam2_to_cam1.double()), b.pts2_cam1.double()).float()  # view 2's frame
+    usable = lambda f: torch.where(torch.isfinite(f) & (f > 0), f, torch.full_like(f, 48.0))  # noqa: E731 (max(H, W))
+    f1, f2 = usable(focal_from_pointmap(b.pts1_cam1)), usable(focal_from_pointmap(own2))
+    assert (f1 != 48).all()
+    assert torch.allclose(a.focal1, f1, rtol=1e-5) and torch.allclose(a.focal2, f2, rtol=1e-3)
+
+
+def test_a_trained_focal_head_scales_the_pointmap_focal_and_falls_back_where_the_pointmap_has_none():
+    from pointmap.model.heads import FocalHead
+
+    torch.manual_seed(1)
+    head = FocalHead(pm.PRESETS["test"]).eval()
+    tok, pts = torch.randn(2, 4, 32), torch.rand(2, 32, 32, 3) + torch.tensor([0.0, 0.0, 2.0])
+    with torch.no_grad():
+        f0 = head(tok, (2, 2), pts)
+        head.out.bias.fill_(0.5)
+        assert torch.allclose(head(tok, (2, 2), pts), f0 * torch.e ** 0.5, rtol=1e-5)
+        head.out.bias.fill_(10.0)  # the correction is bounded: at most e^3 either way
+        assert torch.allclose(head(tok, (2, 2), pts), f0 * torch.e ** 3, rtol=1e-5)
+        behind = pts * torch.tensor([1.0, 1.0, -1.0])
+        head.out.bias.zero_()
+        assert torch.equal(head(tok, (2, 2), behind), torch.full((2,), 32.0))  # max(H, W): a 53-degree view
+
+
+def test_a_focal_head_needs_a_pose_head_and_loads_into_a_model_built_with_one(tmp_path):
+    from pointmap.checkpoint import load_trunk, save_model
+    from pointmap.errors import CheckpointError
+
+    with pytest.raises(CheckpointError, match="focal_head needs pose_head"):
+        pm.PRESETS["test"].replace(focal_head=True)
+    with_focal, plain = _focal_pair(2)
+    with torch.no_grad():
+        with_focal.focal_head.out.weight.normal_(0, 0.1)
+    back = pm.load_model(str(save_model(with_focal, tmp_path / "f.safetensors")))
+    assert back.cfg.focal_head and torch.equal(back.focal_head.out.weight, with_focal.focal_head.out.weight)
+    fresh = load_trunk(PointmapNet(with_focal.cfg), plain.state_dict())  # the focal head is a head: it starts fresh
+    assert fresh and all(k.startswith("focal_head.") for k in fresh)

@@ -956,3 +956,41 @@ def test_train_only_trains_the_named_parameters_and_leaves_every_other_weight_bi
         freeze_except(model, "pose_head,pose_heads")
     with pytest.raises(ValueError, match="'' names no parameter"):
         freeze_except(model, "pose_head,")
+
+
+def test_the_focal_head_loss_is_added_with_its_weight_and_trains_the_focal_head_alone(tmp_path):
+    from training.train import check_model_options, freeze_except
+
+    model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True, focal_head=True))
+    cfg = dataclasses.replace(config(tmp_path, 1), pose_weight=1.0)
+    base, d0 = make_step(cfg)(model, batch, 0)
+    both, d = make_step(dataclasses.replace(cfg, focal_head_weight=0.5))(model, batch, 0)
+    assert "focal_head_loss" not in d0 and d["focal_head_loss"] > 0
+    assert abs(d["focal_head_loss"] - (d["focal_head_err1"] + d["focal_head_err2"]) / 2) < 1e-5
+    assert abs(float(both.detach()) - float(base.detach()) - 0.5 * d["focal_head_loss"]) < 1e-4
+    assert freeze_except(model, "focal_head") > 0
+    only = dataclasses.replace(cfg, pose_weight=0.0, focal_head_weight=1.0, train_only="focal_head")
+    check_model_options(only, model)  # no pose loss needed when nothing but the focal head trains
+    loss, _ = make_step(only)(model, batch, 0)
+    loss.backward()
+    assert float(model.focal_head.out.weight.grad.abs().sum()) > 0
+    assert all(p.grad is None for n, p in model.named_parameters() if not n.startswith("focal_head"))
+    with pytest.raises(ValueError, match="focal head"):
+        check_model_options(dataclasses.replace(cfg, focal_head_weight=1.0),
+                            PointmapNet(PRESETS["test"].replace(pose_head=True)))
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--focal_head_weight", "-1"])
+
+
+def test_a_fresh_focal_head_is_added_to_an_init_model_without_one(tmp_path):
+    from pointmap.checkpoint import save_model
+    from training.train import build_model
+
+    torch.manual_seed(0)
+    src = PointmapNet(PRESETS["test"].replace(pose_head=True))
+    path = save_model(src, tmp_path / "m.safetensors")
+    cfg = dataclasses.replace(config(tmp_path, 1), init=str(path), pose_head=True, focal_head=True)
+    model = build_model(cfg)
+    assert model.cfg.focal_head and float(model.focal_head.out.weight.detach().abs().sum()) == 0
+    own = model.state_dict()
+    assert all(torch.equal(v, own[k]) for k, v in src.state_dict().items())
