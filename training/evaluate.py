@@ -391,17 +391,25 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
 
 SOURCE_ROWS = ("model matches + model depth", "model matches + true depth", "true matches + model depth",
                "true matches + true depth", "model matches, essential matrix (no depth)")
+# pm.pair_pose (what `pointmap pair`, the demo and the card report) fed each combination of matches and intrinsics
+PIPELINE_ROWS = ("pipeline: model matches + model focals", "pipeline: true matches + model focals",
+                 "pipeline: model matches + true intrinsics", "pipeline: true matches + true intrinsics")
 
 
 @torch.inference_mode()
-def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, seed: int = 0) -> dict:
+def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, seed: int = 0,
+                       pipeline: bool = True) -> dict:
     """Where the two-view pose error comes from. The pose of view 2 by PnP-RANSAC with its true K, from each
     combination of correspondences (the model's ``match_coarse``, or ``n_true`` true ones drawn per pair from the
     ground-truth correspondences) and view-1 geometry (the model's own pointmap, or the true depth
     unprojected with the true K), plus the model's matches through the essential matrix (true K1, K2; no depth).
-    Returns {row of ``SOURCE_ROWS``: {"RRA15", "RTA15", "rot_err_med", "trans_err_med"}} over the first
-    ``n_pairs`` pairs (pairs with fewer than 20 true correspondences left out); a failed pose counts 180 deg.
-    "true matches + true depth" is the check of the method itself (~100 %)."""
+    With ``pipeline`` (default), also the pose the pipeline reports (``pair_pose``: the pointmaps' Procrustes both
+    ways, refined on matches) fed the model's or the same true matches, with each view's focal from its own
+    pointmap or both true intrinsics (``PIPELINE_ROWS``; one more forward pass per pair, the reverse one): how far
+    better matches, or a better focal, would take the reported pose.
+    Returns {row of ``SOURCE_ROWS`` (+ ``PIPELINE_ROWS``): {"RRA15", "RTA15", "rot_err_med", "trans_err_med",
+    "pairs"}} over the first ``n_pairs`` pairs (pairs with fewer than 20 true correspondences left out); a failed
+    pose counts 180 deg. "true matches + true depth" is the check of the method itself (~100 %)."""
     from dataclasses import replace
 
     import numpy as np
@@ -415,7 +423,7 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
         raise ValueError("pose_error_sources needs a model with a descriptor head (its matches are one source), "
                          f"got {'no model config' if cfg is None else 'desc_dim 0'}")
     patch = cfg.patch_size
-    errs: dict = {k: [] for k in SOURCE_ROWS}
+    errs: dict = {k: [] for k in SOURCE_ROWS + (PIPELINE_ROWS if pipeline else ())}
     for i in range(min(n_pairs, len(dataset))):
         a, b = dataset[i]
         corr = a["corr"]
@@ -437,7 +445,12 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
         e = pose_from_essential(model_m.xy1.numpy(), model_m.xy2.numpy(), a["K"].double().numpy(), K2.numpy(),
                                 threshold_px=0.02 * max(a["img"].shape[-2:]))  # cell-quantised matches: loose
         ests.append(torch.full((4, 4), float("nan")) if e is None else torch.from_numpy(e))
-        for name, est in zip(SOURCE_ROWS, ests):
+        if pipeline:
+            rev = model(b["img"][None], a["img"][None])
+            Ks = {"K1": a["K"].double(), "K2": K2}
+            ests += [pair_pose(pred, rev, patch=patch, matches=[m], **kw)[0]
+                     for m, kw in ((model_m, {}), (true_m, {}), (model_m, Ks), (true_m, Ks))]
+        for name, est in zip(errs, ests):
             errs[name].append(_pose_errors(est, gt))
     out = {}
     for name, v in errs.items():
@@ -471,8 +484,9 @@ def main(argv=None) -> int:
     p.add_argument("--pairs", type=int, default=139, help="the first N held-out pairs")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--sources", action="store_true",
-                   help="also print where the pose error comes from (pose_error_sources: model vs true matches "
-                        "and depth), a markdown table before the JSON line")
+                   help="also print where the pose error comes from (pose_error_sources: model vs true matches, "
+                        "depth and intrinsics, for PnP and for the pipeline's pair_pose), a markdown table "
+                        "before the JSON line")
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
                    help="also save each pair's rotation / direction error to this CSV (its rows for this set "
                         "replaced, other sets' kept), for benchmarks/paired.py")
@@ -520,8 +534,8 @@ def main(argv=None) -> int:
         except ValueError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        print("| correspondences + view-1 geometry (PnP, true K) | pairs | RRA@15 | RTA@15 | median rot err | "
-              "median dir err |\n|---|---|---|---|---|---|")
+        print("| correspondences + view-1 geometry (PnP, true K), or what the pipeline (pair_pose) is fed | pairs | "
+              "RRA@15 | RTA@15 | median rot err | median dir err |\n|---|---|---|---|---|---|")
         for name, r in src.items():
             print(f"| {name} | {r['pairs']} | {r['RRA15']:.1f}% | {r['RTA15']:.1f}% | {r['rot_err_med']:.1f} | "
                   f"{r['trans_err_med']:.1f} |")

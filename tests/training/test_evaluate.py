@@ -136,12 +136,13 @@ def test_baseline_ratio_is_the_predicted_over_the_true_baseline_whatever_the_pre
 
 
 def test_pose_error_sources_split_the_pose_error_between_matches_and_depth_and_the_oracle_is_exact():
-    from training.evaluate import SOURCE_ROWS, pose_error_sources
+    from training.evaluate import PIPELINE_ROWS, SOURCE_ROWS, pose_error_sources
 
     torch.manual_seed(0)
     model = PointmapNet(PRESETS["test"]).eval()
     res = pose_error_sources(model, PlanePairs(3, H=32, W=32), n_pairs=3)
-    assert tuple(res) == SOURCE_ROWS
+    assert tuple(res) == SOURCE_ROWS + PIPELINE_ROWS
+    assert tuple(pose_error_sources(model, PlanePairs(3, H=32, W=32), n_pairs=3, pipeline=False)) == SOURCE_ROWS
     oracle = res["true matches + true depth"]  # true correspondences on true geometry: the method itself
     assert oracle["pairs"] == 3 and oracle["RRA15"] == 100 and oracle["RTA15"] == 100
     assert oracle["rot_err_med"] < 0.5 and oracle["trans_err_med"] < 2
@@ -157,7 +158,7 @@ class TrueDepthModel(torch.nn.Module):
         super().__init__()
         self.inner = PointmapNet(PRESETS["test"]).eval()
         self.cfg = self.inner.cfg
-        self.truth = [dataset[i][0] for i in range(len(dataset))]
+        self.truth = [v for i in range(len(dataset)) for v in dataset[i]]  # both views of every pair
         self.calls = 0
 
     def forward(self, img1, img2):
@@ -165,9 +166,35 @@ class TrueDepthModel(torch.nn.Module):
 
         from pointmap.geometry import depth_to_points_cam
 
-        v1 = self.truth[self.calls]
+        v1 = next(v for v in self.truth if torch.equal(v["img"], img1[0]))  # either pass: the truth of its view 1
         self.calls += 1
         return replace(self.inner(img1, img2), pts1_cam1=depth_to_points_cam(v1["depth_z"], v1["K"])[None])
+
+
+class OracleModel(TrueDepthModel):
+    """Both views' pointmaps true, but for view 2's in the forward pass, shifted by ``shift`` (view 1's frame; the
+    same shift in both passes would cancel in ``relative_pose``'s average of the two), descriptors noise: the
+    pointmaps' rotation and focals are exact, their translation direction off by ~60 degrees, and only true
+    matches can set it right."""
+
+    def __init__(self, dataset, shift=(0.0, 0.0, 0.8)):
+        super().__init__(dataset)
+        self.pairs = [dataset[i] for i in range(len(dataset))]
+        self.shift = torch.tensor(shift)
+
+    def forward(self, img1, img2):
+        from dataclasses import replace
+
+        from pointmap.geometry import depth_to_points_cam, invert_rigid, transform_points
+
+        for a, b in self.pairs:
+            for v1, v2, shift in ((a, b, self.shift), (b, a, 0.0)):
+                if torch.equal(v1["img"], img1[0]) and torch.equal(v2["img"], img2[0]):
+                    pts = [depth_to_points_cam(v["depth_z"], v["K"]) for v in (v1, v2)]
+                    to1 = invert_rigid(v1["cam2world"]) @ v2["cam2world"]
+                    return replace(self.inner(img1, img2), pts1_cam1=pts[0][None],
+                                   pts2_cam1=(transform_points(to1, pts[1]) + shift)[None])
+        raise AssertionError("an image pair the dataset does not hold")
 
 
 def test_pose_error_sources_put_the_model_depth_and_the_true_matches_in_the_right_rows():
@@ -179,6 +206,36 @@ def test_pose_error_sources_put_the_model_depth_and_the_true_matches_in_the_righ
     exact = res["true matches + model depth"]
     assert exact["RRA15"] == 100 and exact["RTA15"] == 100 and exact["rot_err_med"] < 0.5
     assert res["model matches + model depth"] == res["model matches + true depth"]  # the same geometry here
+
+
+def test_the_pipeline_fed_true_matches_sets_the_direction_right_with_or_without_intrinsics_and_its_own_do_not():
+    from training.evaluate import pose_error_sources
+
+    torch.manual_seed(0)
+    data = PlanePairs(3, H=32, W=32)
+    res = pose_error_sources(OracleModel(data), data, n_pairs=3)
+    for row in ("pipeline: true matches + model focals", "pipeline: true matches + true intrinsics"):
+        assert res[row]["pairs"] == 3 and res[row]["RRA15"] == 100 and res[row]["RTA15"] == 100, (row, res[row])
+        assert res[row]["rot_err_med"] < 1 and res[row]["trans_err_med"] < 3, (row, res[row])
+    for row in ("pipeline: model matches + model focals", "pipeline: model matches + true intrinsics"):
+        assert res[row]["RRA15"] == 100 and res[row]["trans_err_med"] > 30, (row, res[row])  # noise matches
+
+
+def test_the_pipeline_row_fed_the_model_matches_and_focals_is_the_pose_the_card_reports():
+    from training.evaluate import PairResult, pose_error_sources
+
+    torch.manual_seed(1)
+    data = PlanePairs(4, H=32, W=32)
+    model = OracleModel(data)
+    per_pair: list = []
+    ev = evaluate_pairs(model, data, n_pairs=4, batch_size=1, per_pair=per_pair)
+    row = pose_error_sources(model, data, n_pairs=4)["pipeline: model matches + model focals"]
+    assert row["pairs"] == 4 and row["RRA15"] == ev["RRA15_pair"] and row["RTA15"] == ev["RTA15_pair"]
+    pair_rot = torch.tensor([r.pair_rot_err for r in per_pair], dtype=torch.float64)
+    pair_dir = torch.tensor([r.pair_dir_err for r in per_pair], dtype=torch.float64)
+    assert math.isclose(row["rot_err_med"], float(pair_rot.median()), abs_tol=1e-4)
+    assert math.isclose(row["trans_err_med"], float(pair_dir.median()), abs_tol=1e-4)
+    assert all(isinstance(r, PairResult) for r in per_pair) and len(per_pair) == 4
 
 
 def test_pose_error_sources_refuse_a_model_without_matches():
