@@ -403,8 +403,8 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
     combination of correspondences (the model's ``match_coarse``, or ``n_true`` true ones drawn per pair from the
     ground-truth correspondences) and view-1 geometry (the model's own pointmap, or the true depth
     unprojected with the true K), plus the model's matches through the essential matrix (true K1, K2; no depth).
-    With ``pipeline`` (default), also the pose the pipeline reports (``pair_pose``: the pointmaps' Procrustes both
-    ways, refined on matches) fed the model's or the same true matches, with each view's focal from its own
+    With ``pipeline`` (default), also the pose the pipeline reports (``pair_pose``: ``relative_pose`` of both
+    passes, refined on matches) fed the model's or the same true matches, with each view's focal from its own
     pointmap or both true intrinsics (``PIPELINE_ROWS``; one more forward pass per pair, the reverse one): how far
     better matches, or a better focal, would take the reported pose.
     Returns {row of ``SOURCE_ROWS`` (+ ``PIPELINE_ROWS``): {"RRA15", "RTA15", "rot_err_med", "trans_err_med",
@@ -447,8 +447,9 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
         ests.append(torch.full((4, 4), float("nan")) if e is None else torch.from_numpy(e))
         if pipeline:
             rev = model(b["img"][None], a["img"][None])
+            pose = relative_pose(pred, pred_reverse=rev)  # the pointmaps' pose, once for the four rows
             Ks = {"K1": a["K"].double(), "K2": K2}
-            ests += [pair_pose(pred, rev, patch=patch, matches=[m], **kw)[0]
+            ests += [pair_pose(pred, rev, patch=patch, pose=pose, matches=[m], **kw)[0]
                      for m, kw in ((model_m, {}), (true_m, {}), (model_m, Ks), (true_m, Ks))]
         for name, est in zip(errs, ests):
             errs[name].append(_pose_errors(est, gt))
