@@ -465,7 +465,8 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
     """The model's two-view pose, [B, 4, 4] (view 2's cam2world in view 1's frame, translation in the forward
     pass's units): what ``pointmap pair``, ``pointmap demo`` and the model card report.
 
-    ``relative_pose(pred, pred_reverse=pred_reverse)`` (Procrustes of the pointmaps both ways), then, for a model
+    ``relative_pose(pred, pred_reverse=pred_reverse)`` (the pose head's transforms of both passes, or the
+    Procrustes of the pointmaps both ways for a model without one), then, for a model
     with descriptors, ``refine_pose_with_matches`` on its own coarse matches (``match_coarse(pred[b], patch)``)
     with each view's intrinsics: ``K1`` / ``K2`` [3, 3] or [B, 3, 3] when known (pixels of the prediction), else
     a focal from that view's own-frame pointmap (``focal_from_prediction`` of its pass) and the image centre.
