@@ -53,7 +53,8 @@ def _band(x: float, edges) -> str:
 
 def pair_geometry(root) -> list[dict]:
     """The true geometry of every pair of a held-out pairs set, in the order the evaluation numbers them:
-    ``{"baseline": |c2 - c1| / the median depth of view 1 as rendered, "rotation": degrees, "move", "kind", "low_texture"}``."""
+    ``{"baseline": |c2 - c1| / the median depth of view 1 as rendered, "rotation": degrees, "move", "kind",
+    "low_texture"}``."""
     from data.datasets import PairDataset, camera_rotations_deg
     from data.shards import ShardError, read_npz
 
