@@ -159,8 +159,12 @@ def main(argv=None) -> int:
     names = a.names or [c.stem for c in a.csv]
     if len(names) != len(a.csv):
         p.error(f"--names expected {len(a.csv)} names (one per CSV), got {len(names)}")
+    set_names = [d.resolve().name for d in a.data]
+    if len(set(set_names)) != len(set_names):
+        p.error(f"--data expected sets with distinct directory names (a per-pair row names its set by it), got "
+                f"{', '.join(map(str, a.data))}")
     try:
-        geometry = {d.resolve().name: pair_geometry(d) for d in a.data}
+        geometry = {n: pair_geometry(d) for n, d in zip(set_names, a.data)}
         joined = [join(read_per_pair(c), geometry) for c in a.csv]
     except (PairedError, BreakdownError) as e:
         print(f"error: {e}", file=sys.stderr)

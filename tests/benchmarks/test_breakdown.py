@@ -115,3 +115,9 @@ def test_the_command_names_what_it_expected_when_given_a_missing_set_or_too_few_
     with pytest.raises(SystemExit):
         main([str(csv), str(csv), "--data", str(data), "--names", "only_one"])
     assert "expected 2 names" in capsys.readouterr().err
+    (tmp_path / "copy").mkdir()
+    twin = tmp_path / "copy" / data.name
+    twin.symlink_to(data, target_is_directory=True)
+    with pytest.raises(SystemExit):
+        main([str(csv), "--data", str(data), str(twin)])
+    assert "distinct directory names" in capsys.readouterr().err
