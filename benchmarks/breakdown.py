@@ -55,22 +55,25 @@ def pair_geometry(root) -> list[dict]:
     """The true geometry of every pair of a held-out pairs set, in the order the evaluation numbers them:
     ``{"baseline": |c2 - c1| / the median depth of view 1 as rendered, "rotation": degrees, "move", "kind",
     "low_texture"}``."""
-    from data.datasets import PairDataset, camera_rotations_deg
+    from data.datasets import PairDataset, camera_rotations_deg, pair_views
     from data.shards import ShardError, read_npz
 
     try:
         ds = PairDataset(root, size=224, augment=False, split="all", verify=False)
     except (ShardError, OSError, ValueError) as e:
         raise BreakdownError(f"{root}: {e}") from None
-    metas = [ds._store.reader(k).meta(scene) for k, scene, _, _ in ds.items]
+    metas = [meta for meta, _, _ in pair_views(ds)]
     rot = camera_rotations_deg((m["views"][i], m["views"][j]) for m, (_, _, i, j) in zip(metas, ds.items))
+    median_depth: dict[tuple, float] = {}  # a view is in several pairs: its depth is decoded once
     out = []
     for (k, scene, i, j), meta, angle in zip(ds.items, metas, rot):
         vi, vj = meta["views"][i], meta["views"][j]
-        depth = read_npz(ds._store.reader(k).read(f"{scene}/view-{i}.npz"))["depth_z"]
-        valid = depth[np.isfinite(depth) & (depth > 0)]
+        if (k, scene, i) not in median_depth:
+            depth = read_npz(ds._store.reader(k).read(f"{scene}/view-{i}.npz"))["depth_z"]
+            valid = depth[np.isfinite(depth) & (depth > 0)]
+            median_depth[k, scene, i] = float(np.median(valid)) if valid.size else math.nan
         centres = np.asarray(vj["cam2world"], np.float64)[:3, 3] - np.asarray(vi["cam2world"], np.float64)[:3, 3]
-        base = float(np.linalg.norm(centres) / np.median(valid)) if valid.size else math.nan
+        base = float(np.linalg.norm(centres)) / median_depth[k, scene, i]
         if "move" not in vj or "move" not in vi:
             move = "unknown"
         elif vj.get("ref") == i:
