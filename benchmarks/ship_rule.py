@@ -22,6 +22,15 @@ no other criterion fails:
 5. **real photographs**: not every real set (``real_*`` in the per-pair files) has the candidate's directions worse
    by more than 15 degrees (the median over the set's pairs of the candidate's error minus the incumbent's).
 
+The shipped model's own files are committed in ``benchmarks/baselines/small/`` (its card, per-pair CSV and
+global-alignment per-pair CSV, with the SHA-256 of the weights they were measured on), so that a fresh machine
+with the held-out sets re-rendered compares a candidate without carding the incumbent again:
+
+    python benchmarks/ship_rule.py --incumbent shipped --candidate new.txt new_pairs.csv --ga new_ga-GA_auto+E.csv
+
+refuses a baseline whose recorded hash is not the shipped file's (a ship that did not update it). When a candidate
+ships, ``--record`` writes its files there (after the weights are copied into the package).
+
 Criteria 4 and 5 read "not checked" when their files or sets are missing. Nothing here runs a model. Exit status:
 0 when the candidate ships, 1 when it does not, 2 for input that cannot be read.
 """
@@ -29,6 +38,7 @@ Criteria 4 and 5 read "not checked" when their files or sets are missing. Nothin
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import sys
 from pathlib import Path
@@ -37,11 +47,52 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.compare_cards import EVAL_SETS, exact_count, parse_card  # noqa: E402
 from benchmarks.paired import paired, read_per_pair  # noqa: E402
+from pointmap.atomic import write_bytes  # noqa: E402
 
 ALPHA = 0.05          # McNemar's significance level
 ABSREL_SLACK = 0.01   # the depth criterion's allowance
 REAL_DIR_SLACK = 15.0  # degrees: a real set is "worse" beyond this median direction loss
 POOLED = ("rotation", "direction", "pipeline rotation", "pipeline direction")
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_WEIGHTS = ROOT / "pointmap" / "weights" / "small.safetensors"
+BASELINE = ROOT / "benchmarks" / "baselines" / "small"
+BASELINE_FILES = ("card.txt", "pairs.csv", "ga_auto+E.csv")  # with weights.sha256
+
+
+def sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def shipped_baseline(weights=SHIPPED_WEIGHTS, folder=BASELINE) -> tuple:
+    """(card, pairs, ga) paths of the committed baseline, after checking that it was measured on ``weights``."""
+    folder = Path(folder)
+    missing = [n for n in (*BASELINE_FILES, "weights.sha256") if not (folder / n).is_file()]
+    if missing:
+        raise ValueError(f"the shipped model's baseline in {folder} lacks {', '.join(missing)} "
+                         "(write it with --record when a model ships)")
+    recorded = ((folder / "weights.sha256").read_text().split() or [""])[0]
+    actual = sha256(weights)
+    if recorded != actual:
+        raise ValueError(f"the baseline in {folder} was measured on weights with SHA-256 {recorded or '(none)'}, "
+                         f"but {weights} has {actual}: a ship that did not record its files (--record)")
+    return tuple(folder / n for n in BASELINE_FILES)
+
+
+def record_baseline(card, pairs, ga, weights=SHIPPED_WEIGHTS, folder=BASELINE) -> None:
+    """Write a shipped model's card, per-pair and global-alignment files, and the weights' hash, into ``folder``,
+    each file atomically, after checking that they parse."""
+    parse_card(Path(card).read_text())
+    read_per_pair(pairs)
+    read_per_pair(ga)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for src, name in zip((card, pairs, ga), BASELINE_FILES):
+        write_bytes(folder / name, Path(src).read_bytes())
+    write_bytes(folder / "weights.sha256", f"{sha256(weights)}  {Path(weights).name}\n".encode())
 
 
 def _mcnemar_row(criterion: str, res: dict, errors: tuple) -> tuple:
@@ -102,15 +153,43 @@ def ships(rows: list) -> bool:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--incumbent", nargs=2, required=True, metavar=("CARD", "PAIRS"),
-                   help="the shipped model's model_card.sh output and per-pair CSV")
-    p.add_argument("--candidate", nargs=2, required=True, metavar=("CARD", "PAIRS"),
+    p.add_argument("--incumbent", nargs="+", metavar="CARD PAIRS",
+                   help="the shipped model's model_card.sh output and per-pair CSV, or the word 'shipped' for the "
+                        "committed baseline (benchmarks/baselines/small)")
+    p.add_argument("--candidate", nargs=2, metavar=("CARD", "PAIRS"),
                    help="the candidate's model_card.sh output and per-pair CSV")
-    p.add_argument("--ga", nargs=2, metavar=("INCUMBENT", "CANDIDATE"), default=None,
-                   help="the two models' bench_ga.py per-pair CSVs of one setting (e.g. X-GA_auto+E.csv)")
+    p.add_argument("--ga", nargs="+", metavar="INCUMBENT CANDIDATE", default=None,
+                   help="the two models' bench_ga.py per-pair CSVs of one setting (e.g. X-GA_auto+E.csv); with "
+                        "--incumbent shipped, the candidate's alone")
     p.add_argument("--names", nargs=2, metavar=("INCUMBENT", "CANDIDATE"), default=("incumbent", "candidate"))
+    p.add_argument("--record", nargs=3, metavar=("CARD", "PAIRS", "GA"), default=None,
+                   help="record these files as the shipped model's baseline (benchmarks/baselines/small, with the "
+                        "SHA-256 of pointmap/weights/small.safetensors) and exit")
     a = p.parse_args(argv)
+    if a.record is not None:
+        if a.incumbent or a.candidate or a.ga:
+            p.error("--record takes no --incumbent, --candidate or --ga")
+        try:
+            record_baseline(*a.record, weights=SHIPPED_WEIGHTS, folder=BASELINE)
+        except (OSError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print(f"recorded {', '.join(a.record)} as the baseline of {SHIPPED_WEIGHTS.name} in {BASELINE}")
+        return 0
+    if a.incumbent is None or a.candidate is None:
+        p.error("expected --incumbent and --candidate (or --record)")
+    shipped = a.incumbent == ["shipped"]
+    if not shipped and len(a.incumbent) != 2:
+        p.error(f"--incumbent expected CARD PAIRS or 'shipped', got {len(a.incumbent)} value(s): {a.incumbent}")
+    if a.ga is not None and len(a.ga) != (1 if shipped else 2):
+        wanted = "the candidate's file alone (with --incumbent shipped)" if shipped else "INCUMBENT CANDIDATE"
+        p.error(f"--ga expected {wanted}, got {len(a.ga)} file(s)")
     try:
+        if shipped:
+            card, pairs, ga_file = shipped_baseline(SHIPPED_WEIGHTS, BASELINE)
+            a.incumbent = [card, pairs]
+            if a.ga is not None:
+                a.ga = [ga_file, a.ga[0]]
         inc_card, cand_card = (parse_card(Path(f).read_text()) for f in (a.incumbent[0], a.candidate[0]))
         inc_pairs, cand_pairs = read_per_pair(a.incumbent[1]), read_per_pair(a.candidate[1])
         ga = None if a.ga is None else (read_per_pair(a.ga[0]), read_per_pair(a.ga[1]))

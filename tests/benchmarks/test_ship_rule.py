@@ -2,9 +2,10 @@ import json
 
 import pytest
 
-from benchmarks.compare_cards import parse_card
+from benchmarks import ship_rule
+from benchmarks.compare_cards import exact_count, parse_card
 from benchmarks.paired import read_per_pair
-from benchmarks.ship_rule import check, main, ships
+from benchmarks.ship_rule import check, main, record_baseline, sha256, shipped_baseline, ships
 from training.evaluate import PairResult, write_per_pair
 
 CARD_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646", "bench_s525252")
@@ -88,3 +89,62 @@ def test_unreadable_inputs_exit_with_status_2_and_say_what_was_expected(tmp_path
     assert rc == 2 and "missing.csv" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--incumbent", str(card)])
+
+
+def test_the_committed_baseline_was_measured_on_the_shipped_weights_and_reads_back(capsys):
+    card, pairs, ga = shipped_baseline()  # raises when the recorded hash is not the shipped file's
+    assert parse_card(card.read_text())["eval"]
+    assert exact_count(read_per_pair(pairs)) is not None  # every card set and the pipeline's columns are there
+    assert len(read_per_pair(ga)) > 0
+    # the baseline against its own files: the same count, so it does not ship (the count must rise)
+    rc = main(["--incumbent", "shipped", "--candidate", str(card), str(pairs), "--ga", str(ga)])
+    out = capsys.readouterr().out
+    n = exact_count(read_per_pair(pairs))
+    assert rc == 1 and f"| count | {n} | {n} | FAIL | +0 pairs |" in out
+    assert "| global alignment |" in out and "not checked: global" not in out
+
+
+def test_record_writes_a_baseline_that_a_different_weights_file_refuses_as_stale(tmp_path):
+    card, pairs = _card(tmp_path, "c", (0.3, 0.3, 0.3)), _pairs(tmp_path, "p", 10)
+    ga = tmp_path / "ga.csv"
+    write_per_pair(ga, "eval_s424242", [PairResult(i, 5.0, 5.0, 10.0, 5.0, 5.0) for i in range(4)])
+    weights, other = tmp_path / "w.safetensors", tmp_path / "v.safetensors"
+    weights.write_bytes(b"weights one")
+    other.write_bytes(b"weights two")
+    folder = tmp_path / "baseline"
+    record_baseline(card, pairs, ga, weights=weights, folder=folder)
+    got = shipped_baseline(weights=weights, folder=folder)
+    assert [f.read_bytes() for f in got] == [card.read_bytes(), pairs.read_bytes(), ga.read_bytes()]
+    assert (folder / "weights.sha256").read_text().split()[0] == sha256(weights)
+    assert not list(folder.glob(".*"))  # no temporary file left behind
+    with pytest.raises(ValueError, match="SHA-256 .* a ship that did not record its files"):
+        shipped_baseline(weights=other, folder=folder)
+    (folder / "ga_auto+E.csv").unlink()
+    with pytest.raises(ValueError, match="lacks ga_auto\\+E.csv"):
+        shipped_baseline(weights=weights, folder=folder)
+
+
+def test_record_refuses_files_that_do_not_parse_and_writes_nothing(tmp_path):
+    good = _pairs(tmp_path, "p", 10)
+    not_a_card = tmp_path / "x.txt"
+    not_a_card.write_text("hello\n")
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"w")
+    with pytest.raises(ValueError, match="model_card.sh"):
+        record_baseline(not_a_card, good, good, weights=weights, folder=tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+
+
+def test_the_shipped_incumbent_takes_the_candidates_global_alignment_file_alone(tmp_path, monkeypatch, capsys):
+    card, pairs = _card(tmp_path, "c", (0.3, 0.3, 0.3)), _pairs(tmp_path, "p", 10)
+    with pytest.raises(SystemExit):
+        main(["--incumbent", "shipped", "--candidate", str(card), str(pairs), "--ga", str(pairs), str(pairs)])
+    assert "--ga expected the candidate's file alone" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--incumbent", str(card), "--candidate", str(card), str(pairs)])
+    assert "--incumbent expected CARD PAIRS or 'shipped'" in capsys.readouterr().err
+    # a stale committed baseline is an input error (status 2), not a verdict
+    monkeypatch.setattr(ship_rule, "SHIPPED_WEIGHTS", tmp_path / "w.safetensors")
+    (tmp_path / "w.safetensors").write_bytes(b"not the weights the baseline was measured on")
+    rc = main(["--incumbent", "shipped", "--candidate", str(card), str(pairs)])
+    assert rc == 2 and "a ship that did not record its files" in capsys.readouterr().err
