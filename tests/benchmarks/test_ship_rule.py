@@ -101,7 +101,7 @@ def test_the_committed_baseline_was_measured_on_the_shipped_weights_and_reads_ba
     out = capsys.readouterr().out
     n = exact_count(read_per_pair(pairs))
     assert rc == 1 and f"| count | {n} | {n} | FAIL | +0 pairs |" in out
-    assert "| global alignment |" in out and "not checked: global" not in out
+    assert "| global alignment |  |  | PASS | rotation " in out  # the committed GA file was read and compared
 
 
 def test_record_writes_a_baseline_that_a_different_weights_file_refuses_as_stale(tmp_path):
