@@ -38,7 +38,6 @@ Criteria 4 and 5 read "not checked" when their files or sets are missing. Nothin
 from __future__ import annotations
 
 import argparse
-import hashlib
 import math
 import sys
 from pathlib import Path
@@ -47,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.compare_cards import EVAL_SETS, exact_count, parse_card  # noqa: E402
 from benchmarks.paired import paired, read_per_pair  # noqa: E402
+from data.shards import sha256_file  # noqa: E402
 from pointmap.atomic import write_bytes  # noqa: E402
 
 ALPHA = 0.05          # McNemar's significance level
@@ -59,14 +59,6 @@ BASELINE = ROOT / "benchmarks" / "baselines" / "small"
 BASELINE_FILES = ("card.txt", "pairs.csv", "ga_auto+E.csv")  # with weights.sha256
 
 
-def sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def shipped_baseline(weights=SHIPPED_WEIGHTS, folder=BASELINE) -> tuple:
     """(card, pairs, ga) paths of the committed baseline, after checking that it was measured on ``weights``."""
     folder = Path(folder)
@@ -75,7 +67,7 @@ def shipped_baseline(weights=SHIPPED_WEIGHTS, folder=BASELINE) -> tuple:
         raise ValueError(f"the shipped model's baseline in {folder} lacks {', '.join(missing)} "
                          "(write it with --record when a model ships)")
     recorded = ((folder / "weights.sha256").read_text().split() or [""])[0]
-    actual = sha256(weights)
+    actual = sha256_file(weights)
     if recorded != actual:
         raise ValueError(f"the baseline in {folder} was measured on weights with SHA-256 {recorded or '(none)'}, "
                          f"but {weights} has {actual}: a ship that did not record its files (--record)")
@@ -92,7 +84,7 @@ def record_baseline(card, pairs, ga, weights=SHIPPED_WEIGHTS, folder=BASELINE) -
     folder.mkdir(parents=True, exist_ok=True)
     for src, name in zip((card, pairs, ga), BASELINE_FILES):
         write_bytes(folder / name, Path(src).read_bytes())
-    write_bytes(folder / "weights.sha256", f"{sha256(weights)}  {Path(weights).name}\n".encode())
+    write_bytes(folder / "weights.sha256", f"{sha256_file(weights)}  {Path(weights).name}\n".encode())
 
 
 def _mcnemar_row(criterion: str, res: dict, errors: tuple) -> tuple:

@@ -5,7 +5,8 @@ import pytest
 from benchmarks import ship_rule
 from benchmarks.compare_cards import exact_count, parse_card
 from benchmarks.paired import read_per_pair
-from benchmarks.ship_rule import check, main, record_baseline, sha256, shipped_baseline, ships
+from benchmarks.ship_rule import check, main, record_baseline, shipped_baseline, ships
+from data.shards import sha256_file
 from training.evaluate import PairResult, write_per_pair
 
 CARD_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646", "bench_s525252")
@@ -115,7 +116,7 @@ def test_record_writes_a_baseline_that_a_different_weights_file_refuses_as_stale
     record_baseline(card, pairs, ga, weights=weights, folder=folder)
     got = shipped_baseline(weights=weights, folder=folder)
     assert [f.read_bytes() for f in got] == [card.read_bytes(), pairs.read_bytes(), ga.read_bytes()]
-    assert (folder / "weights.sha256").read_text().split()[0] == sha256(weights)
+    assert (folder / "weights.sha256").read_text().split()[0] == sha256_file(weights)
     assert not list(folder.glob(".*"))  # no temporary file left behind
     with pytest.raises(ValueError, match="SHA-256 .* a ship that did not record its files"):
         shipped_baseline(weights=other, folder=folder)
