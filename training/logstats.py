@@ -99,14 +99,17 @@ def difference(a: Summary, b: Summary) -> tuple[float, float]:
     return b.mean - a.mean, math.hypot(a.se, b.se)
 
 
-def _fmt(s: Summary, digits: int) -> str:
+def _num(v: float, column: str) -> str:
+    """Degrees to 0.1, other columns to 3 decimals, small ones (a learning rate) to 3 significant digits."""
+    if column.endswith("_deg"):
+        return f"{v:.1f}"
+    return f"{v:.3g}" if 0 < abs(v) < 0.01 else f"{v:.3f}"
+
+
+def _fmt(s: Summary, column: str) -> str:
     if s.n == 0:
         return "-"
-    return f"{s.mean:.{digits}f}" + ("" if math.isnan(s.se) else f" ({s.se:.{digits}f})")
-
-
-def _digits(column: str) -> int:
-    return 1 if column.endswith("_deg") else 3
+    return _num(s.mean, column) + ("" if math.isnan(s.se) else f" ({_num(s.se, column)})")
 
 
 def report(paths, names, columns, start: int, stop: int | None, width: int) -> str:
@@ -126,7 +129,7 @@ def report(paths, names, columns, start: int, stop: int | None, width: int) -> s
         for lo, summ in windows(rows, columns, width, start, stop):
             n = max(s.n for s in summ.values())
             lines.append(f"| {lo}-{lo + width - 1} | {n} | "
-                         + " | ".join(_fmt(summ[c], _digits(c)) for c in columns) + " |")
+                         + " | ".join(_fmt(summ[c], c) for c in columns) + " |")
         lines.append("")
     lines.append(f"## over {span}")
     lines.append("| run | n | " + " | ".join(columns) + " |")
@@ -135,7 +138,7 @@ def report(paths, names, columns, start: int, stop: int | None, width: int) -> s
     for name, tot in zip(names, totals):
         skipped = sum(s.skipped for s in tot.values())
         lines.append(f"| {name} | {max(s.n for s in tot.values())} | "
-                     + " | ".join(_fmt(tot[c], _digits(c)) for c in columns) + " |"
+                     + " | ".join(_fmt(tot[c], c) for c in columns) + " |"
                      + (f" ({skipped} blank or non-finite values left out)" if skipped else ""))
     if len(logs) > 1:
         lines.append("")
@@ -146,7 +149,7 @@ def report(paths, names, columns, start: int, stop: int | None, width: int) -> s
             cells = []
             for c in columns:
                 d, se = difference(totals[0][c], tot[c])
-                cells.append("-" if math.isnan(d) else f"{d:+.{_digits(c)}f} ({se:.{_digits(c)}f})")
+                cells.append("-" if math.isnan(d) else f"{'+' if d >= 0 else '-'}{_num(abs(d), c)} ({_num(se, c)})")
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

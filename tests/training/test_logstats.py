@@ -111,3 +111,9 @@ def test_the_cli_names_the_missing_column_and_lists_the_logs_columns(tmp_path, c
     assert main([str(log), "--columns", "coarse_acc"]) == 2
     err = capsys.readouterr().err
     assert "expected columns ['coarse_acc'], not in the log; it has ['loss', 'pose_dir_deg']" in err
+
+
+def test_a_learning_rate_column_is_printed_with_significant_digits_not_rounded_to_zero(tmp_path, capsys):
+    log = _write(tmp_path / "train.csv", ["step", "lr"], [(0, 1e-4), (10, 1e-4)])
+    assert main([str(log), "--columns", "lr"]) == 0
+    assert "| 0-99 | 2 | 0.0001 (0.000) |" in capsys.readouterr().out
