@@ -99,17 +99,19 @@ def difference(a: Summary, b: Summary) -> tuple[float, float]:
     return b.mean - a.mean, math.hypot(a.se, b.se)
 
 
-def _num(v: float, column: str) -> str:
+def _spec(v: float, column: str) -> str:
     """Degrees to 0.1, other columns to 3 decimals, small ones (a learning rate) to 3 significant digits."""
     if column.endswith("_deg"):
-        return f"{v:.1f}"
-    return f"{v:.3g}" if 0 < abs(v) < 0.01 else f"{v:.3f}"
+        return ".1f"
+    return ".3g" if 0 < abs(v) < 0.01 else ".3f"
 
 
 def _fmt(s: Summary, column: str) -> str:
+    """A mean and its standard error in the mean's format (the error of 0.376 reads 0.006, not 0.00623)."""
     if s.n == 0:
         return "-"
-    return _num(s.mean, column) + ("" if math.isnan(s.se) else f" ({_num(s.se, column)})")
+    spec = _spec(s.mean, column)
+    return f"{s.mean:{spec}}" + ("" if math.isnan(s.se) else f" ({s.se:{spec}})")
 
 
 def report(paths, names, columns, start: int, stop: int | None, width: int) -> str:
@@ -149,7 +151,8 @@ def report(paths, names, columns, start: int, stop: int | None, width: int) -> s
             cells = []
             for c in columns:
                 d, se = difference(totals[0][c], tot[c])
-                cells.append("-" if math.isnan(d) else f"{'+' if d >= 0 else '-'}{_num(abs(d), c)} ({_num(se, c)})")
+                spec = _spec(totals[0][c].mean, c)
+                cells.append("-" if math.isnan(d) else f"{d:+{spec}} ({se:{spec}})")
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -116,4 +116,10 @@ def test_the_cli_names_the_missing_column_and_lists_the_logs_columns(tmp_path, c
 def test_a_learning_rate_column_is_printed_with_significant_digits_not_rounded_to_zero(tmp_path, capsys):
     log = _write(tmp_path / "train.csv", ["step", "lr"], [(0, 1e-4), (10, 1e-4)])
     assert main([str(log), "--columns", "lr"]) == 0
-    assert "| 0-99 | 2 | 0.0001 (0.000) |" in capsys.readouterr().out
+    assert "| 0-99 | 2 | 0.0001 (0) |" in capsys.readouterr().out
+
+
+def test_a_standard_error_is_printed_in_its_means_format(tmp_path, capsys):
+    log = _write(tmp_path / "train.csv", ["step", "coarse_acc"], [(0, 0.37), (10, 0.38), (20, 0.39)])
+    assert main([str(log), "--columns", "coarse_acc"]) == 0
+    assert "| 0-99 | 3 | 0.380 (0.006) |" in capsys.readouterr().out  # se 0.00577, to the mean's 3 decimals
