@@ -83,15 +83,14 @@ def windows(rows: dict[int, dict[str, str]], columns, width: int, start: int = 0
     """``[(first step, {column: Summary})]`` per ``width``-step window of the logged steps in [start, stop)."""
     if width < 1:
         raise ValueError(f"expected a window of at least 1 step, got {width}")
-    steps = [s for s in rows if s >= start and (stop is None or s < stop)]
-    if not steps:
+    groups: dict[int, dict[int, dict[str, str]]] = {}  # the rows of each window, in one pass over the log
+    for step, row in rows.items():
+        if step >= start and (stop is None or step < stop):
+            groups.setdefault(step // width * width, {})[step] = row
+    if not groups:
         return []
-    first = min(steps) // width * width
-    out = []
-    for lo in range(first, max(steps) + 1, width):
-        hi = lo + width if stop is None else min(lo + width, stop)
-        out.append((lo, {c: summarise(rows, c, max(lo, start), hi) for c in columns}))
-    return out
+    return [(lo, {c: summarise(groups.get(lo, {}), c) for c in columns})
+            for lo in range(min(groups), max(groups) + 1, width)]
 
 
 def difference(a: Summary, b: Summary) -> tuple[float, float]:
