@@ -36,22 +36,25 @@ class Summary:
 
 def read_log(path: str | Path) -> dict[int, dict[str, str]]:
     """``step -> row`` of a ``train.csv``, the last row of a step logged more than once; ValueError (one line) for a
-    file that is missing, empty, has no ``step`` column or a step that is not an integer."""
+    file that is missing, unreadable, empty, has no ``step`` column or a step that is not an integer."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"expected a training log (train.csv), got {str(path)!r}: no such file")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        if not reader.fieldnames or "step" not in reader.fieldnames:
-            raise ValueError(f"expected a training log with a 'step' column, got {str(path)!r} with columns "
-                             f"{reader.fieldnames or []}")
-        rows: dict[int, dict[str, str]] = {}
-        for line, row in enumerate(reader, start=2):
-            try:
-                step = int(row["step"])
-            except (TypeError, ValueError):
-                raise ValueError(f"{path}:{line}: expected an integer step, got {row['step']!r}") from None
-            rows[step] = row  # a resumed run's row replaces the discarded one
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            if not reader.fieldnames or "step" not in reader.fieldnames:
+                raise ValueError(f"expected a training log with a 'step' column, got {str(path)!r} with columns "
+                                 f"{reader.fieldnames or []}")
+            rows: dict[int, dict[str, str]] = {}
+            for line, row in enumerate(reader, start=2):
+                try:
+                    step = int(row["step"])
+                except (TypeError, ValueError):
+                    raise ValueError(f"{path}:{line}: expected an integer step, got {row['step']!r}") from None
+                rows[step] = row  # a resumed run's row replaces the discarded one
+    except (OSError, UnicodeDecodeError, csv.Error) as e:  # unreadable, binary, not a CSV
+        raise ValueError(f"{path}: cannot read a training log (a text CSV): {e}") from None
     if not rows:
         raise ValueError(f"expected a training log with rows, got {str(path)!r} with a header only")
     return rows

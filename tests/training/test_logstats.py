@@ -123,3 +123,10 @@ def test_a_standard_error_is_printed_in_its_means_format(tmp_path, capsys):
     log = _write(tmp_path / "train.csv", ["step", "coarse_acc"], [(0, 0.37), (10, 0.38), (20, 0.39)])
     assert main([str(log), "--columns", "coarse_acc"]) == 0
     assert "| 0-99 | 3 | 0.380 (0.006) |" in capsys.readouterr().out  # se 0.00577, to the mean's 3 decimals
+
+
+def test_a_binary_file_is_refused_in_one_line_naming_it(tmp_path):
+    path = tmp_path / "train.csv"
+    path.write_bytes(b"step,x\n\x84\xff\xfe\x00\x91,1\n")
+    with pytest.raises(ValueError, match=r"train.csv: cannot read a training log \(a text CSV\)"):
+        read_log(path)
