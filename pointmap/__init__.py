@@ -39,7 +39,7 @@ _LAZY = {"global_align": "pointmap.align", "align_to_cameras": "pointmap.align",
          "scale_to_depth": "pointmap.align", "refine_matches": "pointmap.align",
          "AlignConfig": "pointmap.align", "SparseConfig": "pointmap.align",
          "EpipolarConfig": "pointmap.align", "refine_epipolar": "pointmap.align", "reconstruct": "pointmap.pipeline", "splat": "pointmap.splat",
-         "io": "pointmap.io", "localize": "pointmap.localize", "Localization": "pointmap.localize"}
+         "io": "pointmap.io", "localize": "pointmap.localization", "Localization": "pointmap.localization"}
 
 
 def __getattr__(name):

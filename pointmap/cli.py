@@ -526,7 +526,7 @@ def cmd_splat(args) -> int:
     out = writable_dir(Path(args.out or npz.parent / "splat"))
     if args.test:  # the test views and the model are read before the fit, which takes minutes
         from pointmap.checkpoint import load_model
-        from pointmap.localize import query_views
+        from pointmap.localization import query_views
 
         every = query_views(recon, expand_images(args.test))
         model = load_model(args.model, device=args.device)
@@ -534,7 +534,7 @@ def cmd_splat(args) -> int:
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch
 
-        from pointmap.localize import localize
+        from pointmap.localization import localize
         from pointmap.reconstruction import K_to_map
         from pointmap.splat.outputs import evaluate_views
 
@@ -560,7 +560,7 @@ def cmd_localize(args) -> int:
     from pointmap.checkpoint import load_model
     from pointmap.io import load_npz
     from pointmap.io.tum import write_tum
-    from pointmap.localize import localize
+    from pointmap.localization import localize
 
     npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:

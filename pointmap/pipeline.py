@@ -194,7 +194,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         (``recon.map_sizes``; the padding is never a point)
     whole: every photograph at its own shape, even at 224 (``load_images(whole=True)``: the long side to ``size``,
         224 x 160 for a 4:3 landscape, instead of the square crop that drops a quarter of it); recorded, so that
-        ``pointmap.localize`` prepares new photographs alike
+        ``pointmap.localization`` prepares new photographs alike
     K / cam2world / pose_mask: known intrinsics (ORIGINAL pixels) / poses, as ``global_align`` takes them
     masks: optional per-image bool masks (True = keep), original or map size; masked pixels are left
         out of the alignment and of the exports

@@ -81,7 +81,7 @@ def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
 
 
 def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(tiny, tmp_path, monkeypatch, capsys):
-    import pointmap.localize
+    import pointmap.localization
     import pointmap.splat
     import pointmap.splat.outputs
 
@@ -91,7 +91,7 @@ def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(ti
                  str(weights), "--size", "64", "--export", "npz"]) == 0
     monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": "the fit"})
     K = torch.tensor([[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]], dtype=torch.float64)
-    monkeypatch.setattr(pointmap.localize, "localize", lambda model, recon, images, **kw: pointmap.localize.Localization(
+    monkeypatch.setattr(pointmap.localization, "localize", lambda model, recon, images, **kw: pointmap.localization.Localization(
         torch.eye(4, dtype=torch.float64).repeat(2, 1, 1), K.repeat(2, 1, 1), [1, -1], [2.0, float("nan")],
         [1.0, float("nan")], ["c.png", "a.jpg"]))
     seen = {}
@@ -250,7 +250,7 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
                                                                                           monkeypatch):
     import json
 
-    import pointmap.localize
+    import pointmap.localization
 
     weights, folder = tiny
     rec = tmp_path / "rec"
@@ -265,7 +265,7 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
         pose = T if len(calls) == 1 else torch.full((4, 4), float("nan"), dtype=torch.float64)
         return pose, K_map, 2.0
 
-    monkeypatch.setattr(pointmap.localize, "pose_against", pose_against)
+    monkeypatch.setattr(pointmap.localization, "pose_against", pose_against)
     out = tmp_path / "loc"
     assert main(["--quiet", "localize", str(rec), str(folder / "c.png"), str(folder / "a.jpg"), "--model",
                  str(weights), "-o", str(out), "--focal", "70", "--n-refs", "1"]) == 0
@@ -520,7 +520,7 @@ def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_comman
     import pointmap.checkpoint
     import pointmap.demo
     import pointmap.io_pair
-    import pointmap.localize
+    import pointmap.localization
     import pointmap.pipeline
     import pointmap.splat
     from pointmap.io import save_reconstruction
@@ -545,7 +545,7 @@ def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_comman
 
     monkeypatch.setattr(pointmap.checkpoint, "load_model", record("load"))
     for module, name in ((pointmap.pipeline, "reconstruct"), (pointmap.io_pair, "write_pair_outputs"),
-                         (pointmap.localize, "localize"), (pointmap.demo, "run_demo"), (pointmap.splat, "run")):
+                         (pointmap.localization, "localize"), (pointmap.demo, "run_demo"), (pointmap.splat, "run")):
         monkeypatch.setattr(module, name, record(name if name != "run" else "splat"))
     save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
     images = [str(folder / "a.jpg"), str(folder / "c.png")]

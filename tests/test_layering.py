@@ -71,3 +71,14 @@ def test_no_eval_or_exec_anywhere():
                 if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("eval", "exec"):
                     bad.append(f"{path.relative_to(ROOT)}:{node.lineno}")
     assert bad == []
+
+
+def test_no_lazily_exported_function_or_class_shares_its_name_with_a_submodule():
+    """Importing pointmap.X binds the module X on the package, so a lazy export named X that is not the module itself
+    would turn into that module after first use (it once did: pm.localize)."""
+    import pointmap
+
+    clashes = [name for name, module in pointmap._LAZY.items()
+               if module != f"pointmap.{name}" and ((ROOT / "pointmap" / f"{name}.py").exists()
+                                                   or (ROOT / "pointmap" / name / "__init__.py").exists())]
+    assert clashes == []

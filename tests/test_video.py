@@ -138,7 +138,7 @@ def test_localizing_a_videos_frames_times_the_trajectory_by_the_frames_own_times
     import torch
 
     import pointmap as pm
-    import pointmap.localize
+    import pointmap.localization
     from pointmap.cli import main
 
     torch.manual_seed(0)
@@ -154,7 +154,7 @@ def test_localizing_a_videos_frames_times_the_trajectory_by_the_frames_own_times
         pose = torch.eye(4, dtype=torch.float64) if len(calls) == 2 else torch.full((4, 4), float("nan"))
         return pose, torch.tensor([[60.0, 0, 32], [0, 60, 21], [0, 0, 1]], dtype=torch.float64), 1.0
 
-    monkeypatch.setattr(pointmap.localize, "pose_against", pose_against)
+    monkeypatch.setattr(pointmap.localization, "pose_against", pose_against)
     walk = _video(tmp_path / "walk.avi", n=8, sharp=(2, 7))
     out = tmp_path / "loc"
     assert main(["--quiet", "localize", str(rec), str(walk), "--model", str(weights), "-o", str(out),

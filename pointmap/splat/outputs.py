@@ -190,7 +190,7 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
                    quiet: bool = False) -> dict:
     """Novel-view evaluation of a fit (InstantSplat's protocol): each held-out ``images[k]`` ([H, W, 3] in
     [0, 1] or uint8, e.g. a View's image at the maps' resolution) is rendered from ``cam2world[k]`` (e.g. from
-    ``pointmap.localize``) with ``K[k]`` (that image's pixels), its pose aligned photometrically with the
+    ``pointmap.localization``) with ``K[k]`` (that image's pixels), its pose aligned photometrically with the
     Gaussians frozen (``SplatFit.align_view``, ``align_steps``; 0 keeps the given pose), and rendered again.
     Returns {"views": [{name, psnr_init, psnr, ssim, cam2world}], "psnr", "ssim"} (means after alignment);
     with ``out_dir``, writes ``test_XXX.png`` (render | photograph) and ``test_views.json`` there."""

@@ -1,4 +1,4 @@
-"""Relocalisation (pointmap.localize): new views of the analytic scene posed in a reconstruction built from its
+"""Relocalisation (pointmap.localization): new views of the analytic scene posed in a reconstruction built from its
 other views, with a stand-in network that returns ground-truth pointmaps at an unknown per-pair scale."""
 
 import sys
@@ -10,7 +10,7 @@ import torch
 from align_scene import gt_preds, make_scene
 
 from pointmap.errors import GraphError, PointmapError, ShapeError
-from pointmap.localize import localize
+from pointmap.localization import localize
 from pointmap.reconstruction import Reconstruction
 
 N_REC = 4  # views 0..3 make the reconstruction, 4 and 5 are the queries
@@ -67,11 +67,11 @@ def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units
 
 
 def test_queries_predicted_a_chunk_at_a_time_get_the_poses_they_get_together(scene, monkeypatch):
-    import pointmap.localize
+    import pointmap.localization
 
     sc, recon, queries, world_scale, calls = scene
     together = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
-    monkeypatch.setattr(pointmap.localize, "QUERY_CHUNK", 1)
+    monkeypatch.setattr(pointmap.localization, "QUERY_CHUNK", 1)
     apart = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert calls["pairs"] == [(0, 5)]  # the last chunk: the second query's pairs alone
     # the stand-in draws each call's pair scales afresh: the scales differ, the poses in the world do not
@@ -150,7 +150,7 @@ def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
 def test_references_are_ranked_by_encoder_similarity_so_a_copy_of_a_view_finds_that_view():
     import pointmap as pm
     from pointmap.images import View
-    from pointmap.localize import rank_references
+    from pointmap.localization import rank_references
 
     torch.manual_seed(0)
     model = pm.PointmapNet(pm.PRESETS["test"]).eval()
@@ -172,7 +172,7 @@ def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_nu
 
 
 def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own_size(monkeypatch):
-    from pointmap.localize import reference_views
+    from pointmap.localization import reference_views
     from pointmap.reconstruction import to_canvas
 
     shapes = [(32, 48), (48, 32), (32, 48), (48, 32), (32, 48)]  # views 0..3 reconstructed, 4 the query
@@ -193,7 +193,7 @@ def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own
 
 
 def test_queries_are_prepared_whole_when_the_reconstruction_was(scene):
-    from pointmap.localize import query_views
+    from pointmap.localization import query_views
 
     _, recon, _, _, _ = scene
     wide = np.zeros((48, 96, 3), np.uint8)
@@ -201,3 +201,14 @@ def test_queries_are_prepared_whole_when_the_reconstruction_was(scene):
     assert query_views(recon, [wide])[0].shape == (112, 224)
     recon.info["pipeline"] = {"size": 224}  # an earlier file, or reconstruct's default: the square crop
     assert query_views(recon, [wide])[0].shape == (224, 224)
+
+
+def test_pm_localize_stays_the_function_after_its_module_is_imported_and_on_every_access():
+    """The module is pointmap.localization, not pointmap.localize: importing a submodule binds it on the package, and
+    a submodule named like the function it exports would replace ``pm.localize`` after first use."""
+    import pointmap as pm
+    import pointmap.localization
+
+    for _ in range(3):
+        assert pm.localize is pointmap.localization.localize and callable(pm.localize)
+    assert pm.Localization is pointmap.localization.Localization

@@ -62,7 +62,7 @@ def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
     sc, images, calls = fake_stack
     # 48x32 arrays at size=48: no resize, no crop (48 and 32 are multiples of 16)
     recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), min_conf=2.0)
-    assert recon.info["pipeline"]["size"] == 48  # recorded: pointmap.localize prepares new photographs alike
+    assert recon.info["pipeline"]["size"] == 48  # recorded: pointmap.localization prepares new photographs alike
     err = capsys.readouterr().err
     assert "5 images, graph complete: 10 pairs" in err and "peak memory" in err
     assert calls["graph"] == "complete" and len(calls["pairs"]) == 10
