@@ -7,6 +7,7 @@ reading the source.
 from __future__ import annotations
 
 import numbers
+import os
 
 
 class PointmapError(Exception):
@@ -122,9 +123,14 @@ def check_seed(seed, name: str = "seed") -> int:
 def check_model_device(model, device, caller: str) -> str:
     """``device`` checked (``check_device``: a name torch knows, a device this machine has) and, for a torch
     model, the device its weights are on: the model is not moved (``pm.load_model(..., device=)`` puts it there), so
-    a mismatch is refused here with the way out instead of failing inside its first layer. Returns the device."""
+    a mismatch is refused here with the way out instead of failing inside its first layer. Anything but a model (a
+    checkpoint's name or path, None) is refused first. Returns the device."""
     import torch
 
+    if not (hasattr(model, "decode_pair") and callable(model)):
+        hint = (f" (the name {model!r}: load it first, pm.load_model({model!r}))" if isinstance(model, (str, os.PathLike))
+                else "")
+        raise CheckpointError(f"{caller} expected a model (pm.load_model's), got {type(model).__name__}{hint}")
     device = check_device(device, f"{caller}: device")
     if isinstance(model, torch.nn.Module):
         p = next(model.parameters(), None)

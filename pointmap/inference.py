@@ -139,6 +139,8 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     """
     imgs = _as_images(views)
     n = len(imgs)
+    if n < 2:
+        raise GraphError(f"predict_pairs needs at least two views (a pair), got {n}")
     pairs = list(pairs)
     if not pairs:
         raise GraphError("predict_pairs needs at least one pair")
@@ -148,8 +150,6 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     if store_dtype is not None and not (isinstance(store_dtype, torch.dtype) and store_dtype.is_floating_point):
         raise ShapeError(f"store_dtype expected None or a floating torch dtype (e.g. torch.float16), got "
                          f"{store_dtype!r}")
-    if not (hasattr(model, "decode_pair") and callable(model)):
-        raise CheckpointError(f"predict_pairs expected a model (pm.load_model's), got {type(model).__name__}")
     device = check_model_device(model, device, "predict_pairs")
     given = None if encodings is None else checked_encodings(encodings, imgs)
     out: dict[tuple[int, int], PairPrediction] = {}

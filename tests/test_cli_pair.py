@@ -63,7 +63,7 @@ def test_the_pair_command_stores_given_focals_and_refuses_malformed_ones(tmp_pat
     for bad_focal, bad_out, message in ((500.0, out, "two positive focal lengths in pixels .* got 500.0"),
                                         (None, 3, "out expected a folder path, got int")):
         with pytest.raises(ShapeError, match=message):
-            write_pair_outputs(None, *ims, bad_out, focal=bad_focal)
+            write_pair_outputs(pm.load_model(weights), *ims, bad_out, focal=bad_focal)
     assert np.isfinite(z["cam2world_2_in_1"]).all() or np.isnan(z["cam2world_2_in_1"]).all()
     for bad in ("abc", "-5", "1,2,3", "nan"):
         assert main(["pair", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", bad]) == 2

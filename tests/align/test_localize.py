@@ -7,7 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from align_scene import gt_preds, make_scene
+from align_scene import STAND_IN, gt_preds, make_scene
 
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.localization import localize
@@ -58,7 +58,7 @@ def scene(monkeypatch):
 
 def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units(scene):
     sc, recon, queries, world_scale, calls = scene
-    loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    loc = localize(STAND_IN, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert sorted(calls["pairs"]) == [(0, 5), (2, 4), (3, 4)]
     for k, q in enumerate((4, 5)):
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
@@ -70,9 +70,9 @@ def test_queries_predicted_a_chunk_at_a_time_get_the_poses_they_get_together(sce
     import pointmap.localization
 
     sc, recon, queries, world_scale, calls = scene
-    together = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    together = localize(STAND_IN, recon, queries, refs=[[3, 2], [0]], quiet=True)
     monkeypatch.setattr(pointmap.localization, "QUERY_CHUNK", 1)
-    apart = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    apart = localize(STAND_IN, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert calls["pairs"] == [(0, 5)]  # the last chunk: the second query's pairs alone
     # the stand-in draws each call's pair scales afresh: the scales differ, the poses in the world do not
     assert torch.allclose(apart.cam2world, together.cam2world, atol=1e-5) and torch.allclose(apart.K, together.K)
@@ -82,20 +82,20 @@ def test_queries_predicted_a_chunk_at_a_time_get_the_poses_they_get_together(sce
 def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
     sc, recon, queries, world_scale, calls = scene
     calls["broken"] = [(3, 4)]
-    loc = localize(None, recon, queries, refs=[[3, 2], [0]], quiet=True)
+    loc = localize(STAND_IN, recon, queries, refs=[[3, 2], [0]], quiet=True)
     assert loc.ref == [2, 0]
     assert_at_true_pose(loc.cam2world[0], sc, 4, world_scale)
-    loc = localize(None, recon, queries, refs=[[3], [0]], quiet=True)  # no fallback: that query is not posed
+    loc = localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)  # no fallback: that query is not posed
     assert loc.ref == [-1, 0] and torch.isnan(loc.cam2world[0]).all() and torch.isfinite(loc.cam2world[1]).all()
     calls["broken"] = [(3, 4), (0, 5)]
     with pytest.raises(PointmapError, match="none of the 2 queries could be posed"):
-        localize(None, recon, queries, refs=[[3], [0]], quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)
 
 
 def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
     sc, recon, queries, world_scale, _ = scene
     K = torch.from_numpy(sc["K"][4:6])
-    loc = localize(None, recon, queries, refs=[[3], [0]], K=K, quiet=True)
+    loc = localize(STAND_IN, recon, queries, refs=[[3], [0]], K=K, quiet=True)
     assert torch.equal(loc.K, K.double())
     for k, q in enumerate((4, 5)):
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
@@ -109,10 +109,10 @@ def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene)
     K_big = torch.from_numpy(sc["K"][4:6]).clone()
     K_big[:, :2, :2] *= 2
     K_big[:, :2, 2] = (K_big[:, :2, 2] + 0.5) * 2 - 0.5  # pixel centres at integers: u_big = (u + 0.5) * 2 - 0.5
-    loc = localize(None, recon, big, refs=[[3], [0]], quiet=True)
+    loc = localize(STAND_IN, recon, big, refs=[[3], [0]], quiet=True)
     assert torch.allclose(loc.K[:, 0, 0], K_big[:, 0, 0], rtol=0.03)  # estimated on the maps, reported here
     assert torch.allclose(loc.K[:, :2, 2], K_big[:, :2, 2], atol=1e-6)
-    known = localize(None, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for PnP
+    known = localize(STAND_IN, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for PnP
     for k, q in enumerate((4, 5)):
         assert_at_true_pose(known.cam2world[k], sc, q, world_scale)
 
@@ -120,31 +120,31 @@ def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene)
 def test_bad_references_and_inputs_are_refused_with_what_was_expected(scene):
     _, recon, queries, _, _ = scene
     with pytest.raises(GraphError, match=r"view indices in 0..3"):
-        localize(None, recon, queries, refs=[[4], [0]], quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[4], [0]], quiet=True)
     with pytest.raises(GraphError, match="for each of the 2 queries"):
-        localize(None, recon, queries, refs=[[1]], quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[1]], quiet=True)
     with pytest.raises(ShapeError, match=r"K expected \[3, 3\] or \[2, 3, 3\]"):
-        localize(None, recon, queries, refs=[[1], [2]], K=torch.eye(4), quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[1], [2]], K=torch.eye(4), quiet=True)
     with pytest.raises(PointmapError, match="non-empty list of images"):
-        localize(None, recon, [], quiet=True)
+        localize(STAND_IN, recon, [], quiet=True)
     # one image, not in a list, is one query (its rows were taken for images)
-    one = localize(None, recon, queries[0], refs=[[3]], quiet=True)
+    one = localize(STAND_IN, recon, queries[0], refs=[[3]], quiet=True)
     assert len(one.names) == 1
-    assert torch.equal(one.cam2world, localize(None, recon, [queries[0]], refs=[[3]], quiet=True).cam2world)
+    assert torch.equal(one.cam2world, localize(STAND_IN, recon, [queries[0]], refs=[[3]], quiet=True).cam2world)
     # and one reference index for it is its list of one
-    assert torch.equal(one.cam2world, localize(None, recon, queries[0], refs=3, quiet=True).cam2world)
+    assert torch.equal(one.cam2world, localize(STAND_IN, recon, queries[0], refs=3, quiet=True).cam2world)
     with pytest.raises(GraphError, match="a list of view indices, got 'near'"):
-        localize(None, recon, queries, refs="near", quiet=True)
+        localize(STAND_IN, recon, queries, refs="near", quiet=True)
     with pytest.raises(ShapeError, match=r"K expected \[3, 3\] or \[2, 3, 3\] .* got \[\[1, 2, 3\], \[4, 5\]"):
-        localize(None, recon, queries, refs=[[1], [2]], K=[[1, 2, 3], [4, 5]], quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[1], [2]], K=[[1, 2, 3], [4, 5]], quiet=True)
     # maps the network cannot take (not multiples of the patch size), e.g. a hand-made reconstruction's
     odd = Reconstruction(images=recon.images[:, :30, :45], cam2world=recon.cam2world, K=recon.K,
                          depth_z=recon.depth_z[:, :30, :45], conf=recon.conf[:, :30, :45])
     with pytest.raises(ShapeError, match="multiple of the model's patch size 16; got view 0: 45x30"):
-        localize(None, odd, queries, refs=[[1], [2]], quiet=True)
+        localize(STAND_IN, odd, queries, refs=[[1], [2]], quiet=True)
     for bad in (0, True):  # (a bool is not a count)
         with pytest.raises(PointmapError, match="n_refs expected an int >= 1"):
-            localize(None, recon, queries, n_refs=bad, quiet=True)
+            localize(STAND_IN, recon, queries, n_refs=bad, quiet=True)
 
 
 def test_references_are_ranked_by_encoder_similarity_so_a_copy_of_a_view_finds_that_view():
@@ -166,8 +166,8 @@ def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_nu
     K = np.array([[20.0, 0, 23.5], [0, 20.0, 15.5], [0, 0, 1]])
     for bad in (np.diag([20.0, -20.0, 1.0]), K.T):
         with pytest.raises(ShapeError, match=r"K expected .*\[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
-            localize(None, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
-    loc = localize(None, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
+            localize(STAND_IN, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
+    loc = localize(STAND_IN, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
     assert loc.ref == [3, 0]
 
 
@@ -188,7 +188,7 @@ def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own
     monkeypatch.setitem(sys.modules, "pointmap.inference", types.SimpleNamespace(
         predict_pairs=lambda model, views, pairs, batch_size=8, **kw: gt_preds(sc, pairs, seed=3), encode_views=None))
     query = (sc["images"][4] * 255).round().astype(np.uint8)
-    loc = localize(None, recon, [query], refs=[[1]], quiet=True)  # paired with the portrait reference
+    loc = localize(STAND_IN, recon, [query], refs=[[1]], quiet=True)  # paired with the portrait reference
     assert_at_true_pose(loc.cam2world[0], sc, 4, 1.0)
 
 

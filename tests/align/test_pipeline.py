@@ -8,7 +8,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from align_scene import gt_preds, make_scene, pose_errors, with_descriptors
+from align_scene import STAND_IN, StandInNet, gt_preds, make_scene, pose_errors, with_descriptors
 
 from pointmap.align import AlignConfig, EpipolarConfig
 from pointmap.errors import PointmapError
@@ -61,7 +61,7 @@ def fake_stack(monkeypatch, request):
 def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
     sc, images, calls = fake_stack
     # 48x32 arrays at size=48: no resize, no crop (48 and 32 are multiples of 16)
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), min_conf=2.0)
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), min_conf=2.0)
     assert recon.info["pipeline"]["size"] == 48  # recorded: pointmap.localization prepares new photographs alike
     err = capsys.readouterr().err
     assert "5 images, graph complete: 10 pairs" in err and "peak memory" in err
@@ -78,15 +78,15 @@ def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
 
 def test_with_descriptors_the_poses_are_refined_on_matches_unless_turned_off(fake_stack):
     sc, images, _ = fake_stack
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
     rep = recon.info["epipolar"]
     assert recon.info["pipeline"]["epipolar"] and rep["applied"] and rep["matches"] > 0
     assert "align_refit" in recon.info  # the depths were re-fitted to the refined poses
-    plain = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=False)
+    plain = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar=False)
     assert not plain.info["pipeline"]["epipolar"] and "epipolar" not in plain.info
     assert not torch.equal(plain.cam2world, recon.cam2world)
     with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
-        reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar="yes")
+        reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar="yes")
 
 
 def test_with_descriptors_reconstruct_records_and_reports_each_stages_wall_time(fake_stack, capsys, monkeypatch):
@@ -99,14 +99,14 @@ def test_with_descriptors_reconstruct_records_and_reports_each_stages_wall_time(
         return fast(*args, **kw)
 
     monkeypatch.setattr(inference, "predict_pairs", slow)
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
     seconds = recon.info["pipeline"]["seconds"]
     assert list(seconds) == ["inference", "alignment", "epipolar"]  # the stages that ran, in their order
     assert 0.3 <= seconds["inference"] < 30 and all(v > 0 for v in seconds.values())
     err = capsys.readouterr().err
     assert f"took inference {seconds['inference']:.1f} s, alignment {seconds['alignment']:.1f} s, pose refinement " \
            f"on matches {seconds['epipolar']:.1f} s" in err
-    quiet = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), epipolar=False, quiet=True)
+    quiet = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar=False, quiet=True)
     assert list(quiet.info["pipeline"]["seconds"]) == ["inference", "alignment"] and "took" not in capsys.readouterr().err
 
 
@@ -114,7 +114,7 @@ def test_reconstruct_masks_and_percentile(fake_stack):
     sc, images, _ = fake_stack
     masks = [np.ones((32, 48), bool) for _ in images]
     masks[2][:, :10] = False
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=0.0,
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=0.0,
                         quiet=True)
     assert not recon.masks[2, :, :10].any() and recon.masks[2, :, 10:].all()
 
@@ -124,7 +124,7 @@ def test_a_confidence_percentile_keeps_that_share_of_the_pixels_the_masks_keep_w
     masks = [np.ones((32, 48), bool) for _ in images]
     for m in masks:
         m[:, :24] = False  # half of every image masked: its pixels must not count towards the percentile
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=50.0,
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), masks=masks, conf_percentile=50.0,
                         quiet=True)
     kept = recon.masks
     assert not kept[:, :, :24].any()
@@ -211,7 +211,7 @@ def test_reconstruct_keeps_descriptors_only_for_a_stage_that_matches_on_them(fak
     _, images, calls = fake_stack
     calls["stop"] = True
     with pytest.raises(StopIteration):
-        reconstruct(None, images, size=48, quiet=True, **stages)
+        reconstruct(STAND_IN, images, size=48, quiet=True, **stages)
     assert calls["kw"]["keep_desc"] is keep
 
 
@@ -268,7 +268,7 @@ def test_single_image_is_a_clear_error(fake_stack):
 
     _, images, _ = fake_stack
     with pytest.raises(GraphError, match="at least 2 images"):
-        reconstruct(None, images[:1], size=48, quiet=True)
+        reconstruct(STAND_IN, images[:1], size=48, quiet=True)
 
 
 def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack, monkeypatch):
@@ -277,14 +277,15 @@ def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack, mo
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a machine with two GPUs
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     with pytest.raises(StopIteration):
-        reconstruct(None, images, size=48, quiet=True, device=torch.device("cuda", 1))
+        reconstruct(STAND_IN, images, size=48, quiet=True, device=torch.device("cuda", 1))
     assert calls["kw"]["device"] == "cuda:1" and calls["kw"]["quiet"] is True
 
 
 def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
     _, images, calls = fake_stack
     calls["stop"] = True
-    model = types.SimpleNamespace(provenance={"image_size": 32}, cfg=None)
+    model = StandInNet()
+    model.provenance, model.cfg = {"image_size": 32}, None
     with pytest.raises(StopIteration):
         reconstruct(model, images, quiet=True)
     assert calls["shapes"][0] == (16, 32)  # 48x32 by the long side to 32 -> 32x21, cropped to whole patches
@@ -296,13 +297,13 @@ def test_whole_photographs_reach_the_inference_at_their_own_shape_and_the_defaul
     wide = [np.zeros((48, 96, 3), np.uint8)] * 3  # 2:1 photographs
     for whole, shape in ((True, (112, 224)), (False, (224, 224))):
         with pytest.raises(StopIteration):
-            reconstruct(None, wide, size=224, quiet=True, whole=whole)
+            reconstruct(STAND_IN, wide, size=224, quiet=True, whole=whole)
         assert calls["shapes"] == [shape] * 3
 
 
 def test_portrait_and_landscape_images_with_varied_confidences_are_inferred_and_aligned_whole(fake_stack, tmp_path):
     sc, images, calls = fake_stack
-    recon = reconstruct(None, images, size=48, align=AlignConfig(quiet=True), conf_percentile=50, quiet=True)
+    recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), conf_percentile=50, quiet=True)
     assert calls["shapes"] == [im.shape[:2] for im in images]  # no crop: each image at its own shape
     assert recon.map_sizes == [(im.shape[1], im.shape[0]) for im in images] and recon.depth_z.shape[1:] == (48, 48)
     rot, centre, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
@@ -345,7 +346,7 @@ def test_known_cameras_that_alignment_would_refuse_are_refused_before_the_infere
     _, images, calls = fake_stack
     calls["stop"] = True  # the stand-in inference would raise StopIteration: it must not be reached
     with pytest.raises(PointmapError, match=message):
-        reconstruct(None, images, size=48, quiet=True, **kwargs)
+        reconstruct(STAND_IN, images, size=48, quiet=True, **kwargs)
     assert "shapes" not in calls
 
 
@@ -360,7 +361,7 @@ def test_reconstruct_refuses_its_options_before_the_inference(fake_stack, kw, me
     _, images, calls = fake_stack
     calls["stop"] = True  # the stand-in inference would stop the run: the refusal must come first
     with pytest.raises(PointmapError, match=message):
-        reconstruct(None, images, size=48, quiet=True, **kw)
+        reconstruct(STAND_IN, images, size=48, quiet=True, **kw)
     assert "pairs" not in calls
 
 
@@ -372,7 +373,7 @@ def test_photographs_given_as_an_iterator_keep_their_files_for_the_exports(fake_
     for k, im in enumerate(images):
         paths.append(tmp_path / f"p{k}.png")
         cv2.imwrite(str(paths[-1]), im[..., ::-1])
-    recon = reconstruct(None, iter(paths), size=48, align=AlignConfig(quiet=True), quiet=True)
+    recon = reconstruct(STAND_IN, iter(paths), size=48, align=AlignConfig(quiet=True), quiet=True)
     assert recon.info["sources"] == [str(p.resolve()) for p in paths]
 
 
@@ -380,7 +381,7 @@ def test_a_given_list_of_pairs_is_run_as_given_and_a_disconnected_one_is_refused
     from pointmap.errors import GraphError
 
     sc, images, calls = fake_stack
-    recon = reconstruct(None, images, graph=[(1, 0), (1, 2), (2, 3), (4, 3), (0, 1)], size=48, quiet=True,
+    recon = reconstruct(STAND_IN, images, graph=[(1, 0), (1, 2), (2, 3), (4, 3), (0, 1)], size=48, quiet=True,
                         epipolar=False)
     assert calls["pairs"] == [(0, 1), (1, 2), (2, 3), (3, 4)]  # unordered, deduplicated, sorted
     assert recon.info["pipeline"]["graph"] == "given" and recon.info["pipeline"]["pairs"] == 4
@@ -388,7 +389,7 @@ def test_a_given_list_of_pairs_is_run_as_given_and_a_disconnected_one_is_refused
     for bad, message in [([(0, 1), (2, 3), (3, 4)], "disconnected: 2 components"), ([(0, 5)], "invalid pair"),
                          ([], "at least one"), ([(0, 1, 2)], "expected")]:
         with pytest.raises(GraphError, match=message):
-            reconstruct(None, images, graph=bad, size=48, quiet=True)
+            reconstruct(STAND_IN, images, graph=bad, size=48, quiet=True)
     assert "pairs" not in calls  # refused before any inference
 
 
@@ -410,7 +411,7 @@ def test_reconstruct_refuses_a_batch_size_before_anything_runs(fake_stack, bad):
 
     _, images, calls = fake_stack
     with pytest.raises(ShapeError, match="batch_size expected an int >= 1"):
-        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, batch_size=bad)
+        reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, batch_size=bad)
     assert "pairs" not in calls
 
 
@@ -420,11 +421,11 @@ def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_enc
         monkeypatch.setattr(sys.modules["pointmap.inference"], name, lambda *a, **k: pytest.fail("the encoder ran"),
                             raising=False)
     with pytest.raises(PointmapError, match="epipolar expected True, False or an EpipolarConfig, got str"):
-        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, epipolar="yes")
+        reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, epipolar="yes")
     with pytest.raises(PointmapError, match="refine expected True, False or a SparseConfig, got str"):
-        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, refine="no")
+        reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, refine="no")
     with pytest.raises(Exception, match="mask 0 expected"):
-        reconstruct(None, images, graph="retrieval-2", size=48, quiet=True, masks=[np.zeros((5, 5), bool)] * 5)
+        reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, masks=[np.zeros((5, 5), bool)] * 5)
 
 
 def test_a_retrieval_run_encodes_each_image_once_records_its_stage_time_and_every_run_its_pairs(fake_stack,
@@ -437,7 +438,7 @@ def test_a_retrieval_run_encodes_each_image_once_records_its_stage_time_and_ever
         return torch.from_numpy(sim)
 
     monkeypatch.setattr(sys.modules["pointmap.inference"], "image_similarity", image_similarity, raising=False)
-    recon = reconstruct(None, images, graph="retrieval-1", size=48, quiet=True, epipolar=False)
+    recon = reconstruct(STAND_IN, images, graph="retrieval-1", size=48, quiet=True, epipolar=False)
     assert calls["encoded"] == 5 and calls["similarity_encodings"] == [f"encoding of image {k}" for k in range(5)]
     assert calls["kw"]["encodings"] is calls["similarity_encodings"]  # the pairs decode the retrieval's encodings
     info = recon.info["pipeline"]
