@@ -53,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pose import errors, model_at_size  # noqa: E402
 
 from pointmap.geometry.rotations import rotation_angle  # noqa: E402
-from pointmap.images import is_input_size  # noqa: E402
+from pointmap.images import INPUT_SIZE_RULE, is_input_size  # noqa: E402
 from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
 
 
@@ -172,7 +172,7 @@ def main(argv=None) -> int:
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes expected a positive count, got {args.scenes}")
     if args.size is not None and not is_input_size(args.size):
-        ap.error(f"--size expected 224 or a multiple of 16, got {args.size}")
+        ap.error(f"--size expected {INPUT_SIZE_RULE}, got {args.size}")
     names = list(dict.fromkeys(args.settings or ["auto", "log", "id"]))
     settings = {nm: parse_setting(nm) for nm in names}
     set_names = [Path(d).resolve().name for d in args.data]

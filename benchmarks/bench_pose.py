@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pointmap as pm  # noqa: E402
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
-from pointmap.images import is_input_size  # noqa: E402
+from pointmap.images import INPUT_SIZE_RULE, is_input_size  # noqa: E402
 from pointmap.pose import pose_from_essential  # noqa: E402
 from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
 
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
     if a.pairs < 1:
         p.error(f"--pairs expected >= 1, got {a.pairs}")
     if a.size is not None and not is_input_size(a.size):
-        p.error(f"--size expected 224 or a multiple of 16, got {a.size}")
+        p.error(f"--size expected {INPUT_SIZE_RULE}, got {a.size}")
     if a.per_pair is not None:
         try:  # before the long run, not after it
             check_per_pair(a.per_pair, Path(a.data).resolve().name)

@@ -20,11 +20,11 @@ DEFAULT_MODEL = "small"
 
 def check_size_graph_budget(args) -> None:
     """``--size``, ``--graph`` and ``--splat-budget`` (where the command has them), checked before any model loads."""
-    from pointmap.images import is_input_size
+    from pointmap.images import INPUT_SIZE_RULE, is_input_size
 
     size = getattr(args, "size", None)
     if size is not None and not is_input_size(size):
-        raise PointmapError(f"--size expected 224 or a multiple of 16 (e.g. 512), got {size}")
+        raise PointmapError(f"--size expected {INPUT_SIZE_RULE}, got {size}")
     graph = getattr(args, "graph", "auto")
     if graph != "auto":
         from pointmap.pairs import parse_graph

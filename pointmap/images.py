@@ -16,6 +16,10 @@ import torch
 from pointmap.errors import ImageError, is_int
 
 PATCH = 16
+# The network's cost grows with the fourth power of the input size (attention over (size / 16)^2 tokens): 2048 is
+# already 256 times 512's, and a typo such as 5120 for 512 would run for hours or exhaust memory without a word.
+MAX_INPUT_SIZE = 2048
+INPUT_SIZE_RULE = f"224 or a multiple of {PATCH} from {PATCH} to {MAX_INPUT_SIZE} (e.g. 512)"
 
 
 @dataclass
@@ -43,8 +47,8 @@ class View:
 
 def is_input_size(size) -> bool:
     """Whether ``size`` is an input size ``load_images`` takes: 224 (the official 224 models' crop), or a multiple of
-    the patch size (16) from one patch up."""
-    return is_int(size) and size >= PATCH and (size == 224 or size % PATCH == 0)
+    the patch size (16) from one patch up to ``MAX_INPUT_SIZE``."""
+    return is_int(size) and PATCH <= size <= MAX_INPUT_SIZE and (size == 224 or size % PATCH == 0)
 
 
 def _as_list(paths_or_arrays, caller: str):
@@ -177,7 +181,7 @@ def load_images(paths_or_arrays, size: int = 512, *, square_ok: bool = False, wh
     """
     paths_or_arrays = _as_list(paths_or_arrays, "load_images")
     if not is_input_size(size):
-        raise ImageError(f"size expected 224 or a multiple of {PATCH} (e.g. 512), got {size!r}")
+        raise ImageError(f"size expected {INPUT_SIZE_RULE}, got {size!r}")
     for name, flag in (("square_ok", square_ok), ("whole", whole)):
         if not isinstance(flag, bool):
             raise ImageError(f"{name} expected True or False, got {flag!r}")

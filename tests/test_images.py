@@ -97,6 +97,10 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
         pm.load_images([np.zeros((8, 8, 3, 2), np.uint8)])
     with pytest.raises(pm.ImageError, match="size"):
         pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=500)
+    for too_big in (2064, 5120, 10**6):  # refused before any resize: a typo for 512 would exhaust memory
+        with pytest.raises(pm.ImageError, match=f"from 16 to 2048 \\(e.g. 512\\), got {too_big}"):
+            pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=too_big)
+    assert pm.load_images([np.zeros((16, 16, 3), np.uint8)], size=2048)[0].img.shape == (3, 1536, 2048)  # a square at 4:3, as at 512
 
 
 def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the_conversion_to_use():

@@ -195,7 +195,7 @@ def _typed(default, value):
 def range_errors(cfg: TrainConfig) -> list[str]:
     """One message per setting out of its range (types are the CLI's; the schedule's own checks are
     ``training.loop.check_loop_options``)."""
-    from pointmap.images import is_input_size
+    from pointmap.images import INPUT_SIZE_RULE, is_input_size
     from pointmap.model import PRESETS
 
     out = []
@@ -205,7 +205,7 @@ def range_errors(cfg: TrainConfig) -> list[str]:
                 "n_corr": 1, "warmup": 0, "decay_steps": 0, "workers": 0, "threads": 0, "desc_stem": 0}
     out += [f"--{k} expected >= {v}, got {getattr(cfg, k)}" for k, v in at_least.items() if getattr(cfg, k) < v]
     if not is_input_size(cfg.size):
-        out.append(f"--size expected 224 or a multiple of 16, got {cfg.size}")
+        out.append(f"--size expected {INPUT_SIZE_RULE}, got {cfg.size}")
     positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature")
     out += [f"--{k} expected a finite value > 0, got {getattr(cfg, k)}" for k in positive
             if not 0 < getattr(cfg, k) < math.inf]

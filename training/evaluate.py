@@ -474,7 +474,7 @@ def main(argv=None) -> int:
     from pathlib import Path
 
     import pointmap as pm
-    from pointmap.images import is_input_size
+    from pointmap.images import INPUT_SIZE_RULE, is_input_size
     from training.mix import open_pairs
 
     p = argparse.ArgumentParser(description=main.__doc__)
@@ -498,7 +498,7 @@ def main(argv=None) -> int:
     if a.pairs < 1:
         p.error(f"--pairs expected >= 1, got {a.pairs}")
     if a.size is not None and not is_input_size(a.size):
-        p.error(f"--size expected 224 or a multiple of 16, got {a.size}")
+        p.error(f"--size expected {INPUT_SIZE_RULE}, got {a.size}")
     set_name = a.set or Path(a.data).resolve().name
     if a.per_pair is not None:
         if a.set is None and "," in a.data:
