@@ -76,6 +76,15 @@ def test_reconstruct_end_to_end(fake_stack, capsys, tmp_path):
     assert (tmp_path / "sparse/0/images.bin").exists() and written["ply"].stat().st_size > 0
 
 
+def test_a_confidence_filter_that_keeps_no_pixel_warns_with_the_confidences_and_keeps_the_poses(fake_stack):
+    sc, images, _ = fake_stack
+    with pytest.warns(UserWarning, match=r"min_conf=50.*keeps none of the 7680 pixels \(their confidences: 3 to 3\)"):
+        recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), min_conf=50.0, quiet=True)
+    assert not recon.masks.any()
+    rot, centre, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    assert rot < 0.1 and centre < 0.005
+
+
 def test_with_descriptors_the_poses_are_refined_on_matches_unless_turned_off(fake_stack):
     sc, images, _ = fake_stack
     recon = reconstruct(STAND_IN, images, size=48, align=AlignConfig(quiet=True), epipolar=EpipolarConfig(patch=4))
