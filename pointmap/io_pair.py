@@ -92,6 +92,12 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
     out = Path(out)
     device = check_model_device(model, device, "write_pair_outputs")
     views = load_images([path1, path2], size=size)
+    if views[0].img.shape == views[1].img.shape and torch.equal(views[0].img, views[1].img):
+        import warnings
+
+        warnings.warn(f"write_pair_outputs: {views[0].name} and {views[1].name} are the same image: no baseline, so "
+                      "the relative pose's translation direction is meaningless (the pointmaps still are a depth "
+                      "estimate)", stacklevel=2)
     img1, img2 = views[0].img[None].to(device), views[1].img[None].to(device)
     with torch.inference_mode():
         pred = model(img1, img2)
