@@ -22,8 +22,9 @@ def parse_graph(graph: str) -> tuple[str, int | None, bool]:
         raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
     if kind == "complete" and len(parts) == 1:
         return kind, None, cyclic
-    if kind == "retrieval" and len(parts) == 3:
-        raise GraphError(f"graph {graph!r}: retrieval pairs by similarity, not by order (no '-noncyclic')")
+    if kind in ("retrieval", "oneref") and len(parts) == 3:
+        why = "pairs by similarity, not by order" if kind == "retrieval" else "pairs every image with one reference"
+        raise GraphError(f"graph {graph!r}: {kind} {why} (no '-noncyclic': only swin and logwin wrap around)")
     if kind in ("swin", "logwin", "oneref", "retrieval") and len(parts) >= 2:
         if not (parts[1].isascii() and parts[1].isdigit()):  # int() would take " 1" and full-width digits
             raise GraphError(f"graph {graph!r}: {parts[1]!r} is not a whole number (digits 0-9)")
@@ -83,7 +84,12 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
     more alike; the diagonal is ignored. Sorted unordered pairs; ties go to the lower index. GraphError otherwise."""
     import torch
 
-    sim = torch.as_tensor(sim, dtype=torch.float64)
+    given = sim
+    try:
+        sim = torch.as_tensor(sim, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):  # None, strings, ragged lists: said with what was given
+        raise GraphError(f"sim expected an [N, N] numeric similarity (a tensor, an array or nested lists of numbers), "
+                         f"got {type(given).__name__}") from None
     if sim.ndim != 2 or sim.shape[0] != sim.shape[1] or sim.shape[0] < 2:
         raise GraphError(f"sim expected an [N, N] similarity of N >= 2 images, got shape {list(sim.shape)}")
     if not bool(torch.isfinite(sim).all()):

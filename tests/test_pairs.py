@@ -24,7 +24,7 @@ def test_oneref_links_everything_to_the_reference():
 
 
 @pytest.mark.parametrize("graph", ["star", "swin", "swin-x", "oneref-9", "swin-0", "swin-2-cyclic", "retrieval-0",
-                                   "retrieval-2-noncyclic", "retrieval"])
+                                   "retrieval-2-noncyclic", "retrieval", "oneref-1-noncyclic"])
 def test_unknown_or_malformed_graphs_are_refused(graph):
     with pytest.raises(pm.GraphError):
         pm.make_pairs(5, graph)
@@ -109,6 +109,9 @@ def test_two_groups_of_alike_images_are_paired_within_each_group_and_joined_once
     (np.array([[1.0, np.nan], [np.nan, 1.0]]), 1, "NaN or infinite"),
     (np.eye(3), 0, "k expected an int >= 1"),
     (np.eye(3), 1.5, "k expected an int >= 1"),
+    (None, 1, "numeric similarity .*got NoneType"),
+    ([["a", "b"], ["c", "d"]], 1, "numeric similarity .*got list"),
+    ([[1.0, 0.5], [0.5]], 1, "numeric similarity .*got list"),
 ])
 def test_the_retrieval_graph_refuses_a_similarity_it_cannot_use(sim, k, message):
     from pointmap.pairs import pairs_from_similarity
