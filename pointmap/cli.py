@@ -528,7 +528,7 @@ def cmd_splat(args) -> int:
         from pointmap.checkpoint import load_model
         from pointmap.localization import query_views
 
-        every = query_views(recon, expand_images(args.test))
+        every = query_views(recon, expand_images(args.test, out / "test_frames"))  # a video: up to 30 frames
         model = load_model(args.model, device=args.device)
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
@@ -565,6 +565,8 @@ def cmd_localize(args) -> int:
     npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
+    if (args.stride is not None and args.stride < 1) or args.max_frames < 1:  # one frame can be localized
+        raise PointmapError(f"--stride expected >= 1 and --max-frames >= 1, got {args.stride} and {args.max_frames}")
     out = writable_dir(Path(args.out))
     frame_times: dict = {}
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
@@ -752,9 +754,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
                    help="wall-clock seconds the fit may take (0: no limit)")
     s.add_argument("--test", nargs="+", default=None, metavar="IMG",
-                   help="held-out photographs to score novel views on: each is localized in the reconstruction "
-                        "(pointmap localize), its pose aligned on the splats, and its PSNR / SSIM reported "
-                        "(renders/test_views.json)")
+                   help="held-out photographs (or a video: up to 30 of its frames, written to test_frames/) to "
+                        "score novel views on: each is localized in the reconstruction (pointmap localize), its pose "
+                        "aligned on the splats, and its PSNR / SSIM reported (renders/test_views.json)")
     s.add_argument("--test-align-steps", dest="test_align_steps", type=int, default=100,
                    help="photometric pose-alignment steps per test view, Gaussians frozen (0: the localized pose)")
     s.add_argument("--model", default=DEFAULT_MODEL, help="the network that localizes --test views")

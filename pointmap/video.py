@@ -46,8 +46,8 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         raise ImageError(f"video not found: {video}")
     if stride is not None and not (is_int(stride) and stride >= 1):
         raise ImageError(f"stride expected a positive integer, got {stride!r}")
-    if not (is_int(max_frames) and max_frames >= 2):
-        raise ImageError(f"max_frames expected an integer >= 2, got {max_frames!r}")
+    if not (is_int(max_frames) and max_frames >= 1):
+        raise ImageError(f"max_frames expected an integer >= 1, got {max_frames!r}")
     out_dir = Path(out_dir)
     paths: list[Path] = []
     kept: list[tuple[int, float]] = []  # (frame index, the container's time in seconds) of each written frame

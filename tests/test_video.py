@@ -46,6 +46,42 @@ def test_missing_and_undecodable_videos_and_bad_strides_are_refused(tmp_path):
     for bad in (0, -2, 1.5, True):
         with pytest.raises(ImageError, match="stride expected a positive integer"):
             extract_frames(video, tmp_path / "f", stride=bad)
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ImageError, match="max_frames expected an integer >= 1"):
+            extract_frames(video, tmp_path / "f", max_frames=bad)
+    assert len(extract_frames(video, tmp_path / "one", max_frames=1)) == 1  # one frame is enough to localize
+
+
+def test_splat_takes_a_video_of_test_views_and_localize_refuses_a_bad_max_frames_by_its_flag(tmp_path, monkeypatch,
+                                                                                             capsys):
+    import torch
+
+    import pointmap as pm
+    import pointmap.localization
+    import pointmap.splat
+    from pointmap.cli import main
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    rec = tmp_path / "rec"
+    assert main(["--quiet", "reconstruct", str(_video(tmp_path / "clip.avi", n=8)), "--model", str(weights), "--size",
+                 "64", "-o", str(rec), "--stride", "4", "--export", "npz"]) == 0
+    assert main(["localize", str(rec), str(tmp_path / "clip.avi"), "-o", str(tmp_path / "loc"), "--max-frames",
+                 "0"]) == 2
+    assert "--max-frames >= 1, got None and 0" in capsys.readouterr().err
+    seen = {}
+
+    def localize(model, recon, images, **kw):  # the views' frames reach localize; none posed ends the command
+        seen["names"] = [v.name for v in images]
+        raise pm.PointmapError("none posed")
+
+    monkeypatch.setattr(pointmap.localization, "localize", localize)
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": "the fit"})
+    walk = _video(tmp_path / "walk.avi", n=8)
+    assert main(["--quiet", "splat", str(rec), "-o", str(tmp_path / "splat"), "--test", str(walk), "--model",
+                 str(weights)]) == 2
+    assert seen["names"] == [f"walk_{k:06d}.png" for k in range(8)]  # every frame of the 8: at most 30 are kept
+    assert sorted(p.name for p in (tmp_path / "splat" / "test_frames").iterdir()) == seen["names"]
 
 
 def test_the_reconstruct_command_takes_a_video_and_pairs_its_frames_in_time_order(tmp_path, capsys):
