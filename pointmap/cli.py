@@ -10,6 +10,7 @@ import logging
 import math
 import os
 import sys
+import warnings
 from pathlib import Path
 
 from pointmap.errors import GraphError, ImageError, PointmapError
@@ -801,6 +802,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    formatwarning = warnings.formatwarning
+    if not args.verbose:  # a warning is one line, as an error is, not the library's source line under it
+        warnings.formatwarning = lambda message, *_, **__: f"pointmap: warning: {message}\n"
     try:
         if args.cmd not in ("splat", "info") or getattr(args, "test", False):  # the commands that run the network
             args.device = resolve_device(args.device)  # before anything runs: a missing GPU is one line
@@ -816,6 +820,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("pointmap: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 if __name__ == "__main__":

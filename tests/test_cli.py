@@ -793,3 +793,18 @@ def test_a_file_system_refusal_during_a_command_is_one_line_and_exit_2_with_the_
     assert "Traceback" not in err and "run with -v" in err
     with pytest.raises(FileNotFoundError):
         main(["-v", *argv])
+
+
+def test_a_warning_during_a_command_is_one_line_and_the_library_formatting_is_restored_after(monkeypatch):
+    import warnings
+
+    import pointmap.cli
+
+    before = warnings.formatwarning
+    seen = []
+    monkeypatch.setattr(pointmap.cli, "cmd_info", lambda args: seen.append(
+        warnings.formatwarning("duplicates add no parallax", UserWarning, "pointmap/align/inputs.py", 80)) or 0)
+    assert main(["info"]) == 0
+    assert seen == ["pointmap: warning: duplicates add no parallax\n"] and warnings.formatwarning is before
+    assert main(["-v", "info"]) == 0  # verbose: the source line stays
+    assert "pointmap/align/inputs.py:80" in seen[1]
