@@ -15,10 +15,11 @@ import os
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pointmap.atomic import atomic_path
-from pointmap.errors import CheckpointError, ShapeError, check_device
+from pointmap.errors import CheckpointError, ShapeError, check_device, is_int
 from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
 
@@ -116,9 +117,9 @@ def config_from_ctor(text: str) -> ModelConfig:
         head = "linear"
     if a.get("desc_mode", "norm") != "norm":
         raise CheckpointError(f"desc_mode={a['desc_mode']!r} is not supported (only 'norm')")
-    conf_mode = tuple(a.pop("conf_mode", ("exp", 1, math.inf)))
-    desc_conf = a.pop("desc_conf_mode", None)
     try:
+        conf_mode = tuple(a.pop("conf_mode", ("exp", 1, math.inf)))
+        desc_conf = a.pop("desc_conf_mode", None)
         cfg = _official_sizes(a, pos, head, desc_dim, conf_mode, desc_conf, name)
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{name} constructor arguments are missing or malformed ({e.__class__.__name__}: "
@@ -244,10 +245,26 @@ def _torch_load(path: Path):
                               f"{detail}") from None
 
 
+def check_state(state, path) -> None:
+    """CheckpointError unless ``state`` is a dict of named tensors whose floating ones are all finite (NaN or inf
+    weights would make every prediction NaN)."""
+    if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
+        what = type(state).__name__ if not isinstance(state, dict) else next(
+            f"{k!r}: {type(v).__name__}" for k, v in state.items() if not (isinstance(k, str) and torch.is_tensor(v)))
+        raise CheckpointError(f"{path}: its weights expected a dict of named tensors, got {what}")
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(f"{path} holds NaN or inf weights (e.g. {bad[:3]}): every prediction would be NaN")
+
+
 def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapNet:
     ckpt = _torch_load(path)
+    if isinstance(ckpt, dict) and {"model", "model_config", "step"} <= set(ckpt):
+        raise CheckpointError(f"{path} is a pointmap training checkpoint (weights with optimizer state), not a model "
+                              f"file: make one with `python -m training.ship --ckpt {path} --out model.safetensors`")
     if not isinstance(ckpt, dict) or "model" not in ckpt:
         raise CheckpointError(f"{path} is not a DUSt3R/MASt3R checkpoint: expected a dict with 'model' and 'args'")
+    check_state(ckpt["model"], path)
     args = ckpt.get("args")
     ctor = getattr(args, "model", None) if args is not None else None
     if ctor is None and isinstance(ckpt.get("croco_kwargs"), dict):
@@ -329,6 +346,18 @@ def dequantize_int8(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     return (q.float().reshape(q.shape[0], -1) * scale[:, None]).reshape(q.shape)
 
 
+def _provenance_value(x):
+    """JSON for what ``json`` does not take itself in a provenance: numpy scalars and arrays, tensors, paths."""
+    if isinstance(x, (np.generic, np.ndarray)):
+        return x.tolist()
+    if torch.is_tensor(x):
+        return x.tolist()
+    if isinstance(x, os.PathLike):
+        return os.fspath(x)
+    raise ShapeError(f"provenance expected JSON values (numbers, strings, lists, dicts), got {type(x).__name__} "
+                     f"{x!r:.80}")
+
+
 def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtype=None) -> Path:
     """Write ``model`` as safetensors + JSON config (atomically). ``dtype=torch.float16`` halves the size;
     ``dtype="int8"`` stores every weight matrix of at least INT8_MIN_NUMEL entries as int8 with an fp32 scale
@@ -348,8 +377,8 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     path = Path(path)
     if path.is_dir():
         raise ShapeError(f"save_model expected a file path, got the folder {path}")
-    if path.suffix != ".safetensors":
-        path = path.with_suffix(".safetensors")
+    if path.suffix != ".safetensors":  # appended, not swapped: run.step1000 and run.step2000 stay two files
+        path = path.with_name(path.name + ".safetensors")
     tensors, quantized = {}, []
     for k, v in model.state_dict().items():
         v = v.detach().cpu()
@@ -365,7 +394,7 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
             tensors[k] = v
     tensors = {k: v.contiguous() for k, v in tensors.items()}
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
-            "provenance": json.dumps(prov)}
+            "provenance": json.dumps(prov, default=_provenance_value)}
     if quantized:
         meta["int8"] = json.dumps(quantized)
     with atomic_path(path) as tmp:
@@ -420,14 +449,16 @@ def load_own(path: Path) -> PointmapNet:
     model = PointmapNet(cfg)
     state = _dequantize_state(state, meta, path)
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
-    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
-    if bad:
-        raise CheckpointError(f"{path} holds NaN or inf weights (e.g. {bad[:3]}): every prediction would be NaN")
+    check_state(state, path)
     load_state_strict(model, state, source=str(path))
     try:
         model.provenance = json.loads(meta.get("provenance", "{}"))
     except json.JSONDecodeError as e:
         raise CheckpointError(f"{path} has broken provenance metadata: {e}") from None
+    size = model.provenance.get("image_size") if isinstance(model.provenance, dict) else None
+    if not isinstance(model.provenance, dict) or not (size is None or (is_int(size) and size > 0)):
+        raise CheckpointError(f"{path} has broken provenance metadata: expected a JSON object whose image_size, if "
+                              f"any, is a positive int, got {meta.get('provenance', '')[:80]!r}")
     warn_if_noncommercial(model, path, "these weights (derived from official ones)")
     return model
 

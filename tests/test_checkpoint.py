@@ -4,6 +4,7 @@ import argparse
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -152,6 +153,13 @@ def test_our_format_round_trips_exactly_and_keeps_provenance(tmp_path, tiny_mode
     assert loaded.cfg == tiny_model.cfg and loaded.provenance["image_size"] == 224
     for k, v in tiny_model.state_dict().items():
         assert torch.equal(v, loaded.state_dict()[k]), k
+
+
+def test_a_name_with_a_dot_gets_the_suffix_appended_so_two_steps_stay_two_files(tmp_path, tiny_model):
+    a = pm.save_model(tiny_model, tmp_path / "run.step1000")
+    b = pm.save_model(tiny_model, tmp_path / "run.step2000", provenance={"lr": np.float32(1e-4), "data": tmp_path})
+    assert (a.name, b.name) == ("run.step1000.safetensors", "run.step2000.safetensors") and a.exists()
+    assert pm.load_model(b).provenance == {"lr": pytest.approx(1e-4), "data": str(tmp_path)}
 
 
 def test_half_precision_files_load_back_as_float32_within_half_precision_error(tmp_path, tiny_model):
@@ -317,7 +325,9 @@ def test_save_model_refuses_what_is_not_a_model_a_path_or_a_provenance_and_weigh
     for args, kw, named in (((None, tmp_path / "m"), {}, "expected a PointmapNet, got NoneType"),
                             ((model, tmp_path), {}, "expected a file path, got the folder"),
                             ((model, tmp_path / "m"), {"provenance": "abc"}, "provenance expected a dict, got str"),
-                            ((model, tmp_path / "m"), {"dtype": "fp16"}, "dtype expected None, torch.float16")):
+                            ((model, tmp_path / "m"), {"dtype": "fp16"}, "dtype expected None, torch.float16"),
+                            ((model, tmp_path / "m"), {"provenance": {"when": object()}},
+                             "provenance expected JSON values .*got object")):
         with pytest.raises(ValueError, match=named):
             pm.save_model(*args, **kw)
     assert not list(tmp_path.iterdir())  # nothing written
@@ -342,4 +352,37 @@ def test_a_file_whose_weights_are_nan_is_refused_on_loading(tmp_path):
     tensors[name] = torch.full_like(tensors[name], float("nan"))
     save_file(tensors, str(path), metadata=meta)
     with pytest.raises(CheckpointError, match=rf"holds NaN or inf weights \(e.g. \['{name}'\]\)"):
+        pm.load_model(path)
+
+
+def test_official_weights_that_are_nan_or_not_named_tensors_and_our_training_checkpoints_are_refused_by_name(tmp_path):
+    model, path = tiny_official(tmp_path)
+    ckpt = torch.load(path, weights_only=False)
+    name = next(k for k, v in ckpt["model"].items() if v.is_floating_point() and k != "mask_token")
+    for bad, message in ((dict(ckpt["model"], **{name: torch.full_like(ckpt["model"][name], float("inf"))}),
+                          rf"holds NaN or inf weights \(e.g. \['{name}'\]\)"),
+                         ([1, 2], "expected a dict of named tensors, got list"),
+                         (torch.zeros(3), "expected a dict of named tensors, got Tensor"),
+                         ({"enc_norm.weight": 3}, "expected a dict of named tensors, got 'enc_norm.weight': int")):
+        torch.save(dict(ckpt, model=bad), tmp_path / "bad.pth")
+        with pytest.raises(pm.CheckpointError, match=message):
+            pm.load_model(tmp_path / "bad.pth")
+    torch.save({"model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": 100}, tmp_path / "last.pt")
+    with pytest.raises(pm.CheckpointError, match="is a pointmap training checkpoint .*python -m training.ship --ckpt"):
+        pm.load_model(tmp_path / "last.pt")
+    with pytest.raises(pm.CheckpointError, match="constructor arguments are missing or malformed"):
+        config_from_ctor(TINY_CTOR.replace("conf_mode=('exp', 1, inf)", "conf_mode=5"))
+
+
+@pytest.mark.parametrize("provenance", ['"hello"', "[1]", '{"image_size": "512x384"}', '{"image_size": -3}'])
+def test_a_safetensors_file_whose_provenance_is_not_an_object_with_a_positive_image_size_is_refused(
+        tmp_path, tiny_model, provenance):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    path = pm.save_model(tiny_model, tmp_path / "m.safetensors")
+    with safe_open(str(path), "pt") as f:
+        meta = f.metadata()
+    save_file(load_file(str(path)), str(path), metadata=dict(meta, provenance=provenance))
+    with pytest.raises(pm.CheckpointError, match="broken provenance metadata: expected a JSON object"):
         pm.load_model(path)
