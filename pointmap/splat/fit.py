@@ -336,6 +336,16 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     # rendered nor fitted), within the user's masks when they are used
     fit_masks = {lv: [_level_view(recon, recon.masks, i, lv, _resize_mask) if user_masked else None
                       for i in range(n)] for lv in levels}
+    # a view whose masks keep no pixel has nothing to fit: its steps would be spent on a loss of 0
+    fitted = [i for i in range(n) if not user_masked or bool(recon.masks[i].any())]
+    if not fitted:
+        raise ShapeError("fit: the reconstruction's masks keep no pixel of any view: nothing to fit")
+    if len(fitted) < n:
+        import warnings
+
+        left = [recon.names[i] for i in range(n) if i not in fitted]
+        warnings.warn(f"fit: the masks keep no pixel of {len(left)} view(s), which are left out of the fit (their "
+                      f"poses stay as given): {left[:8]}", stacklevel=2)
     w2c_init = invert_rigid(recon.cam2world.float())
     g0 = gaussians.detach().to(torch.float32)
 
@@ -398,7 +408,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
             pose_opt.param_groups[0]["lr"] = pose_lr[0] * decay
             pose_opt.param_groups[1]["lr"] = pose_lr[1] * depth_scale * decay
         if not order:
-            order = torch.randperm(n, generator=gen).tolist()
+            order = [fitted[k] for k in torch.randperm(len(fitted), generator=gen).tolist()]
         i = order.pop()
         lv = levels[0] if it < n_coarse else levels[-1]
         imgs, Ks = data[lv]

@@ -92,6 +92,22 @@ def knn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
     return np.maximum(d, floor).astype(np.float32)
 
 
+def check_has_points(recon: Reconstruction, min_conf: float = 0.0) -> None:
+    """ShapeError, saying which filter emptied it, unless some pixel has depth, confidence above ``min_conf`` and is
+    inside the reconstruction's masks: the Gaussians start from those points."""
+    if recon.valid(min_conf).any():
+        return
+    has_depth = (recon.depth_z > 0) & (recon.conf > min_conf)
+    if recon.padded:
+        has_depth = has_depth & recon.regions
+    if not has_depth.any():
+        raise ShapeError(f"no pixel of the reconstruction has depth > 0 and confidence > {min_conf}: nothing to start "
+                         "Gaussians from")
+    raise ShapeError("the reconstruction's masks (recon.masks) keep none of its pixels with depth: nothing to start "
+                     "Gaussians from (a confidence filter at reconstruct, --min-conf / --conf-percentile, or user "
+                     "masks removed every point; reconstruct again with a lower one)")
+
+
 def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_conf: float = 0.0,
               covisibility: bool = True, covis_tol: float = 0.01, rank_by_conf: bool = True,
               downsample: str = "voxel", opacity: float = 0.1, seed: int = 0) -> Gaussians:
@@ -110,9 +126,8 @@ def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_
     if not 0.0 < opacity < 1.0:
         raise ShapeError(f"opacity must be in (0, 1), got {opacity}")
     seed = check_seed(seed)
+    check_has_points(recon, min_conf)
     valid = recon.valid(min_conf)
-    if int(valid.sum()) == 0:
-        raise ShapeError(f"no pixel has depth > 0 and confidence > {min_conf}; lower min_conf")
     n = len(recon)
     if rank_by_conf:
         mean_conf = torch.stack([recon.conf[i][valid[i]].float().mean() if valid[i].any() else

@@ -102,6 +102,13 @@ def scene_center(fit_result, view: int = 0) -> torch.Tensor:
     return c2w[:3, 3] + d * c2w[:3, 2]
 
 
+def strict_json(obj) -> bytes:
+    """``obj`` as strict JSON: NaN and infinite numbers (a view with no pixel to score, an exact render's PSNR)
+    written as null, which every parser reads, not as the bare NaN / Infinity Python writes by default."""
+    clean = json.loads(json.dumps(obj), parse_constant=lambda c: None)
+    return json.dumps(clean, indent=1, allow_nan=False).encode()
+
+
 def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, steps: int | None = None,
         optimize_poses: bool = True, time_budget: float | None = None, orbit: str = "orbit.gif",
         orbit_frames: int = 36, progress: bool = True, quiet: bool = False, seed: int = 0) -> dict:
@@ -120,7 +127,7 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
     refined cameras; save it with ``recon_refined.save(...)`` for a COLMAP export).
     """
     from pointmap.splat.fit import auto_budget, fit, psnr
-    from pointmap.splat.init import init_from
+    from pointmap.splat.init import check_has_points, init_from
 
     if not isinstance(recon, Reconstruction):
         raise ShapeError(f"run expects a pointmap Reconstruction, got {type(recon).__name__}")
@@ -133,6 +140,7 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
     if max_gaussians is not None and not (is_int(max_gaussians) and max_gaussians >= 1):
         raise ShapeError(f"max_gaussians expected an int >= 1 (None: the budget's), got {max_gaussians!r}")
     check_seed(seed)  # before the output folder is made
+    check_has_points(recon)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -173,16 +181,17 @@ def run(recon: Reconstruction, out_dir, *, max_gaussians: int | None = None, ste
                "fit_seconds": res.seconds, "total_seconds": time.perf_counter() - t0,
                "steps_run": res.config["steps_run"], "working_sizes": res.config["levels"]}
     paths["metrics"] = out_dir / "splat_metrics.json"
-    write_bytes(paths["metrics"], json.dumps(metrics, indent=1).encode())
+    write_bytes(paths["metrics"], strict_json(metrics))
     refined = res.to_reconstruction(recon)
     try:
         paths["refined"] = refined.save(out_dir / "refined", formats=("colmap", "npz"))
     except ImportError:   # pointmap.io not available: the cameras JSON above still has the poses
         paths["refined"] = None
     if not quiet:
+        scored = [p for p in train_psnr if math.isfinite(p)]  # a view with no pixel fitted has none
+        mean = f"{sum(scored) / len(scored):.2f} dB" if scored else "none"
         print(f"splat: {len(res.gaussians)} Gaussians, {res.config['steps_run']} steps, training PSNR "
-              f"{sum(train_psnr) / len(train_psnr):.2f} dB, {metrics['total_seconds']:.0f} s "
-              f"-> {paths['ply']}")
+              f"{mean}, {metrics['total_seconds']:.0f} s -> {paths['ply']}")
     return {"paths": paths, "fit": res, "recon_refined": refined, "metrics": metrics}
 
 
@@ -223,8 +232,7 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
     result = {"views": rows, "psnr": sum(r["psnr"] for r in rows) / m, "ssim": sum(r["ssim"] for r in rows) / m,
               "align_steps": align_steps}
     if out_dir is not None:  # strict JSON: an exact render's infinite PSNR is written as null
-        clean = json.loads(json.dumps(result), parse_constant=lambda c: None)
-        write_bytes(Path(out_dir) / "test_views.json", json.dumps(clean, indent=1, allow_nan=False).encode())
+        write_bytes(Path(out_dir) / "test_views.json", strict_json(result))
     if not quiet:
         print(f"splat: {m} test views, PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} after "
               f"{align_steps} steps of pose alignment (before: "

@@ -1,4 +1,5 @@
 import json
+import math
 
 import numpy as np
 import pytest
@@ -218,6 +219,26 @@ def test_a_masked_fit_ignores_what_the_photographs_show_outside_the_masks(tiny):
     assert not c.config["masked"] and not torch.equal(c.gaussians.sh_dc, e.gaussians.sh_dc)
     with pytest.raises(ShapeError, match="masked expected True or False, got 'yes'"):
         fit(recon, g, steps=1, progress=False, masked="yes")
+
+
+def test_a_view_whose_masks_keep_nothing_is_left_out_of_the_fit_and_scored_null_and_all_masked_is_refused_first(
+        tiny, tmp_path):
+    import dataclasses
+
+    d, _, _ = tiny
+    masks = torch.ones(d["recon"].images.shape[:3], dtype=torch.bool)
+    masks[1] = False
+    recon = dataclasses.replace(d["recon"], masks=masks)
+    with pytest.warns(UserWarning, match=r"keep no pixel of 1 view\(s\), which are left out of the fit"):
+        out = run(recon, tmp_path / "one", max_gaussians=600, steps=6, orbit_frames=0, quiet=True)
+    assert {h["view"] for h in out["fit"].history} == {0, 2}  # every step on a view with pixels
+    assert torch.allclose(out["fit"].cam2world[1], recon.cam2world[1].float(), atol=1e-5)  # its pose as given
+    text = (tmp_path / "one" / "splat_metrics.json").read_text()
+    psnrs = json.loads(text)["train_psnr"]  # strict JSON: no bare NaN
+    assert "NaN" not in text and psnrs[1] is None and all(math.isfinite(p) for p in (psnrs[0], psnrs[2]))
+    with pytest.raises(ShapeError, match=r"masks \(recon.masks\) keep none of its pixels"):
+        run(dataclasses.replace(recon, masks=torch.zeros_like(masks)), tmp_path / "none", quiet=True)
+    assert not (tmp_path / "none").exists()  # refused before the output folder is made
 
 
 def test_the_canvas_padding_of_views_of_several_sizes_is_neither_a_gaussian_nor_fitted(tiny):

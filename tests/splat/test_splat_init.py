@@ -65,8 +65,11 @@ def test_validation():
     recon = _plane_recon()
     with pytest.raises(ShapeError, match="Reconstruction"):
         init_from("not a recon")
-    with pytest.raises(ShapeError, match="min_conf"):
+    with pytest.raises(ShapeError, match="no pixel of the reconstruction has depth > 0 and confidence > 100.0"):
         init_from(recon, min_conf=100.0)
+    recon.masks = torch.zeros(recon.depth_z.shape, dtype=torch.bool)  # a confidence filter that kept nothing
+    with pytest.raises(ShapeError, match=r"masks \(recon.masks\) keep none of its pixels with depth"):
+        init_from(recon)
     with pytest.raises(ShapeError, match="downsample"):
         init_from(recon, downsample="grid")
 
