@@ -339,8 +339,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         c = recon.conf[within & torch.isfinite(recon.conf)]
         span = f"{c.min().item():.3g} to {c.max().item():.3g}" if c.numel() else "none finite"
         warnings.warn(f"reconstruct: the confidence filter (min_conf={min_conf}, conf_percentile={conf_percentile}) "
-                      f"keeps none of the {int(within.sum())} pixels (their confidences: {span}); the poses stand, but "
-                      f"the point cloud and its exports (ply, COLMAP points3D) are empty: lower min_conf", stacklevel=2)
+                      f"keeps none of the {int(within.sum())} pixels (their confidences: {span}); the poses stand, the "
+                      f"point cloud is empty: lower min_conf", stacklevel=2)
     recon.masks = keep
     # the photographs' files (None for arrays): the COLMAP export copies them beside its model
     recon.info["sources"] = [str(Path(src).resolve()) if isinstance(src, (str, Path)) else None

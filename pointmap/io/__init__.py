@@ -49,6 +49,13 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")
     out.mkdir(parents=True, exist_ok=True)
     written: dict = {}
+    point_formats = sorted({"ply", "glb", "colmap", "colmap_txt", "nerfstudio"} & set(formats))
+    if point_formats and not confidence_mask(recon.conf, min_conf, conf_percentile, within=recon.valid()).any():
+        import warnings
+
+        warnings.warn(f"save_reconstruction: no point passes the masks and the confidence filter (min_conf={min_conf}, "
+                      f"conf_percentile={conf_percentile}): {', '.join(point_formats)} hold an empty point cloud (an "
+                      "empty COLMAP points3D stops 3DGS trainers); lower the filter", stacklevel=2)
     if "ply" in formats or "glb" in formats:
         pts = select_points(recon, min_conf, conf_percentile, max_points, seed)
         if "ply" in formats:

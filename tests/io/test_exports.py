@@ -166,6 +166,20 @@ def test_recon_save_all_formats_and_no_temp_files(tmp_path):
         recon.save(tmp_path, formats=("obj",))
 
 
+def test_saving_points_that_no_pixel_passes_warns_that_the_clouds_are_empty_and_the_npz_alone_does_not(tmp_path):
+    import warnings
+
+    recon = make_recon()
+    top = float(recon.conf.max())
+    with pytest.warns(UserWarning, match=rf"no point passes .*min_conf={top}.*: colmap, ply hold an empty point cloud"):
+        written = recon.save(tmp_path / "a", formats=("ply", "colmap", "npz"), min_conf=top)
+    assert set(written) == {"ply", "colmap", "npz"}  # written all the same: the cameras are there
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        recon.save(tmp_path / "b", formats=("npz",), min_conf=top)  # no points in it: nothing to warn about
+        recon.save(tmp_path / "c", formats=("ply",))
+
+
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "x.bin"
     target.write_bytes(b"old")
