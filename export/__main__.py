@@ -42,10 +42,12 @@ def main(argv=None) -> int:
         logging.getLogger("export").addHandler(handler)
         logging.getLogger("export").setLevel(logging.INFO)
     from export import export_model, resolve_model
+    from export.exporter import check_target
     from pointmap.errors import PointmapError
 
     t0 = time.perf_counter()
     try:
+        check_target(args.out, args.opset)  # before the model loads (a ViT-L checkpoint takes a while)
         model = resolve_model(args.model, seed=args.seed)
         meta = export_model(model, args.out, split=args.split, opset=args.opset, fp16=args.fp16,
                             quantize=args.quantize, parity=args.parity,

@@ -165,6 +165,17 @@ def _atomic_publish(tmp: Path, out: Path) -> None:
     os.replace(tmp, out)
 
 
+def check_target(out_dir, opset: int) -> Path:
+    """The export's folder (new, empty, or an earlier export, which is replaced) and opset checked; the folder as a
+    Path. ``python -m export`` calls it before the model loads."""
+    if not (isinstance(opset, int) and not isinstance(opset, bool) and opset >= 17):
+        raise ValueError(f"opset expected an int >= 17 (LayerNormalization), got {opset!r}")
+    out = Path(out_dir)
+    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
+        raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
+    return out
+
+
 def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int = DEFAULT_OPSET,
                  fp16: bool = False, quantize: str | None = None, parity: str = "standard",
                  provenance: dict | None = None, external_data: bool | None = None, quiet: bool = True) -> dict:
@@ -191,12 +202,8 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
         raise ValueError(f"quantize expected None or 'int8', got {quantize!r}")
     if parity not in PARITY_CASES and parity != "none":
         raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
-    if opset < 17:
-        raise ValueError(f"opset expected >= 17 (LayerNormalization), got {opset}")
+    out = check_target(out_dir, opset)
     model = model.float().eval().cpu()
-    out = Path(out_dir)
-    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
-        raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)

@@ -137,6 +137,18 @@ def test_cli_exit_code_2_on_bad_input(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("error: unknown preset")
 
 
+def test_cli_checks_the_output_folder_and_opset_before_it_loads_the_model(tmp_path, capsys, monkeypatch):
+    import export
+
+    monkeypatch.setattr(export, "resolve_model", lambda *a, **k: pytest.fail("the model loaded first"))
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "notes.txt").write_text("mine")
+    for extra, message in ((["--out", str(tmp_path / "full")], "exists and is not a pointmap export"),
+                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int >= 17")):
+        assert main(["--model", "some/huge.pth", *extra]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_atomic_publish_replaces_only_exports(tmp_path):
     out = tmp_path / "exp"
     out.mkdir()
