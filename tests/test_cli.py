@@ -143,8 +143,8 @@ def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_pose
     cams.write_text(json.dumps(meta))
     assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
     assert "states 81x60 for a.jpg, but the image is 80x60" in capsys.readouterr().err
-    for frame in meta["frames"]:
-        frame["file_path"] = "images/other.png"
+    for k, frame in enumerate(meta["frames"]):
+        frame["file_path"] = f"images/other{k}.png"
     cams.write_text(json.dumps(meta))
     assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
     assert "names none of the 3 images" in capsys.readouterr().err

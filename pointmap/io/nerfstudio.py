@@ -85,15 +85,22 @@ def read_transforms(path) -> dict:
                                          {k: float(get(k) or 0) for k in _DISTORTION})
         except (PointmapError, TypeError, ValueError) as e:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): {e}") from None
-        T = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        try:
+            T = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):  # "eye", ragged rows: said as the shape check below says it
+            T = np.full(1, np.nan)
         if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]) \
                 or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4) or np.linalg.det(T[:3, :3]) < 0:
+            got = T.tolist() if T.size == 16 else repr(frame["transform_matrix"])[:80]
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): transform_matrix must be a rigid "
-                                f"[4, 4] camera-to-world matrix, got {T.tolist() if T.size == 16 else list(T.shape)}")
+                                f"[4, 4] camera-to-world matrix, got {got}")
         try:  # numbers that are not numbers ("w": "abc") are refused like the rest
             w, h = get("w"), get("h")
             size = (int(w), int(h)) if w is not None and h is not None else None
             fx, fy = get("fl_x"), get("fl_y")
+            if get("camera_angle_x") is not None and not 0 < float(get("camera_angle_x")) < np.pi:
+                raise PointmapError(f"{path}: frame {i} ({frame['file_path']}): camera_angle_x expected a field of "
+                                    f"view in radians, in (0, pi), got {get('camera_angle_x')}")
             if fx is None and get("camera_angle_x") is not None and w is not None:
                 fx = focal_from_angle(float(get("camera_angle_x")), float(w))
             K = None
@@ -115,10 +122,13 @@ def read_transforms(path) -> dict:
         if not dist.is_identity and K is None:
             raise PointmapError(f"{path}: frame {i} ({frame['file_path']}) states lens distortion but no focal length "
                                 "(fl_x) and image size (w, h): the distortion cannot be undone without them")
-        out[Path(str(frame["file_path"])).name] = {"K": K, "cam2world": convert_camera_axes(T, "opengl", "opencv"),
-                                                   "size": size,
-                                                   "camera_angle_x": None if angle is None else float(angle),
-                                                   "distortion": None if dist.is_identity else dist}
+        name = Path(str(frame["file_path"])).name
+        if name in out:  # frames are matched to images by base name: a second would silently replace the first
+            raise PointmapError(f"{path}: two frames have the image name {name!r} (frame {i}: "
+                                f"{frame['file_path']}); pointmap matches cameras to images by file name")
+        out[name] = {"K": K, "cam2world": convert_camera_axes(T, "opengl", "opencv"), "size": size,
+                     "camera_angle_x": None if angle is None else float(angle),
+                     "distortion": None if dist.is_identity else dist}
     return out
 
 

@@ -496,6 +496,10 @@ def test_read_transforms_reads_opencv_and_fisheye_lens_distortion_per_frame_or_g
     ({"transform_matrix": None}, "lacks 'file_path' or 'transform_matrix'"),
     ({"fl_x": -3.0}, "focal lengths must be positive"),
     ({"w": "abc"}, "an intrinsics field .* is not a number"),
+    ({"transform_matrix": "eye"}, "must be a rigid \\[4, 4\\] camera-to-world matrix, got 'eye'"),
+    ({"transform_matrix": [[1, 0, 0, 0], [0, 1, 0]]}, "must be a rigid"),
+    ({"fl_x": None, "fl_y": None, "camera_angle_x": 0}, "camera_angle_x expected a field of view in radians"),
+    ({"fl_x": None, "fl_y": None, "w": None, "camera_angle_x": 4.0}, "camera_angle_x expected a field of view"),
 ])
 def test_read_transforms_refuses_what_pointmap_cannot_use_and_says_why(tmp_path, change, message):
     import json
@@ -512,6 +516,19 @@ def test_read_transforms_refuses_what_pointmap_cannot_use_and_says_why(tmp_path,
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(PointmapError, match="not a readable transforms.json"):
         read_transforms(tmp_path / "bad.json")
+
+
+
+def test_read_transforms_refuses_two_frames_of_one_image_name_as_read_colmap_does(tmp_path):
+    import json
+
+    from pointmap.errors import PointmapError
+    from pointmap.io.nerfstudio import read_transforms
+
+    frame = {"transform_matrix": np.eye(4).tolist(), "fl_x": 50.0, "w": 40, "h": 30}
+    (tmp_path / "two.json").write_text(json.dumps({"frames": [dict(frame, file_path=p) for p in ("x/a.png", "y/a.png")]}))
+    with pytest.raises(PointmapError, match="two frames have the image name 'a.png' \\(frame 1: y/a.png\\)"):
+        read_transforms(tmp_path / "two.json")
 
 
 def test_a_photograph_that_no_longer_exists_is_skipped_with_a_warning(tmp_path):
