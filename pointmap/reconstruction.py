@@ -70,6 +70,17 @@ class Reconstruction:
         n, h, w = self.depth_z.shape if self.depth_z.ndim == 3 else (None, None, None)
         if n is None:
             raise ShapeError(f"depth_z expected [N, h, w], got {list(self.depth_z.shape)}")
+        if n == 0:
+            raise ShapeError("a Reconstruction expected at least one view, got depth_z of shape "
+                             f"{list(self.depth_z.shape)}")
+        for name in ("cam2world", "K", "depth_z", "conf"):  # real numbers (complex or bool ones are a mistake)
+            t = getattr(self, name)
+            if not t.is_floating_point():
+                raise ShapeError(f"{name} expected a floating-point tensor, got {t.dtype}")
+        if self.info is None:
+            self.info = {}
+        if not isinstance(self.info, dict):
+            raise ShapeError(f"info expected a dict (JSON-able metadata), got {type(self.info).__name__}")
         checks = {"images": (self.images, (n, h, w, 3)), "cam2world": (self.cam2world, (n, 4, 4)),
                   "K": (self.K, (n, 3, 3)), "conf": (self.conf, (n, h, w))}
         for name, (t, shape) in checks.items():
@@ -105,8 +116,9 @@ class Reconstruction:
         self.map_sizes = [(int(a), int(b)) for a, b in sizes]
         if self.original_sizes is None:
             self.original_sizes = list(self.map_sizes)
-        if len(self.original_sizes) != n or not all(
-                len(s) == 2 and all(is_int(x) and x > 0 for x in s) for s in self.original_sizes):
+        if not hasattr(self.original_sizes, "__len__") or len(self.original_sizes) != n or not all(
+                hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) and x > 0 for x in s)
+                for s in self.original_sizes):
             raise ShapeError(f"original_sizes expected {n} (width, height) pairs of positive ints, got "
                              f"{list(self.original_sizes)[:4]}")
         if self.names is None:

@@ -686,8 +686,26 @@ def test_colours_on_the_0_255_scale_are_refused_as_floats_and_taken_as_uint8_whe
         replace(recon, images=recon.images * 255)
     as_uint8 = replace(recon, images=(recon.images * 255).round().to(torch.uint8))
     assert as_uint8.images.dtype == torch.float32 and torch.allclose(as_uint8.images, recon.images, atol=0.5 / 255)
-    with pytest.raises(ValueError, match=r"original_sizes expected 2 \(width, height\) pairs of positive ints"):
-        replace(recon, original_sizes=["a", "b"])
+    for bad in (["a", "b"], (64, 48)):
+        with pytest.raises(ValueError, match=r"original_sizes expected 2 \(width, height\) pairs of positive ints"):
+            replace(recon, original_sizes=bad)
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda r: {"info": [1, 2]}, "info expected a dict .*got list"),
+    (lambda r: {"depth_z": r.depth_z.to(torch.complex64)}, "depth_z expected a floating-point tensor, got torch.complex64"),
+    (lambda r: {"K": r.K.int()}, "K expected a floating-point tensor, got torch.int32"),
+    (lambda r: {"depth_z": r.depth_z[:0], "conf": r.conf[:0], "images": r.images[:0], "cam2world": r.cam2world[:0],
+                "K": r.K[:0], "map_from_original": None, "original_sizes": [], "names": []},
+     "expected at least one view"),
+])
+def test_a_reconstruction_with_no_view_numbers_that_are_not_real_or_info_that_is_not_a_dict_is_refused(change, message):
+    from dataclasses import replace
+
+    recon = make_recon(n=2)
+    with pytest.raises(ValueError, match=message):
+        replace(recon, **change(recon))
+    assert replace(recon, info=None).info == {}  # no info: an empty one
 
 
 def test_global_align_refuses_float_colours_on_the_0_255_scale_and_reads_uint8_views():
