@@ -162,13 +162,15 @@ class Gaussians:
         end = raw.find(b"end_header\n")
         if not raw.startswith(b"ply") or end < 0:
             raise ShapeError(f"{path} is not a PLY file")
-        header = raw[:end].decode("ascii").splitlines()
+        header = raw[:end].decode("ascii", errors="replace").splitlines()  # comments may hold any bytes
         if "format binary_little_endian 1.0" not in header:
             raise ShapeError(f"{path}: only binary_little_endian PLY is supported")
         n, props = None, []
         for line in header:
             parts = line.split()
             if parts[:2] == ["element", "vertex"]:
+                if len(parts) != 3 or not parts[2].isdigit():
+                    raise ShapeError(f"{path}: 'element vertex' expected a count, got {line.strip()!r}")
                 n = int(parts[2])
             elif parts[:1] == ["element"] and n is not None:
                 break
@@ -176,14 +178,17 @@ class Gaussians:
                 if parts[1] not in ("float", "float32"):
                     raise ShapeError(f"{path}: property {parts[-1]} has type {parts[1]}, expected float")
                 props.append(parts[2])
-        if n is None:
-            raise ShapeError(f"{path}: no vertex element")
+        if not n:
+            raise ShapeError(f"{path}: no vertex element" if n is None else f"{path}: holds no Gaussian (0 vertices)")
         have = len(raw) - end - len(b"end_header\n")
         if have < 4 * n * len(props):
             raise ShapeError(f"{path}: truncated: {n} Gaussians of {len(props)} floats need {4 * n * len(props)} "
                              f"bytes, the file has {have} after its header")
         arr = np.frombuffer(raw, dtype="<f4", offset=end + len(b"end_header\n"), count=n * len(props))
         arr = torch.from_numpy(arr.reshape(n, len(props)).copy())
+        if not bool(torch.isfinite(arr).all()):
+            bad = int((~torch.isfinite(arr).all(dim=1)).sum())
+            raise ShapeError(f"{path}: {bad} of {n} Gaussians hold NaN or inf values (a fit that diverged?)")
         col = {name: i for i, name in enumerate(props)}
         need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
                 "rot_0", "rot_1", "rot_2", "rot_3"]

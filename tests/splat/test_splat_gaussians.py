@@ -78,6 +78,23 @@ def test_a_truncated_3dgs_ply_and_unusable_points_are_refused_naming_what_is_wro
     (tmp_path / "cut.ply").write_bytes(raw[:-10])
     with pytest.raises(ShapeError, match="cut.ply: truncated: 50 Gaussians"):
         Gaussians.load_ply(tmp_path / "cut.ply")
+    end = raw.index(b"end_header\n")
+    header, body = raw[:end].decode(), raw[end:]
+    commented = header.replace("ply\n", "ply\ncomment scène capturée\n", 1).encode() + body
+    (tmp_path / "utf8.ply").write_bytes(commented)  # a non-ASCII comment, as apps write them
+    assert len(Gaussians.load_ply(tmp_path / "utf8.ply")) == 50
+    for name, text, message in (("abc.ply", header.replace("element vertex 50", "element vertex abc"),
+                                 "'element vertex' expected a count, got 'element vertex abc'"),
+                                ("zero.ply", header.replace("element vertex 50", "element vertex 0"),
+                                 "holds no Gaussian \\(0 vertices\\)")):
+        (tmp_path / name).write_bytes(text.encode() + body)
+        with pytest.raises(ShapeError, match=message):
+            Gaussians.load_ply(tmp_path / name)
+    nan = bytearray(raw)
+    nan[end + len(b"end_header\n"): end + len(b"end_header\n") + 4] = np.float32(np.nan).tobytes()
+    (tmp_path / "nan.ply").write_bytes(bytes(nan))
+    with pytest.raises(ShapeError, match="1 of 50 Gaussians hold NaN or inf values"):
+        Gaussians.load_ply(tmp_path / "nan.ply")
     pts, rgb = torch.zeros(3, 3), torch.full((3, 3), 0.5)
     with pytest.raises(ShapeError, match="points expected finite \\[N, 3\\], got \\[3, 3\\] with NaN or inf"):
         Gaussians.from_points(torch.full((3, 3), float("nan")), rgb, 0.05)
