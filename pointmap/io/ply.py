@@ -16,8 +16,10 @@ def _points(xyz, rgb, conf):
     if rgb.shape == xyz.shape:  # maps [..., 3] of points and colours: one row per point
         rgb = rgb.reshape(-1, 3)
     xyz = xyz.reshape(-1, 3)
-    if not np.isfinite(xyz).all():
-        raise ShapeError(f"xyz expected finite points, got {int((~np.isfinite(xyz).all(1)).sum())} with NaN or inf")
+    f32 = np.finfo(np.float32).max  # the file holds float32: a larger coordinate would be written as inf
+    if not (np.isfinite(xyz).all() and np.abs(xyz).max(initial=0) <= f32):
+        bad = int((~(np.isfinite(xyz) & (np.abs(xyz) <= f32)).all(1)).sum())
+        raise ShapeError(f"xyz expected finite points within float32's range, got {bad} with NaN, inf or beyond")
     if rgb.shape != xyz.shape:
         raise ShapeError(f"rgb expected {list(xyz.shape)} (one colour per point), got {list(rgb.shape)}")
     if rgb.dtype == np.uint8:
@@ -33,9 +35,14 @@ def _points(xyz, rgb, conf):
     else:
         rgb = rgb.astype(np.uint8)
     if conf is not None:
-        conf = np.asarray(conf, dtype=np.float32).reshape(-1)
+        try:
+            conf = np.asarray(conf, dtype=np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            raise ShapeError(f"conf expected numbers (one per point), got {type(conf).__name__}") from None
         if conf.shape != (len(xyz),):
             raise ShapeError(f"conf expected [{len(xyz)}] (one per point), got {list(conf.shape)}")
+        if not np.isfinite(conf).all():
+            raise ShapeError(f"conf expected finite values, got {int((~np.isfinite(conf)).sum())} NaN or inf")
     return xyz.astype(np.float32), rgb, conf
 
 
@@ -70,8 +77,11 @@ def read_ply(path) -> dict:
     """Read a binary little-endian PLY's vertex properties (what ``write_ply`` writes, and other programs' point
     clouds): {property name: [M] array}. ShapeError (one line, naming the file) for a file that is not such a PLY
     or is truncated."""
-    with open(path, "rb") as f:
-        raw = f.read()
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as e:
+        raise ShapeError(f"{path}: cannot read it ({e.strerror or e.__class__.__name__})") from None
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply\n") or end < 0:
         raise ShapeError(f"{path}: not a PLY file (expected a 'ply' header ending in 'end_header')")
@@ -95,6 +105,8 @@ def read_ply(path) -> dict:
             if len(parts) != 3 or parts[1] not in _TYPES:
                 raise ShapeError(f"{path}: unsupported vertex property {ln!r} (scalar types only: "
                                  f"{', '.join(sorted(_TYPES))})")
+            if parts[2] in {name for name, _ in fields}:
+                raise ShapeError(f"{path}: vertex property {parts[2]!r} is declared twice")
             fields.append((parts[2], _TYPES[parts[1]]))
     dtype = np.dtype(fields)
     if len(raw) - end < count * dtype.itemsize:

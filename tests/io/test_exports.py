@@ -627,7 +627,10 @@ def test_write_ply_refuses_points_and_colours_it_would_write_wrong_and_scales_fl
     for args, message in [((np.zeros((6, 2)), np.zeros((6, 3), np.uint8)), "xyz expected \\[M, 3\\]"),
                           ((xyz, np.zeros((3, 3), np.uint8)), "rgb expected \\[4, 3\\] \\(one colour per point\\)"),
                           ((xyz, np.full((4, 3), 300)), "rgb expected uint8 colours .*in \\[300, 300\\]"),
-                          ((np.full((4, 3), np.nan), np.zeros((4, 3), np.uint8)), "xyz expected finite points")]:
+                          ((np.full((4, 3), np.nan), np.zeros((4, 3), np.uint8)), "xyz expected finite points"),
+                          ((xyz.astype(np.float64) * 1e40, np.zeros((4, 3), np.uint8)), "within float32's range, got 4 with"),
+                          ((xyz, np.zeros((4, 3), np.uint8), [1, 2, np.nan, 4]), "conf expected finite values, got 1"),
+                          ((xyz, np.zeros((4, 3), np.uint8), ["a", "b", "c", "d"]), "conf expected numbers")]:
         with pytest.raises(ShapeError, match=message):
             write_ply(tmp_path / "bad.ply", *args)
     assert not (tmp_path / "bad.ply").exists()
@@ -651,6 +654,11 @@ def test_read_ply_reads_other_programs_scalar_properties_and_names_files_it_cann
     (tmp_path / "ascii.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
     with pytest.raises(ShapeError, match="only binary little-endian PLY is supported, got 'format ascii 1.0'"):
         read_ply(tmp_path / "ascii.ply")
+    with pytest.raises(ShapeError, match="missing.ply: cannot read it"):
+        read_ply(tmp_path / "missing.ply")
+    (tmp_path / "twice.ply").write_bytes(head.replace("property float y", "property float x").encode() + body)
+    with pytest.raises(ShapeError, match="twice.ply: vertex property 'x' is declared twice"):
+        read_ply(tmp_path / "twice.ply")
 
 
 def test_saving_into_a_path_that_is_a_file_is_refused_naming_it(tmp_path):
