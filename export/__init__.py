@@ -21,14 +21,14 @@ def resolve_model(spec: str, seed: int = 0):
     import torch
 
     from pointmap.checkpoint import load_model
-    from pointmap.errors import CheckpointError
+    from pointmap.errors import CheckpointError, check_seed
     from pointmap.model import PRESETS, PointmapNet
 
     if spec.startswith("preset:"):
         name = spec[len("preset:"):]
         if name not in PRESETS:
             raise CheckpointError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
-        torch.manual_seed(seed)
+        torch.manual_seed(check_seed(seed))
         model = PointmapNet(PRESETS[name]).eval()
         model.provenance = {"source": spec, "weights": f"random (torch.manual_seed({seed}))"}
         return model

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, check_seed, is_int
+from pointmap.errors import ShapeError, check_seed, is_int, is_number
 from pointmap.geometry.cameras import invert_rigid, transform_points
 from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
@@ -123,8 +123,8 @@ def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_
         raise ShapeError(f"downsample must be 'voxel' or 'conf', got {downsample!r}")
     if max_gaussians is not None and not (is_int(max_gaussians) and max_gaussians >= 1):
         raise ShapeError(f"max_gaussians expected an int >= 1 or None, got {max_gaussians!r}")
-    if not 0.0 < opacity < 1.0:
-        raise ShapeError(f"opacity must be in (0, 1), got {opacity}")
+    if not (is_number(opacity) and 0.0 < opacity < 1.0):
+        raise ShapeError(f"opacity must be a number in (0, 1), got {opacity!r}")
     seed = check_seed(seed)
     check_has_points(recon, min_conf)
     valid = recon.valid(min_conf)

@@ -140,6 +140,8 @@ def test_cli_exit_code_2_on_bad_input(tmp_path, capsys):
 def test_cli_checks_the_output_folder_and_opset_before_it_loads_the_model(tmp_path, capsys, monkeypatch):
     import export
 
+    assert main(["--model", "preset:test", "--out", str(tmp_path / "new"), "--seed", "99999999999999999999"]) == 2
+    assert "seed expected an int in [0, 2**64), got 99999999999999999999" in capsys.readouterr().err
     monkeypatch.setattr(export, "resolve_model", lambda *a, **k: pytest.fail("the model loaded first"))
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("mine")

@@ -72,6 +72,10 @@ def test_validation():
         init_from(recon)
     with pytest.raises(ShapeError, match="downsample"):
         init_from(recon, downsample="grid")
+    recon.masks = None
+    for bad in ("0.5", 1.0, float("nan")):
+        with pytest.raises(ShapeError, match="opacity must be a number in \\(0, 1\\)"):
+            init_from(recon, opacity=bad)
 
 
 def test_splat_tests_run_single_threaded():
