@@ -56,7 +56,7 @@ def pair_geometry(root) -> list[dict]:
     ``{"baseline": |c2 - c1| / the median depth of view 1 as rendered, "rotation": degrees, "move", "kind",
     "low_texture"}``."""
     from data.datasets import PairDataset, camera_rotations_deg, pair_views
-    from data.shards import ShardError, read_npz
+    from data.shards import ShardError
 
     try:
         ds = PairDataset(root, size=224, augment=False, split="all", verify=False)
@@ -69,7 +69,7 @@ def pair_geometry(root) -> list[dict]:
     for (k, scene, i, j), meta, angle in zip(ds.items, metas, rot):
         vi, vj = meta["views"][i], meta["views"][j]
         if (k, scene, i) not in median_depth:
-            depth = read_npz(ds._store.reader(k).read(f"{scene}/view-{i}.npz"))["depth_z"]
+            depth = ds._store.reader(k).read_npz(f"{scene}/view-{i}.npz")["depth_z"]
             valid = depth[np.isfinite(depth) & (depth > 0)]
             median_depth[k, scene, i] = float(np.median(valid)) if valid.size else math.nan
         centres = np.asarray(vj["cam2world"], np.float64)[:3, 3] - np.asarray(vi["cam2world"], np.float64)[:3, 3]

@@ -35,7 +35,7 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from data.geom import decode_corr
-from data.shards import ShardError, ShardReader, completed_shards, load_json, read_npz, read_png
+from data.shards import ShardError, ShardReader, completed_shards, load_json
 from pointmap.errors import ShapeError
 from pointmap.geometry.rotations import relative_rotation_error_deg
 
@@ -89,8 +89,8 @@ def _open_root(root, verify):
 
 
 def _load_view(reader: ShardReader, scene: str, meta: dict, k: int):
-    rgb = read_png(reader.read(f"{scene}/view-{k}.png"))
-    depth = read_npz(reader.read(f"{scene}/view-{k}.npz"))["depth_z"]
+    rgb = reader.read_png(f"{scene}/view-{k}.png")
+    depth = reader.read_npz(f"{scene}/view-{k}.npz")["depth_z"]
     v = meta["views"][k]
     return rgb, depth, np.array(v["K"], np.float64), np.array(v["cam2world"], np.float64)
 
@@ -380,7 +380,7 @@ class PairDataset(Dataset):
         k, scene, i, j = self.items[index]
         reader = self._store.reader(k)
         meta = reader.meta(scene)
-        corr_pack = read_npz(reader.read(f"{scene}/pair-{i}-{j}.npz"))
+        corr_pack = reader.read_npz(f"{scene}/pair-{i}-{j}.npz")
         corr = decode_corr(corr_pack["corr_12"])
         rng = self._get_rng() if self.augment else None
         if self.augment and rng.random() < self.swap_p:

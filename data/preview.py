@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from data.geom import decode_corr
-from data.shards import ShardError, ShardReader, read_npz, read_png
+from data.shards import ShardError, ShardReader
 
 TILE = 160
 
@@ -77,12 +77,12 @@ def contact_sheet(shard_path, *, max_rows: int = 8, seed: int = 0) -> np.ndarray
         meta = reader.meta(scene)
         pairs = meta["pairs"] if meta["pairs"] else [[0, min(1, len(meta["views"]) - 1)]]
         i, j = pairs[int(rng.integers(len(pairs)))]
-        rgb1 = read_png(reader.read(f"{scene}/view-{i}.png"))
-        rgb2 = read_png(reader.read(f"{scene}/view-{j}.png"))
-        d1 = read_npz(reader.read(f"{scene}/view-{i}.npz"))["depth_z"]
-        d2 = read_npz(reader.read(f"{scene}/view-{j}.npz"))["depth_z"]
+        rgb1 = reader.read_png(f"{scene}/view-{i}.png")
+        rgb2 = reader.read_png(f"{scene}/view-{j}.png")
+        d1 = reader.read_npz(f"{scene}/view-{i}.npz")["depth_z"]
+        d2 = reader.read_npz(f"{scene}/view-{j}.npz")["depth_z"]
         name = f"{scene}/pair-{i}-{j}.npz"
-        corr = decode_corr(read_npz(reader.read(name))["corr_12"]) if name in reader.index else None
+        corr = decode_corr(reader.read_npz(name)["corr_12"]) if name in reader.index else None
         ov = meta["overlap"][i][j]
         tiles = [_label(_fit(rgb1)[0], f"{meta['kind']} {scene[-4:]} v{i}"), _label(_fit(rgb2)[0], f"v{j} ({meta['views'][j]['move']})"),
                  _label(_fit(depth_to_color(d1))[0], f"depth {d1[d1 > 0].min() if (d1 > 0).any() else 0:.2f}-{d1.max():.1f} m"),

@@ -191,6 +191,26 @@ class ShardReader:
             raise ShardError(f"shard {self.path} is truncated at member {name!r}")
         return data
 
+    def read_npz(self, name: str) -> dict:
+        """Member ``name`` decoded as an ``.npz``; ShardError naming the shard and the member when it cannot be (a
+        shard that passed its checksum can still have been written wrong)."""
+        try:
+            return read_npz(self.read(name))
+        except ShardError:
+            raise
+        except Exception as e:  # noqa: BLE001 - zip, zlib and numpy format errors alike: one message
+            raise ShardError(f"shard {self.path}: member {name!r} is not a readable .npz "
+                             f"({e.__class__.__name__}: {e})") from None
+
+    def read_png(self, name: str) -> np.ndarray:
+        """Member ``name`` decoded as an RGB PNG; ShardError naming the shard and the member when it cannot be."""
+        try:
+            return read_png(self.read(name))
+        except ShardError as e:
+            if str(self.path) in str(e):
+                raise
+            raise ShardError(f"shard {self.path}: member {name!r}: {e}") from None
+
     def scenes(self) -> list[str]:
         """Scene prefixes (``scene-XXXXXXXX``) in stored order."""
         seen = []

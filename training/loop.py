@@ -446,69 +446,76 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
 
     killed = False
     with sigterm_flag() as terminated:
-        for batch in loader:
-            batch = _to(batch, device)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-                loss, metrics = step_fn(step_model, batch, step)
-            loss_value = float(loss.detach())
-            if not math.isfinite(loss_value):
-                raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
-            optimizer.step()
-            scheduler.step()
-            step += 1
-            seen += cfg.batch_size * world
-            now = time.time()
-            stop = cfg.max_minutes > 0 and (now - t0) / 60 > cfg.max_minutes
-            killed = bool(terminated)
-            moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
-            if world > 1:
-                # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would
-                # hang), and a SIGTERM that reached any rank stops them all
-                shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
-                dist.broadcast(shared, 0)
-                moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
-                signalled = torch.tensor([int(killed)], dtype=torch.int64, device=device)
-                dist.all_reduce(signalled, op=dist.ReduceOp.MAX)
-                killed = bool(signalled[0])
-            if moved:  # the next update already runs at the first decay step's rate
-                for group in optimizer.param_groups:
-                    group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
-                scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
-                bar.total = cfg.steps
-                if rank == 0:
-                    tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
-            rate = seen / max(now - t0, 1e-9)
-            metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
-                       "pairs_per_s": rate, **metrics}
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
-            if step % cfg.log_every == 0:
-                logger.log("train", step, metrics)
-            if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
-                # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
-                save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
-            ending = stop or killed or step >= cfg.steps  # the last update: checkpointed, whatever ended it
-            due = cfg.ckpt_minutes > 0 and now - last_ckpt_time >= cfg.ckpt_minutes * 60
-            if rank == 0 and (step % cfg.ckpt_every == 0 or ending or due):
-                t_ckpt = last_ckpt_time = time.time()
-                save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
-                # the decay's keepsakes on the --ckpt_every grid and at the run's real end only: a checkpoint by
-                # the clock or a signal would add an irregular one to what training.ship averages
-                if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and (
-                        step % cfg.ckpt_every == 0 or step >= cfg.steps or (stop and not killed)):  # wsd only
-                    save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
-                ckpt_seconds = time.time() - t_ckpt
-            if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
-                if rank == 0:
-                    tqdm.write(f"[step {step}] SIGTERM: checkpointed {last}; the same command resumes from it")
-                break
-            if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
-                eval_seconds = evaluate()
-            if ending:
-                break
+        batches = iter(loader)
+        try:
+            for batch in batches:
+                batch = _to(batch, device)
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+                    loss, metrics = step_fn(step_model, batch, step)
+                loss_value = float(loss.detach())
+                if not math.isfinite(loss_value):
+                    raise FloatingPointError(f"loss is {loss_value} at step {step}: lower --lr or check the data")
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
+                optimizer.step()
+                scheduler.step()
+                step += 1
+                seen += cfg.batch_size * world
+                now = time.time()
+                stop = cfg.max_minutes > 0 and (now - t0) / 60 > cfg.max_minutes
+                killed = bool(terminated)
+                moved = by_time is not None and rank == 0 and by_time.update(step, now, reserve=eval_seconds + ckpt_seconds)
+                if world > 1:
+                    # every rank follows rank 0's clock (one end and one stop for all: a rank stopping alone would
+                    # hang), and a SIGTERM that reached any rank stops them all
+                    shared = torch.tensor([cfg.steps, int(stop)], dtype=torch.int64, device=device)
+                    dist.broadcast(shared, 0)
+                    moved, cfg.steps, stop = moved or int(shared[0]) != cfg.steps, int(shared[0]), bool(shared[1])
+                    signalled = torch.tensor([int(killed)], dtype=torch.int64, device=device)
+                    dist.all_reduce(signalled, op=dist.ReduceOp.MAX)
+                    killed = bool(signalled[0])
+                if moved:  # the next update already runs at the first decay step's rate
+                    for group in optimizer.param_groups:
+                        group["lr"] = group["initial_lr"] * lr_factor(step, cfg)  # as LambdaLR computes it
+                    scheduler._last_lr = [g["lr"] for g in optimizer.param_groups]
+                    bar.total = cfg.steps
+                    if rank == 0:
+                        tqdm.write(f"[step {step}] --decay_by_time: the decay starts, the run ends at step {cfg.steps}")
+                rate = seen / max(now - t0, 1e-9)
+                metrics = {"loss": loss_value, "grad_norm": float(gnorm), "lr": scheduler.get_last_lr()[0],
+                           "pairs_per_s": rate, **metrics}
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss_value:.4f}", pairs_s=f"{rate:.2f}")
+                if step % cfg.log_every == 0:
+                    logger.log("train", step, metrics)
+                if rank == 0 and cfg.schedule == "wsd" and step == cfg.steps - cfg.decay_steps:
+                    # the end of the stable phase: a longer run resumes from here (docs/training.md, "Schedules")
+                    save_checkpoint(out / f"stable_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
+                ending = stop or killed or step >= cfg.steps  # the last update: checkpointed, whatever ended it
+                due = cfg.ckpt_minutes > 0 and now - last_ckpt_time >= cfg.ckpt_minutes * 60
+                if rank == 0 and (step % cfg.ckpt_every == 0 or ending or due):
+                    t_ckpt = last_ckpt_time = time.time()
+                    save_checkpoint(last, model, optimizer, scheduler, step, cfg, extra)
+                    # the decay's keepsakes on the --ckpt_every grid and at the run's real end only: a checkpoint by
+                    # the clock or a signal would add an irregular one to what training.ship averages
+                    if cfg.decay_ckpts and step > cfg.steps - cfg.decay_steps and (
+                            step % cfg.ckpt_every == 0 or step >= cfg.steps or (stop and not killed)):  # wsd only
+                        save_checkpoint(out / f"decay_{step}.pt", model, optimizer, scheduler, step, cfg, extra)
+                    ckpt_seconds = time.time() - t_ckpt
+                if killed:  # no evaluation: the process is asked to end now (eval.csv's last row is an earlier state's)
+                    if rank == 0:
+                        tqdm.write(f"[step {step}] SIGTERM: checkpointed {last}; the same command resumes from it")
+                    break
+                if eval_fn is not None and rank == 0 and (step % cfg.eval_every == 0 or ending):
+                    eval_seconds = evaluate()
+                if ending:
+                    break
+        finally:  # workers shut down now, also on an error: left to the interpreter's exit, they hung it
+            shutdown = getattr(batches, "_shutdown_workers", None)
+            if shutdown is not None:
+                shutdown()
+
     bar.close()
     if step == start >= cfg.steps and eval_fn is not None and rank == 0 and not logger.has_eval(step):
         evaluate()  # resumed at the end (e.g. a SIGTERM during the last update): the final evaluation the run owes
@@ -542,6 +549,17 @@ def sigterm_flag():
 
 
 TERMINATED_EXIT = 128 + signal.SIGTERM  # training.train / pretrain exit with it after a SIGTERM, as a shell reports
+
+
+def error_line(e: BaseException) -> str:
+    """The one line a CLI prints for ``e``: a DataLoader re-raises a worker's error with the worker's traceback in
+    its message, of which the last line is the error itself."""
+    text = str(e)
+    if "Original Traceback" in text:
+        last = next((ln for ln in reversed(text.splitlines()) if ln.strip()), text)
+        text = last.split(": ", 1)[1] if ": " in last and last.split(": ", 1)[0].replace(".", "").isidentifier() \
+            else last
+    return text
 
 
 def _leave_sigterm_to_the_main_process(worker_id: int) -> None:

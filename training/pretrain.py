@@ -13,7 +13,7 @@ from pointmap.errors import PointmapError
 from pointmap.model import PRESETS
 from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
-from training.loop import TERMINATED_EXIT, fit
+from training.loop import TERMINATED_EXIT, error_line, fit
 from training.losses import completion_loss
 from training.mix import open_pairs
 from training.train import collate
@@ -66,8 +66,8 @@ def main(argv=None) -> int:
         if eval_set is not None:
             eval_fn = lambda m: completion_eval(m, eval_set, cfg.eval_pairs)  # noqa: E731
         result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn)
-    except (ValueError, OSError, PointmapError) as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (ValueError, OSError, PointmapError, FloatingPointError) as e:
+        print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
     return TERMINATED_EXIT if result.get("terminated") else 0  # a chained `&& ship` must not take it as finished

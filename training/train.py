@@ -18,7 +18,7 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
 from training.grow import is_growth, silent_parameters
-from training.loop import TERMINATED_EXIT, fit, load_checkpoint
+from training.loop import TERMINATED_EXIT, error_line, fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
@@ -349,8 +349,8 @@ def main(argv=None) -> int:
     extra = lineage_extra(model)
     try:
         result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale, extra=extra)
-    except CheckpointError as e:  # e.g. a resume whose optimizer groups do not fit
-        print(f"error: {e}", file=sys.stderr)
+    except (PointmapError, FloatingPointError, OSError) as e:  # a resume that does not fit, a shard that cannot be
+        print(f"error: {error_line(e)}", file=sys.stderr)      # read, a loss gone NaN, a full disk: one line
         return 2
     print({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()})
     return TERMINATED_EXIT if result.get("terminated") else 0  # a chained `&& ship` must not take it as finished

@@ -266,3 +266,24 @@ def test_linked_crops_keep_the_rendered_focal_ratio_and_unlinked_ones_change_it(
     assert ((unlinked / rendered - 1).abs() > 0.02).sum() >= len(rendered) // 2  # crops up to 1.4x apart
     with pytest.raises(ValueError, match="crop_link expected"):
         PairDataset(tiny_pairs, size=64, split="all", crop_link=1.5)
+
+
+def test_a_member_that_does_not_decode_is_a_shard_error_naming_the_shard_and_the_member(tmp_path):
+    import io
+    import tarfile
+
+    from data.shards import ShardReader
+
+    path = tmp_path / "shard-000000.tar"
+    with tarfile.open(path, "w") as tf:
+        for name in ("scene-1/view-0.npz", "scene-1/view-0.png"):
+            info = tarfile.TarInfo(name)
+            info.size = 12
+            tf.addfile(info, io.BytesIO(b"not an image"))
+    reader = ShardReader(path)
+    with pytest.raises(ShardError, match=r"shard-000000.tar: member 'scene-1/view-0.npz' is not a readable .npz"):
+        reader.read_npz("scene-1/view-0.npz")
+    with pytest.raises(ShardError, match=r"shard-000000.tar: member 'scene-1/view-0.png': a PNG member could not"):
+        reader.read_png("scene-1/view-0.png")
+    with pytest.raises(ShardError, match="has no member 'scene-2/view-0.npz'"):
+        reader.read_npz("scene-2/view-0.npz")

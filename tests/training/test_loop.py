@@ -994,3 +994,47 @@ def test_a_fresh_focal_head_is_added_to_an_init_model_without_one(tmp_path):
     assert model.cfg.focal_head and float(model.focal_head.out.weight.detach().abs().sum()) == 0
     own = model.state_dict()
     assert all(torch.equal(v, own[k]) for k, v in src.state_dict().items())
+
+
+BROKEN_SHARD_RUN = """
+import dataclasses, sys
+sys.path.insert(0, {here!r})
+import torch
+from data.shards import ShardError
+from pointmap.model import PRESETS, PointmapNet
+from synthetic import PlanePairs
+from training.config import TrainConfig
+from training.loop import error_line, fit
+from training.train import collate, make_step
+
+class Broken(PlanePairs):
+    def __getitem__(self, i):
+        if i == 3:
+            raise ShardError("shard data/x/shard-000000.tar: member 'scene-1/view-0.npz' is not a readable .npz")
+        return super().__getitem__(i)
+
+cfg = TrainConfig(data="synthetic", out={out!r}, preset="test", batch_size=2, steps=6, warmup=2, ckpt_every=100,
+                  eval_every=1000, workers=1, quiet=True, n_corr=64, seed=0)
+try:
+    fit(cfg, PointmapNet(PRESETS["test"]), Broken(6), collate, make_step(cfg))
+except ShardError as e:
+    print("LINE", error_line(e))
+"""
+
+
+def test_a_shard_that_fails_in_a_loader_worker_ends_the_run_with_its_one_line_instead_of_hanging_it(tmp_path):
+    code = BROKEN_SHARD_RUN.format(here=str(Path(__file__).parent), out=str(tmp_path / "run"))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert ("LINE shard data/x/shard-000000.tar: member 'scene-1/view-0.npz' is not a readable .npz"
+            in done.stdout.splitlines())
+
+
+def test_error_line_keeps_a_plain_message_and_takes_a_workers_error_from_the_end_of_its_traceback():
+    from training.loop import error_line
+
+    assert error_line(ValueError("loss is nan at step 1: lower --lr")) == "loss is nan at step 1: lower --lr"
+    wrapped = ("Caught ShardError in DataLoader worker process 0.\nOriginal Traceback (most recent call last):\n"
+               '  File "x.py", line 3, in f\ndata.shards.ShardError: shard a.tar: member \'b\' is bad: x\n')
+    assert error_line(RuntimeError(wrapped)) == "shard a.tar: member 'b' is bad: x"
