@@ -142,6 +142,10 @@ class TrainConfig:
             check_loop_options(cfg)
         except ValueError as e:
             p.error(str(e))
+        for f in fields(cls):  # NaN passes the plain range checks below (each comparison is False) and inf overflows
+            value = getattr(cfg, f.name)
+            if isinstance(f.default, float) and not math.isfinite(value):
+                p.error(f"--{f.name} expected a finite number, got {value}")
         if cfg.init_heads not in ("strict", "fresh"):
             p.error(f"--init_heads expected 'strict' or 'fresh', got {cfg.init_heads!r}")
         if cfg.init_heads == "fresh" and not cfg.init:

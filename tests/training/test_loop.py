@@ -738,6 +738,10 @@ def test_a_run_from_non_commercial_weights_records_their_licence_in_every_checkp
     (["--mask_ratio", "1.5"], "--mask_ratio expected a fraction in (0, 1), got 1.5"),
     (["--size", "100"], "--size expected 224 or a multiple of 16 from 16 to 2048 (e.g. 512), got 100"),
     (["--min_lr", "1"], "--min_lr expected <= --lr"),
+    (["--match_weight", "nan"], "--match_weight expected a finite number, got nan"),
+    (["--pose_head", "true", "--pose_weight", "nan"], "--pose_weight expected a finite number, got nan"),
+    (["--coarse_weight", "inf"], "--coarse_weight expected a finite number, got inf"),
+    (["--grown_lr", "nan"], "--grown_lr expected a finite number, got nan"),
 ])
 def test_settings_out_of_their_range_are_refused_on_the_command_line_in_one_line(capsys, flags, message):
     with pytest.raises(SystemExit):
