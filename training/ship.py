@@ -27,6 +27,7 @@ import torch
 from pointmap.checkpoint import (
     WEIGHTS_DIR,
     CheckpointError,
+    check_state,
     load_own,
     load_state_strict,
     model_licence,
@@ -45,6 +46,9 @@ def last_eval(path: Path) -> dict:
         rows = list(csv.DictReader(fh))
     if not rows or "step" not in rows[-1] or rows[-1]["step"] in (None, ""):
         raise ValueError(f"--metrics {path}: expected an eval.csv with a header and at least one row with its step")
+    if {"loss", "grad_norm"} <= set(rows[-1]):  # the run's other log: its losses are no held-out figure
+        raise ValueError(f"--metrics {path}: this is a run's train.csv (training losses); expected its eval.csv "
+                         "(held-out metrics)")
     try:
         return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")}
     except (TypeError, ValueError) as e:
@@ -101,6 +105,9 @@ def average_checkpoints(paths, weights=None) -> dict:
     if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
         raise CheckpointError(f"expected non-negative finite weights with a positive sum, got {weights}")
     cks = [_load_input(p) for p in paths]
+    for p, ck, w in zip(paths, cks, weights):
+        if w > 0:  # an input with no share is not averaged (0 x NaN would still be NaN)
+            check_state(ck["model"], p)
     first = _config(cks[0], paths[0]).to_dict()
     for p, ck in zip(paths, cks):
         if ck.get("kind") not in ("train", "model"):
@@ -130,7 +137,7 @@ def average_checkpoints(paths, weights=None) -> dict:
             raise CheckpointError(f"tensor {k} has shapes {sorted({tuple(v.shape) for v in vals})} across the "
                                   "checkpoints; expected one")
         if last.is_floating_point():
-            avg[k] = sum(s * v.double() for s, v in zip(shares, vals)).to(last.dtype)
+            avg[k] = sum(s * v.double() for s, v in zip(shares, vals) if s > 0).to(last.dtype)
         elif all(torch.equal(v, last) for v in vals):
             avg[k] = last
         else:
@@ -180,6 +187,13 @@ def main(argv=None) -> int:
         model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
         load_state_strict(model, ck["model"], source=a.ckpt[-1])
         metrics = last_eval(Path(a.metrics)) if a.metrics else {}
+        cfg = ck.get("train_config")
+        if not isinstance(cfg, dict) or not {"size", "batch_size", "data", "eval_data"} <= set(cfg):
+            raise CheckpointError(f"{a.ckpt[-1]}: the run's train_config (size, batch_size, data) the shipped file "
+                                  "records is missing: not a checkpoint written by python -m training.train")
+        out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
+        if out.is_dir():
+            raise ValueError(f"--out expected a file to write the weights to, got the folder {out}")
     except (CheckpointError, OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -191,7 +205,6 @@ def main(argv=None) -> int:
     if metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
         print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
               f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
-    cfg = ck["train_config"]
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   "heldout_metrics": metrics, "note": a.note, "licence": inherited or a.licence or "Apache-2.0",
@@ -199,7 +212,6 @@ def main(argv=None) -> int:
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()
                                                                          if k in ("preset", "size", "batch_size", "lr", "steps"))}
-    out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
     path = save_model(model, out, provenance=provenance, dtype=torch.float16 if a.dtype == "fp16" else "int8")
     avg = (", the average of " + ", ".join(f"{d['source']} (step {d['step']}, share {d['share']:.3g})"
                                            for d in ck["averaged"])) if len(a.ckpt) > 1 else ""

@@ -112,8 +112,10 @@ def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_o
     ck = tmp_path / "a.pt"
     _checkpoint(ck, 0, 100)
     (tmp_path / "bad.csv").write_text("step,RRA15\n100,lots\n")
-    for metrics, message in [(tmp_path / "nope.csv", "which is not a file"), (tmp_path / "bad.csv",
-                                                                               "its last row is not all numbers")]:
+    (tmp_path / "train.csv").write_text("step,time,loss,grad_norm,lr\n100,5.0,1.2,0.3,0.0001\n")
+    for metrics, message in [(tmp_path / "nope.csv", "which is not a file"),
+                             (tmp_path / "bad.csv", "its last row is not all numbers"),
+                             (tmp_path / "train.csv", "this is a run's train.csv (training losses); expected its")]:
         assert main(["--ckpt", str(ck), "--name", "x", "--metrics", str(metrics), "--out",
                      str(tmp_path / "x.safetensors")]) == 2
         err = capsys.readouterr().err
@@ -211,3 +213,31 @@ def test_an_eval_csv_whose_last_row_has_no_step_is_refused_in_one_line(tmp_path,
     assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out", str(tmp_path / "x.safetensors")]) == 2
     err = capsys.readouterr().err
     assert "at least one row with its step" in err and len(err.strip().splitlines()) == 1
+
+
+def test_shipping_names_the_input_with_nan_weights_averages_without_a_zero_share_and_refuses_what_it_cannot_record(
+        tmp_path, capsys):
+    good = _checkpoint(tmp_path / "good.pt", 0, 100)
+    ck = torch.load(tmp_path / "good.pt", weights_only=False)
+    name = next(k for k, v in ck["model"].items() if v.is_floating_point())
+    ck["model"][name] = torch.full_like(ck["model"][name], float("nan"))
+    torch.save(ck, tmp_path / "nan.pt")
+    assert main(["--ckpt", str(tmp_path / "good.pt"), str(tmp_path / "nan.pt"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "nan.pt holds NaN or inf weights" in err and len(err.strip().splitlines()) == 1
+    assert main(["--ckpt", str(tmp_path / "good.pt"), str(tmp_path / "nan.pt"), "--weights", "1", "0", "--out",
+                 str(tmp_path / "x")]) == 0  # no share: not averaged, so its NaN does not reach the file
+    back = pm.load_model(tmp_path / "x.safetensors")
+    assert torch.allclose(back.state_dict()[name], good.state_dict()[name].half().float())
+    ck["model"][name] = good.state_dict()[name]
+    del ck["train_config"]
+    torch.save(ck, tmp_path / "bare.pt")
+    (tmp_path / "folder").mkdir()
+    for args, message in (([str(tmp_path / "bare.pt"), "--weights", "1"], "the run's train_config"),
+                          ([str(tmp_path / "good.pt"), "--out", str(tmp_path / "folder")],
+                           "--out expected a file to write the weights to, got the folder")):
+        if "--out" not in args:
+            args += ["--out", str(tmp_path / "y")]
+        assert main(["--ckpt", *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
