@@ -16,6 +16,7 @@ import math
 import os
 import random
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from pointmap.atomic import atomic_open, atomic_path
+from pointmap.checkpoint import check_state
 from pointmap.errors import CheckpointError
 from training.config import TrainConfig
 
@@ -258,6 +260,9 @@ def load_checkpoint(path: Path) -> dict:
     if not isinstance(ck, dict) or not {"model", "model_config", "step"} <= set(ck):
         raise CheckpointError(f"{path} is not a pointmap training checkpoint (expected keys model, model_config, "
                               f"step; got {sorted(ck) if isinstance(ck, dict) else type(ck).__name__})")
+    if not (isinstance(ck["step"], int) and not isinstance(ck["step"], bool) and ck["step"] >= 0):
+        raise CheckpointError(f"{path}: its step expected an int >= 0, got {ck['step']!r}")
+    check_state(ck["model"], path)  # named tensors, all finite: a NaN state would train or ship NaN
     return ck
 
 
@@ -364,6 +369,13 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     last = out / "last.pt"
     if cfg.resume and last.exists():
         ck = load_checkpoint(last)
+        lost = sorted({"optimizer", "scheduler", "rng"} - set(ck))
+        if lost:
+            raise CheckpointError(f"{last} cannot be resumed: it has no {', '.join(lost)} (a weights-only file?); "
+                                  f"use a new --out with --init {last}, or --resume false to start over in this one")
+        if int(ck["step"]) >= cfg.steps:
+            print(f"warning: {last} is at step {ck['step']}, --steps is {cfg.steps}: nothing left to train (raise "
+                  "--steps to go on)", file=sys.stderr)
         if ck.get("kind") not in (None, cfg.task):
             raise CheckpointError(f"{last} is a {ck.get('kind')!r} checkpoint and this run is {cfg.task!r}: use a new "
                                   "--out, or --resume false to start over in this one")

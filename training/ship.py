@@ -27,7 +27,6 @@ import torch
 from pointmap.checkpoint import (
     WEIGHTS_DIR,
     CheckpointError,
-    check_state,
     load_own,
     load_state_strict,
     model_licence,
@@ -104,10 +103,7 @@ def average_checkpoints(paths, weights=None) -> dict:
         raise CheckpointError(f"expected one weight per checkpoint ({len(paths)}), got {len(weights)}")
     if not all(math.isfinite(w) and w >= 0 for w in weights) or sum(weights) <= 0:
         raise CheckpointError(f"expected non-negative finite weights with a positive sum, got {weights}")
-    cks = [_load_input(p) for p in paths]
-    for p, ck, w in zip(paths, cks, weights):
-        if w > 0:  # an input with no share is not averaged (0 x NaN would still be NaN)
-            check_state(ck["model"], p)
+    cks = [_load_input(p) for p in paths]  # each loader refuses NaN or inf weights, naming its file
     first = _config(cks[0], paths[0]).to_dict()
     for p, ck in zip(paths, cks):
         if ck.get("kind") not in ("train", "model"):

@@ -797,6 +797,29 @@ def test_resuming_into_another_architecture_or_task_is_refused_in_one_line(tmp_p
             make_step(cfg))
 
 
+def test_a_checkpoint_with_nan_weights_or_a_bad_step_is_refused_and_one_without_its_optimizer_is_not_resumed(
+        tmp_path, capsys):
+    from pointmap.errors import CheckpointError
+    from training.loop import load_checkpoint
+
+    run(tmp_path, 2)
+    ck = torch.load(tmp_path / "last.pt", weights_only=False)
+    name = next(k for k, v in ck["model"].items() if v.is_floating_point())
+    for change, message in (({"model": {**ck["model"], name: ck["model"][name] * float("nan")}},
+                             "holds NaN or inf weights"),
+                            ({"step": "abc"}, "its step expected an int >= 0, got 'abc'")):
+        torch.save({**ck, **change}, tmp_path / "bad.pt")
+        with pytest.raises(CheckpointError, match=message):
+            load_checkpoint(tmp_path / "bad.pt")
+    torch.save({k: v for k, v in ck.items() if k != "optimizer"}, tmp_path / "last.pt")
+    cfg = config(tmp_path, 4)
+    with pytest.raises(CheckpointError, match="cannot be resumed: it has no optimizer .*--init"):
+        fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
+    torch.save(ck, tmp_path / "last.pt")
+    fit(config(tmp_path, 2), PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
+    assert "is at step 2, --steps is 2: nothing left to train" in capsys.readouterr().err
+
+
 def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(tmp_path):
     import csv
 
