@@ -48,11 +48,16 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
 # settings of pointmap training that pretraining would ignore: refused when set, rather than dropped silently
 TRAIN_ONLY = ("init", "init_heads", "conf_reset", "metric", "match_weight", "n_corr", "max_rotation", "grey_p",
               "flip_p", "pad_p", "temperature", "coarse_weight", "coarse_temperature", "attn_weight", "pose_head", "desc_stem",
-              "pose_weight", "pose_dir_weight", "focal_weight", "attn_heads", "alpha")
+              "pose_weight", "pose_dir_weight", "focal_weight", "attn_heads", "alpha", "focal_head", "focal_head_weight",
+              "train_only")
 
 
 def main(argv=None) -> int:
     cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
+    if cfg.task != "pretrain":
+        print(f"error: --task {cfg.task} is python -m training.train's; training.pretrain runs cross-view completion",
+              file=sys.stderr)
+        return 2
     ignored = [f"--{k}" for k in TRAIN_ONLY if getattr(cfg, k) != getattr(TrainConfig, k)]
     if ignored:
         print(f"error: {', '.join(ignored)} set pointmap training (python -m training.train); cross-view completion "

@@ -783,6 +783,24 @@ def test_pretraining_refuses_the_flags_of_pointmap_training_it_would_ignore(tmp_
 
     assert main(["--data", "x", "--preset", "test", "--init", "x.pt", "--match_weight", "5"]) == 2
     assert "--init, --match_weight set pointmap training" in capsys.readouterr().err
+    assert main(["--data", "x", "--preset", "test", "--train_only", "enc", "--focal_head", "true"]) == 2
+    assert "--focal_head, --train_only set pointmap training" in capsys.readouterr().err
+    assert main(["--data", "x", "--preset", "test", "--task", "train"]) == 2
+    assert "--task train is python -m training.train's" in capsys.readouterr().err
+
+
+def test_every_setting_pretraining_does_not_read_is_one_it_refuses():
+    """A new TrainConfig field that neither the loop nor pretraining reads would be dropped without a word by
+    training.pretrain: it must join TRAIN_ONLY (or be refused for pretraining by the config itself)."""
+    import re
+    from dataclasses import fields
+
+    from training.pretrain import TRAIN_ONLY
+
+    read = "".join((ROOT / "training" / f).read_text() for f in ("loop.py", "pretrain.py", "mix.py"))
+    refused_by_config = {"grown_from", "grown_lr"}  # "are for training a grown model (task train)"
+    unread = {f.name for f in fields(TrainConfig) if not re.search(rf"cfg\.{f.name}\b", read)}
+    assert unread - set(TRAIN_ONLY) - refused_by_config == set()
 
 
 def test_resuming_into_another_architecture_or_task_is_refused_in_one_line(tmp_path):
