@@ -189,7 +189,7 @@ def shard_is_complete(out: Path, shard: int) -> bool:
         return False
     try:
         entry = load_json(side)
-    except (OSError, ValueError):
+    except (OSError, ValueError, ShardError):
         return False
     return tar.stat().st_size == entry.get("bytes") and sha256_file(tar) == entry.get("sha256")
 

@@ -224,9 +224,17 @@ class ShardReader:
         return json.loads(self.read(f"{scene}/meta.json"))
 
 
-def load_json(path):
+def load_json(path) -> dict:
+    """The JSON object in ``path`` (a dataset's config.json, a shard's sidecar); ShardError naming the file when it
+    is not valid JSON or not an object."""
     with open(path) as f:
-        return json.load(f)
+        try:
+            value = json.load(f)
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ShardError(f"{path} is not valid JSON ({e})") from None
+    if not isinstance(value, dict):
+        raise ShardError(f"{path} expected a JSON object, got {type(value).__name__}")
+    return value
 
 
 def completed_shards(root, *, verify: bool = True, warn: bool = True) -> tuple[list[dict], list[str]]:
@@ -241,8 +249,11 @@ def completed_shards(root, *, verify: bool = True, warn: bool = True) -> tuple[l
         try:
             entry = load_json(side)
             tar = root / entry["name"]
-        except (OSError, ValueError, KeyError) as e:
-            problems.append(f"{side.name}: unreadable sidecar ({e})")
+            missing = sorted({"index", "bytes", "sha256"} - set(entry))
+            if missing:
+                raise KeyError(", ".join(missing))
+        except (OSError, ValueError, KeyError, TypeError, ShardError) as e:
+            problems.append(f"{side.name}: unreadable sidecar ({e.__class__.__name__}: {e})")
             continue
         if not tar.is_file():
             problems.append(f"{entry['name']}: listed but missing")

@@ -234,6 +234,10 @@ def test_datasets_validate_their_arguments(tiny_pairs, tmp_path):
         PairDataset(tmp_path / "nope")
     with pytest.raises(ShardError, match="config.json"):
         PairDataset(tmp_path)
+    for text, message in (("{not json", "config.json is not valid JSON"), ("[1, 2]", "expected a JSON object, got list")):
+        (tmp_path / "config.json").write_text(text)
+        with pytest.raises(ShardError, match=message):
+            PairDataset(tmp_path)
     ds = PairDataset(tiny_pairs, size=64, split="all", verify=False)
     with pytest.raises(IndexError):
         ds[len(ds)]
@@ -287,3 +291,19 @@ def test_a_member_that_does_not_decode_is_a_shard_error_naming_the_shard_and_the
         reader.read_png("scene-1/view-0.png")
     with pytest.raises(ShardError, match="has no member 'scene-2/view-0.npz'"):
         reader.read_npz("scene-2/view-0.npz")
+
+
+def test_a_sidecar_that_is_not_an_entry_leaves_its_shard_out_with_a_warning(tiny_pairs, tmp_path):
+    import shutil
+
+    from data.shards import completed_shards
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_pairs, copy)
+    sides = sorted(copy.glob("shard-*.json"))
+    good, _ = completed_shards(copy, verify=False, warn=False)
+    for text in ("[]", '{"name": "shard-000000.tar"}'):
+        sides[0].write_text(text)
+        with pytest.warns(UserWarning, match=f"{sides[0].name}: unreadable sidecar"):
+            left, problems = completed_shards(copy, verify=False)
+        assert len(left) == len(good) - 1 and len(problems) == 1
