@@ -42,6 +42,7 @@ from data.shards import (
 RESERVED_SEEDS = range(2**31 - 1000, 2**31)
 GENERATOR_VERSION = 1
 SCENE_ATTEMPTS = 8
+MAX_VIEWS = 64  # views per scene
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,8 @@ class GenConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name} expected an int >= {lo}, got {v!r}")
+        if self.views > MAX_VIEWS:  # every pair of a scene's views is stored: the count grows as views squared
+            raise ValueError(f"views expected at most {MAX_VIEWS} per scene, got {self.views}")
         if self.size % 16:
             raise ValueError(f"size expected a multiple of 16, got {self.size}")
         if not isinstance(self.seed, int) or self.seed < 0 or self.seed >= 2**31:
@@ -147,7 +150,9 @@ def render_scene(index: int, cfg: GenConfig, renderer):
             continue
         break
     else:
-        raise RuntimeError(f"scene {index}: no usable scene in {SCENE_ATTEMPTS} attempts (seed {cfg.seed})")
+        raise ValueError(f"scene {index}: no usable scene in {SCENE_ATTEMPTS} attempts (seed {cfg.seed})"
+                         + (f": no view pair overlapped within --overlap {cfg.overlap_lo} {cfg.overlap_hi}; widen it"
+                            if cfg.kind == "pairs" else ""))
     prefix = f"scene-{index:08d}"
     v0 = vs.views[0]
     meta = {

@@ -111,6 +111,15 @@ def test_cli_rejects_bad_arguments_with_exit_code_2(tmp_path, capsys):
     assert "reserved" in capsys.readouterr().err
     assert main(["--out", str(tmp_path / "x"), "--scenes", "2", "--shards", "1:9"]) == 2
     assert "outside" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "2", "--views", "100000"]) == 2
+    assert "views expected at most 64 per scene, got 100000" in capsys.readouterr().err
+
+
+def test_an_overlap_no_scene_can_meet_is_one_line_naming_the_flag(tmp_path, capsys):
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "1", "--size", "64", "--views", "2", "--overlap", "0.999",
+                 "1.0", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no view pair overlapped within --overlap 0.999 1.0; widen it" in err[0]
 
 
 def test_resuming_with_another_configuration_is_refused(tmp_path):
