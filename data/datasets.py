@@ -322,6 +322,8 @@ class PairDataset(Dataset):
         self.size = size
         self.augment = bool(augment)
         self.crop_scale = (float(lo), float(hi))
+        if not 0 <= swap_p <= 1:  # also NaN
+            raise ValueError(f"swap_p expected a probability in [0, 1], got {swap_p}")
         self.swap_p = float(swap_p)
         if not 0 <= crop_link <= 1:
             raise ValueError(f"crop_link expected a probability in [0, 1], got {crop_link}")
@@ -448,13 +450,14 @@ class AspectBatchSampler(Sampler):
 
     def __init__(self, dataset_len: int, batch_size: int, n_aspects: int = 3, *, shuffle: bool = True,
                  seed: int = 0, drop_last: bool = True, weights=None):
-        if dataset_len < 1 or batch_size < 1 or n_aspects < 1:
-            raise ValueError(f"AspectBatchSampler expected positive sizes, got len={dataset_len}, "
-                             f"batch_size={batch_size}, n_aspects={n_aspects}")
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+                   for v in (dataset_len, batch_size, n_aspects)):
+            raise ValueError(f"AspectBatchSampler expected positive int sizes, got len={dataset_len!r}, "
+                             f"batch_size={batch_size!r}, n_aspects={n_aspects!r}")
         self.n, self.bs, self.na = int(dataset_len), int(batch_size), int(n_aspects)
         self.shuffle, self.seed, self.drop_last = shuffle, int(seed), drop_last
         w = np.ones(n_aspects) if weights is None else np.asarray(weights, np.float64)
-        if w.shape != (n_aspects,) or w.min() < 0 or w.sum() <= 0:
+        if w.shape != (n_aspects,) or not np.isfinite(w).all() or w.min() < 0 or w.sum() <= 0:
             raise ValueError(f"weights expected {n_aspects} non-negative numbers, got {weights!r}")
         self.p = w / w.sum()
         self.epoch = 0

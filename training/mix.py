@@ -12,11 +12,12 @@ from data.datasets import PairDataset, camera_rotations_deg, pair_views
 
 
 def _split_index(index, n: int):
-    """``index`` or ``(index, aspect, ...)`` -> (index, a function giving the same form for another index);
-    IndexError when index is outside [0, n)."""
+    """``index`` or ``(index, aspect, ...)`` -> (index in [0, n), a function giving the same form for another
+    index); IndexError when index is outside [-n, n)."""
     idx, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
-    if not 0 <= idx < n:
+    if not -n <= idx < n:
         raise IndexError(f"index {idx} out of range for {n} pairs")
+    idx = idx % n  # a negative index counts from the end, as PairDataset's and a list's do
     return idx, (lambda i: (i, *rest)) if rest else (lambda i: i)
 
 

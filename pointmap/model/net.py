@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 from pointmap.geometry.cameras import transform_points
 from pointmap.model.blocks import Block, DecoderBlock, LayerNorm, RopeCache, init_weights
 from pointmap.model.config import ModelConfig
@@ -171,16 +171,44 @@ class PointmapNet(nn.Module):
                               desc_conf1=o1.get("desc_conf"), desc_conf2=o2.get("desc_conf"), cam2_to_cam1=T,
                               focal1=f1, focal2=f2)
 
-    def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
-        """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""
+    def check_encodings(self, enc1: Encoded, enc2: Encoded) -> None:
+        """ShapeError unless both are this model's ``encode()`` outputs of one batch size: tokens [B, h*w, enc_dim]
+        of floats on the grid (h, w) they carry, the descriptor stem's features [B, h*w, desc_stem * patch**2] for a
+        model with one, finite values of the model's dtype and device. Checked when run eagerly (under tracing or
+        compilation the shapes are symbolic: nothing is checked)."""
+        if torch.jit.is_tracing() or torch.compiler.is_compiling():  # symbolic shapes: checked when run eagerly
+            return
+        L = self.cfg.desc_stem * self.cfg.patch_size ** 2
         for name, enc in (("enc1", enc1), ("enc2", enc2)):
-            if not isinstance(enc, Encoded) or enc.tokens.ndim != 3 or enc.tokens.shape[-1] != self.cfg.enc_dim \
-                    or enc.tokens.shape[1] != enc.grid[0] * enc.grid[1]:
-                got = (f"tokens {list(enc.tokens.shape)}" if isinstance(enc, Encoded) else type(enc).__name__)
-                raise ShapeError(f"{name} expected this model's encode() output (tokens [B, h*w, {self.cfg.enc_dim}]), "
-                                 f"got {got}")
+            if not isinstance(enc, Encoded):
+                raise ShapeError(f"{name} expected this model's encode() output (an Encoded), got {type(enc).__name__}")
+            grid, t = enc.grid, enc.tokens
+            if not (isinstance(grid, tuple) and len(grid) == 2 and all(is_int(g) and g > 0 for g in grid)):
+                raise ShapeError(f"{name}.grid expected (h, w), two positive ints, got {grid!r}")
+            h, w = grid
+            if not isinstance(t, torch.Tensor) or t.ndim != 3 or t.shape[1] != h * w or t.shape[2] != self.cfg.enc_dim \
+                    or not t.is_floating_point():
+                got = f"{list(t.shape)} {t.dtype}" if isinstance(t, torch.Tensor) else type(t).__name__
+                raise ShapeError(f"{name} expected this model's encode() output (float tokens [B, {h}*{w}, "
+                                 f"{self.cfg.enc_dim}] for its grid {grid}), got tokens {got}")
+            loc = enc.local
+            if L and (not isinstance(loc, torch.Tensor) or tuple(loc.shape) != (t.shape[0], h * w, L)):
+                got = list(loc.shape) if isinstance(loc, torch.Tensor) else type(loc).__name__
+                raise ShapeError(f"{name}.local expected the descriptor stem's features [B, {h}*{w}, {L}], got {got}")
         if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
             raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
+        ref = next(iter(self.parameters()), None) if isinstance(self, nn.Module) else None  # (ONNX runs borrow this)
+        for name, enc in (("enc1", enc1), ("enc2", enc2)):
+            t = enc.tokens
+            if ref is not None and not torch.is_autocast_enabled() and (t.dtype != ref.dtype or t.device != ref.device):
+                raise ShapeError(f"{name} expected tokens of the model's {ref.dtype} on {ref.device}, got {t.dtype} "
+                                 f"on {t.device}")
+            if not bool(torch.isfinite(t).all()):
+                raise ShapeError(f"{name} tokens hold NaN or inf values")
+
+    def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
+        """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""
+        self.check_encodings(enc1, enc2)
         tok1, tok2 = self.decode(enc1, enc2)
         return self.heads(tok1, tok2, enc1.grid, enc2.grid, enc1.local, enc2.local)
 

@@ -169,6 +169,7 @@ class OnnxPointmapModel:
     """
 
     check_images = PointmapNet.check_images  # the very same checks and messages as the PyTorch model
+    check_encodings = PointmapNet.check_encodings
 
     def __init__(self, path, meta: dict, providers=None, threads: int | None = None) -> None:
         ort = _ort()
@@ -280,31 +281,26 @@ class OnnxPointmapModel:
         return Encoded(torch.from_numpy(outs[0]).reshape(B, h * w, C), (h, w), local)
 
     def decode_pair(self, enc1, enc2) -> PairPrediction:
-        """Decoders and heads on two Encoded batches of equal batch size -> PairPrediction."""
-        if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
-            raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
+        """Decoders and heads on two Encoded batches of equal batch size -> PairPrediction, checked as
+        PointmapNet.decode_pair checks them (``check_encodings``)."""
         if isinstance(enc1, _ImageBatch) or isinstance(enc2, _ImageBatch):
             if not (isinstance(enc1, _ImageBatch) and isinstance(enc2, _ImageBatch)):
                 raise ShapeError("decode_pair got one deferred and one real encoding; use this model's encode for both")
+            if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
+                raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
             outs = self._run(FULL_GRAPH, {"img1": self._np(enc1.tokens), "img2": self._np(enc2.tokens)},
                              self._out_names)
             return self._prediction(outs)
+        if not self.split:
+            raise ShapeError(f"{self.path} is a single-graph export: it decodes only its own encode()'s outputs, not "
+                             "encoder tokens (export with --split for a decoder graph)")
+        self.check_encodings(enc1, enc2)
         feeds = {}
-        p, L = self.cfg.patch_size, self.cfg.desc_stem * self.cfg.patch_size**2
         for k, enc in ((1, enc1), (2, enc2)):
-            t = enc.tokens
-            h, w = enc.grid
-            if t.ndim != 3 or t.shape[1] != h * w or t.shape[2] != self.cfg.enc_dim:
-                raise ShapeError(f"tokens{k} expected [B, {h}*{w}, {self.cfg.enc_dim}] for grid {(h, w)}, "
-                                 f"got {list(t.shape)}")
+            t, (h, w) = enc.tokens, enc.grid
             feeds[f"tokens{k}"] = self._np(t).reshape(t.shape[0], h, w, t.shape[2])
-            if L:
-                loc = getattr(enc, "local", None)
-                if loc is None or tuple(loc.shape) != (t.shape[0], h * w, L):
-                    got = None if loc is None else list(loc.shape)
-                    raise ShapeError(f"local{k} expected [B, {h}*{w}, {L}] (the descriptor stem's features, "
-                                     f"{self.cfg.desc_stem} channels x {p}x{p}), got {got}")
-                feeds[f"local{k}"] = self._np(loc).reshape(t.shape[0], h, w, L)
+            if self.cfg.desc_stem:
+                feeds[f"local{k}"] = self._np(enc.local).reshape(t.shape[0], h, w, -1)
         return self._prediction(self._run(DECODER_GRAPH, feeds, self._out_names))
 
 

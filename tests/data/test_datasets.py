@@ -243,6 +243,12 @@ def test_datasets_validate_their_arguments(tiny_pairs, tmp_path):
         ds[len(ds)]
     with pytest.raises(IndexError):
         ds[(0, 5)]
+    for bad in (2.0, float("nan")):
+        with pytest.raises(ValueError, match="swap_p expected a probability in \\[0, 1\\]"):
+            PairDataset(tiny_pairs, size=64, split="all", verify=False, swap_p=bad)
+    for args, kw in (((10, 2.5), {}), ((10, 2), {"weights": [float("nan"), 1, 1]}), ((0, 2), {})):
+        with pytest.raises(ValueError, match="AspectBatchSampler expected positive int sizes|weights expected 3"):
+            AspectBatchSampler(*args, **kw)
 
 
 def test_heldout_set_is_rendered_once_from_the_reserved_seed(tmp_path):

@@ -288,8 +288,24 @@ def test_the_stages_check_what_they_are_given(tiny_model):
     with pytest.raises(pm.ShapeError, match="enc1 expected this model's encode\\(\\) output .*got Tensor"):
         tiny_model.decode_pair(x, x)
     other = PointmapNet(pm.PRESETS["test"].replace(enc_dim=64, enc_heads=2)).eval()
-    with pytest.raises(pm.ShapeError, match="tokens \\[B, h\\*w, 32\\]"):
+    with pytest.raises(pm.ShapeError, match="float tokens \\[B, 2\\*2, 32\\] for its grid \\(2, 2\\)"):
         tiny_model.decode_pair(other.encode(x), other.encode(x))
+    from pointmap.model.net import Encoded
+
+    with torch.no_grad():
+        enc = tiny_model.encode(x)
+    for bad, message in ((Encoded(enc.tokens.half(), enc.grid), "enc1 expected tokens of the model's torch.float32"),
+                         (Encoded(enc.tokens.long(), enc.grid), "float tokens .*got tokens \\[1, 4, 32\\] torch.int64"),
+                         (Encoded(enc.tokens * float("nan"), enc.grid), "enc1 tokens hold NaN or inf values"),
+                         (Encoded(enc.tokens, (2, 2, 1)), "enc1.grid expected \\(h, w\\), two positive ints"),
+                         (Encoded(enc.tokens, (-2, -2)), "enc1.grid expected")):
+        with pytest.raises(pm.ShapeError, match=message):
+            tiny_model.decode_pair(bad, enc)
+    stem = PointmapNet(pm.PRESETS["test"].replace(desc_stem=4)).eval()
+    with torch.no_grad():
+        good = stem.encode(x)
+        with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's features \\[B, 2\\*2, 1024\\]"):
+            stem.decode_pair(Encoded(good.tokens, good.grid, good.local[:, :, :7]), good)
 
 
 @pytest.mark.parametrize("kw,message", [

@@ -57,7 +57,7 @@ def test_encode_decode_pair_contract(split_export, test_model):
     _close(ref, pred)
     with pytest.raises(ShapeError, match="batch sizes differ"):
         runner.decode_pair(enc[0:1], enc[0:2])
-    with pytest.raises(ShapeError, match="tokens1"):
+    with pytest.raises(ShapeError, match="enc1 expected this model's encode\\(\\) output"):
         runner.decode_pair(Encoded(enc.tokens, (5, 3 + 1)), enc)
 
 
@@ -72,6 +72,18 @@ INVALID = [
     (lambda: torch.rand(1, 3, 0, 64), lambda: torch.rand(1, 3, 64, 64)),         # empty
     (lambda: [[0.5]], lambda: torch.rand(1, 3, 64, 64)),                          # not a tensor
 ]
+
+
+def test_decode_pair_refuses_encoder_tokens_on_a_single_graph_export_and_tensors_anywhere(full_export, split_export,
+                                                                                          test_model):
+    img = torch.rand(1, 3, 32, 32)
+    with torch.inference_mode():
+        enc = test_model.encode(img)
+    with pytest.raises(ShapeError, match="is a single-graph export: it decodes only its own encode\\(\\)'s outputs"):
+        pm.load_model(full_export).decode_pair(enc, enc)
+    for runner in (pm.load_model(split_export), test_model):  # the same message from both
+        with pytest.raises(ShapeError, match="enc1 expected this model's encode\\(\\) output \\(an Encoded\\), got Tensor"):
+            runner.decode_pair(img, img)
 
 
 @pytest.mark.parametrize("make", INVALID)
