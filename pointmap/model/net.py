@@ -194,7 +194,7 @@ class PointmapNet(nn.Module):
             loc = enc.local
             if L and (not isinstance(loc, torch.Tensor) or tuple(loc.shape) != (t.shape[0], h * w, L)):
                 got = list(loc.shape) if isinstance(loc, torch.Tensor) else type(loc).__name__
-                raise ShapeError(f"{name}.local expected the descriptor stem's features [B, {h}*{w}, {L}], got {got}")
+                raise ShapeError(f"{name}.local expected the descriptor stem's local features [B, {h}*{w}, {L}], got {got}")
         if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
             raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
         ref = next(iter(self.parameters()), None) if isinstance(self, nn.Module) else None  # (ONNX runs borrow this)

@@ -281,7 +281,7 @@ def test_a_descriptor_stem_model_exports_split_with_its_local_features_between_t
     assert report["passed"], report["cases"]
     enc = runner.encode(torch.rand(1, 3, 32, 48))
     assert enc.local.shape == (1, 6, 4 * 16 * 16)
-    with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's features"):
+    with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's local features"):
         runner.decode_pair(Encoded(enc.tokens, enc.grid), enc)
 
 

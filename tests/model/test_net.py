@@ -304,7 +304,7 @@ def test_the_stages_check_what_they_are_given(tiny_model):
     stem = PointmapNet(pm.PRESETS["test"].replace(desc_stem=4)).eval()
     with torch.no_grad():
         good = stem.encode(x)
-        with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's features \\[B, 2\\*2, 1024\\]"):
+        with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's local features \\[B, 2\\*2, 1024\\]"):
             stem.decode_pair(Encoded(good.tokens, good.grid, good.local[:, :, :7]), good)
 
 
