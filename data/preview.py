@@ -109,6 +109,8 @@ def main(argv=None) -> int:
     p.add_argument("--rows", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.rows < 1:
+        p.error(f"--rows expected >= 1, got {args.rows}")
     try:
         if not Path(args.shard).is_file():
             raise ShardError(f"{args.shard} does not exist")

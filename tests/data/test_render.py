@@ -113,3 +113,6 @@ def test_preview_writes_a_contact_sheet_of_a_shard(tiny_pairs, tmp_path):
     assert preview_main([str(tmp_path / "missing.tar"), "-o", str(out)]) == 2
     assert preview_main([str(tiny_pairs / "shard-000000.tar"), "-o", str(tmp_path / "sheet.txt")]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sheet.png"]  # nothing half-written beside it
+    with pytest.raises(SystemExit):  # argparse's one line: no sheet of no rows
+        preview_main([str(tiny_pairs / "shard-000000.tar"), "-o", str(tmp_path / "none.png"), "--rows", "0"])
+    assert not (tmp_path / "none.png").exists()
