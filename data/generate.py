@@ -149,10 +149,10 @@ def render_scene(index: int, cfg: GenConfig, renderer):
         if cfg.kind == "pairs" and not pairs:
             continue
         break
-    else:
-        raise ValueError(f"scene {index}: no usable scene in {SCENE_ATTEMPTS} attempts (seed {cfg.seed})"
-                         + (f": no view pair overlapped within --overlap {cfg.overlap_lo} {cfg.overlap_hi}; widen it"
-                            if cfg.kind == "pairs" else ""))
+    else:  # the views are drawn to overlap within --overlap (CameraConfig) and pairs kept within it: a narrow range
+        # is the usual cause, a degenerate scene drawn eight times in a row the rare one
+        raise ValueError(f"scene {index}: no usable scene in {SCENE_ATTEMPTS} attempts (seed {cfg.seed}): no view set "
+                         f"overlapped within --overlap {cfg.overlap_lo} {cfg.overlap_hi}; widen it")
     prefix = f"scene-{index:08d}"
     v0 = vs.views[0]
     meta = {

@@ -210,6 +210,9 @@ class ShardReader:
             if str(self.path) in str(e):
                 raise
             raise ShardError(f"shard {self.path}: member {name!r}: {e}") from None
+        except Exception as e:  # noqa: BLE001 - OpenCV's own errors (an empty member): one message
+            raise ShardError(f"shard {self.path}: member {name!r} is not a readable PNG "
+                             f"({e.__class__.__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else e})") from None
 
     def scenes(self) -> list[str]:
         """Scene prefixes (``scene-XXXXXXXX``) in stored order."""

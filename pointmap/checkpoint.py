@@ -260,8 +260,11 @@ def check_state(state, path) -> None:
 def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapNet:
     ckpt = _torch_load(path)
     if isinstance(ckpt, dict) and {"model", "model_config", "step"} <= set(ckpt):
+        way = (f"make one with `python -m training.ship --ckpt {path} --out model.safetensors`"
+               if ckpt.get("kind") in (None, "train") else
+               f"a {ckpt.get('kind')!r} run's: start pointmap training from it with `python -m training.train --init {path}`")
         raise CheckpointError(f"{path} is a pointmap training checkpoint (weights with optimizer state), not a model "
-                              f"file: make one with `python -m training.ship --ckpt {path} --out model.safetensors`")
+                              f"file: {way}")
     if not isinstance(ckpt, dict) or "model" not in ckpt:
         raise CheckpointError(f"{path} is not a DUSt3R/MASt3R checkpoint: expected a dict with 'model' and 'args'")
     check_state(ckpt["model"], path)
@@ -346,6 +349,13 @@ def dequantize_int8(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     return (q.float().reshape(q.shape[0], -1) * scale[:, None]).reshape(q.shape)
 
 
+def provenance_ok(prov) -> bool:
+    """Whether ``prov`` is a provenance ``save_model`` writes and ``load_model`` reads: a dict whose ``image_size``
+    (the input size the model was trained at, ``model_input_size``), if any, is a positive int."""
+    size = prov.get("image_size") if isinstance(prov, dict) else None
+    return isinstance(prov, dict) and (size is None or (is_int(size) and size > 0))
+
+
 def _provenance_value(x):
     """JSON for what ``json`` does not take itself in a provenance: numpy scalars and arrays, tensors, paths."""
     if isinstance(x, (np.generic, np.ndarray)):
@@ -372,6 +382,9 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     prov = provenance or getattr(model, "provenance", {}) or {}
     if not isinstance(prov, dict):
         raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
+    if not provenance_ok(prov):  # what load_model would refuse is not written
+        raise ShapeError(f"provenance's image_size expected a positive int (the training input size), got "
+                         f"{prov.get('image_size')!r}")
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ShapeError(f"save_model expected a file path, got {path!r}")
     path = Path(path)
@@ -455,8 +468,7 @@ def load_own(path: Path) -> PointmapNet:
         model.provenance = json.loads(meta.get("provenance", "{}"))
     except json.JSONDecodeError as e:
         raise CheckpointError(f"{path} has broken provenance metadata: {e}") from None
-    size = model.provenance.get("image_size") if isinstance(model.provenance, dict) else None
-    if not isinstance(model.provenance, dict) or not (size is None or (is_int(size) and size > 0)):
+    if not provenance_ok(model.provenance):
         raise CheckpointError(f"{path} has broken provenance metadata: expected a JSON object whose image_size, if "
                               f"any, is a positive int, got {meta.get('provenance', '')[:80]!r}")
     warn_if_noncommercial(model, path, "these weights (derived from official ones)")

@@ -119,8 +119,9 @@ class Reconstruction:
         if not hasattr(self.original_sizes, "__len__") or len(self.original_sizes) != n or not all(
                 hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) and x > 0 for x in s)
                 for s in self.original_sizes):
+            got = self.original_sizes
             raise ShapeError(f"original_sizes expected {n} (width, height) pairs of positive ints, got "
-                             f"{list(self.original_sizes)[:4]}")
+                             f"{list(got)[:4] if hasattr(got, '__len__') else type(got).__name__}")
         if self.names is None:
             self.names = [f"view_{i:03d}.png" for i in range(n)]
         self.names = list(self.names)

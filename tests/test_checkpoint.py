@@ -327,7 +327,9 @@ def test_save_model_refuses_what_is_not_a_model_a_path_or_a_provenance_and_weigh
                             ((model, tmp_path / "m"), {"provenance": "abc"}, "provenance expected a dict, got str"),
                             ((model, tmp_path / "m"), {"dtype": "fp16"}, "dtype expected None, torch.float16"),
                             ((model, tmp_path / "m"), {"provenance": {"when": object()}},
-                             "provenance expected JSON values .*got object")):
+                             "provenance expected JSON values .*got object"),
+                            ((model, tmp_path / "m"), {"provenance": {"image_size": 224.0}},
+                             "provenance's image_size expected a positive int .*got 224.0")):
         with pytest.raises(ValueError, match=named):
             pm.save_model(*args, **kw)
     assert not list(tmp_path.iterdir())  # nothing written

@@ -373,9 +373,6 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if lost:
             raise CheckpointError(f"{last} cannot be resumed: it has no {', '.join(lost)} (a weights-only file?); "
                                   f"use a new --out with --init {last}, or --resume false to start over in this one")
-        if int(ck["step"]) >= cfg.steps:
-            print(f"warning: {last} is at step {ck['step']}, --steps is {cfg.steps}: nothing left to train (raise "
-                  "--steps to go on)", file=sys.stderr)
         if ck.get("kind") not in (None, cfg.task):
             raise CheckpointError(f"{last} is a {ck.get('kind')!r} checkpoint and this run is {cfg.task!r}: use a new "
                                   "--out, or --resume false to start over in this one")
@@ -410,6 +407,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         if (cfg.decay_by_time and cfg.keep_decay and saved.get("decay_by_time")
                 and start > saved["steps"] - saved["decay_steps"]):
             cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
+        if start >= cfg.steps and rank == 0:
+            print(f"warning: {last} is at step {start}, --steps is {cfg.steps}: nothing left to train, only the final "
+                  "evaluation runs if it is owed (raise --steps to go on)", file=sys.stderr)
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         fresh_groups = make_optimizer(model, cfg, lr_scale).param_groups
         for group, fresh in zip(optimizer.param_groups, fresh_groups):

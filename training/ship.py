@@ -185,8 +185,8 @@ def main(argv=None) -> int:
         metrics = last_eval(Path(a.metrics)) if a.metrics else {}
         cfg = ck.get("train_config")
         if not isinstance(cfg, dict) or not {"size", "batch_size", "data", "eval_data"} <= set(cfg):
-            raise CheckpointError(f"{a.ckpt[-1]}: the run's train_config (size, batch_size, data) the shipped file "
-                                  "records is missing: not a checkpoint written by python -m training.train")
+            raise CheckpointError(f"{a.ckpt[-1]}: the run's train_config the shipped file records is missing (size, "
+                                  "batch_size, data, eval_data): not a checkpoint written by python -m training.train")
         out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
         if out.is_dir():
             raise ValueError(f"--out expected a file to write the weights to, got the folder {out}")

@@ -26,6 +26,15 @@ class PatchEmbed(nn.Module):
         return self.proj(x).flatten(2).transpose(1, 2)
 
 
+def _autocast_on(device_type: str) -> bool:
+    """Whether autocast is on for ``device_type`` (its tokens may then be bf16): torch >= 2.4 takes the device type,
+    older versions answer for CUDA only and have ``is_autocast_cpu_enabled``."""
+    try:
+        return torch.is_autocast_enabled(device_type)
+    except TypeError:
+        return torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled()
+
+
 class Encoded:
     """Encoder output of a batch of images: tokens [B, N, enc_dim], the patch grid (h, w), and for a model
     with a descriptor stem its local features ``local`` [B, N, desc_stem * patch**2] (else None)."""
@@ -202,8 +211,7 @@ class PointmapNet(nn.Module):
             t = enc.tokens
             if t.is_meta:  # shapes only (the pipeline counts FLOPs on the meta device): no values to check
                 continue
-            if ref is not None and (t.device != ref.device or (
-                    t.dtype != ref.dtype and not torch.is_autocast_enabled(t.device.type))):  # autocast: bf16 tokens
+            if ref is not None and (t.device != ref.device or (t.dtype != ref.dtype and not _autocast_on(t.device.type))):
                 raise ShapeError(f"{name} expected tokens of the model's {ref.dtype} on {ref.device}, got {t.dtype} "
                                  f"on {t.device}")
             if not bool(torch.isfinite(t).all()):
@@ -212,6 +220,10 @@ class PointmapNet(nn.Module):
     def decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
         """Decoders and heads on cached encoder outputs (used by inference to encode each image once)."""
         self.check_encodings(enc1, enc2)
+        return self._decode_pair(enc1, enc2)
+
+    def _decode_pair(self, enc1: Encoded, enc2: Encoded) -> PairPrediction:
+        """``decode_pair`` unchecked: for encodings this model has just made (``forward``, each training step)."""
         tok1, tok2 = self.decode(enc1, enc2)
         return self.heads(tok1, tok2, enc1.grid, enc2.grid, enc1.local, enc2.local)
 
@@ -226,4 +238,4 @@ class PointmapNet(nn.Module):
             enc1, enc2 = both.split([B, B])
         else:
             enc1, enc2 = self._encode(img1), self._encode(img2)
-        return self.decode_pair(enc1, enc2)
+        return self._decode_pair(enc1, enc2)

@@ -337,7 +337,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     fit_masks = {lv: [_level_view(recon, recon.masks, i, lv, _resize_mask) if user_masked else None
                       for i in range(n)] for lv in levels}
     # a view whose masks keep no pixel has nothing to fit: its steps would be spent on a loss of 0
-    fitted = [i for i in range(n) if not user_masked or bool(recon.masks[i].any())]
+    fitted = [i for i in range(n) if not user_masked or all(bool(fit_masks[lv][i].any()) for lv in levels)]
     if not fitted:
         raise ShapeError("fit: the reconstruction's masks keep no pixel of any view: nothing to fit")
     if len(fitted) < n:

@@ -290,11 +290,14 @@ def test_a_member_that_does_not_decode_is_a_shard_error_naming_the_shard_and_the
             info = tarfile.TarInfo(name)
             info.size = 12
             tf.addfile(info, io.BytesIO(b"not an image"))
+        tf.addfile(tarfile.TarInfo("scene-1/view-1.png"), io.BytesIO(b""))  # empty: OpenCV raises its own error
     reader = ShardReader(path)
     with pytest.raises(ShardError, match=r"shard-000000.tar: member 'scene-1/view-0.npz' is not a readable .npz"):
         reader.read_npz("scene-1/view-0.npz")
     with pytest.raises(ShardError, match=r"shard-000000.tar: member 'scene-1/view-0.png': a PNG member could not"):
         reader.read_png("scene-1/view-0.png")
+    with pytest.raises(ShardError, match=r"shard-000000.tar: member 'scene-1/view-1.png'"):
+        reader.read_png("scene-1/view-1.png")
     with pytest.raises(ShardError, match="has no member 'scene-2/view-0.npz'"):
         reader.read_npz("scene-2/view-0.npz")
 

@@ -119,7 +119,7 @@ def test_an_overlap_no_scene_can_meet_is_one_line_naming_the_flag(tmp_path, caps
     assert main(["--out", str(tmp_path / "x"), "--scenes", "1", "--size", "64", "--views", "2", "--overlap", "0.999",
                  "1.0", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "no view pair overlapped within --overlap 0.999 1.0; widen it" in err[0]
+    assert len(err) == 1 and "no view set overlapped within --overlap 0.999 1.0; widen it" in err[0]
 
 
 def test_resuming_with_another_configuration_is_refused(tmp_path):

@@ -835,7 +835,7 @@ def test_a_checkpoint_with_nan_weights_or_a_bad_step_is_refused_and_one_without_
         fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
     torch.save(ck, tmp_path / "last.pt")
     fit(config(tmp_path, 2), PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
-    assert "is at step 2, --steps is 2: nothing left to train" in capsys.readouterr().err
+    assert "is at step 2, --steps is 2: nothing left to train, only the final evaluation" in capsys.readouterr().err
 
 
 def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(tmp_path):
