@@ -194,21 +194,19 @@ class ShardReader:
     def read_npz(self, name: str) -> dict:
         """Member ``name`` decoded as an ``.npz``; ShardError naming the shard and the member when it cannot be (a
         shard that passed its checksum can still have been written wrong)."""
+        data = self.read(name)  # its own ShardError (no such member, truncated) names both already
         try:
-            return read_npz(self.read(name))
-        except ShardError:
-            raise
+            return read_npz(data)
         except Exception as e:  # noqa: BLE001 - zip, zlib and numpy format errors alike: one message
             raise ShardError(f"shard {self.path}: member {name!r} is not a readable .npz "
                              f"({e.__class__.__name__}: {e})") from None
 
     def read_png(self, name: str) -> np.ndarray:
         """Member ``name`` decoded as an RGB PNG; ShardError naming the shard and the member when it cannot be."""
+        data = self.read(name)
         try:
-            return read_png(self.read(name))
-        except ShardError as e:
-            if str(self.path) in str(e):
-                raise
+            return read_png(data)
+        except ShardError as e:  # read_png's own "could not be decoded", which names neither
             raise ShardError(f"shard {self.path}: member {name!r}: {e}") from None
         except Exception as e:  # noqa: BLE001 - OpenCV's own errors (an empty member): one message
             raise ShardError(f"shard {self.path}: member {name!r} is not a readable PNG "

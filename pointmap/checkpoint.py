@@ -358,9 +358,7 @@ def provenance_ok(prov) -> bool:
 
 def _provenance_value(x):
     """JSON for what ``json`` does not take itself in a provenance: numpy scalars and arrays, tensors, paths."""
-    if isinstance(x, (np.generic, np.ndarray)):
-        return x.tolist()
-    if torch.is_tensor(x):
+    if isinstance(x, (np.generic, np.ndarray)) or torch.is_tensor(x):
         return x.tolist()
     if isinstance(x, os.PathLike):
         return os.fspath(x)

@@ -186,11 +186,11 @@ class Reconstruction:
         """[N, h, w, 3] colours in [0, 1]."""
         return self.images
 
-    def valid(self, min_conf: float = 0.0) -> torch.Tensor:
-        """[N, h, w] bool: depth present, confidence above ``min_conf``, inside the user mask and the view's own
-        pixels (``regions``)."""
+    def valid(self, min_conf: float = 0.0, *, masked: bool = True) -> torch.Tensor:
+        """[N, h, w] bool: depth present, confidence above ``min_conf``, inside the user mask (unless ``masked`` is
+        False) and the view's own pixels (``regions``)."""
         ok = (self.depth_z > 0) & (self.conf > min_conf)
-        if self.masks is not None:
+        if masked and self.masks is not None:
             ok = ok & self.masks
         if self.padded:
             ok = ok & self.regions

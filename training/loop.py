@@ -569,8 +569,8 @@ def error_line(e: BaseException) -> str:
     text = str(e)
     if "Original Traceback" in text:
         last = next((ln for ln in reversed(text.splitlines()) if ln.strip()), text)
-        text = last.split(": ", 1)[1] if ": " in last and last.split(": ", 1)[0].replace(".", "").isidentifier() \
-            else last
+        kind, sep, message = last.partition(": ")  # "data.shards.ShardError: <message>"
+        text = message if sep and kind.replace(".", "").isidentifier() else last
     return text
 
 

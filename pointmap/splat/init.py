@@ -97,10 +97,7 @@ def check_has_points(recon: Reconstruction, min_conf: float = 0.0) -> None:
     inside the reconstruction's masks: the Gaussians start from those points."""
     if recon.valid(min_conf).any():
         return
-    has_depth = (recon.depth_z > 0) & (recon.conf > min_conf)
-    if recon.padded:
-        has_depth = has_depth & recon.regions
-    if not has_depth.any():
+    if not recon.valid(min_conf, masked=False).any():
         raise ShapeError(f"no pixel of the reconstruction has depth > 0 and confidence > {min_conf}: nothing to start "
                          "Gaussians from")
     raise ShapeError("the reconstruction's masks (recon.masks) keep none of its pixels with depth: nothing to start "
