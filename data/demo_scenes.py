@@ -61,7 +61,7 @@ def render_demo(out: Path, views: int = 3, size: int = 320) -> list[Path]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m data.demo_scenes", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default="pointmap/demo_scenes")
     p.add_argument("--views", type=int, default=3)
     a = p.parse_args(argv)

@@ -110,7 +110,7 @@ def format_table(names: list[str], summaries: list[dict]) -> str:
 def main(argv=None) -> int:
     from data.shards import ShardError
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m data.stats", description=__doc__.split("\n\n")[0])
     p.add_argument("roots", nargs="+", help="pair sets rendered with --kind pairs")
     p.add_argument("--split", default="all", choices=("all", "train", "val"))
     p.add_argument("--verify", action="store_true", help="check every shard's sha256 first (slow)")

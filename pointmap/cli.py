@@ -661,7 +661,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("images", nargs=2, metavar="IMG")
     a.add_argument("-o", "--out", required=True)
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
-    a.add_argument("--size", type=int, default=None, help="network input size (224 or 512; default: the model's)")
+    a.add_argument("--size", type=int, default=None, help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
     a.add_argument("--focal", default=None, metavar="F[,F2]",
                    help="known focal length(s) in original pixels (principal point at the centre): stored instead "
                         "of the estimate, and the pose is refined on the model's matches with them (without it: "
@@ -682,8 +682,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-frames", dest="max_frames", type=int, default=30,
                    help="video: at most this many frames when --stride is not given (default 30)")
     r.add_argument("-o", "--out", required=True)
-    r.add_argument("--model", default=DEFAULT_MODEL)
-    r.add_argument("--size", type=int, default=None)
+    r.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
+    r.add_argument("--size", type=int, default=None,
+                   help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
     r.add_argument("--whole", action="store_true",
                    help="every photograph at its own shape, even at 224 (the long side to --size, e.g. 224x160 for a "
                         "4:3 landscape) instead of 224's square crop, which drops a quarter of a 4:3 photograph")
@@ -768,7 +769,9 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("recon", help="directory written by 'pointmap reconstruct', or its reconstruction.npz")
     loc.add_argument("images", nargs="+", metavar="IMG", help="image files, folders of them, or a video")
     loc.add_argument("-o", "--out", required=True, help="folder for localization.json and trajectory.txt (TUM)")
-    loc.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors or official .pth")
+    loc.add_argument("--model", default=DEFAULT_MODEL,
+                     help="shipped model name, .safetensors, official .pth or ONNX (exported with --split: ranking "
+                          "the references needs the encoder's tokens)")
     loc.add_argument("--focal", default=None, metavar="F[,F...]",
                      help="known focal length(s) in original pixels (principal point at the centre); default: "
                           "estimated from each pair")
@@ -789,12 +792,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", parents=[common], help="reconstruct the demo scenes shipped with the package")
     d.add_argument("-o", "--out", default="demo_out")
-    d.add_argument("--model", default=DEFAULT_MODEL)
+    d.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     d.set_defaults(fn=cmd_demo)
+    where = {r: " The alignment runs on the CPU.", s: " Used only with --test; the splat fit runs on the CPU."}
     for cmd in (a, r, s, loc, d):  # every command that runs the network
         cmd.add_argument("--device", default="auto", help="where the network runs: auto (CUDA, then MPS, then the "
-                         "CPU: the first torch can use; default), cpu, cuda, cuda:N or mps. The alignment and the "
-                         "splat fit run on the CPU (splat uses it only with --test)")
+                         "CPU: the first torch can use; default), cpu, cuda, cuda:N or mps." + where.get(cmd, ""))
     return p
 
 

@@ -67,8 +67,20 @@ def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="c
 def pooled_tokens(model, views, batch_size: int = 8, device="cpu") -> torch.Tensor:
     """[N, D] unit vectors: each image's mean encoder token, a global descriptor (``localize`` ranks references by
     its cosine; views: Views or [3, H, W] tensors)."""
-    enc = encode_views(model, _as_images(views), batch_size, device, caller="pooled_tokens")
+    enc = _require_tokens(encode_views(model, _as_images(views), batch_size, device, caller="pooled_tokens"),
+                          "pooled_tokens (what localize ranks references by when refs is None)",
+                          "export with --split, or give localize its refs")
     return torch.nn.functional.normalize(torch.cat([e.tokens.float().mean(1).cpu() for e in enc]), dim=-1)
+
+
+def _require_tokens(encodings, caller: str, remedy: str = "export with --split, or use another graph"):
+    """``encodings`` unchanged unless they are the images a single-graph ONNX export defers to the pair graph
+    (tokens [1, 3, H, W]): then CheckpointError naming ``caller``, which needs the encoder's tokens, and ``remedy``."""
+    if isinstance(encodings, (list, tuple)) and any(getattr(getattr(e, "tokens", None), "ndim", 3) == 4
+                                                    for e in encodings):
+        raise CheckpointError(f"{caller} needs the encoder's tokens, which a single-graph ONNX export does not give "
+                              f"(it encodes inside each pair): {remedy}")
+    return encodings
 
 
 def checked_encodings(encodings, imgs: list[torch.Tensor]) -> list:
@@ -103,11 +115,7 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu", *, encodin
     imgs = _as_images(views)
     if encodings is None:
         encodings = encode_views(model, imgs, batch_size, device, caller="image_similarity")
-    if isinstance(encodings, (list, tuple)) and any(getattr(getattr(e, "tokens", None), "ndim", 3) == 4
-                                                    for e in encodings):  # images, deferred to the pair graph
-        raise CheckpointError("image_similarity needs the encoder's tokens, which a single-graph ONNX export does "
-                              "not give (it encodes inside each pair): export with --split, or use another graph")
-    enc = checked_encodings(encodings, imgs)
+    enc = checked_encodings(_require_tokens(encodings, "image_similarity"), imgs)
     toks = [torch.nn.functional.normalize(e.tokens[0].float().cpu(), dim=-1) for e in enc]  # off the GPU
     del enc
     n = len(toks)

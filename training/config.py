@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import inspect
+import io
 import json
 import math
 import sys
+import tokenize
 from dataclasses import MISSING, asdict, dataclass, fields
 
 
@@ -22,15 +25,15 @@ class TrainConfig:
     resume: bool = True            # continue from out/last.pt when it exists
     size: int = 224                # training resolution (long side)
     batch_size: int = 8            # per process
-    steps: int = 20000
-    lr: float = 2e-4
-    min_lr: float = 1e-6
-    warmup: int = 500
+    steps: int = 20000             # optimizer steps in all (the schedule's length)
+    lr: float = 2e-4               # AdamW's peak learning rate (after warmup)
+    min_lr: float = 1e-6           # the learning rate at the schedule's end
+    warmup: int = 500              # steps of linear warmup from 0 to --lr
     schedule: str = "cosine"       # after warmup: "cosine" to min_lr at --steps, or "wsd" (warmup-stable-decay):
                                    # constant lr, then the last --decay_steps fall to min_lr (1 - sqrt shape)
     decay_steps: int = 0           # wsd: length of the final decay (its first step also saves out/stable_<step>.pt)
-    weight_decay: float = 0.05
-    clip: float = 1.0
+    weight_decay: float = 0.05     # AdamW's (betas 0.9, 0.95)
+    clip: float = 1.0              # the gradient's global norm is clipped to this
     alpha: float = 0.2             # confidence regulariser of the regression loss
     conf_reset: float = 0.0        # > 0: restart both heads' confidence channel at this confidence everywhere
                                    # (weights 0, bias set; must be above the floor of 1) before training from
@@ -48,9 +51,9 @@ class TrainConfig:
                                    # by mirrored cameras: data.PairDataset; 0 replays earlier recipes exactly)
     pad_p: float = 0.0             # probability that each view of a training pair is letterboxed (a band at two
                                    # edges flat grey and invalid: data.PairDataset; 0 replays earlier recipes)
-    temperature: float = 0.05
+    temperature: float = 0.05      # InfoNCE temperature of the pixel matching loss
     coarse_weight: float = 0.0     # weight of the patch-level InfoNCE (losses.patch_matching_loss; 0 = off)
-    coarse_temperature: float = 0.1
+    coarse_temperature: float = 0.1  # InfoNCE temperature of the patch-level matching loss
     attn_weight: float = 0.0       # weight of the cross-attention supervision (losses.cross_attention_loss; 0 = off)
     pose_head: bool = False        # build --preset with a pose head (model.heads.PoseHead): rigid view-2 points
     desc_stem: int = 0             # > 0: build --preset with a descriptor stem of this many channels (DescStem)
@@ -71,14 +74,14 @@ class TrainConfig:
     train_only: str = ""           # "PREFIX[,PREFIX...]": only parameters whose names start with one of these train
                                    # (e.g. "pose_head"); the rest is frozen (unchanged, no gradient computed)
     mask_ratio: float = 0.9        # pretraining
-    ckpt_every: int = 200
+    ckpt_every: int = 200          # write out/last.pt (atomically, resumable) every this many steps
     ckpt_minutes: float = 10.0     # also checkpoint when this much wall time passed since the last one (0: off), so
                                    # a slow run killed outright loses minutes, not ckpt_every steps; SIGTERM itself
                                    # checkpoints the current step and stops (resume with the same command)
-    eval_every: int = 1000
-    eval_pairs: int = 64
-    log_every: int = 10
-    seed: int = 0
+    eval_every: int = 1000         # evaluate on --eval_data every this many steps
+    eval_pairs: int = 64           # held-out pairs per evaluation
+    log_every: int = 10            # a row of train.csv and TensorBoard every this many steps
+    seed: int = 0                  # seeds initialisation, data order and augmentation
     workers: int = 1               # data-loading processes
     threads: int = 0               # torch threads (0: torch default)
     max_minutes: float = 0.0       # stop (after a checkpoint) when this wall time is spent; 0 = no limit
@@ -94,18 +97,21 @@ class TrainConfig:
                                    # losses are always computed in float32
     compile: bool = False          # torch.compile the training forward/backward (1.24x on 2 CPU threads; ~2 min
                                    # of compilation per image shape, docs/benchmarks.md); evaluation stays eager
-    quiet: bool = False
+    quiet: bool = False            # no progress bar
 
     @classmethod
-    def from_args(cls, argv=None) -> TrainConfig:
-        p = argparse.ArgumentParser(description="pointmap training (see docs/training.md)")
+    def from_args(cls, argv=None, prog: str | None = None) -> TrainConfig:
+        p = argparse.ArgumentParser(prog=prog, description="pointmap training (see docs/training.md)")
         p.add_argument("--config", default=None, help="JSON file with config values (CLI flags override it)")
+        notes = field_comments(cls)
         for f in fields(cls):
             default = f.default if f.default is not MISSING else None
+            text = f"{notes[f.name]} " if f.name in notes else ""
+            text = (text + f"(default: {default!r})").replace("%", "%%")
             if isinstance(default, bool):
-                p.add_argument(f"--{f.name}", type=_bool, default=None, metavar="BOOL")
+                p.add_argument(f"--{f.name}", type=_bool, default=None, metavar="BOOL", help=text)
             else:
-                p.add_argument(f"--{f.name}", type=type(default), default=None)
+                p.add_argument(f"--{f.name}", type=type(default), default=None, help=text)
         ns = p.parse_args(argv)
         values = {}
         if ns.config:
@@ -221,6 +227,30 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     if not 0 < cfg.mask_ratio < 1:
         out.append(f"--mask_ratio expected a fraction in (0, 1), got {cfg.mask_ratio}")
     return out
+
+
+def field_comments(cls) -> dict[str, str]:
+    """Each dataclass field's comment in ``cls``'s source (the one on its line and the comment-only lines under
+    it), joined into one line: the ``--help`` text of its flag. {} when the source cannot be read."""
+    try:
+        lines = inspect.getsource(cls).splitlines(keepends=True)
+    except (OSError, TypeError):
+        return {}
+    comments = {t.start[0]: t.string.lstrip("#").strip()
+                for t in tokenize.generate_tokens(io.StringIO("".join(lines)).readline) if t.type == tokenize.COMMENT}
+    names = {f.name for f in fields(cls)}
+    notes, current = {}, None
+    for row, line in enumerate(lines, start=1):
+        head = line.split(":", 1)[0].strip()
+        if head in names and line.startswith("    ") and not line.startswith("     "):
+            current = head
+            if row in comments:
+                notes[current] = comments[row]
+        elif current is not None and line.strip().startswith("#") and row in comments:
+            notes[current] = f"{notes.get(current, '')} {comments[row]}".strip()
+        else:
+            current = None
+    return notes
 
 
 def _bool(s: str) -> bool:

@@ -477,7 +477,7 @@ def main(argv=None) -> int:
     from pointmap.images import INPUT_SIZE_RULE, is_input_size
     from training.mix import open_pairs
 
-    p = argparse.ArgumentParser(description=main.__doc__)
+    p = argparse.ArgumentParser(prog="python -m training.evaluate", description=main.__doc__)
     p.add_argument("--model", required=True)
     p.add_argument("--data", required=True, help="held-out shards (never trained on)")
     p.add_argument("--size", type=int, default=None,

@@ -130,7 +130,7 @@ def deepen(model: PointmapNet, *, enc_depth: int | None = None, dec_depth: int |
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m training.grow", description=__doc__.split("\n\n")[0])
     p.add_argument("--init", required=True, help="a model load_model reads (shipped name or .safetensors)")
     p.add_argument("--enc_depth", type=int, default=None)
     p.add_argument("--dec_depth", type=int, default=None)

@@ -2,7 +2,7 @@
 
 A scene folder holds its photographs (the folder's images, or those of its ``images/``), one depth map per
 photograph in ``depth/`` or ``depths/`` named by the photograph's stem (``.npy``: float z-depth in the cameras'
-units; ``.png``: 16-bit, times ``--png-depth-scale``, millimetres by default; 0, NaN or negative = no depth; any
+units; ``.png``: 16-bit, times ``--depth-png-scale``, millimetres by default; 0, NaN or negative = no depth; any
 resolution of the photograph's aspect ratio), and its cameras: a nerfstudio ``transforms.json`` or a COLMAP model
 (``sparse/0``), read as ``pointmap reconstruct --cameras`` reads them (OpenCV axes, cam2world, pixel centres at
 integers; docs/conventions.md). Photographs without a camera or a depth map are left out, with a note.
@@ -207,8 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenes", nargs="+", help="scene folders (photographs, depth/, transforms.json or sparse/0)")
     p.add_argument("--out", required=True, help="the dataset folder to write (training.train --data OUT)")
     p.add_argument("--max-side", type=int, default=512, help="long side of the stored views, pixels (default 512)")
-    p.add_argument("--png-depth-scale", type=float, default=1e-3,
-                   help="scene units per unit of a 16-bit depth PNG (default 0.001: millimetres to metres)")
+    p.add_argument("--depth-png-scale", "--png-depth-scale", dest="depth_png_scale", type=float, default=1e-3,
+                   help="scene units per unit of a 16-bit depth PNG (default 0.001: millimetres to metres; the name "
+                        "pointmap reconstruct uses, --png-depth-scale is kept as an alias)")
     p.add_argument("--overlap", default="0.15,0.95", help="lo,hi: the pairs kept (default 0.15,0.95, as rendered)")
     p.add_argument("--depth-tol", type=float, default=0.02,
                    help="relative depth agreement of a co-visible pixel (default 0.02; rendered sets use 0.005)")
@@ -230,7 +231,7 @@ def main(argv=None) -> int:
         print(f"error: --overlap expected lo,hi with 0 <= lo <= hi <= 1, got {args.overlap!r}", file=sys.stderr)
         return 2
     bad = [f"--{k.replace('_', '-')} expected > 0, got {getattr(args, k)}"
-           for k in ("max_side", "png_depth_scale", "depth_tol", "shard_size") if not getattr(args, k) > 0]
+           for k in ("max_side", "depth_png_scale", "depth_tol", "shard_size") if not getattr(args, k) > 0]
     if args.max_side > 1023:  # stored correspondences are 1/64-px fixed point in 16 bits (data.geom.CORR_MAX)
         bad.append(f"--max-side expected <= 1023 (the shards' correspondence format), got {args.max_side}")
     if bad:
@@ -242,7 +243,7 @@ def main(argv=None) -> int:
         return 2
     config = {"kind": "pairs", "source": "training.prepare", "seed": args.seed, "max_side": args.max_side,
               "pairs_per_view": args.pairs_per_view,
-              "png_depth_scale": args.png_depth_scale, "overlap": [lo, hi], "depth_tol": args.depth_tol,
+              "png_depth_scale": args.depth_png_scale, "overlap": [lo, hi], "depth_tol": args.depth_tol,
               "shard_size": args.shard_size, "scenes": [str(Path(s).resolve()) for s in args.scenes]}
     if (out / "config.json").is_file() and load_json(out / "config.json") != config:
         print(f"error: {out} holds a dataset of other scenes or settings: use a new --out", file=sys.stderr)
@@ -266,7 +267,7 @@ def main(argv=None) -> int:
 
     for scene in tqdm(args.scenes, desc="scenes", unit="scene"):
         try:
-            views = load_scene(scene, args.max_side, args.png_depth_scale, say=tqdm.write)
+            views = load_scene(scene, args.max_side, args.depth_png_scale, say=tqdm.write)
         except PointmapError as e:
             problems.append(str(e))
             tqdm.write(f"skipped: {e}")

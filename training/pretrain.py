@@ -53,7 +53,8 @@ TRAIN_ONLY = ("init", "init_heads", "conf_reset", "metric", "match_weight", "n_c
 
 
 def main(argv=None) -> int:
-    cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])])
+    cfg = TrainConfig.from_args(["--task", "pretrain", *(argv if argv is not None else sys.argv[1:])],
+                                prog="python -m training.pretrain")
     if cfg.task != "pretrain":
         print(f"error: --task {cfg.task} is python -m training.train's; training.pretrain runs cross-view completion",
               file=sys.stderr)

@@ -163,7 +163,7 @@ def _sources(paths) -> list[str]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m training.ship", description=__doc__.split("\n\n")[0])
     p.add_argument("--ckpt", required=True, nargs="+",
                    help="a training checkpoint, or several of one run to ship their weight average")
     p.add_argument("--weights", nargs="+", type=float, default=None,

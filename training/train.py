@@ -320,7 +320,7 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
 
 
 def main(argv=None) -> int:
-    cfg = TrainConfig.from_args(argv)
+    cfg = TrainConfig.from_args(argv, prog="python -m training.train")
     if cfg.task != "train":
         print("error: --task pretrain is python -m training.pretrain's (cross-view completion); training.train "
               "trains pointmaps + matching", file=sys.stderr)

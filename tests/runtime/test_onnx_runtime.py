@@ -170,14 +170,21 @@ def test_provider_resolution():
         "CPUExecutionProvider"
 
 
-def test_image_similarity_refuses_a_single_graph_export_and_agrees_with_eager_on_a_split_one(full_export,
-                                                                                              split_export, test_model):
-    from pointmap.inference import image_similarity
+def test_image_similarity_and_pooled_tokens_refuse_a_single_graph_export_and_agree_with_eager_on_a_split_one(
+        full_export, split_export, test_model):
+    from pointmap.inference import image_similarity, pooled_tokens
 
     imgs = [torch.rand(3, 48, 64, generator=torch.Generator().manual_seed(k)) for k in range(3)]
-    with pytest.raises(CheckpointError, match="single-graph ONNX export .* export with --split"):
-        image_similarity(pm.load_model(full_export), imgs)
-    assert torch.allclose(image_similarity(pm.load_model(split_export), imgs), image_similarity(test_model, imgs))
+    full, split = pm.load_model(full_export), pm.load_model(split_export)
+    with pytest.raises(CheckpointError, match="image_similarity needs .* single-graph ONNX export .* export with "
+                                              "--split"):
+        image_similarity(full, imgs)
+    # pooled tokens of a single-graph export were a mean over the images' colour channels, ranking by nonsense
+    with pytest.raises(CheckpointError, match="pooled_tokens .* single-graph ONNX export .* export with --split, or "
+                                              "give localize its refs"):
+        pooled_tokens(full, imgs)
+    assert torch.allclose(image_similarity(split, imgs), image_similarity(test_model, imgs))
+    assert torch.allclose(pooled_tokens(split, imgs), pooled_tokens(test_model, imgs), atol=1e-5)
 
 
 def test_a_requested_provider_that_onnxruntime_could_not_start_is_reported_not_silently_replaced_by_the_cpu(

@@ -122,7 +122,9 @@ def test_a_second_run_with_other_settings_is_refused_and_bad_options_too(tmp_pat
     assert "holds a dataset of other scenes or settings" in capsys.readouterr().err
     for bad, message in [(["--overlap", "0.9,0.1"], "--overlap expected lo,hi"),
                          (["--max-side", "0"], "--max-side expected > 0"),
-                         (["--max-side", "2048"], "--max-side expected <= 1023")]:
+                         (["--max-side", "2048"], "--max-side expected <= 1023"),
+                         (["--depth-png-scale", "0"], "--depth-png-scale expected > 0"),  # reconstruct's name
+                         (["--png-depth-scale", "-1"], "--depth-png-scale expected > 0")]:  # the old one, an alias
         assert main([str(tmp_path / "s"), "--out", str(tmp_path / "o2"), *bad]) == 2
         assert message in capsys.readouterr().err
     assert main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o3")]) == 2
