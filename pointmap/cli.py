@@ -661,7 +661,8 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("images", nargs=2, metavar="IMG")
     a.add_argument("-o", "--out", required=True)
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
-    a.add_argument("--size", type=int, default=None, help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
+    a.add_argument("--size", type=int, default=None,
+                   help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
     a.add_argument("--focal", default=None, metavar="F[,F2]",
                    help="known focal length(s) in original pixels (principal point at the centre): stored instead "
                         "of the estimate, and the pose is refined on the model's matches with them (without it: "
