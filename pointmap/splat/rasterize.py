@@ -372,9 +372,8 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, wid
     Kg[0, 2] = K[0, 2] + 0.5   # gsplat puts pixel centres at i + 0.5
     Kg[1, 2] = K[1, 2] + 0.5
     bg = None if background is None else background.reshape(1, -1)
-    colors_in = torch.cat([colors, torch.zeros_like(colors[:, :1])], -1)
-    img, alpha, meta = gsplat.rasterization(
-        means, quats, scales, opacities, colors_in, world2cam[None], Kg[None], width, height,
+    img, alpha, meta = gsplat.rasterization(  # "RGB+ED": gsplat appends the expected depth to the colours itself
+        means, quats, scales, opacities, colors, world2cam[None], Kg[None], width, height,
         near_plane=near, eps2d=eps2d, packed=False, render_mode="RGB+ED", backgrounds=None)
     rgb = img[0, ..., :-1]
     depth = img[0, ..., -1]

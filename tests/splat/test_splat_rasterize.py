@@ -158,3 +158,33 @@ def test_gsplat_backend_falls_back_on_cpu():
     assert torch.equal(img, ref)
     assert any("gsplat backend unavailable" in str(w.message) for w in rec)
     assert math.isfinite(float(img.sum()))
+
+
+def test_the_gsplat_glue_gives_the_torch_backends_image_depth_and_alpha_under_gsplats_contract(monkeypatch):
+    """No GPU here: a stand-in for ``gsplat.rasterization`` keeps gsplat's contract (pixel centres at i + 0.5;
+    "RGB+ED" appends the expected depth to the colours' channels itself) and renders with the torch backend, so
+    the glue's conversions are what is tested. The glue once added a channel of its own: four colour channels."""
+    import sys
+    import types
+
+    rz = sys.modules["pointmap.splat.rasterize"]
+
+    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane, eps2d,
+                      packed, render_mode, backgrounds):
+        assert render_mode == "RGB+ED" and backgrounds is None and not packed
+        K = Ks[0].clone()
+        K[:2, 2] -= 0.5
+        out = rasterize(means, quats, scales, opacities, colors, viewmats[0], K, width, height, near=near_plane,
+                        eps2d=eps2d)
+        img = torch.cat([out.image, out.depth[..., None]], -1)[None]
+        return img, out.alpha[None, ..., None], {"radii": out.radii[None], "means2d": out.means2d[None]}
+
+    monkeypatch.setitem(sys.modules, "gsplat", types.SimpleNamespace(rasterization=rasterization))
+    W, H = 20, 16
+    a = [t.float() for t in _scene(30, W, H)]
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    ref = rasterize(*a, W, H, background=bg)
+    got = rz._rasterize_gsplat(*a, W, H, bg, 0.01, 0.3)
+    assert got.image.shape == (H, W, 3)
+    assert torch.allclose(got.image, ref.image, atol=1e-6)
+    assert torch.allclose(got.alpha, ref.alpha) and torch.equal(got.radii, ref.radii)
