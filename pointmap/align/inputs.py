@@ -181,4 +181,25 @@ def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
         if not bool(is_rigid(T)):
             raise ConventionError(f"cam2world[{i}] is not a rigid transform (rotation must be orthonormal "
                                   "with det +1, last row 0 0 0 1); pass OpenCV camera-to-world matrices")
+    check_pose_origin(out)
     return out
+
+
+def check_pose_origin(known: dict) -> None:
+    """ConventionError when the known cameras lie so far from the origin, for their spread, that float32 (what
+    the alignment and the Reconstruction hold poses and points in) would round their positions by more than 1e-3
+    of that spread (one known camera fixes no scale, and the scene is then about one unit across: 1e-3 unit).
+    Georeferenced poses (UTM, ECEF: millions of metres) are the case: with them the alignment's depths came out
+    31% wrong and its free cameras metres off, without a word. Subtracting an offset first fixes it."""
+    if not known:
+        return
+    centres = torch.stack([T[:3, 3].double() for T in known.values()])
+    far = float(centres.abs().max())
+    spread = float(torch.cdist(centres, centres).max()) if len(known) > 1 else 1.0
+    rounding = far * 2.0 ** -24
+    if rounding > 1e-3 * spread:
+        offset = ", ".join(f"{x:.6g}" for x in centres.mean(0).tolist())
+        raise ConventionError(f"known poses lie up to {far:.6g} units from the origin against a spread of "
+                              f"{spread:.4g}: float32 (the alignment's precision) would round their positions by "
+                              f"~{rounding:.2g} units; subtract an offset from the poses' translations (e.g. their "
+                              f"mean centre, {offset}) and add it back to the outputs")

@@ -113,18 +113,20 @@ def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
             & ((Td[..., 3, :] - bottom).abs().amax(-1) <= 1e-6))
 
 
-K_LAYOUT = "[[fx, s, cx], [0, fy, cy], [0, 0, 1]]"  # pinhole intrinsics in pixels, as is_pinhole_K accepts them
+K_LAYOUT = "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"  # pinhole intrinsics in pixels, as is_pinhole_K accepts them
 
 
 def is_pinhole_K(K, atol: float = 1e-6) -> torch.Tensor:
-    """[...] bool: whether each [..., 3, 3] ``K`` is finite pinhole intrinsics in pixels, [[fx, s, cx], [0, fy, cy],
-    [0, 0, 1]] with fx, fy > 0 (the zeros and the 1 within ``atol``). A transposed K (cx, cy in the bottom row) fails.
+    """[...] bool: whether each [..., 3, 3] ``K`` is finite pinhole intrinsics in pixels, [[fx, 0, cx], [0, fy, cy],
+    [0, 0, 1]] with fx, fy > 0 (the zeros and the 1 within ``atol``). A transposed K (cx, cy in the bottom row) fails,
+    and so does a skew (K[0, 1]): every unprojection, projection and export here is skew-free and would drop it.
     Accepts tensors and arrays."""
     K = torch.as_tensor(K).double()
     check_shape("K", K, (..., 3, 3))
     bottom = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=K.device)
     return (torch.isfinite(K).all(-1).all(-1) & (K[..., 0, 0] > 0) & (K[..., 1, 1] > 0)
-            & (K[..., 1, 0].abs() <= atol) & ((K[..., 2, :] - bottom).abs().amax(-1) <= atol))
+            & (K[..., 1, 0].abs() <= atol) & (K[..., 0, 1].abs() <= atol)
+            & ((K[..., 2, :] - bottom).abs().amax(-1) <= atol))
 
 
 def similarity_on_cam2world(cam2world: torch.Tensor, scale: float, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

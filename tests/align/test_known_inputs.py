@@ -112,3 +112,24 @@ def test_a_transposed_K_fractional_image_keys_and_a_pose_mask_beside_a_dict_are_
         global_align(views_of(scene), preds, cam2world={1.9: c2w[1]}, config=QUIET)
     with pytest.raises(ShapeError, match="pose_mask expected only with a \\[N, 4, 4\\] cam2world"):
         global_align(views_of(scene), preds, cam2world={1: c2w[1]}, pose_mask=[True] * 5, config=QUIET)
+
+
+def test_known_poses_too_far_from_the_origin_for_float32_are_refused_with_the_offset_to_subtract(scene):
+    """Georeferenced poses (UTM: millions of metres) came back with depths 31% wrong and free cameras metres off,
+    without a word; within float32's reach the free cameras land where they belong."""
+    preds = gt_preds(scene, complete_pairs(5), seed=2)
+    c2w = torch.from_numpy(scene["cam2world"]).double()
+    for shift, ok in ((6e4, True), (4e6, False)):
+        moved = c2w.clone()
+        moved[:, :3, 3] += torch.tensor([1.0, 0.07, 1.2], dtype=torch.float64) * shift
+        known = {0: moved[0], 3: moved[3]}
+        if not ok:
+            with pytest.raises(ConventionError, match=r"known poses lie up to 4\.8e\+06 units from the origin against "
+                                                      r"a spread of .*subtract an offset .*\(e\.g\. their mean centre"):
+                global_align(views_of(scene), preds, cam2world=known, config=QUIET)
+            continue
+        recon = global_align(views_of(scene), preds, cam2world=known, config=QUIET)
+        err = (recon.cam2world[:, :3, 3].double() - moved[:, :3, 3]).norm(dim=-1)
+        assert float(err.max()) < 0.01
+    with pytest.raises(ConventionError, match="spread of 1"):  # one known camera fixes no scale: one unit across
+        global_align(views_of(scene), preds, cam2world={0: moved[0]}, config=QUIET)

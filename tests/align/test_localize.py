@@ -165,7 +165,7 @@ def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_nu
     _, recon, queries, _, _ = scene
     K = np.array([[20.0, 0, 23.5], [0, 20.0, 15.5], [0, 0, 1]])
     for bad in (np.diag([20.0, -20.0, 1.0]), K.T):
-        with pytest.raises(ShapeError, match=r"K expected .*\[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
+        with pytest.raises(ShapeError, match=r"K expected .*\[\[fx, 0, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
             localize(STAND_IN, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
     loc = localize(STAND_IN, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
     assert loc.ref == [3, 0]

@@ -187,12 +187,13 @@ def test_procrustes_without_any_weight_answers_nan_for_that_problem_only():
     assert s2.shape == (1, 3) and R2.shape == (1, 3, 3, 3) and torch.isnan(s2[0, 1]) and torch.allclose(s2[0, 0], s[0])
 
 
-def test_pinhole_intrinsics_are_finite_with_positive_focals_and_a_0_0_1_bottom_row_and_a_transposed_K_is_not():
+def test_pinhole_intrinsics_are_finite_with_positive_focals_a_0_0_1_bottom_row_and_no_skew_and_a_transposed_K_is_not():
     from pointmap.geometry import is_pinhole_K
 
-    K = torch.tensor([[500.0, 0.5, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
+    K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
     bad = [K.T, K * torch.tensor([[-1.0], [1.0], [1.0]]), K.clone().fill_(float("nan")),
            torch.tensor([[500.0, 0.0, 320.0], [0.1, 480.0, 240.0], [0.0, 0.0, 1.0]]),
+           torch.tensor([[500.0, 0.5, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]]),  # a skew every export dropped
            torch.tensor([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 2.0]])]
     got = is_pinhole_K(torch.stack([K, *bad]))
     assert got.tolist() == [True] + [False] * len(bad)

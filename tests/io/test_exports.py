@@ -573,6 +573,8 @@ def _fields(**change):
     ({"K": torch.zeros(2, 3, 3)}, "K expected finite pinhole intrinsics .* with fx, fy > 0, got K\\[0\\]"),
     ({"K": torch.tensor([[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [15.5, 11.5, 1.0]]).expand(2, 3, 3)},
      "K expected finite pinhole intrinsics"),  # transposed
+    ({"K": torch.tensor([[40.0, 8.0, 15.5], [0.0, 40.0, 11.5], [0.0, 0.0, 1.0]]).expand(2, 3, 3)},
+     "K expected finite pinhole intrinsics \\[\\[fx, 0, cx\\]"),  # a skew: COLMAP's PINHOLE and the rest dropped it
     ({"cam2world": torch.zeros(2, 4, 4)}, "cam2world expected rigid"),
     ({"cam2world": 2 * torch.eye(4).repeat(2, 1, 1)}, "cam2world expected rigid"),
     ({"depth_z": -torch.ones(2, 24, 32)}, "depth_z expected values >= 0"),
