@@ -117,6 +117,11 @@ def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary
 
 
 def _write_text(out_dir: Path, cams, images, tracks, points) -> list[Path]:
+    spaced = [name for _, _, _, _, name, _ in images if any(c.isspace() for c in name)]
+    if spaced:  # COLMAP's own reader and read_write_model.py (3DGS, nerfstudio) take the name up to a space
+        warnings.warn(f"images.txt: {len(spaced)} image name(s) contain whitespace (e.g. {spaced[0]!r}), which COLMAP's "
+                      "text readers cut at the first space: use the binary model, or rename the images",
+                      RuntimeWarning, stacklevel=3)
     with atomic_open(out_dir / "cameras.txt", "w") as f:
         f.write("# Camera list with one line of data per camera:\n")
         f.write("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")

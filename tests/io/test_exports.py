@@ -1,6 +1,7 @@
 """Exports read back by independent readers (pycolmap, trimesh) and checked against their sources."""
 
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +72,17 @@ def test_colmap_text_only_is_readable_and_has_two_lines_per_image(tmp_path):
     assert len(lines) == 2 * 4
     rec = _check_colmap(model, recon)
     assert rec.num_points3D() == 500
+
+
+def test_colmap_text_warns_of_image_names_with_spaces_which_colmaps_text_readers_cut(tmp_path):
+    recon = make_recon(n=2, seed=1)
+    recon.names = ["IMG 0001.jpg", "b.png"]
+    with pytest.warns(RuntimeWarning, match=r"images.txt: 1 image name\(s\) contain whitespace \(e.g. 'IMG 0001.jpg'\)"
+                                            r".* use the binary model"):
+        save_reconstruction(recon, tmp_path, formats=("colmap_txt",), colmap_max_points=50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        save_reconstruction(recon, tmp_path / "bin", formats=("colmap",), colmap_max_points=50)  # binary: exact
 
 
 def test_colmap_shared_camera_and_empty_observations(tmp_path):
