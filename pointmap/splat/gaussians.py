@@ -205,6 +205,12 @@ class Gaussians:
             k = n_rest // 3
             rest = take([f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k).transpose(1, 2)
             sh_rest = rest.contiguous() if rest.abs().max() > 0 else None
+            if sh_rest is not None:
+                import warnings
+
+                warnings.warn(f"{path}: holds view-dependent colour (SH degree {int(round((k + 1) ** 0.5)) - 1}), "
+                              "which pointmap keeps but does not render or fit (degree 0, the DC colour, only)",
+                              RuntimeWarning, stacklevel=2)
         return cls(means=take(["x", "y", "z"]), quats=take(["rot_0", "rot_1", "rot_2", "rot_3"]),
                    log_scales=take(["scale_0", "scale_1", "scale_2"]),
                    opacity_logits=arr[:, col["opacity"]].clone(),

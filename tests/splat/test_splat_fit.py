@@ -207,13 +207,16 @@ def test_a_masked_fit_ignores_what_the_photographs_show_outside_the_masks(tiny):
     walked = dataclasses.replace(recon, masks=masks, images=painted)
     g = init_from(clean, max_gaussians=800)
 
-    def run_fit(r, **kw):
+    def run_fit(r, max_side=96, coarse_frac=0.0, **kw):
         torch.manual_seed(0)
-        return fit(r, g, steps=12, max_side=96, coarse_frac=0.0, progress=False, **kw)
+        return fit(r, g, steps=12, max_side=max_side, coarse_frac=coarse_frac, progress=False, **kw)
 
-    a, b = run_fit(clean), run_fit(walked)
-    assert a.config["masked"] and torch.equal(a.gaussians.sh_dc, b.gaussians.sh_dc)
-    assert torch.equal(a.gaussians.means, b.gaussians.means) and torch.equal(a.cam2world, b.cam2world)
+    # at the maps' resolution, and below it (40 x 30, then 20 x 15: the resized images mix the painted pixels into
+    # their neighbours, which the level masks must leave out; nearest-neighbour masks kept some of them)
+    for levels in ({}, {"max_side": 40, "coarse_frac": 0.5}):
+        a, b = run_fit(clean, **levels), run_fit(walked, **levels)
+        assert a.config["masked"] and torch.equal(a.gaussians.sh_dc, b.gaussians.sh_dc)
+        assert torch.equal(a.gaussians.means, b.gaussians.means) and torch.equal(a.cam2world, b.cam2world)
     # masked=False fits the painted pixels too: the colours move
     c, e = run_fit(clean, masked=False), run_fit(walked, masked=False)
     assert not c.config["masked"] and not torch.equal(c.gaussians.sh_dc, e.gaussians.sh_dc)
@@ -277,3 +280,28 @@ def test_the_canvas_padding_of_views_of_several_sizes_is_neither_a_gaussian_nor_
     c = run_fit(dataclasses.replace(red, map_sizes=None))
     assert {h["size"] for h in c.history} == {(96, 72)}
     assert not torch.equal(c.gaussians.sh_dc, run_fit(dataclasses.replace(green, map_sizes=None)).gaussians.sh_dc)
+
+
+def test_each_views_intrinsics_at_a_working_level_are_scaled_as_its_own_image_was(tiny):
+    """A view narrower than the canvas is resized to its rounded share of the level: 61 px at 40/96 becomes 25 px
+    (x 0.410), not x 0.417 (the canvas's factor, which its intrinsics were scaled by: half a level pixel off at the
+    view's right edge)."""
+    import dataclasses
+    import sys
+
+    from pointmap.geometry.cameras import project
+
+    fit_module = sys.modules["pointmap.splat.fit"]  # pointmap.splat.fit is the function; the module holds the levels
+    d, _, _ = tiny
+    recon = dataclasses.replace(d["recon"], map_sizes=[(96, 72), (61, 72), (96, 41)])
+    lv = (40, 30)
+    Ks = fit_module._level_K(recon, recon.K_map.double(), lv)
+    for i, (vw, vh) in enumerate(recon.map_sizes):
+        img = fit_module._level_view(recon, recon.images, i, lv, fit_module._resize_image)
+        lh, lw = img.shape[:2]
+        # the view's bottom-right corner (its last pixel's far edge, at a depth of 1) lands on the image's
+        corner = torch.linalg.solve(recon.K_map[i].double(), torch.tensor([vw - 0.5, vh - 0.5, 1.0],
+                                                                          dtype=torch.float64))
+        uv = project(corner[None], Ks[i])[0][0]
+        assert torch.allclose(uv, torch.tensor([lw - 0.5, lh - 0.5], dtype=torch.float64), atol=1e-9), (i, uv, lw, lh)
+    assert fit_module._level_view(recon, recon.images, 1, lv, fit_module._resize_image).shape[1] == 25

@@ -31,10 +31,12 @@ def test_ply_roundtrip_and_3dgs_layout(tmp_path):
     assert back.sh_rest is None and back.sh_degree == 0
 
 
-def test_ply_sh_rest_channel_major(tmp_path):
+def test_ply_sh_rest_is_channel_major_and_loading_it_warns_that_it_is_kept_but_not_rendered(tmp_path):
     g = _g(7)
     g.sh_rest = torch.arange(7 * 3 * 3, dtype=torch.float32).reshape(7, 3, 3) + 1
-    back = Gaussians.load_ply(g.save_ply(tmp_path / "s.ply", sh_degree=None))
+    with pytest.warns(RuntimeWarning, match=r"s.ply: holds view-dependent colour \(SH degree 1\), which pointmap "
+                                            r"keeps but does not render or fit"):
+        back = Gaussians.load_ply(g.save_ply(tmp_path / "s.ply", sh_degree=None))
     assert torch.equal(back.sh_rest, g.sh_rest)
     # f_rest_{c*K + k} is coefficient k of channel c
     raw = (tmp_path / "s.ply").read_bytes()
