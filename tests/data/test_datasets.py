@@ -57,8 +57,44 @@ def test_augmented_pairs_keep_crop_intrinsics_and_correspondences_consistent(tin
             n += 1
     assert with_covis >= 0.8 * n  # view 2's crop follows view 1's content
     err = torch.cat(errs)
-    # nearest-neighbour resampling of depth moves a pixel's 3D point by up to half a source pixel
-    assert err.median() < 0.5 and torch.quantile(err, 0.95) < 1.5
+    # the correspondences are recomputed from the cropped depth: the projection of each pixel's own point (the
+    # resampled stored field was up to half a source pixel off: median 0.49 px, p99 1.5 px on train_p39)
+    assert err.max() < 0.01
+
+
+def test_augmented_correspondences_agree_with_the_images_better_than_the_resampled_stored_field(tiny_pairs,
+                                                                                               monkeypatch):
+    """Independent of the depth: view 1's colour at a pixel against view 2's (bilinear) at its correspondence,
+    over textured pixels, colour jitter off. Resampling the stored field with each crop gave each pixel the match of
+    its nearest source pixel instead (on train_p39, 224 px: 0.0294 against 0.0247 with the geometric field)."""
+    import cv2
+
+    import data.datasets as dsm
+
+    monkeypatch.setattr(dsm, "_photometric", lambda rng, rgb: rgb.astype(np.float32) / 255.0)
+
+    def photometric_error(geometric):
+        if not geometric:
+            monkeypatch.setattr(dsm, "_geometric_corr", lambda corr, *a, **k: corr)
+        ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+        errs = []
+        for k in range(len(ds)):
+            for aspect in range(3):
+                torch.manual_seed(100 * k + aspect)
+                v1, v2 = ds[(k, aspect)]
+                c = v1["corr"].numpy()
+                i1, i2 = v1["img"].permute(1, 2, 0).numpy(), v2["img"].permute(1, 2, 0).numpy()
+                grey = np.ascontiguousarray(i1.mean(-1))
+                grad = np.abs(cv2.Sobel(grey, cv2.CV_32F, 1, 0)) + np.abs(cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+                ok = np.isfinite(c).all(-1) & (grad > np.quantile(grad, 0.7))
+                seen = cv2.remap(i2, np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1]),
+                                 cv2.INTER_LINEAR)
+                errs.append(np.abs(seen[ok] - i1[ok]).reshape(-1))
+        return float(np.concatenate(errs).mean())
+
+    geometric = photometric_error(True)
+    resampled = photometric_error(False)
+    assert geometric < 0.95 * resampled, (geometric, resampled)
 
 
 def test_a_grey_pair_is_the_colour_pair_in_luma_in_both_views_with_its_geometry_unchanged(tiny_pairs):
