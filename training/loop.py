@@ -470,6 +470,10 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
+                if not math.isfinite(float(gnorm)):  # clipping by a NaN norm turns every gradient NaN: the step
+                    # would write NaN weights, and a checkpoint at this step would keep them
+                    raise FloatingPointError(f"gradient norm is {float(gnorm)} at step {step} (the loss, "
+                                             f"{loss_value:.4g}, is finite): lower --lr or check the data")
                 optimizer.step()
                 scheduler.step()
                 step += 1

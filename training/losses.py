@@ -116,18 +116,21 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     at t = 0) over pairs whose true baseline is at least ``MIN_BASELINE``: the distance of the
     translations is small for short baselines whatever their direction, this term is not. Returns (loss,
     details with the mean rotation error in degrees and, with ``dir_weight``, the mean direction error)."""
-    _, _, s_gt, s_pr = _scales(pred, view1, view2, metric)
+    _, (v1, v2), s_gt, s_pr = _scales(pred, view1, view2, metric)
     gt = gt_cam2_to_cam1(view1, view2).float()
     T = T.float()
     rot = (T[:, :3, :3] - gt[:, :3, :3]).flatten(1).norm(dim=1)
     t_pr, t_gt = T[:, :3, 3] / s_pr[:, None], gt[:, :3, 3] / s_gt[:, None]
     tr = (t_pr - t_gt).norm(dim=1)
-    loss = (rot + tr).mean()
+    # a pair without a valid pixel has no scale (the clamp's 1e-8: a true baseline of 5e7 and a gradient of 5e8
+    # that clipping then let drive the whole update): its rotation counts, its translation does not
+    scaled = (v1.flatten(1).sum(1) + v2.flatten(1).sum(1)) > 0
+    loss = rot.mean() + (tr * scaled).sum() / scaled.sum().clamp_min(1)
     with torch.no_grad():
         deg = torch.rad2deg(2 * torch.asin((rot / (2 * 2 ** 0.5)).clamp(max=1)))
     details = {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
     if dir_weight > 0:
-        ok = t_gt.norm(dim=1) >= MIN_BASELINE
+        ok = (t_gt.norm(dim=1) >= MIN_BASELINE) & scaled
         # directions with a smooth norm t / sqrt(|t|^2 + DIR_EPS^2), the same for both (zero at the truth): the
         # gradient stays below ~1/DIR_EPS near t = 0 (a fresh head predicts exactly 0), where plain normalisation
         # would swamp every other loss after clipping
@@ -145,7 +148,7 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
 
 
 def focal_loss(pts_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor, iters: int = 3):
-    """Mean |log(f / f_true)| over the batch, f the focal a view's own-frame pointmap [B, H, W, 3] implies (the
+    """Mean |log(f / f_true)| over the images used, f the focal a view's own-frame pointmap [B, H, W, 3] implies (the
     estimator the pipeline uses on it, ``pointmap.geometry.focal.focal_from_pointmap``, at the true principal point
     of ``K`` [B, 3, 3], over ``valid`` [B, H, W] pixels), f_true ``K``'s fx. The Weiszfeld weights of the L1
     estimate are computed without gradient and the focal is their weighted least-squares solution, so the loss is
@@ -156,7 +159,6 @@ def focal_loss(pts_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor, iter
     the mean |log ratio|)."""
     from pointmap.geometry.focal import focal_rays, solve_focal
 
-    B = pts_cam.shape[0]
     f_true = K[:, 0, 0].to(pts_cam.dtype)
     p, r, ok = focal_rays(pts_cam, valid, K[:, :2, 2].to(pts_cam.dtype))
     with torch.no_grad():  # the L1 estimate and its weights at its solution (1 / pixel residual)
@@ -168,7 +170,7 @@ def focal_loss(pts_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor, iter
     if not bool(use.any()):
         return pts_cam.sum() * 0.0, {"focal_log_err": float("nan")}
     err = (f[use].log() - f_true[use].log()).abs()
-    return err.sum() / B, {"focal_log_err": float(err.detach().mean())}
+    return err.mean(), {"focal_log_err": float(err.detach().mean())}
 
 
 def focal_head_loss(pred, K1: torch.Tensor, K2: torch.Tensor):
@@ -214,6 +216,8 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
         idx2 = (v2[idx1] * W2 + u2[idx1]).long()
         # one view-2 pixel may be hit twice: keep the first, so that targets are unique
         idx2, first = _unique_first(idx2)
+        if idx2.numel() < 8:  # eight pixels all landing on one: a "pair" of one correspondence, loss 0, accuracy 1
+            continue
         sel1.append(b * H1 * W1 + idx1[first])
         sel2.append(b * H2 * W2 + idx2)
         counts.append(len(idx2))
@@ -235,8 +239,8 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
 def _unique_first(x: torch.Tensor):
     """Unique values of x and the index of their first occurrence."""
     uniq, inv = torch.unique(x, return_inverse=True)
-    first = torch.full((uniq.numel(),), x.numel(), dtype=torch.long)
-    first.scatter_reduce_(0, inv, torch.arange(x.numel()), reduce="amin")
+    first = torch.full((uniq.numel(),), x.numel(), dtype=torch.long, device=x.device)
+    first.scatter_reduce_(0, inv, torch.arange(x.numel(), device=x.device), reduce="amin")
     return x[first], first
 
 

@@ -1083,3 +1083,25 @@ def test_error_line_keeps_a_plain_message_and_takes_a_workers_error_from_the_end
     wrapped = ("Caught ShardError in DataLoader worker process 0.\nOriginal Traceback (most recent call last):\n"
                '  File "x.py", line 3, in f\ndata.shards.ShardError: shard a.tar: member \'b\' is bad: x\n')
     assert error_line(RuntimeError(wrapped)) == "shard a.tar: member 'b' is bad: x"
+
+
+def test_a_finite_loss_with_a_non_finite_gradient_stops_training_before_the_weights_are_written(tmp_path):
+    """Clipping by a NaN norm makes every gradient NaN; the optimizer step then wrote NaN weights, and a checkpoint
+    at that step kept them. Only the loss was checked."""
+    cfg = config(tmp_path / "run", 3)
+    step = make_step(cfg)
+
+    def nan_gradient(model, batch, k):
+        loss, metrics = step(model, batch, k)
+        if k == 1:  # sqrt at 0: the value 0, the gradient NaN (inf times the zero slope of |x| at 0)
+            p = next(model.parameters())
+            loss = loss + torch.sqrt((p - p.detach()).abs().sum())
+        return loss, metrics
+
+    torch.manual_seed(0)
+    model = PointmapNet(PRESETS["test"])
+    with pytest.raises(FloatingPointError, match=r"gradient norm is nan at step 1 \(the loss, [0-9.]+, is finite\)"):
+        fit(cfg, model, PlanePairs(6), collate, nan_gradient)
+    assert all(bool(torch.isfinite(p).all()) for p in model.parameters())
+    saved = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    assert saved["step"] == 1 and all(bool(torch.isfinite(t).all()) for t in saved["model"].values())

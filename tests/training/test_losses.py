@@ -390,3 +390,36 @@ def test_the_focal_loss_without_a_usable_pixel_is_a_differentiable_zero():
     behind = pts.detach().clone()
     behind[..., 2] *= -1  # every point behind the camera
     assert float(focal_loss(behind, K, valid)[0]) == 0
+
+
+def test_a_pair_without_a_valid_pixel_adds_its_rotation_but_not_its_unscalable_translation_to_the_pose_loss():
+    """Its scale clamps to 1e-8: a true baseline of 5e7 and a gradient of 5e8 that clipping let drive the whole
+    update. With it, the loss is the other pair's translation and both pairs' rotations."""
+    v1, v2 = make_views()
+    g1, g2 = gt_points_cam1(v1, v2)
+    T = torch.eye(4).expand(2, 4, 4).clone()
+    T[:, 0, 3] = 0.2  # the truth is 0.5: both translations are off
+    ref, _ = pose_loss(T[:1], pred_from(g1[:1], g2[:1]), {k: t[:1] for k, t in v1.items()},
+                       {k: t[:1] for k, t in v2.items()})
+    for v in (v1, v2):
+        v["valid"] = v["valid"].clone()
+        v["valid"][1] = False
+    assert float(pose_loss(T, pred_from(g1, g2), v1, v2)[0]) == pytest.approx(float(ref), rel=1e-6)  # pair 0's
+    T = T.clone().requires_grad_()
+    loss, _ = pose_loss(T, pred_from(g1, g2), v1, v2, dir_weight=0.5)
+    loss.backward()
+    assert math.isfinite(float(loss)) and float(loss) < 2
+    assert float(T.grad[1, :3, 3].abs().max()) == 0.0 and float(T.grad.abs().max()) < 10
+
+
+def test_a_pair_whose_correspondences_all_land_on_fewer_than_eight_pixels_is_left_out_of_the_matching_loss():
+    torch.manual_seed(0)
+    desc1 = torch.nn.functional.normalize(torch.randn(2, 8, 8, 16), dim=-1)
+    desc2 = torch.nn.functional.normalize(torch.randn(2, 8, 8, 16), dim=-1)
+    corr = torch.full((2, 8, 8, 2), float("nan"))
+    corr[0, :4, :4] = torch.tensor([3.0, 3.0])  # sixteen pixels, one target: a "pair" with loss 0 and accuracy 1
+    corr[1, :4, :4, 0] = torch.arange(4).float()
+    corr[1, :4, :4, 1] = torch.arange(4).float()[:, None]
+    both, acc = matching_loss(desc1, desc2, corr, n_corr=64)
+    alone, acc_alone = matching_loss(desc1[1:], desc2[1:], corr[1:], n_corr=64)
+    assert float(both) == pytest.approx(float(alone)) and acc == acc_alone
