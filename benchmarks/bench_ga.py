@@ -223,7 +223,7 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|")
     for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
         v = np.array(vals)
-        d = v[:, 1][~np.isnan(v[:, 1])]  # a direction is undefined when the true baseline is zero
+        d = v[:, 1][~np.isnan(v[:, 1])]  # NaN only from files of other tools (a zero baseline scores 90 here)
         rta, dir_med = (f"{100 * np.mean(d < 15):.1f}%", f"{np.median(d):.1f}") if len(d) else ("-", "-")
         print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {rta} | "
               f"{np.median(v[:, 0]):.1f} | {dir_med} |")

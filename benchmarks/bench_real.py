@@ -273,7 +273,7 @@ def main(argv=None) -> int:
         rows, moto_focal, (m1, m2, mpred) = pose_rows(model, left, right, mgt, size, mK1, mK2)
         for name, e in rows:
             res.setdefault(("motorcycle (rectified)", name), []).append(e)
-        rectified.append(PairResult(1, *rows[0][1], 0.0))
+        rectified.append(_pair_result(1, rows, 0.0))
         mshape = tuple(mpred.pts1_cam1.shape[1:3])
         true_z = _resample(depth.astype(np.float32), m1, mshape)
         mz = mpred.pts1_cam1[0, ..., 2].float().numpy()

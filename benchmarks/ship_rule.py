@@ -97,11 +97,33 @@ def _mcnemar_row(criterion: str, res: dict, errors: tuple) -> tuple:
             ("significant losses: " + "; ".join(losses)) if losses else "; ".join(text.values()))
 
 
+def _same_pairs(inc: dict, cand: dict, what: str, card_only: bool = False) -> None:
+    """ValueError unless both files hold the same pairs (of the card sets, with ``card_only``) and, where they hold
+    the true rotation, the same one: counts over different pairs (more pairs carded, or sets rendered anew)
+    compare nothing, and a candidate carded on more pairs passed the count without a better pose."""
+    sets = (*EVAL_SETS, "bench_s525252")
+    ki = {k for k in inc if not card_only or k[0] in sets}
+    kc = {k for k in cand if not card_only or k[0] in sets}
+    if ki != kc:
+        diff = sorted(ki ^ kc)
+        raise ValueError(f"the {what} hold different pairs: {len(ki - kc)} only in the incumbent's, {len(kc - ki)} "
+                         f"only in the candidate's (e.g. {diff[:3]}); card both on the same sets")
+    if card_only:
+        moved = [k for k in sorted(ki) if abs(inc[k][2] - cand[k][2]) > 1e-3]  # the true rotation, degrees
+        if moved:
+            raise ValueError(f"the {what} hold the same pair names but {len(moved)} true rotations differ (e.g. "
+                             f"{moved[0]}: {inc[moved[0]][2]:.4f} against {cand[moved[0]][2]:.4f} degrees): the "
+                             "sets were rendered anew; card both on the same renders")
+
+
 def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga: tuple | None = None) -> list:
     """[(criterion, incumbent's figure, candidate's figure, verdict True / False / None (not checked), detail)]
     for the parsed cards (``compare_cards.parse_card``), per-pair files (``paired.read_per_pair``) and, optionally,
     the two ``bench_ga.py`` per-pair files read the same way."""
     rows = []
+    _same_pairs(inc_pairs, cand_pairs, "per-pair files", card_only=True)
+    if ga is not None:
+        _same_pairs(*ga, "global-alignment files")
     ci, cc = exact_count(inc_pairs), exact_count(cand_pairs)
     if ci is None or cc is None:
         rows.append(("count", ci, cc, None, "a per-pair file lacks a card set or the pipeline's columns"))

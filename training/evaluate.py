@@ -26,7 +26,7 @@ def _depth_scale(p: torch.Tensor, g: torch.Tensor):
 class PairResult(NamedTuple):
     """One pair's two-view pose result: its index in the held-out set, the rotation error and the translation
     direction error of the pose from the model's pointmaps (degrees; a pose not found counts 180 for both, a
-    direction not defined is NaN), the true rotation angle between the two cameras (degrees; NaN when unknown),
+    zero translation, predicted or true, 90: ``translation_angle_deg``), the true rotation angle between the two cameras (degrees; NaN when unknown),
     and the same two errors of the pose the pipeline reports (``pointmap.pose.pair_pose``: refined on the
     model's own matches; NaN for a model without descriptors or a tool that does not compute it)."""
     pair: int

@@ -38,7 +38,8 @@ def relative_rotation_error_deg(R_pred: torch.Tensor, R_gt: torch.Tensor) -> tor
 
 
 def translation_angle_deg(t_pred: torch.Tensor, t_gt: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Angle in degrees between translation directions [..., 3] (scale-free, as RTA uses)."""
+    """Angle in degrees between translation directions [..., 3] (scale-free, as RTA uses). A zero vector has no
+    direction: its angle to anything is 90 (a miss at any threshold below 90), not NaN."""
     check_shape("t_pred", t_pred, (..., 3))
     check_shape("t_gt", t_gt, (..., 3))
     a = t_pred / t_pred.norm(dim=-1, keepdim=True).clamp_min(eps)

@@ -149,3 +149,23 @@ def test_the_shipped_incumbent_takes_the_candidates_global_alignment_file_alone(
     (tmp_path / "w.safetensors").write_bytes(b"not the weights the baseline was measured on")
     rc = main(["--incumbent", "shipped", "--candidate", str(card), str(pairs)])
     assert rc == 2 and "a ship that did not record its files" in capsys.readouterr().err
+
+
+def test_files_carded_on_different_pairs_or_renders_are_unreadable_not_compared(tmp_path, capsys):
+    """A candidate carded on 150 pairs a set against the incumbent's 139 passed the count (+80) with no better
+    pose: the counts were over different pairs."""
+    inc = (_card(tmp_path, "inc", (0.30, 0.27, 0.36)), _pairs(tmp_path, "inc", 10))
+    more = (_card(tmp_path, "more", (0.30, 0.27, 0.36)), _pairs(tmp_path, "more", 11, n=21))
+    rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, more)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "the per-pair files hold different pairs: 0 only in the incumbent's, 4 only in the " \
+                       "candidate's" in err
+    rerendered = read_per_pair(_pairs(tmp_path, "again", 11))
+    rerendered = {k: (v[:2] + (v[2] + 1.0,) + v[3:] if k[0] == "bench_s525252" else v) for k, v in rerendered.items()}
+    inc_card = parse_card(inc[0].read_text())
+    with pytest.raises(ValueError, match=r"20 true rotations differ .* the sets were rendered anew"):
+        check(inc_card, read_per_pair(inc[1]), inc_card, rerendered)
+    ga = read_per_pair(_pairs(tmp_path, "ga", 10))
+    with pytest.raises(ValueError, match="the global-alignment files hold different pairs"):
+        check(inc_card, read_per_pair(inc[1]), inc_card, read_per_pair(inc[1]),
+              (ga, {k: v for k, v in ga.items() if k[1] != 0}))
