@@ -41,6 +41,10 @@ class TrainConfig:
     metric: bool = False           # metric regression (GT scale for both)
     match_weight: float = 0.075    # weight of the InfoNCE matching loss
     n_corr: int = 1024             # correspondences per pair for the matching loss
+    desc_conf_weight: float = 0.0  # weight of the descriptor confidence's loss (losses.descriptor_confidence_loss:
+                                   # MASt3R's ConfMatchingLoss with the InfoNCE held fixed; 0 = off, the confidence
+                                   # untrained, as in every model up to v72x)
+    desc_conf_alpha: float = 10.0  # its -alpha log c term: the confidence learns alpha / (the match's InfoNCE)
     max_rotation: float = 0.0      # curriculum: train only on pairs whose cameras differ by <= this (deg; 0 = all)
     crop_link: float = 1.0         # probability that view 2's random crop has view 1's scale
                                    # (data.PairDataset): the pair keeps its rendered focal ratio, so
@@ -159,7 +163,7 @@ class TrainConfig:
         if cfg.conf_reset and not cfg.init:
             p.error("--conf_reset restarts the confidence of an --init model; a model from scratch starts fresh anyway")
         for name in ("match_weight", "coarse_weight", "attn_weight", "pose_weight", "pose_dir_weight", "focal_weight",
-                     "focal_head_weight", "conf_reset"):
+                     "focal_head_weight", "conf_reset", "desc_conf_weight"):
             if getattr(cfg, name) < 0:
                 p.error(f"--{name} expected >= 0 (a negative weight would maximise its loss), got {getattr(cfg, name)}")
         if cfg.grown_lr <= 0:
@@ -216,7 +220,7 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     out += [f"--{k} expected >= {v}, got {getattr(cfg, k)}" for k, v in at_least.items() if getattr(cfg, k) < v]
     if not is_input_size(cfg.size):
         out.append(f"--size expected {INPUT_SIZE_RULE}, got {cfg.size}")
-    positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature")
+    positive = ("lr", "clip", "alpha", "temperature", "coarse_temperature", "desc_conf_alpha")
     out += [f"--{k} expected a finite value > 0, got {getattr(cfg, k)}" for k in positive
             if not 0 < getattr(cfg, k) < math.inf]
     nonneg = ("min_lr", "weight_decay", "max_rotation", "max_minutes", "ckpt_minutes")

@@ -200,9 +200,69 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
     _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
     if not (is_int(n_corr) and n_corr >= 1):
         raise ShapeError(f"matching_loss expected n_corr >= 1, got {n_corr!r}")
-    B, H1, W1, D = desc1.shape
-    H2, W2 = desc2.shape[1:3]
-    sel1, sel2, counts = [], [], []  # rows of the flattened batch: pair b's pixels are b * H * W + index
+    D = desc1.shape[-1]
+    sel1, sel2, counts = _sampled_correspondences(desc1.shape, desc2.shape, corr, n_corr, generator)
+    losses, accs, rows1, rows2 = [], [], (), ()
+    if counts:  # one gather per view for the whole batch: indexing pair by pair would zero-fill a gradient buffer
+        # of the whole descriptor batch for every pair in the backward pass
+        rows1 = desc1.reshape(-1, D)[torch.cat(sel1).to(desc1.device)].float().split(counts)
+        rows2 = desc2.reshape(-1, D)[torch.cat(sel2).to(desc2.device)].float().split(counts)
+    for d1, d2 in zip(rows1, rows2):
+        logits = d1 @ d2.T / temperature
+        target = torch.arange(len(d1), device=logits.device)
+        losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
+        accs.append((logits.argmax(1) == target).float().mean())
+    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
+        return (desc1.sum() + desc2.sum()) * 0, 0.0
+    return torch.stack(losses).mean(), float(torch.stack(accs).mean())
+
+
+def descriptor_confidence_loss(desc1: torch.Tensor, desc2: torch.Tensor, conf1: torch.Tensor, conf2: torch.Tensor,
+                               corr: torch.Tensor, n_corr: int = 2048, temperature: float = 0.05,
+                               alpha: float = 10.0, generator: torch.Generator | None = None):
+    """MASt3R's ConfMatchingLoss for the descriptor confidence alone: over sampled correspondences (as
+    ``matching_loss`` samples them), the mean of l_i c_i - alpha log c_i, with c_i = (conf1 at the view-1 pixel +
+    conf2 at the view-2 pixel) / 2 and l_i the correspondence's InfoNCE (the mean of both directions, as
+    ``matching_loss``) computed WITHOUT gradient: the descriptors' objective stays ``matching_loss``'s, and the
+    confidence learns alpha / l_i, high where a match is easy (MASt3R also lets c_i weigh the descriptors' loss).
+    conf1 [B, H1, W1], conf2 [B, H2, W2] > 0. Returns (loss averaged over pairs with >= 8 correspondences, mean
+    c_i); a differentiable zero (and NaN) without correspondences."""
+    _check_descriptors(desc1, desc2, corr, temperature, "descriptor_confidence_loss")
+    for name, c, d in (("conf1", conf1, desc1), ("conf2", conf2, desc2)):
+        if not isinstance(c, torch.Tensor) or tuple(c.shape) != tuple(d.shape[:3]):
+            got = list(c.shape) if isinstance(c, torch.Tensor) else type(c).__name__
+            raise ShapeError(f"descriptor_confidence_loss expected {name} {list(d.shape[:3])}, got {got}")
+    if not (is_int(n_corr) and n_corr >= 1) or not 0 < alpha < math.inf:
+        raise ShapeError(f"descriptor_confidence_loss expected n_corr >= 1 and a finite alpha > 0, got {n_corr!r}, "
+                         f"{alpha!r}")
+    D = desc1.shape[-1]
+    sel1, sel2, counts = _sampled_correspondences(desc1.shape, desc2.shape, corr, n_corr, generator)
+    if not counts:
+        return (conf1.sum() + conf2.sum()) * 0, float("nan")
+    i1, i2 = torch.cat(sel1).to(desc1.device), torch.cat(sel2).to(desc2.device)
+    with torch.no_grad():
+        rows1 = desc1.reshape(-1, D)[i1].float().split(counts)
+        rows2 = desc2.reshape(-1, D)[i2].float().split(counts)
+    c = (0.5 * (conf1.reshape(-1)[i1].float() + conf2.reshape(-1)[i2].float())).split(counts)
+    losses = []
+    for d1, d2, ci in zip(rows1, rows2, c):
+        with torch.no_grad():
+            logits = d1 @ d2.T / temperature
+            target = torch.arange(len(d1), device=logits.device)
+            li = 0.5 * (F.cross_entropy(logits, target, reduction="none")
+                        + F.cross_entropy(logits.T, target, reduction="none"))
+        losses.append((li * ci - alpha * torch.log(ci)).mean())
+    return torch.stack(losses).mean(), float(torch.cat(c).detach().mean())
+
+
+def _sampled_correspondences(shape1, shape2, corr: torch.Tensor, n_corr: int, generator):
+    """The correspondences the matching losses use: per pair, up to ``n_corr`` view-1 pixels whose correspondence
+    lands inside view 2 (a random subset when more), each view-2 pixel kept once (its first), pairs left with
+    fewer than 8 left out. Returns (rows of view 1, rows of view 2, counts): indices into each view's flattened
+    batch (pair b's pixels are b * H * W + index) and the number of each pair's correspondences."""
+    B, H1, W1 = shape1[:3]
+    H2, W2 = shape2[1:3]
+    sel1, sel2, counts = [], [], []
     for b in range(B):
         c = corr[b].reshape(-1, 2)
         ok = torch.isfinite(c).all(-1)
@@ -221,19 +281,7 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
         sel1.append(b * H1 * W1 + idx1[first])
         sel2.append(b * H2 * W2 + idx2)
         counts.append(len(idx2))
-    losses, accs, rows1, rows2 = [], [], (), ()
-    if counts:  # one gather per view for the whole batch: indexing pair by pair would zero-fill a gradient buffer
-        # of the whole descriptor batch for every pair in the backward pass
-        rows1 = desc1.reshape(-1, D)[torch.cat(sel1).to(desc1.device)].float().split(counts)
-        rows2 = desc2.reshape(-1, D)[torch.cat(sel2).to(desc2.device)].float().split(counts)
-    for d1, d2 in zip(rows1, rows2):
-        logits = d1 @ d2.T / temperature
-        target = torch.arange(len(d1), device=logits.device)
-        losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
-        accs.append((logits.argmax(1) == target).float().mean())
-    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
-        return (desc1.sum() + desc2.sum()) * 0, 0.0
-    return torch.stack(losses).mean(), float(torch.stack(accs).mean())
+    return sel1, sel2, counts
 
 
 def _unique_first(x: torch.Tensor):

@@ -49,7 +49,7 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
 TRAIN_ONLY = ("init", "init_heads", "conf_reset", "metric", "match_weight", "n_corr", "max_rotation", "grey_p",
               "flip_p", "pad_p", "temperature", "coarse_weight", "coarse_temperature", "attn_weight", "pose_head", "desc_stem",
               "pose_weight", "pose_dir_weight", "focal_weight", "attn_heads", "alpha", "focal_head", "focal_head_weight",
-              "train_only")
+              "train_only", "desc_conf_weight", "desc_conf_alpha")
 
 
 def main(argv=None) -> int:

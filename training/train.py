@@ -22,6 +22,7 @@ from training.loop import TERMINATED_EXIT, error_line, fit, load_checkpoint
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
+    descriptor_confidence_loss,
     focal_head_loss,
     focal_loss,
     matching_loss,
@@ -217,6 +218,14 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
         lm, acc = matching_loss(pred.desc1, pred.desc2, view1["corr"], cfg.n_corr, cfg.temperature, gen)
         loss = loss + cfg.match_weight * lm
         details.update(match_loss=float(lm.detach()), match_acc=acc)
+    if pred.has_desc and cfg.desc_conf_weight > 0:  # after matching_loss: its draws from gen stay as they were
+        if not getattr(model, "module", model).cfg.two_confs:  # its desc_conf is then the pointmap's conf
+            raise ValueError("--desc_conf_weight needs a model whose descriptor head predicts its own confidence "
+                             "(two_confs)")
+        ld, mean_c = descriptor_confidence_loss(pred.desc1, pred.desc2, pred.desc_conf1, pred.desc_conf2,
+                                                view1["corr"], cfg.n_corr, cfg.temperature, cfg.desc_conf_alpha, gen)
+        loss = loss + cfg.desc_conf_weight * ld
+        details.update(desc_conf_loss=float(ld.detach()), desc_conf=mean_c)
     if pred.has_desc and cfg.coarse_weight > 0:
         patch = getattr(model, "module", model).cfg.patch_size
         lc, acc = patch_matching_loss(pred.desc1, pred.desc2, view1["corr"], patch, cfg.coarse_temperature)

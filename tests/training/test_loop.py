@@ -1105,3 +1105,17 @@ def test_a_finite_loss_with_a_non_finite_gradient_stops_training_before_the_weig
     assert all(bool(torch.isfinite(p).all()) for p in model.parameters())
     saved = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
     assert saved["step"] == 1 and all(bool(torch.isfinite(t).all()) for t in saved["model"].values())
+
+
+def test_the_descriptor_confidence_loss_joins_a_step_after_the_matching_loss_without_changing_its_sample(tmp_path):
+    cfg = config(tmp_path, 1)
+    model, batch = seeded_model_and_batch()
+    off, d_off = make_step(cfg)(model, batch, 0)
+    on, d_on = make_step(dataclasses.replace(cfg, desc_conf_weight=0.5))(model, batch, 0)
+    assert "desc_conf_loss" not in d_off and d_on["desc_conf"] > 0
+    assert d_on["match_loss"] == d_off["match_loss"] and d_on["match_acc"] == d_off["match_acc"]
+    assert float(on) == pytest.approx(float(off) + 0.5 * d_on["desc_conf_loss"], rel=1e-5)
+    # a head without its own confidence (two_confs false) reports the pointmap's: training it would train that
+    one_conf, _ = seeded_model_and_batch(dataclasses.replace(PRESETS["test"], two_confs=False))
+    with pytest.raises(ValueError, match="--desc_conf_weight needs a model whose descriptor head predicts its own"):
+        make_step(dataclasses.replace(cfg, desc_conf_weight=0.5))(one_conf, batch, 0)

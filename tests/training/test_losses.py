@@ -423,3 +423,44 @@ def test_a_pair_whose_correspondences_all_land_on_fewer_than_eight_pixels_is_lef
     both, acc = matching_loss(desc1, desc2, corr, n_corr=64)
     alone, acc_alone = matching_loss(desc1[1:], desc2[1:], corr[1:], n_corr=64)
     assert float(both) == pytest.approx(float(alone)) and acc == acc_alone
+
+
+def test_the_descriptor_confidence_loss_is_masts_conf_matching_loss_with_the_infonce_held_fixed():
+    """A slow reference, correspondence by correspondence: l_i c_i - alpha log c_i, c_i the mean of the two pixels'
+    confidences, l_i the mean of the row and column cross-entropies. The gradient reaches the confidences only
+    (the descriptors' objective stays matching_loss's); until session 72 no loss reached them at all."""
+    from pointmap.errors import ShapeError
+    from training.losses import descriptor_confidence_loss
+
+    torch.manual_seed(0)
+    B, H, W, D = 2, 6, 8, 16
+    desc1 = torch.nn.functional.normalize(torch.randn(B, H, W, D), dim=-1).requires_grad_()
+    desc2 = torch.nn.functional.normalize(torch.randn(B, H, W, D), dim=-1).requires_grad_()
+    conf1 = (torch.rand(B, H, W) * 3 + 0.2).requires_grad_()
+    conf2 = (torch.rand(B, H, W) * 3 + 0.2).requires_grad_()
+    corr = torch.full((B, H, W, 2), float("nan"))
+    corr[:, 1:5, 1:6, 0] = torch.arange(1, 6).float() + 1
+    corr[:, 1:5, 1:6, 1] = torch.arange(1, 5).float()[:, None]
+    loss, mean_c = descriptor_confidence_loss(desc1, desc2, conf1, conf2, corr, n_corr=64, temperature=0.1,
+                                              alpha=2.0)
+    ref, cs = 0.0, []
+    for b in range(B):
+        p1 = [(v, u) for v in range(H) for u in range(W) if bool(torch.isfinite(corr[b, v, u]).all())]
+        p2 = [(int(corr[b, v, u, 1]), int(corr[b, v, u, 0])) for v, u in p1]
+        S = torch.stack([torch.stack([desc1[b, v, u] @ desc2[b, y, x] for y, x in p2]) for v, u in p1]) / 0.1
+        terms = []
+        for i, ((v, u), (y, x)) in enumerate(zip(p1, p2)):
+            li = 0.5 * (-torch.log_softmax(S[i], 0)[i] - torch.log_softmax(S[:, i], 0)[i])
+            c = 0.5 * (conf1[b, v, u] + conf2[b, y, x])
+            cs.append(float(c))
+            terms.append(float(li) * c - 2.0 * torch.log(c))
+        ref = ref + torch.stack(terms).mean() / B
+    assert float(loss) == pytest.approx(float(ref), rel=1e-5) and mean_c == pytest.approx(sum(cs) / len(cs), rel=1e-5)
+    loss.backward()
+    assert desc1.grad is None and desc2.grad is None
+    assert float(conf1.grad.abs().sum()) > 0 and float(conf2.grad.abs().sum()) > 0
+    # no correspondence: a differentiable zero
+    none, c_none = descriptor_confidence_loss(desc1, desc2, conf1, conf2, torch.full_like(corr, float("nan")))
+    assert float(none) == 0 and math.isnan(c_none)
+    with pytest.raises(ShapeError, match=r"expected conf2 \[2, 6, 8\], got \[2, 6\]"):
+        descriptor_confidence_loss(desc1, desc2, conf1, conf2[..., 0], corr)
