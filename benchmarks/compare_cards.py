@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 EVAL_SETS = ("eval_s424242", "eval_p4_s434343", "eval_cam_s464646")
+CARD_SETS = (*EVAL_SETS, "bench_s525252")  # the sets the ship count is over
 # (label, key in an evaluate JSON line, format)
 EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), ("median rot err", "rot_err_med", "{:.1f}"),
              ("RRA@15 % under 30 deg", "RRA15_under30", "{:.1f}"), ("RRA@15 % over 45 deg", "RRA15_over45", "{:.1f}"),
@@ -185,9 +186,8 @@ def exact_count(per_pair: dict, tol: float = 15.0) -> int | None:
     """The session-42 ship count from a per-pair file (``paired.read_per_pair``): rotations + directions within
     ``tol`` of the pointmaps' pose and of the pipeline's over the four card sets; None when the file lacks a set or
     the pipeline's errors."""
-    card_sets = (*EVAL_SETS, "bench_s525252")
-    keys = [k for k in per_pair if k[0] in card_sets]
-    if {k[0] for k in keys} != set(card_sets):
+    keys = [k for k in per_pair if k[0] in CARD_SETS]
+    if {k[0] for k in keys} != set(CARD_SETS):
         return None
     if any(math.isnan(per_pair[k][3]) for k in keys):
         return None

@@ -44,7 +44,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.compare_cards import EVAL_SETS, exact_count, parse_card  # noqa: E402
+from benchmarks.compare_cards import CARD_SETS, EVAL_SETS, exact_count, parse_card  # noqa: E402
 from benchmarks.paired import paired, read_per_pair  # noqa: E402
 from data.shards import sha256_file  # noqa: E402
 from pointmap.atomic import write_bytes  # noqa: E402
@@ -101,9 +101,8 @@ def _same_pairs(inc: dict, cand: dict, what: str, card_only: bool = False) -> No
     """ValueError unless both files hold the same pairs (of the card sets, with ``card_only``) and, where they hold
     the true rotation, the same one: counts over different pairs (more pairs carded, or sets rendered anew)
     compare nothing, and a candidate carded on more pairs passed the count without a better pose."""
-    sets = (*EVAL_SETS, "bench_s525252")
-    ki = {k for k in inc if not card_only or k[0] in sets}
-    kc = {k for k in cand if not card_only or k[0] in sets}
+    ki = {k for k in inc if not card_only or k[0] in CARD_SETS}
+    kc = {k for k in cand if not card_only or k[0] in CARD_SETS}
     if ki != kc:
         diff = sorted(ki ^ kc)
         raise ValueError(f"the {what} hold different pairs: {len(ki - kc)} only in the incumbent's, {len(kc - ki)} "

@@ -159,7 +159,7 @@ def _geometric_corr(corr, d1, K1, T1, d2, K2, T2, rel_tol: float = 0.05):
     pixel nearest to where it samples, up to half a source pixel (two output pixels after a 2x crop) away
     (median 0.49 px off on ``train_p39``). A pixel whose point lands where view 2's depth disagrees by more than
     ``rel_tol`` (an occlusion edge, where depth and correspondence resampling picked different source pixels) is
-    left out; so is one that lands outside view 2 (the caller's checks)."""
+    left out, and so is one from a pixel without depth or landing outside view 2 or on a pixel without depth."""
     ok = np.isfinite(corr).all(-1) & (d1 > 0)
     T = _inv(T2) @ T1
     P = _unproject(d1, K1) @ T[:3, :3].T + T[:3, 3]
@@ -171,13 +171,10 @@ def _geometric_corr(corr, d1, K1, T1, d2, K2, T2, rel_tol: float = 0.05):
     h2, w2 = d2.shape
     with np.errstate(invalid="ignore"):
         ok &= (u > -0.5) & (u < w2 - 0.5) & (v > -0.5) & (v < h2 - 0.5)
-    ui = np.clip(np.rint(np.where(ok, u, 0)), 0, w2 - 1).astype(np.int64)
-    vi = np.clip(np.rint(np.where(ok, v, 0)), 0, h2 - 1).astype(np.int64)
+    out = np.stack([np.where(ok, u, np.nan), np.where(ok, v, np.nan)], -1).astype(np.float32)
+    ui, vi = _landing_pixel(out, w2, h2)
     dz = d2[vi, ui].astype(np.float64)
-    ok &= (dz > 0) & (np.abs(dz - z) <= rel_tol * z)
-    out = np.full(corr.shape, np.nan, np.float32)
-    out[..., 0] = np.where(ok, u, np.nan)
-    out[..., 1] = np.where(ok, v, np.nan)
+    out[~(ok & (dz > 0) & (np.abs(dz - z) <= rel_tol * z))] = np.nan
     return out
 
 
@@ -436,14 +433,8 @@ class PairDataset(Dataset):
                 y0 = float(np.clip(cv - ch / 2, 0, h - ch))
                 box2 = (x0, y0, cw, ch)
         rgb2, d2, K2, A2 = _apply_crop(rgb2, d2, K2, box2, out_w, out_h)
+        # a correspondence survives only if it lands inside view 2's crop on a pixel with depth (checked there)
         corr = _geometric_corr(_warp_corr(corr, A1, A2, out_w, out_h, h, w), d1, K1, T1, d2, K2, T2)
-        # a correspondence survives only if it lands inside view 2's crop on a pixel with depth
-        u, v = corr[..., 0], corr[..., 1]
-        with np.errstate(invalid="ignore"):
-            inside = (u > -0.5) & (u < out_w - 0.5) & (v > -0.5) & (v < out_h - 0.5) & (d1 > 0)
-        ui, vi = _landing_pixel(corr, out_w, out_h)
-        inside &= d2[vi, ui] > 0
-        corr[~inside] = np.nan
         if self.augment:
             f1, f2 = _photometric(rng, rgb1), _photometric(rng, rgb2)
             if self.grey_p > 0 and rng.random() < self.grey_p:

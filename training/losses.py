@@ -200,14 +200,9 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
     _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
     if not (is_int(n_corr) and n_corr >= 1):
         raise ShapeError(f"matching_loss expected n_corr >= 1, got {n_corr!r}")
-    D = desc1.shape[-1]
     sel1, sel2, counts = _sampled_correspondences(desc1.shape, desc2.shape, corr, n_corr, generator)
-    losses, accs, rows1, rows2 = [], [], (), ()
-    if counts:  # one gather per view for the whole batch: indexing pair by pair would zero-fill a gradient buffer
-        # of the whole descriptor batch for every pair in the backward pass
-        rows1 = desc1.reshape(-1, D)[torch.cat(sel1).to(desc1.device)].float().split(counts)
-        rows2 = desc2.reshape(-1, D)[torch.cat(sel2).to(desc2.device)].float().split(counts)
-    for d1, d2 in zip(rows1, rows2):
+    losses, accs = [], []
+    for d1, d2 in zip(*_sampled_rows(desc1, desc2, sel1, sel2, counts)):
         logits = d1 @ d2.T / temperature
         target = torch.arange(len(d1), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
@@ -235,14 +230,12 @@ def descriptor_confidence_loss(desc1: torch.Tensor, desc2: torch.Tensor, conf1: 
     if not (is_int(n_corr) and n_corr >= 1) or not 0 < alpha < math.inf:
         raise ShapeError(f"descriptor_confidence_loss expected n_corr >= 1 and a finite alpha > 0, got {n_corr!r}, "
                          f"{alpha!r}")
-    D = desc1.shape[-1]
     sel1, sel2, counts = _sampled_correspondences(desc1.shape, desc2.shape, corr, n_corr, generator)
     if not counts:
         return (conf1.sum() + conf2.sum()) * 0, float("nan")
-    i1, i2 = torch.cat(sel1).to(desc1.device), torch.cat(sel2).to(desc2.device)
     with torch.no_grad():
-        rows1 = desc1.reshape(-1, D)[i1].float().split(counts)
-        rows2 = desc2.reshape(-1, D)[i2].float().split(counts)
+        rows1, rows2 = _sampled_rows(desc1, desc2, sel1, sel2, counts)
+    i1, i2 = torch.cat(sel1).to(conf1.device), torch.cat(sel2).to(conf2.device)
     c = (0.5 * (conf1.reshape(-1)[i1].float() + conf2.reshape(-1)[i2].float())).split(counts)
     losses = []
     for d1, d2, ci in zip(rows1, rows2, c):
@@ -253,6 +246,18 @@ def descriptor_confidence_loss(desc1: torch.Tensor, desc2: torch.Tensor, conf1: 
                         + F.cross_entropy(logits.T, target, reduction="none"))
         losses.append((li * ci - alpha * torch.log(ci)).mean())
     return torch.stack(losses).mean(), float(torch.cat(c).detach().mean())
+
+
+def _sampled_rows(desc1: torch.Tensor, desc2: torch.Tensor, sel1: list, sel2: list, counts: list) -> tuple:
+    """Each pair's descriptors at its sampled correspondences (``_sampled_correspondences``), float32: (view 1's
+    [count, D] per pair, view 2's). One gather per view for the whole batch: indexing pair by pair would zero-fill
+    a gradient buffer of the whole descriptor batch for every pair in the backward pass."""
+    if not counts:
+        return (), ()
+    D = desc1.shape[-1]
+    rows1 = desc1.reshape(-1, D)[torch.cat(sel1).to(desc1.device)].float().split(counts)
+    rows2 = desc2.reshape(-1, D)[torch.cat(sel2).to(desc2.device)].float().split(counts)
+    return rows1, rows2
 
 
 def _sampled_correspondences(shape1, shape2, corr: torch.Tensor, n_corr: int, generator):
