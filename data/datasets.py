@@ -159,7 +159,9 @@ def _geometric_corr(corr, d1, K1, T1, d2, K2, T2, rel_tol: float = 0.05):
     pixel nearest to where it samples, up to half a source pixel (two output pixels after a 2x crop) away
     (median 0.49 px off on ``train_p39``). A pixel whose point lands where view 2's depth disagrees by more than
     ``rel_tol`` (an occlusion edge, where depth and correspondence resampling picked different source pixels) is
-    left out, and so is one from a pixel without depth or landing outside view 2 or on a pixel without depth."""
+    left out, and so is one from a pixel without depth or landing outside view 2 or on a pixel without depth.
+    corr [H1, W1, 2] view-2 pixels (u, v; NaN: none) -> the same, float32; d1 [H1, W1], d2 [H2, W2] z-depth (0: none);
+    K1, K2 [3, 3] in the cropped images' pixels (centres at integers); T1, T2 [4, 4] OpenCV cam2world."""
     ok = np.isfinite(corr).all(-1) & (d1 > 0)
     T = _inv(T2) @ T1
     P = _unproject(d1, K1) @ T[:3, :3].T + T[:3, 3]
