@@ -3,7 +3,9 @@
 ``reciprocal_nn_bruteforce`` is the obviously-correct reference (all mutual nearest neighbours);
 ``reciprocal_nn_fast`` iterates forward/backward NN from a subsampled grid of seeds and keeps the seeds
 that reach a fixed point, which are exactly mutual NN pairs: its result is a subset of the reference,
-and equals it when every pixel is a seed (tested).
+and equals it when every pixel is a seed (tested), up to float32 rounding of near-tied distances (the fast
+path works in float32, the reference in float64; ``match`` centres pointmaps first so that L2 distances
+between far-from-origin points do not lose their digits to the squared norms).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ def nearest(query: torch.Tensor, db: torch.Tensor, metric: str, chunk: int = 409
 
     metric 'dot': largest dot product (unit descriptors); 'l2': smallest Euclidean distance.
     """
-    out = torch.empty(query.shape[0], dtype=torch.long)
+    out = torch.empty(query.shape[0], dtype=torch.long, device=query.device)
     db_sq = (db * db).sum(-1) if metric == "l2" else None
     for s in range(0, query.shape[0], chunk):
         q = query[s: s + chunk]
@@ -53,14 +55,14 @@ def reciprocal_nn_bruteforce(f1: torch.Tensor, f2: torch.Tensor, metric: str = "
     a, b = f1.double(), f2.double()
 
     def best(q, db):
-        out = torch.empty(q.shape[0], dtype=torch.long)
+        out = torch.empty(q.shape[0], dtype=torch.long, device=q.device)
         for s in range(0, q.shape[0], chunk):
             sim = q[s: s + chunk] @ db.T if metric == "dot" else -torch.cdist(q[s: s + chunk], db)
             out[s: s + chunk] = sim.argmax(1)
         return out
 
     nn12, nn21 = best(a, b), best(b, a)
-    idx1 = torch.arange(f1.shape[0])
+    idx1 = torch.arange(f1.shape[0], device=f1.device)
     keep = nn21[nn12] == idx1
     return idx1[keep], nn12[keep]
 
@@ -125,16 +127,21 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     ids1, ids2 = valid1.nonzero()[:, 0], valid2.nonzero()[:, 0]
     g1, g2 = f1[ids1], f2[ids2]
     if g1.shape[0] == 0 or g2.shape[0] == 0:
-        empty = torch.zeros(0, 2)
-        return Matches(empty, empty.clone(), torch.zeros(0))
+        empty = torch.zeros(0, 2, device=f1.device)
+        return Matches(empty, empty.clone(), torch.zeros(0, device=f1.device))
+    if metric == "l2":  # distances do not change with a common shift; the fast path's float32 keeps its digits
+        centre = torch.cat([g1, g2]).mean(0)
+        g1, g2 = g1 - centre, g2 - centre
     if bruteforce:
         a, b = reciprocal_nn_bruteforce(g1, g2, metric)
     else:
         s = max(int(subsample), 1)
-        ys, xs = torch.meshgrid(torch.arange(s // 2, H1, s), torch.arange(s // 2, W1, s), indexing="ij")
+        dev = f1.device
+        ys, xs = torch.meshgrid(torch.arange(s // 2, H1, s, device=dev), torch.arange(s // 2, W1, s, device=dev),
+                                indexing="ij")
         seed_pix = (ys * W1 + xs).reshape(-1)
-        lookup = torch.full((H1 * W1,), -1, dtype=torch.long)
-        lookup[ids1] = torch.arange(ids1.numel())
+        lookup = torch.full((H1 * W1,), -1, dtype=torch.long, device=dev)
+        lookup[ids1] = torch.arange(ids1.numel(), device=dev)
         seeds = lookup[seed_pix]
         a, b = reciprocal_nn_fast(g1, g2, seeds[seeds >= 0], metric, max_iter)
     p1, p2 = ids1[a], ids2[b]
@@ -159,8 +166,8 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
     """Reciprocal matches between patch cells (batch size 1): descriptors averaged over each ``patch`` x
     ``patch`` cell and re-normalised, mutual nearest neighbours by dot product (all cells, brute force).
 
-    Coarse to fine: xy1 is the centre pixel (``patch // 2``) of a view-1 cell; xy2 is the centre of the matched
-    view-2 cell, or with ``refine`` the pixel whose descriptor best matches xy1's within that cell grown by half a
+    Coarse to fine: xy1 is the centre pixel (``patch // 2``) of a view-1 cell; xy2 is the centre pixel of the
+    matched view-2 cell (the same ``patch // 2`` offset), or with ``refine`` the pixel whose descriptor best matches xy1's within that cell grown by half a
     cell on each side (cell centres alone cap PnP at a few degrees). Score: sqrt of the two cells' mean
     descriptor confidences. Coarser than ``match`` (one match per cell at most) but robust when pixel
     descriptors are not yet distinctive: the cell descriptor is what the coarse matching loss
@@ -190,7 +197,7 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
     c1, c2 = ok1[a], ok2[b]
 
     xy1 = torch.stack([(c1 % w1) * patch, (c1 // w1) * patch], -1) + patch // 2
-    xy2 = torch.stack([(c2 % w2) * patch, (c2 // w2) * patch], -1).float() + (patch - 1) / 2
+    xy2 = (torch.stack([(c2 % w2) * patch, (c2 // w2) * patch], -1) + patch // 2).float()
     if refine:
         xy2 = _refine_in_cells(d1[xy1[:, 1], xy1[:, 0]], d2, c2, w2, patch)
     return Matches(xy1.float(), xy2, (s1[c1] * s2[c2]).clamp_min(0).sqrt())

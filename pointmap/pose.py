@@ -120,7 +120,8 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
       view 2's own-frame points of two passes whose small disagreements turn short baselines (docs/models.md).
     - else PnP-RANSAC (OpenCV SQPNP) of view-2 pixels against ``pts2_cam1`` with ``K2`` [3, 3] or [B, 3, 3]
       (pixels of the prediction's resolution); when K2 is None, K1 is used for view 2 too (a shared
-      camera) if given, else the focal is found by a sweep over 21 focals keeping the most inliers.
+      camera; the views must then have one size) if given, else the focal is found by a sweep over focals
+      keeping the lowest truncated reprojection cost, then a golden-section search (``_pnp_any_focal``).
     - ``matches`` (one ``pointmap.matching.Matches`` per batch item, e.g. from ``match`` or ``match_coarse``)
       given: PnP-RANSAC of the matched view-2 pixels against view 1's OWN pointmap at the matched view-1
       pixels (MASt3R-style: needs good matches and view 1's geometry, not the cross-view regression),
@@ -132,10 +133,20 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     if pred_reverse is not None:
         check_prediction(pred_reverse, "pred_reverse")
     B = pred.batch_size
-    if K2 is None and K1 is not None and tuple(pred.pts1_cam1.shape[1:3]) == tuple(pred.pts2_cam1.shape[1:3]):
+    if K1 is not None:
+        K1 = torch.as_tensor(K1, dtype=torch.float64).detach().cpu()
+        if K1.shape == (3, 3):
+            K1 = K1.expand(B, 3, 3)
+        if tuple(K1.shape) != (B, 3, 3):
+            raise ShapeError(f"K1 expected [3, 3] or [{B}, 3, 3], got {list(K1.shape)}")
+        _check_focals("K1", K1)
+        if K2 is None and tuple(pred.pts1_cam1.shape[1:3]) != tuple(pred.pts2_cam1.shape[1:3]):
+            raise ShapeError(f"K1 stands for view 2's intrinsics only when the views have one size; got views "
+                             f"{list(pred.pts1_cam1.shape[1:3])} and {list(pred.pts2_cam1.shape[1:3])}: give K2")
+    if K2 is None and K1 is not None:
         K2 = K1
     if K2 is not None:
-        K2 = torch.as_tensor(K2, dtype=torch.float64)
+        K2 = torch.as_tensor(K2, dtype=torch.float64).detach().cpu()
         if K2.shape == (3, 3):
             K2 = K2.expand(B, 3, 3)
         if tuple(K2.shape) != (B, 3, 3):
@@ -225,7 +236,11 @@ def _own_onto_other(own, conf_own, other, conf_other, keep: float):
     mask = _conf_mask(w, other, keep) & torch.isfinite(own).all(-1)
     if mask.sum() < 3 or not bool(w[mask].sum() > 0):
         return None
-    return weighted_procrustes(own[mask].double(), other[mask].double(), w[mask].double())
+    s, R, t = weighted_procrustes(own[mask].double(), other[mask].double(), w[mask].double())
+    if not (bool(torch.isfinite(s)) and float(s) > 1e-12 and bool(torch.isfinite(R).all())
+            and bool(torch.isfinite(t).all())):
+        return None  # a collapsed pointmap (all its points at one place) has no scale to invert
+    return s, R, t
 
 
 def _pose_from_matches(pts1_cam1: torch.Tensor, m, hw2, K2):
@@ -244,8 +259,9 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
     ``xy1``, ``xy2`` [M, 2] (u, v) and the intrinsics [3, 3] of each view: five-point essential matrix in
     RANSAC (OpenCV) on normalised coordinates, inlier threshold ``threshold_px`` pixels of view 1, then the
     cheirality test. Needs no depth at all (the classical two-view pipeline). None with fewer than 5
-    correspondences or no solution with at least 5 inliers in front of both cameras (e.g. no motion);
-    ShapeError for wrong inputs."""
+    correspondences or no solution with at least 5 inliers in front of both cameras (e.g. no motion), or when
+    several solutions explain equally many (exactly five correspondences often fit more than one essential
+    matrix); ShapeError for wrong inputs."""
     import cv2
 
     if not 0 < prob < 1:
@@ -263,10 +279,13 @@ def pose_from_essential(xy1, xy2, K1, K2, threshold_px: float = 1.0, prob: float
         # five-point polynomial solve (solvePoly) on degenerate samples, e.g. no motion, where 4.x and 5.0 return
         # no solution. Both mean the same thing.
         return None
-    if E is None or E.shape != (3, 3):
+    if E is None or E.ndim != 2 or E.shape[1] != 3 or E.shape[0] % 3 or E.shape[0] == 0:
         return None
-    n_front, R, t, _ = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask)
-    if n_front < 5:
+    # from exactly five correspondences OpenCV returns every five-point solution stacked ([3k, 3]): the pose is
+    # the one with the most points in front of both cameras, if no other solution explains as many
+    sols = [cv2.recoverPose(e, n1, n2, np.eye(3), mask=mask.copy())[:3] for e in E.reshape(-1, 3, 3)]
+    n_front, R, t = max(sols, key=lambda x: x[0])
+    if n_front < 5 or sum(n == n_front for n, _, _ in sols) > 1:
         return None
     world2cam2 = np.eye(4)
     world2cam2[:3, :3], world2cam2[:3, 3] = R, t[:, 0]
@@ -291,8 +310,8 @@ def _checked_pixels(xy1, xy2, K1, K2, threshold_px):
     if xy1.ndim != 2 or xy1.shape[1:] != (2,) or xy1.shape != xy2.shape:
         raise ShapeError(f"xy1, xy2 expected matching [M, 2] pixel arrays, got {list(xy1.shape)} and {list(xy2.shape)}")
     for name, K in (("K1", K1), ("K2", K2)):
-        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ShapeError(f"{name} expected a finite [3, 3] intrinsics matrix with positive focals, got "
+        if K.shape != (3, 3) or not bool(is_pinhole_K(K)):
+            raise ShapeError(f"{name} expected finite [3, 3] pinhole intrinsics with positive focals ({K_LAYOUT}), got "
                              f"{K.tolist() if K.size <= 9 else list(K.shape)}")
     if not threshold_px > 0:
         raise ShapeError(f"threshold_px expected > 0, got {threshold_px}")
@@ -390,7 +409,7 @@ def refine_pose_with_matches(cam2world: torch.Tensor, m, K1, K2, *, threshold_px
                          f"{rotation_prior_deg} and {max_evals}")
     if not bool(torch.isfinite(cam2world).all()):
         return cam2world
-    R0 = cam2world[:3, :3].double().numpy()
+    R0 = cam2world[:3, :3].detach().double().cpu().numpy()
     xy1, xy2, K1, K2 = _checked_pixels(m.xy1.detach().double().cpu().numpy(), m.xy2.detach().double().cpu().numpy(),
                                        K1, K2, threshold_px)
     t = translation_from_matches(R0, xy1, xy2, K1, K2, threshold_px=threshold_px)
@@ -517,7 +536,7 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
         if not usable or not bool(torch.isfinite(out[b]).all()):
             continue  # no pointmap pose, or no usable focal (a degenerate pointmap): nothing to refine
         m = match_coarse(pred[b], patch) if matches is None else matches[b]
-        refined = refine_pose_with_matches(out[b], m, Ks[0][b].numpy(), Ks[1][b].numpy(),
+        refined = refine_pose_with_matches(out[b], m, Ks[0][b].detach().cpu().numpy(), Ks[1][b].detach().cpu().numpy(),
                                            threshold_px=threshold_px, rotation_prior_deg=prior)
         if float(refined[:3, 3] @ out[b, :3, 3]) < 0:  # the side the pointmaps put camera 2 on: a sign the
             refined[:3, 3] = -refined[:3, 3]  # epipolar fit does not see (its cheirality test can be fooled)

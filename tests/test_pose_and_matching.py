@@ -170,6 +170,16 @@ def test_pointmap_matching_finds_the_true_correspondences_of_exact_pointmaps():
     assert ((uv - m.xy2.double()).norm(dim=-1) < 1.0).float().mean() > 0.95
 
 
+def test_pointmap_matching_far_from_the_origin_finds_what_the_float64_reference_finds():
+    torch.manual_seed(1)
+    p1 = torch.rand(H, W, 3) + torch.tensor([100.0, -80.0, 300.0])  # a cloud far from its frame's origin
+    p2 = p1 + 0.01 * torch.randn_like(p1)
+    pred = as_pred(p1, p2)
+    fast = set(map(tuple, pm.match(pred, subsample=1, use="pts").xy1.tolist()))
+    ref = set(map(tuple, pm.match(pred, use="pts", bruteforce=True).xy1.tolist()))
+    assert len(ref) > 300 and len(fast ^ ref) <= 0.01 * len(ref)
+
+
 def test_matching_refuses_batches_and_missing_descriptors():
     p1, p2, *_ = two_views()
     pred = as_pred(p1, p2)
@@ -231,9 +241,9 @@ def test_coarse_matching_pairs_the_cells_whose_pooled_descriptors_agree():
     pred = pm.PairPrediction(p1[None].float(), p2[None].float(), torch.ones(1, H, W), torch.ones(1, H, W),
                              desc1=pix(codes1), desc2=pix(codes2), desc_conf1=torch.ones(1, H, W),
                              desc_conf2=torch.ones(1, H, W))
-    m = match_coarse(pred, patch=p, refine=False)  # xy1: a cell's centre pixel; xy2: the matched cell's centre
+    m = match_coarse(pred, patch=p, refine=False)  # xy1, xy2: the centre pixels of the matched cells
     assert len(m) >= h * (w - 1)
-    shifted = (m.xy2 - m.xy1 == torch.tensor([p - 0.5, -0.5])).all(-1)
+    shifted = (m.xy2 - m.xy1 == torch.tensor([float(p), 0.0])).all(-1)  # no half-pixel between the two views
     assert shifted.float().mean() > 0.9 and float(m.xy1[0, 0]) % p == p // 2
     with pytest.raises(pm.ShapeError, match="multiples of patch"):
         match_coarse(pred, patch=7)
@@ -302,6 +312,57 @@ def test_the_essential_matrix_pose_gives_none_without_a_solution_and_refuses_bad
         pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, threshold_px=0.0)
     with pytest.raises(pm.ShapeError, match="prob"):
         pm.pose_from_essential(uv.numpy(), uv.numpy(), k, k, prob=1.5)
+
+
+def test_the_correspondence_solvers_refuse_a_transposed_intrinsics_matrix():
+    from pointmap.matching import Matches
+
+    g = torch.Generator().manual_seed(4)
+    uv = torch.rand(50, 2, generator=g, dtype=torch.float64).numpy() * 60
+    kt = K.numpy().T  # cx, cy in the bottom row: finite, positive focals, and wrong
+    with pytest.raises(pm.ShapeError, match="K1 expected.*pinhole"):
+        pm.pose_from_essential(uv, uv + 1, kt, K.numpy())
+    with pytest.raises(pm.ShapeError, match="K2 expected.*pinhole"):
+        pm.translation_from_matches(np.eye(3), uv, uv + 1, K.numpy(), kt)
+    m = Matches(torch.from_numpy(uv).float(), torch.from_numpy(uv + 1).float(), torch.ones(50))
+    with pytest.raises(pm.ShapeError, match="pinhole"):
+        pm.refine_pose_with_matches(torch.eye(4, dtype=torch.float64), m, kt, K.numpy())
+
+
+def test_the_essential_matrix_pose_from_exactly_five_correspondences_is_exact_or_none_when_ambiguous():
+    found = 0
+    _, _, _, _, gt = two_views(angle_deg=15.0)
+    for seed in range(10):
+        uv1, uv2, K1, K2, _ = _scene_pixels(gt, n=5, seed=seed)
+        est = pm.pose_from_essential(uv1.numpy(), uv2.numpy(), K1.numpy(), K2.numpy())
+        if est is not None:  # OpenCV stacks the five-point solutions: each is tried, a tie is refused
+            assert max(pose_errors(torch.from_numpy(est), gt)) < 1e-3
+            found += 1
+    assert found >= 3  # none was found before
+
+
+def test_the_two_pass_pose_leaves_out_a_direction_whose_own_pointmap_collapsed_to_one_point():
+    p1, p2, _, d2, gt = two_views()
+    own2 = depth_to_points_cam(d2, K)
+    rev = as_pred(own2 * 0.5, transform_points(invert_rigid(gt), p1) * 0.5)
+    collapsed = as_pred(torch.ones_like(p1), p2)  # view 1's own pointmap at one place: no scale to invert
+    est = pm.relative_pose(collapsed, pred_reverse=rev)[0]
+    assert bool(torch.isfinite(est).all())
+    r, t = pose_errors(est, gt)
+    assert r < 1e-3 and t < 1e-2
+
+
+def test_relative_pose_checks_K1_and_refuses_it_for_a_view_2_of_another_size():
+    p1, p2, *_ = two_views()
+    with pytest.raises(pm.ShapeError, match="K1 expected"):
+        pm.relative_pose(as_pred(p1, p2), K1=K.T)
+    with pytest.raises(pm.ShapeError, match="K1 expected"):
+        pm.relative_pose(as_pred(p1, p2), K1=torch.zeros(2, 2))
+    small = pm.PairPrediction(p1[None].float(), p2[None, :, :32].float(), torch.ones(1, H, W), torch.ones(1, H, 32))
+    with pytest.raises(pm.ShapeError, match="give K2"):
+        pm.relative_pose(small, K1=K)
+    same = pm.relative_pose(as_pred(p1, p2), K1=K)[0]  # a shared camera: K1 stands for view 2's
+    assert torch.allclose(same, pm.relative_pose(as_pred(p1, p2), K2=K)[0])
 
 
 def _scene_pixels(gt, n=300, seed=5):

@@ -267,6 +267,38 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> float:
     return float((err < tol).float().mean())
 
 
+def coarse_match_labels(m, corr: torch.Tensor, valid: torch.Tensor, tol: float) -> torch.Tensor:
+    """[M] labels of the matches ``m`` (xy1 in view 1's pixels) against view 1's ground truth: 1.0 where the true
+    correspondence of xy1 is within ``tol`` px of xy2, 0.0 where it is farther or where xy1 has valid depth but no
+    correspondence (a cell view 2 does not see), NaN where xy1 has no valid depth (cannot be judged)."""
+    u, v = m.xy1[:, 0].long(), m.xy1[:, 1].long()
+    gt = corr[v, u].float()
+    seen = torch.isfinite(gt).all(-1)
+    err = (gt - m.xy2.float()).norm(dim=-1)
+    lab = torch.where(seen & (err < tol), 1.0, 0.0)
+    return torch.where(seen | valid[v, u].bool(), lab, torch.full_like(lab, float("nan")))
+
+
+def score_auc(scores, labels) -> float:
+    """Area under the ROC curve of ``scores`` separating labels 1 from labels 0 (NaN labels left out): the chance
+    that a random right match scores above a random wrong one, ties counting half (Mann-Whitney). 0.5 is a score
+    that carries no information; NaN without both kinds."""
+    s, y = torch.as_tensor(scores, dtype=torch.float64).reshape(-1), torch.as_tensor(labels, dtype=torch.float64).reshape(-1)
+    if s.shape != y.shape:
+        raise ValueError(f"score_auc expected scores and labels of one length, got {s.numel()} and {y.numel()}")
+    keep = torch.isfinite(y) & torch.isfinite(s)
+    s, y = s[keep], y[keep]
+    n1, n0 = int((y == 1).sum()), int((y == 0).sum())
+    if n1 == 0 or n0 == 0 or n1 + n0 != len(y):
+        if n1 + n0 != len(y):
+            raise ValueError("score_auc expected labels 0, 1 or NaN")
+        return float("nan")
+    _, inv, counts = torch.unique(s, return_inverse=True, return_counts=True)
+    first = torch.cumsum(counts, 0) - counts  # ranks 1..n, tied values sharing their mean rank
+    ranks = (first.double() + (counts.double() + 1) / 2)[inv]
+    return float((ranks[y == 1].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_pair: list | None = None) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
@@ -282,6 +314,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     ``focal_slope``: ``focal_slope`` of those focals against the true ones (1: they follow the image);
     ``fwd_corr``/``fwd_sign``: ``forward_agreement`` of the estimated translation directions (the forward
     component, which per-view focal lengths had hidden from training);
+    ``match_score_auc``: ``score_auc`` of the coarse matches' scores (the descriptor confidence) for right (true
+    correspondence within half a patch) against wrong ones (farther, or a cell view 2 does not see), pooled over
+    the pairs: 0.5 when the score says nothing about a match;
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
@@ -293,6 +328,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     angle_gt = []  # the true rotation between the two cameras, degrees (RRA15_under30 / RRA15_over45)
     rot_m, tr_m = [], []  # pose from the model's matches (match_coarse) + PnP with the true K
     rot_r, tr_r = [], []  # the model's pose refined on its matches (true K)
+    m_scores, m_labels = [], []  # coarse matches' scores and right/wrong labels (match_score_auc)
     rot_p, tr_p = {}, {}  # pair_pose: refined on its matches with its own focals (what the pipeline reports), by index
     order = []  # the dataset index of each entry of rot_err / tr_err / angle_gt (batches regroup by shape)
     focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
@@ -349,6 +385,8 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
                     if not math.isnan(acc):
                         coarse.append(acc)
                     m = match_coarse(pred[b], patch)
+                    m_scores.append(m.score.float())
+                    m_labels.append(coarse_match_labels(m, v1["corr"][b], v1["valid"][b], patch / 2))
                     est = relative_pose(pred[b], K2=v2["K"][b].double(), matches=[m])[0]
                     r, t = _pose_errors(est, cam2world_gt[b])
                     rot_m.append(r)
@@ -378,6 +416,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             "focal_slope": focal_slope(focal_est, focal_true) if focal_est else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
+            "match_score_auc": score_auc(torch.cat(m_scores), torch.cat(m_labels)) if m_scores else float("nan"),
             "conf_spread": float(torch.tensor(spreads).nanmean()) if spreads else float("nan"),
             "conf_order": float(torch.tensor(orders).nanmedian()) if orders else float("nan"),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

@@ -22,6 +22,7 @@ def test_held_out_evaluation_reports_every_metric_in_its_range_over_the_requeste
     assert 0 <= ev["rot_err_med"] <= 180 and 0 <= ev["trans_err_med"] <= 180
     assert math.isfinite(ev["AbsRel"]) and ev["AbsRel"] >= 0
     assert 0 <= ev["coarse_acc"] <= 1
+    assert math.isnan(ev["match_score_auc"]) or 0 <= ev["match_score_auc"] <= 1
     assert math.isnan(ev["baseline_ratio"]) or ev["baseline_ratio"] >= 0
     assert math.isnan(ev["depth_ratio_err"]) or ev["depth_ratio_err"] >= 0
     assert math.isnan(ev["fwd_corr"]) or -1 <= ev["fwd_corr"] <= 1
@@ -417,3 +418,41 @@ def test_the_focal_slope_is_one_for_focals_that_follow_the_truth_and_zero_for_on
     assert math.isnan(focal_slope([1.0, 2.0], [100.0, 100.0]))
     with pytest.raises(ValueError, match="two \\[N\\] sequences"):
         focal_slope([1.0, 2.0], [1.0])
+
+
+def test_score_auc_agrees_with_counting_every_right_and_wrong_pair_of_matches_ties_as_half():
+    from training.evaluate import score_auc
+
+    gen = torch.Generator().manual_seed(3)
+    scores = torch.randint(0, 6, (200,), generator=gen).double()  # many ties
+    labels = (torch.rand(200, generator=gen) < 0.4).double()
+    labels[::17] = float("nan")  # unjudged matches are left out
+    keep = torch.isfinite(labels)
+    s, y = scores[keep], labels[keep]
+    right, wrong = s[y == 1], s[y == 0]
+    slow = sum(1.0 if a > b else 0.5 if a == b else 0.0 for a in right.tolist() for b in wrong.tolist())
+    assert score_auc(scores, labels) == pytest.approx(slow / (len(right) * len(wrong)), abs=1e-12)
+    assert score_auc([1.0, 2.0, 3.0, 4.0], [0, 0, 1, 1]) == 1.0
+    assert score_auc([4.0, 3.0, 2.0, 1.0], [0, 0, 1, 1]) == 0.0
+    assert score_auc([2.0, 2.0, 2.0], [0, 1, 1]) == 0.5  # a constant score says nothing
+    assert math.isnan(score_auc([1.0, 2.0], [1, 1]))
+    with pytest.raises(ValueError, match="labels 0, 1 or NaN"):
+        score_auc([1.0, 2.0], [0, 2])
+    with pytest.raises(ValueError, match="one length"):
+        score_auc([1.0, 2.0], [0])
+
+
+def test_coarse_match_labels_call_a_match_right_near_its_true_correspondence_wrong_far_or_unseen_and_unjudged_off_depth():
+    from types import SimpleNamespace
+
+    from training.evaluate import coarse_match_labels
+
+    corr = torch.full((4, 5, 2), float("nan"))
+    corr[1, 2] = torch.tensor([3.0, 1.0])
+    corr[2, 2] = torch.tensor([4.0, 2.0])
+    valid = torch.ones(4, 5, dtype=torch.bool)
+    valid[0, 0] = False  # no depth at (u=0, v=0): cannot be judged
+    m = SimpleNamespace(xy1=torch.tensor([[2.0, 1.0], [2.0, 2.0], [1.0, 3.0], [0.0, 0.0]]),
+                        xy2=torch.tensor([[3.5, 1.0], [0.0, 0.0], [1.0, 3.0], [0.0, 0.0]]))
+    lab = coarse_match_labels(m, corr, valid, tol=1.0)
+    assert lab[:3].tolist() == [1.0, 0.0, 0.0] and math.isnan(lab[3])  # right, far, a cell view 2 does not see
