@@ -527,10 +527,13 @@ def cmd_splat(args) -> int:
     out = writable_dir(Path(args.out or npz.parent / "splat"))
     if args.test:  # the test views and the model are read before the fit, which takes minutes
         from pointmap.checkpoint import load_model
+        from pointmap.inference import pooled_tokens
         from pointmap.localization import query_views
 
         every = query_views(recon, expand_images(args.test, out / "test_frames"))  # a video: up to 30 frames
         model = load_model(args.model, device=args.device)
+        pooled_tokens(model, every[:1], device=args.device)  # localize ranks by encoder tokens: a model without
+        # them (a single-graph ONNX export) is refused now, not after the fit
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch
@@ -540,7 +543,10 @@ def cmd_splat(args) -> int:
         from pointmap.splat.outputs import evaluate_views
 
         refined = result.get("recon_refined")
-        loc = localize(model, recon if refined is None else refined, every, quiet=args.quiet, device=args.device)
+        try:
+            loc = localize(model, recon if refined is None else refined, every, quiet=args.quiet, device=args.device)
+        except PointmapError as e:
+            raise PointmapError(f"{e}; the splat itself is written to {out}, without test scores") from None
         posed = [k for k, r in enumerate(loc.ref) if r >= 0]
         if len(posed) < len(every):
             print(f"pointmap: {len(every) - len(posed)} test view(s) could not be localized and are left out: "
@@ -568,6 +574,9 @@ def cmd_localize(args) -> int:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
     if (args.stride is not None and args.stride < 1) or args.max_frames < 1:  # one frame can be localized
         raise PointmapError(f"--stride expected >= 1 and --max-frames >= 1, got {args.stride} and {args.max_frames}")
+    if Path(args.out).resolve() == npz.parent.resolve():  # its trajectory.txt and a video's frames/ are the recon's
+        raise PointmapError(f"-o {args.out} is the reconstruction's own folder: localize writes trajectory.txt (and a "
+                            f"video's frames/) there and would replace the reconstruction's; give another folder")
     out = writable_dir(Path(args.out))
     frame_times: dict = {}
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)

@@ -29,7 +29,8 @@ class Localization:
 
     cam2world: [M, 4, 4] OpenCV camera-to-world in the reconstruction's world and units
     K:         [M, 3, 3] intrinsics in the queries' ORIGINAL pixels (given, or estimated)
-    ref:       [M] index of the reconstruction view each pose was found against
+    ref:       [M] index of the reconstruction view each pose was found against (-1: not posed; its pose,
+               K, conf and scale are then NaN)
     conf:      [M] median confidence of the query's pixels in that pair (low: little shared content)
     scale:     [M] reconstruction units per unit of that pair's prediction (from the reference's depth)
     names:     the queries' names

@@ -145,6 +145,10 @@ def pinhole_for(K, distortion: Distortion, size) -> np.ndarray:
         return Kn
 
     lo, hi = 0.05, 1.0
+    if _inside(scaled(lo), K, distortion, w, h):  # the bisection needs a scale too wide to fit
+        raise PointmapError(f"{distortion} (K {K.tolist()}) sees 180 degrees or more inside the {w} x {h} photograph "
+                            "(a circular fisheye): no pinhole view covers it; crop the image circle to a narrower "
+                            "field first")
     while not _inside(scaled(hi), K, distortion, w, h):
         hi *= 1.5
         if hi > 50:
@@ -182,6 +186,7 @@ def undistort(image: np.ndarray, K, distortion: Distortion, K_new=None, *, neare
         mx, my = cv2.initUndistortRectifyMap(K, distortion.opencv(), None, K_new, (w, h), cv2.CV_32FC1)
     src = image.astype(np.uint8) if image.dtype == bool else image
     out = cv2.remap(src, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = out.reshape(image.shape)  # OpenCV returns [H, W] for a one-channel [H, W, 1]
     return out.astype(bool) if image.dtype == bool else out
 
 

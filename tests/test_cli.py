@@ -108,6 +108,24 @@ def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(ti
     monkeypatch.setattr(pointmap.splat, "run", lambda *a, **k: pytest.fail("the fit ran before the inputs were read"))
     assert main(["splat", str(out), "--test", str(folder / "missing.png"), "--model", str(weights)]) == 2
     assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", "no_such_model"]) == 2
+    import pointmap.inference
+    from pointmap.errors import CheckpointError
+
+    def no_tokens(*a, **k):
+        raise CheckpointError("pooled_tokens needs the encoder's tokens")
+
+    with monkeypatch.context() as mp:  # a single-graph ONNX export: refused before the fit
+        mp.setattr(pointmap.inference, "pooled_tokens", no_tokens)
+        assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights)]) == 2
+    assert "needs the encoder's tokens" in capsys.readouterr().err
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": "the fit"})
+
+    def none_posed(*a, **k):
+        raise pointmap.PointmapError("none of the 1 queries could be posed")
+
+    monkeypatch.setattr(pointmap.localization, "localize", none_posed)
+    assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights)]) == 2
+    assert "could be posed" in (err := capsys.readouterr().err) and "without test scores" in err
 
 
 def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_poses(tiny, tmp_path, capsys):
@@ -285,6 +303,8 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
     assert "no reconstruction.npz in" in capsys.readouterr().err
     assert main(["localize", str(rec), str(folder / "c.png"), "-o", str(out), "--n-refs", "0"]) == 2
     assert "--n-refs expected >= 1" in capsys.readouterr().err
+    assert main(["localize", str(rec), str(folder / "c.png"), "-o", str(rec)]) == 2  # would replace its files
+    assert "the reconstruction's own folder" in capsys.readouterr().err
 
 
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):

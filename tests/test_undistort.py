@@ -94,6 +94,20 @@ def test_a_fisheye_with_zero_coefficients_is_not_taken_for_a_pinhole():
     assert pinhole_for(K, lens, (W, H))[0, 0] < 0.97 * K[0, 0]  # the equidistant image is wider than a pinhole's
 
 
+def test_a_circular_fisheye_seeing_180_degrees_in_the_frame_is_refused_instead_of_squeezed_to_a_dot():
+    wide = np.array([[30.0, 0, 63.5], [0, 30.0, 47.5], [0, 0, 1]])  # 30 px per radian: 90 degrees at 47 px
+    with pytest.raises(PointmapError, match="180 degrees or more"):
+        pinhole_for(wide, Distortion("OPENCV_FISHEYE"), (128, 96))
+    narrower = np.array([[60.0, 0, 63.5], [0, 60.0, 47.5], [0, 0, 1]])  # 90 degrees at 94 px: outside the frame
+    assert pinhole_for(narrower, Distortion("OPENCV_FISHEYE"), (128, 96))[0, 0] > 30
+
+
+def test_a_one_channel_image_keeps_its_channel_axis():
+    img = np.random.default_rng(0).integers(0, 255, (H, W, 1), dtype=np.uint8)
+    assert undistort(img, K, LENSES[0]).shape == (H, W, 1)
+    assert undistort(img[..., 0], K, LENSES[0]).shape == (H, W)
+
+
 def test_no_distortion_leaves_the_image_and_intrinsics_as_they_are():
     img = np.random.default_rng(0).integers(0, 255, (H, W, 3), dtype=np.uint8)
     none = Distortion("OPENCV")
