@@ -9,6 +9,7 @@ each graph's metadata under the key ``pointmap``), which ``pointmap.runtime.onnx
 from __future__ import annotations
 
 import contextlib
+import copy
 import datetime as _dt
 import io
 import json
@@ -22,6 +23,7 @@ from pathlib import Path
 import torch
 
 from export.graphs import graph_specs
+from pointmap.checkpoint import provenance_keeping_licence
 from pointmap.errors import CheckpointError
 from pointmap.model.net import PointmapNet
 from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR
@@ -79,6 +81,7 @@ def fold_weight_transposes(ir_model) -> int:
 
     graph = ir_model.graph
     folded = 0
+    made: dict = {}  # (weight, perm) -> its transposed initializer: a weight read by two Transposes is folded once
     for node in list(graph):
         if node.op_type != "Transpose" or node.domain not in ("", "ai.onnx"):
             continue
@@ -86,11 +89,16 @@ def fold_weight_transposes(ir_model) -> int:
         if src is None or not src.is_initializer() or src.const_value is None:
             continue
         perm = node.attributes.get("perm")
-        arr = src.const_value.numpy()
-        arr = np.ascontiguousarray(np.transpose(arr, perm.as_ints() if perm is not None else None))
-        new = ir.Value(name=f"{src.name}.T", shape=ir.Shape(arr.shape), type=src.type,
-                       const_value=ir.tensor(arr, name=f"{src.name}.T"))
-        graph.register_initializer(new)
+        axes = tuple(perm.as_ints()) if perm is not None else None
+        new = made.get((src.name, axes))
+        if new is None:
+            arr = np.ascontiguousarray(np.transpose(src.const_value.numpy(), axes))
+            name = f"{src.name}.T" if not made else f"{src.name}.T{len(made)}"
+            while name in graph.initializers:
+                name += "_"
+            new = ir.Value(name=name, shape=ir.Shape(arr.shape), type=src.type, const_value=ir.tensor(arr, name=name))
+            graph.register_initializer(new)
+            made[(src.name, axes)] = new
         node.outputs[0].replace_all_uses_with(new)
         graph.remove(node, safe=True)
         if not src.uses() and not src.is_graph_output():
@@ -130,6 +138,10 @@ def export_graphs(model: PointmapNet, tmp: Path, *, split: bool, opset: int, ext
                 noisy.setLevel(level)
         _rename_dims(prog.model, spec)
         fold_weight_transposes(prog.model)
+        got = dict(prog.model.opset_imports)  # onnx_ir: {domain: version}
+        if got.get("", opset) != opset:  # the exporter converts only where it can, and says so only in a log
+            raise CheckpointError(f"ONNX export of the {spec['role']} graph asked for opset {opset} and got "
+                                  f"{got.get('')}: ask for {got.get('')} or newer")
         path = tmp / spec["file"]
         prog.save(str(path), external_data=external)
         spec["export_seconds"] = round(time.perf_counter() - t0, 1)
@@ -168,8 +180,9 @@ def _atomic_publish(tmp: Path, out: Path) -> None:
 def check_target(out_dir, opset: int) -> Path:
     """The export's folder (new, empty, or an earlier export, which is replaced) and opset checked; the folder as a
     Path. ``python -m export`` calls it before the model loads."""
-    if not (isinstance(opset, int) and not isinstance(opset, bool) and opset >= 17):
-        raise ValueError(f"opset expected an int >= 17 (LayerNormalization), got {opset!r}")
+    if not (isinstance(opset, int) and not isinstance(opset, bool) and opset >= 18):
+        raise ValueError(f"opset expected an int >= 18 (the dynamo exporter's own; it cannot convert down to 17), "
+                         f"got {opset!r}")
     out = Path(out_dir)
     if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
         raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
@@ -203,7 +216,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     if parity not in PARITY_CASES and parity != "none":
         raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
     out = check_target(out_dir, opset)
-    model = model.float().eval().cpu()
+    model = copy.deepcopy(model).float().eval().cpu()  # the caller's model keeps its mode, dtype and device
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -234,7 +247,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
             "graphs": {s["role"]: {"file": s["file"], "inputs": s["inputs"], "outputs": s["outputs"],
                                    "dtype_io": "float32", "external_data": external} for s in specs},
             "provenance": {
-                **(provenance or getattr(model, "provenance", None) or {}),
+                **provenance_keeping_licence(model, provenance),
                 "exporter": "torch.onnx.export(dynamo=True)", "created": _dt.datetime.now(_dt.timezone.utc)
                 .isoformat(timespec="seconds"), "versions": _versions(), "parameters_bytes_fp32": nbytes,
                 "export_seconds": {s["role"]: s["export_seconds"] for s in specs},

@@ -69,7 +69,7 @@ class DecoderGraph(_Graph):
 def half_backbone(model: PointmapNet) -> PointmapNet:
     """A copy of ``model`` with the patch embedding, encoder and decoders (and the normalisation
     buffers) in float16 and the heads (and pose head) in float32. PointmapNet.heads casts the tokens to float32, so
-    the output transforms (exp of depth and confidence, norms) stay float32."""
+    the output transforms (exp of depth and confidence, norms) stay float32. The pose and focal heads stay float32 too.""" 
     import copy
 
     half = copy.deepcopy(model).half()
@@ -77,6 +77,8 @@ def half_backbone(model: PointmapNet) -> PointmapNet:
     half.downstream_head2.float()
     if half.pose_head is not None:  # it reads the float32 tokens PointmapNet.heads hands the heads
         half.pose_head.float()
+    if half.focal_head is not None:  # so does the focal head
+        half.focal_head.float()
     return half.eval()
 
 

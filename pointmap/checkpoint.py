@@ -12,6 +12,7 @@ import ast
 import json
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -152,8 +153,11 @@ def official_to_ours(state: dict, *, allow_missing_heads: bool = False) -> dict:
         if k in ("mask_token", "enc_pos_embed", "dec_pos_embed") or k.startswith("prediction_head."):
             continue
         if ".scratch.layer_rn." in k:
-            head, rest = k.split(".scratch.layer_rn.")
-            idx, tail = rest.split(".", 1)
+            parsed = re.fullmatch(r"(.+)\.scratch\.layer_rn\.(\d+)\.(.+)", k)
+            if parsed is None:
+                raise CheckpointError(f"unexpected key {k!r}: a scratch.layer_rn alias expected "
+                                      f"'<head>.scratch.layer_rn.<int>.<name>' (a corrupt or foreign checkpoint?)")
+            head, idx, tail = parsed.groups()
             alias = f"{head}.scratch.layer{int(idx) + 1}_rn.{tail}"
             if alias in state and not torch.equal(state[alias], v):
                 raise CheckpointError(f"{k} and its alias {alias} hold different values")
@@ -296,6 +300,18 @@ def model_licence(model) -> str | None:
     return lic if isinstance(lic, str) and lic else None
 
 
+def provenance_keeping_licence(model, provenance=None) -> dict:
+    """What a file written from ``model`` records as its provenance: ``provenance`` if given, else the model's own;
+    either way with the licence the model's weights carry (``model_licence``) when the given one names none, so
+    that a caller's provenance cannot drop a non-commercial licence. ShapeError for a provenance that is not a
+    dict."""
+    prov = provenance or getattr(model, "provenance", None) or {}
+    if not isinstance(prov, dict):
+        raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
+    lic = model_licence(model)
+    return {**prov, "licence": lic} if lic and not prov.get("licence") else dict(prov)
+
+
 def warn_if_noncommercial(model, path, what: str) -> None:
     """A UserWarning when ``model``'s recorded licence is a non-commercial one (an ``-NC`` SPDX id)."""
     lic = model_licence(model)
@@ -377,9 +393,7 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
         raise ShapeError(f"save_model expected a PointmapNet, got {type(model).__name__}")
     if dtype not in (None, torch.float16, torch.float32, "int8"):
         raise ShapeError(f"dtype expected None, torch.float16, torch.float32 or 'int8', got {dtype!r}")
-    prov = provenance or getattr(model, "provenance", {}) or {}
-    if not isinstance(prov, dict):
-        raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
+    prov = provenance_keeping_licence(model, provenance)
     if not provenance_ok(prov):  # what load_model would refuse is not written
         raise ShapeError(f"provenance's image_size expected a positive int (the training input size), got "
                          f"{prov.get('image_size')!r}")

@@ -290,7 +290,12 @@ def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_st
 
 @pytest.mark.parametrize("change,named", [({"enc_heads": 0}, "enc_heads=0"), ({"enc_dim": "abc"}, "enc_dim='abc'"),
                                           ({"dec_depth": -1}, "dec_depth=-1"),
-                                          ({"mlp_ratio": float("inf")}, "mlp_ratio=inf")])
+                                          ({"mlp_ratio": float("inf")}, "mlp_ratio=inf"),
+                                          ({"conf_mode": ["exp", "abc", "inf"]}, "conf_mode expected"),
+                                          ({"conf_mode": ["exp", 3, 1]}, "conf_mode expected"),
+                                          ({"conf_mode": ["linear", 1, "inf"]}, "conf_mode expected"),
+                                          ({"depth_mode": ["exp", 0, 1]}, "no bounds"),
+                                          ({"depth_mode": ["sigmoid", "-inf", "inf"]}, "depth_mode expected")])
 def test_a_safetensors_file_whose_config_has_impossible_sizes_is_refused_naming_them(tmp_path, tiny_model, change,
                                                                                       named):
     from safetensors import safe_open
@@ -388,3 +393,14 @@ def test_a_safetensors_file_whose_provenance_is_not_an_object_with_a_positive_im
     save_file(load_file(str(path)), str(path), metadata=dict(meta, provenance=provenance))
     with pytest.raises(pm.CheckpointError, match="broken provenance metadata: expected a JSON object"):
         pm.load_model(path)
+
+
+def test_an_official_state_dict_with_a_malformed_layer_rn_alias_is_a_checkpoint_error():
+    from pointmap.checkpoint import official_to_ours
+
+    w = torch.zeros(2)
+    for key in ("downstream_head1.dpt.scratch.layer_rn.weight", "downstream_head1.dpt.scratch.layer_rn.x.weight"):
+        with pytest.raises(pm.CheckpointError, match="layer_rn alias expected"):
+            official_to_ours({key: w})
+    ok = official_to_ours({"downstream_head1.dpt.scratch.layer_rn.0.weight": w})
+    assert list(ok) == ["downstream_head1.dpt.scratch.layer1_rn.weight"]

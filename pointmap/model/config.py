@@ -98,10 +98,18 @@ class ModelConfig:
             errors.append(f"desc_dim={self.desc_dim} needs a catmlp head, got {self.head!r}")
         if self.desc_stem < 0 or (self.desc_stem and not self.has_desc):
             errors.append(f"desc_stem expected 0, or > 0 with a descriptor head, got {self.desc_stem} (desc_dim {self.desc_dim})")
-        for name in ("depth_mode", "conf_mode", "desc_conf_mode"):
+        def real(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v)
+
+        for name, kinds in (("depth_mode", ("exp", "linear", "square")), ("conf_mode", ("exp", "sigmoid")),
+                            ("desc_conf_mode", ("exp", "sigmoid"))):  # the kinds heads.regress_* compute
             mode = getattr(self, name)
-            if len(mode) != 3 or mode[0] not in ("exp", "linear", "square", "sigmoid"):
-                errors.append(f"{name} expected (kind, vmin, vmax), got {mode!r}")
+            if (len(mode) != 3 or mode[0] not in kinds or not (real(mode[1]) and real(mode[2]) and mode[1] < mode[2])
+                    or (mode[0] == "sigmoid" and not math.isfinite(mode[2] - mode[1]))
+                    or (name == "depth_mode" and tuple(mode[1:]) != (-math.inf, math.inf))):
+                errors.append(f"{name} expected (kind, vmin, vmax) with kind one of {kinds} and numbers vmin < vmax"
+                              f"{' (no bounds: -inf, inf)' if name == 'depth_mode' else ''}"
+                              f"{' (finite for sigmoid)' if name != 'depth_mode' else ''}, got {mode!r}")
         if errors:
             raise CheckpointError("invalid model config: " + "; ".join(errors))
 

@@ -115,9 +115,9 @@ def read_metadata(path) -> dict:
         side = path / SIDECAR
         if side.exists():
             try:
-                meta = json.loads(side.read_text())
-            except json.JSONDecodeError as e:
-                raise CheckpointError(f"{side} is not valid JSON: {e}") from None
+                meta = json.loads(side.read_text(encoding="utf-8"))
+            except (json.JSONDecodeError, UnicodeDecodeError, OSError) as e:
+                raise CheckpointError(f"{side} is not valid JSON (UTF-8): {e}") from None
         else:
             graphs = sorted(path.glob("*.onnx"))
             if not graphs:
@@ -148,6 +148,24 @@ def read_metadata(path) -> dict:
     return meta
 
 
+def _check_same_export(graph: Path, meta: dict) -> None:
+    """CheckpointError unless the description ``graph`` carries (stamped by the exporter; old graphs may carry
+    none) is ``meta``'s, the parity report aside (added after the stamp): a folder holding graphs of different
+    exports would otherwise run weights the description does not describe."""
+    import onnx
+
+    try:
+        props = {p.key: p.value for p in onnx.load(str(graph), load_external_data=False).metadata_props}
+        own = json.loads(props[METADATA_KEY]) if METADATA_KEY in props else None
+    except Exception:  # noqa: BLE001 - a bad graph is reported by onnxruntime's load, which follows
+        return
+    if isinstance(own, dict) and {k: v for k, v in own.items() if k != "parity"} != \
+            {k: v for k, v in meta.items() if k != "parity"}:
+        raise CheckpointError(f"{graph} belongs to another export than the description it was loaded with (created "
+                              f"{own.get('provenance', {}).get('created')!r}, the description "
+                              f"{meta.get('provenance', {}).get('created')!r}): export again into a folder of its own")
+
+
 class _ImageBatch:
     """What ``encode`` returns for a single-graph export: the images themselves, encoded later per pair.
     Quacks like Encoded (``tokens``, ``grid``, slicing, ``type(x)(tokens, grid)``)."""
@@ -168,10 +186,14 @@ class OnnxPointmapModel:
     ``providers`` (the session's providers), ``path``. Tensors go in and come out on the CPU.
     """
 
-    check_images = PointmapNet.check_images  # the very same checks and messages as the PyTorch model
+    check_images = PointmapNet.check_images  # the same shape and range checks and messages as the PyTorch model
+    # (not its dtype and device check, which reads parameters: the runner casts any float images to float32 on
+    # the CPU, float64 ones included, which the PyTorch model refuses)
     check_encodings = PointmapNet.check_encodings
 
-    def __init__(self, path, meta: dict, providers=None, threads: int | None = None) -> None:
+    def __init__(self, path, meta: dict, providers=None, threads: int | None = None, graph=None) -> None:
+        """``path``: the export's folder; ``graph``: a single-graph export's file when it is not the folder's
+        ``model.onnx`` (a lone .onnx file, loaded by its own name)."""
         ort = _ort()
         self.path = Path(path)
         self.meta = meta
@@ -188,9 +210,10 @@ class OnnxPointmapModel:
         files = [ENCODER_GRAPH, DECODER_GRAPH] if self.split else [FULL_GRAPH]
         self._sessions = {}
         for f in files:
-            gp = self.path / f
+            gp = Path(graph) if graph is not None and not self.split else self.path / f
             if not gp.exists():
                 raise CheckpointError(f"{self.path} is missing {f} (listed as {'split' if self.split else 'full'} export)")
+            _check_same_export(gp, meta)
             try:
                 self._sessions[f] = ort.InferenceSession(str(gp), sess_options=so, providers=provs)
             except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
@@ -323,4 +346,4 @@ def load_onnx(path, providers=None, threads: int | None = None, **kwargs) -> Onn
         raise CheckpointError(f"ONNX export not found: {path}")
     meta = read_metadata(path)
     root = path if path.is_dir() else path.parent
-    return OnnxPointmapModel(root, meta, providers=providers, threads=threads)
+    return OnnxPointmapModel(root, meta, providers=providers, threads=threads, graph=None if path.is_dir() else path)

@@ -98,6 +98,54 @@ def test_parity_compare_catches_a_difference(test_model):
     assert res["outputs"]["conf2"]["tol"] == pytest.approx(RTOL * (1 + float(ref.conf2.abs().max())))
     bad.pts1_cam1[0, 0, 0, 0] = float("nan")
     assert not compare(ref, bad)["finite"]
+    nan_ref = ref.map(lambda t: t.clone())  # a NaN in the PyTorch output is no pass either
+    nan_ref.conf2[0, 0, 0] = float("nan")
+    res = compare(nan_ref, ref)
+    assert not res["finite"] and res["worst_output"] == "conf2" and res["worst_ratio"] == float("inf")
+    assert res["outputs"]["pts1_cam1"]["ratio"] == 0.0  # outputs other than the bad one keep their own figures
+
+
+def test_export_leaves_the_callers_model_as_it_was_and_keeps_its_licence(tmp_path, monkeypatch):
+    import export.exporter as ex
+
+    model = pm.PointmapNet(PRESETS["test"]).half().train()
+    model.provenance = {"source": "official", "licence": "CC-BY-NC-SA-4.0"}
+    seen = {}
+
+    def no_graphs(m, tmp, **kw):
+        seen["model"] = m
+        raise CheckpointError("stop here")
+
+    monkeypatch.setattr(ex, "export_graphs", no_graphs)
+    with pytest.raises(CheckpointError, match="stop here"):
+        export_model(model, tmp_path / "a", parity="none")
+    assert model.training and next(model.parameters()).dtype == torch.float16  # not turned to eval / float32
+    assert seen["model"] is not model and not seen["model"].training
+    from pointmap.checkpoint import provenance_keeping_licence
+
+    assert provenance_keeping_licence(model, {"note": "mine"}) == {"note": "mine", "licence": "CC-BY-NC-SA-4.0"}
+    assert provenance_keeping_licence(model)["source"] == "official"
+
+
+def test_a_weight_read_by_two_transposes_is_folded_once():
+    import onnx_ir as ir
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.exporter import fold_weight_transposes
+
+    W = numpy_helper.from_array(np.arange(12, dtype=np.float32).reshape(4, 3), "W")
+    nodes = [helper.make_node("Transpose", ["W"], ["Wt1"], perm=[1, 0]),
+             helper.make_node("Transpose", ["W"], ["Wt2"], perm=[1, 0]),
+             helper.make_node("MatMul", ["x", "Wt1"], ["y1"]), helper.make_node("MatMul", ["x", "Wt2"], ["y2"])]
+    out = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2, 4]) for n in ("y1", "y2")]
+    g = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 3])], out, [W])
+    m = ir.serde.deserialize_model(helper.make_model(g, opset_imports=[helper.make_opsetid("", 18)]))
+    assert fold_weight_transposes(m) == 2
+    proto = ir.serde.serialize_model(m)
+    onnx.checker.check_model(proto)
+    inits = {i.name: numpy_helper.to_array(i) for i in proto.graph.initializer}
+    assert list(inits) == ["W.T"] and np.array_equal(inits["W.T"], np.arange(12).reshape(4, 3).T)
+    assert [n.op_type for n in proto.graph.node] == ["MatMul", "MatMul"]
 
 
 def test_export_rejects_bad_arguments(tmp_path, test_model):
@@ -107,6 +155,8 @@ def test_export_rejects_bad_arguments(tmp_path, test_model):
         export_model(test_model, tmp_path / "a", quantize="int4")
     with pytest.raises(ValueError, match="opset"):
         export_model(test_model, tmp_path / "a", opset=13)
+    with pytest.raises(ValueError, match="opset expected an int >= 18"):  # the exporter cannot convert down to 17
+        export_model(test_model, tmp_path / "a", opset=17)
     with pytest.raises(ValueError, match="parity"):
         export_model(test_model, tmp_path / "a", parity="sometimes")
     with pytest.raises(CheckpointError, match="PointmapNet"):
@@ -146,7 +196,7 @@ def test_cli_checks_the_output_folder_and_opset_before_it_loads_the_model(tmp_pa
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("mine")
     for extra, message in ((["--out", str(tmp_path / "full")], "exists and is not a pointmap export"),
-                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int >= 17")):
+                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int >= 18")):
         assert main(["--model", "some/huge.pth", *extra]) == 2
         assert message in capsys.readouterr().err
 
@@ -253,8 +303,9 @@ def test_a_focal_head_model_exports_both_focals_with_parity(tmp_path):
 
 
 @pytest.mark.parametrize("extra, module", [(dict(pose_head=True), "pose_head.out"),
+                                           (dict(pose_head=True, focal_head=True), "focal_head.out"),
                                            (dict(desc_stem=4), "downstream_head1.desc_fuse")])
-def test_the_half_precision_graph_keeps_the_pose_head_and_the_descriptor_fuse_in_float32(extra, module):
+def test_the_half_precision_graph_keeps_the_pose_and_focal_heads_and_the_descriptor_fuse_in_float32(extra, module):
     from export.graphs import FullGraph, half_backbone
 
     model = pm.PointmapNet(PRESETS["test"].replace(**extra)).eval()

@@ -222,3 +222,50 @@ def test_an_onnx_export_asked_for_a_gpu_is_left_to_onnxruntime_even_when_torch_h
     assert asked == ["cuda", "auto"]
     with pytest.raises(pm.PointmapError, match="load_model: device expected auto, cpu, cuda, cuda:N or mps"):
         pm.load_model(split_export, device="gpu")
+
+
+def test_a_lone_onnx_file_runs_its_own_graph_whatever_else_its_folder_holds(tmp_path, full_export, split_export,
+                                                                             test_model):
+    import shutil
+
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(full_export / "model.onnx", lone / "mine.onnx")
+    shutil.copy(split_export / "encoder.onnx", lone / "model.onnx")  # another export's graph under the default name
+    img1, img2 = torch.rand(1, 3, 32, 48), torch.rand(1, 3, 32, 48)
+    with torch.inference_mode():
+        want = test_model(img1, img2)
+    got = pm.load_model(lone / "mine.onnx")(img1, img2)
+    assert torch.allclose(got.pts1_cam1, want.pts1_cam1, atol=1e-4)
+
+
+def test_a_folder_holding_graphs_of_two_exports_is_refused(tmp_path, split_export):
+    import json
+    import shutil
+
+    import onnx
+
+    mixed = tmp_path / "mixed"
+    shutil.copytree(split_export, mixed)
+    proto = onnx.load(str(mixed / "decoder.onnx"), load_external_data=False)
+    for p in proto.metadata_props:  # the decoder of an export made a minute later
+        if p.key == "pointmap":
+            meta = json.loads(p.value)
+            meta["provenance"]["created"] = "2001-01-01T00:00:00+00:00"
+            p.value = json.dumps(meta)
+    onnx.save(proto, str(mixed / "decoder.onnx"))
+    with pytest.raises(CheckpointError, match="belongs to another export"):
+        load_onnx(mixed)
+    load_onnx(split_export)  # the export as written loads (its sidecar's parity report is not in the graphs)
+
+
+def test_a_sidecar_that_is_not_utf8_is_a_checkpoint_error(tmp_path, split_export):
+    import shutil
+
+    from pointmap.runtime.onnx import SIDECAR
+
+    bad = tmp_path / "bad"
+    shutil.copytree(split_export, bad)
+    (bad / SIDECAR).write_bytes(b"\xff\xfe{}")
+    with pytest.raises(CheckpointError, match="not valid JSON"):
+        load_onnx(bad)
