@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m export", description="Export a pointmap model to ONNX.")
     ap.add_argument("--model", required=True, help="shipped model name, checkpoint path, or preset:NAME (random weights)")
     ap.add_argument("--out", required=True, type=Path, help="output directory (written atomically)")
-    ap.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET}, min 17)")
+    ap.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET}, min 18)")
     ap.add_argument("--split", action="store_true", help="encoder graph (per image) + decoder/heads graph (per pair)")
     prec = ap.add_mutually_exclusive_group()
     prec.add_argument("--fp16", action="store_true", help="float16 weights/activations, float32 inputs/outputs")
