@@ -32,7 +32,14 @@ import numpy as np
 import torch
 
 from pointmap.align.edges import EdgeStack, check_connected
-from pointmap.align.init import InitResult, edge_similarities, own_maps
+from pointmap.align.init import (
+    InitResult,
+    depth_from_edges,
+    edge_similarities,
+    fill_unseen_depth,
+    own_depth_ok,
+    own_maps,
+)
 from pointmap.align.objective import rays, world_points
 from pointmap.errors import GraphError
 from pointmap.geometry.cameras import head_translation
@@ -206,10 +213,12 @@ def init_averaging(stack: EdgeStack, fx, fy, cx, cy, pose_head: bool = True) -> 
     cam2world[:, :3, 3] = torch.from_numpy(C)
     own_t = torch.as_tensor(own, dtype=torch.long)
     lam = torch.from_numpy(np.exp(log_lam))
-    depth = (lam[:, None] * stack.pred_i[own_t][..., 2].to(dt)).clamp_min(1e-8)
+    ok = own_depth_ok(stack, own)
+    depth = fill_unseen_depth((lam[:, None] * stack.pred_i[own_t][..., 2].to(dt)).clamp_min(1e-8), ok)
     ray = rays(stack.uv.to(dt), fx.to(dt), fy.to(dt), cx.to(dt), cy.to(dt))
     pts_world = world_points(depth, ray, cam2world)
-    pw_s, pw_R, pw_t = edge_similarities(stack, pts_world)
+    pw_s, pw_R, pw_t = edge_similarities(stack, pts_world, ok)
+    depth = depth_from_edges(stack, depth, ok, cam2world, pw_s, pw_R, pw_t)
     if not (math.isfinite(float(pw_s.sum())) and bool((pw_s > 0).all())):
         raise GraphError("motion averaging produced degenerate edge similarities")
     return InitResult(cam2world=cam2world, depth=depth, pw_s=pw_s, pw_R=pw_R, pw_t=pw_t, tree=[], root=root)

@@ -69,16 +69,16 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
 
     n = len(recon)
     ref = torch.as_tensor(cam2world, dtype=torch.float64)
-    if tuple(ref.shape) != (n, 4, 4) or not bool(torch.isfinite(ref).all()):
-        raise ShapeError(f"cam2world expected [{n}, 4, 4] finite reference poses, got {list(ref.shape)}")
-    rigid = is_rigid(ref)
-    if not bool(rigid.all()):
-        bad = [i for i in range(n) if not bool(rigid[i])]
-        raise ShapeError(f"cam2world expected rigid reference poses (a rotation and a translation, last row 0 0 0 1), "
-                         f"got others at {bad[:8]}")
     keep = torch.ones(n, dtype=torch.bool) if mask is None else as_mask(mask, "mask")
     if tuple(keep.shape) != (n,) or not bool(keep.any()):
         raise ShapeError(f"mask expected [{n}] bool with at least one True, got {list(keep.shape)}")
+    if tuple(ref.shape) != (n, 4, 4) or not bool(torch.isfinite(ref[keep]).all()):  # rows left out may be NaN
+        raise ShapeError(f"cam2world expected [{n}, 4, 4] reference poses, finite where used, got {list(ref.shape)}")
+    rigid = is_rigid(ref[keep])
+    if not bool(rigid.all()):
+        bad = [i for i, ok in zip(keep.nonzero()[:, 0].tolist(), rigid.tolist()) if not ok]
+        raise ShapeError(f"cam2world expected rigid reference poses (a rotation and a translation, last row 0 0 0 1), "
+                         f"got others at {bad[:8]}")
     known = {i: ref[i] for i in range(n) if keep[i]}
     a, Ra, ta, scale_fixed = similarity_to_known(recon.cam2world.double(), known)
     if not with_scale and scale_fixed:  # rotation as fitted; translation by the centres at scale 1

@@ -75,6 +75,48 @@ def own_maps(n_images: int, stack: EdgeStack) -> list[int]:
     return own
 
 
+def own_depth_ok(stack: EdgeStack, own: list[int]) -> torch.Tensor:
+    """[N, P] bool: the pixels whose own-frame map (``own_maps``) has a point in front of the camera (the stack
+    holds 0 where the prediction was NaN or inf; an ``expm1`` head can also put points behind)."""
+    return (stack.pred_i[torch.as_tensor(own, dtype=torch.long)][..., 2] > 0) & stack.pix_valid
+
+
+def fill_unseen_depth(depth: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """``depth`` [N, P] with each image's pixels outside ``ok`` set to the median of its pixels inside (a start
+    the optimisation moves by the other pairs' maps), instead of the 1e-8 a clamp would leave there."""
+    out = depth.clone()
+    for m in range(depth.shape[0]):
+        if bool(ok[m].any()) and not bool(ok[m].all()):
+            out[m, ~ok[m]] = depth[m, ok[m]].median()
+    return out
+
+
+def depth_from_edges(stack: EdgeStack, depth: torch.Tensor, ok: torch.Tensor, cam2world: torch.Tensor,
+                     pw_s: torch.Tensor, pw_R: torch.Tensor, pw_t: torch.Tensor) -> torch.Tensor:
+    """``depth`` [N, P] with each image's pixels outside ``ok`` (no point of its own map there) taken from the
+    other pairs' maps of that image instead: each edge's points moved into the world by its similarity, then
+    into the image's camera, their z averaged by the edges' weights (pixels no edge sees in front keep theirs)."""
+    out = depth.clone()
+    world2cam = torch.linalg.inv(cam2world)
+    num = torch.zeros_like(depth)
+    den = torch.zeros_like(depth)
+    for e in range(stack.num_edges):
+        for m, pred, w in ((int(stack.i[e]), stack.pred_i[e], stack.w_i[e]), (int(stack.j[e]), stack.pred_j[e],
+                                                                                stack.w_j[e])):
+            miss = ~ok[m] & (w > 0)
+            if not bool(miss.any()):
+                continue
+            X = pw_s[e] * pred[miss].to(depth.dtype) @ pw_R[e].T + pw_t[e]  # world
+            z = X @ world2cam[m, 2, :3] + world2cam[m, 2, 3]
+            front = z > 0
+            idx = miss.nonzero()[:, 0][front]
+            num[m, idx] += w[miss][front].to(depth.dtype) * z[front]
+            den[m, idx] += w[miss][front].to(depth.dtype)
+    seen = den > 0
+    out[seen] = num[seen] / den[seen]
+    return out
+
+
 def _procrustes(src, dst, w, what: str):
     """weighted_procrustes of one problem, refused (GraphError) when it has no weighted pixel."""
     s, R, t = weighted_procrustes(src, dst, w)
@@ -104,12 +146,13 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         s, R, t = _procrustes(own_pts, target, w, f"image {m}'s own pointmap")
         cam2world[m, :3, :3] = R
         cam2world[m, :3, 3] = t
-        depth[m] = (s * own_pts[:, 2]).clamp_min(1e-8)
+        depth[m] = fill_unseen_depth((s * own_pts[:, 2]).clamp_min(1e-8)[None], ok[m:m + 1])[0]
         pts_world[m] = world_points(depth[m:m + 1], ray[m:m + 1], cam2world[m:m + 1])[0]
         placed[m] = True
 
+    ok = own_depth_ok(stack, own)
     # root: identity pose, depth = its own map's z
-    depth[root] = stack.pred_i[own[root]][:, 2].to(dt).clamp_min(1e-8)
+    depth[root] = fill_unseen_depth(stack.pred_i[own[root]][:, 2].to(dt).clamp_min(1e-8)[None], ok[root:root + 1])[0]
     pts_world[root] = world_points(depth[root:root + 1], ray[root:root + 1], cam2world[root:root + 1])[0]
     placed[root] = True
     pending = list(tree)
@@ -129,12 +172,14 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         target = s * pred_m.to(dt) @ R.T + t
         place(m, target, w_m.to(dt))
 
-    pw_s, pw_R, pw_t = edge_similarities(stack, pts_world)
+    pw_s, pw_R, pw_t = edge_similarities(stack, pts_world, ok)
+    depth = depth_from_edges(stack, depth, ok, cam2world, pw_s, pw_R, pw_t)
     return InitResult(cam2world=cam2world, depth=depth, pw_s=pw_s, pw_R=pw_R, pw_t=pw_t, tree=tree, root=root)
 
 
-def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, chunk: int = 64):
-    """Per-edge similarity fitting both maps onto the current world points (batched Procrustes)."""
+def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, ok: torch.Tensor | None = None, chunk: int = 64):
+    """Per-edge similarity fitting both maps onto the current world points (batched Procrustes); ``ok`` [N, P]:
+    the world points to fit onto (``own_depth_ok``; the others are starts, not evidence)."""
     dt = pts_world.dtype
     out_s, out_R, out_t = [], [], []
     for start in range(0, stack.num_edges, chunk):
@@ -142,6 +187,8 @@ def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, chunk: int = 64
         src = torch.cat([stack.pred_i[sl], stack.pred_j[sl]], 1).to(dt)
         dst = torch.cat([pts_world[stack.i[sl]], pts_world[stack.j[sl]]], 1)
         w = torch.cat([stack.w_i[sl], stack.w_j[sl]], 1).to(dt)
+        if ok is not None:
+            w = w * torch.cat([ok[stack.i[sl]], ok[stack.j[sl]]], 1).to(dt)
         s, R, t = weighted_procrustes(src, dst, w)
         out_s.append(s)
         out_R.append(R)

@@ -101,12 +101,13 @@ def as_mask(x, name: str) -> torch.Tensor:
                      f"{type(x).__name__} {str(x)[:60]}")
 
 
-def _as_tensor(x, name: str) -> torch.Tensor:
-    """A real tensor of ``x`` (tensor, array, nested lists); ShapeError naming ``name`` for anything else."""
+def _as_tensor(x, name: str, finite: bool = True) -> torch.Tensor:
+    """A real tensor of ``x`` (tensor, array, nested lists); ShapeError naming ``name`` for anything else, or for
+    NaN / inf with ``finite``."""
     t = _tensor_or_none(x)
     if t is None or not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64)):
         raise ShapeError(f"{name} expected numbers (a tensor or an array), got {type(x).__name__} {str(x)[:60]}")
-    if not torch.isfinite(t).all():
+    if finite and not torch.isfinite(t).all():
         raise ShapeError(f"{name} contains NaN or inf")
     return t
 
@@ -168,13 +169,13 @@ def parse_known_poses(cam2world, n: int, pose_mask=None) -> dict:
                              "poses are known")
         out = {_image_index(i, n, "cam2world"): _as_tensor(T, f"cam2world[{i}]") for i, T in cam2world.items()}
     else:
-        T = _as_tensor(cam2world, "cam2world")
+        T = _as_tensor(cam2world, "cam2world", finite=False)  # rows pose_mask leaves out may be NaN placeholders
         if tuple(T.shape) != (n, 4, 4):
             raise ShapeError(f"cam2world expected [{n}, 4, 4] or a dict {{index: [4, 4]}}, got {list(T.shape)}")
         mask = torch.ones(n, dtype=torch.bool) if pose_mask is None else as_mask(pose_mask, "pose_mask")
         if tuple(mask.shape) != (n,):
             raise ShapeError(f"pose_mask expected [{n}] bool, got {list(mask.shape)}")
-        out = {i: T[i] for i in range(n) if mask[i]}
+        out = {i: _as_tensor(T[i], f"cam2world[{i}]") for i in range(n) if mask[i]}
     for i, T in out.items():  # indices are in range: dict keys were checked by _image_index
         if tuple(T.shape) != (4, 4):
             raise ShapeError(f"cam2world[{i}] expected [4, 4], got {list(T.shape)}")
@@ -195,7 +196,9 @@ def check_pose_origin(known: dict) -> None:
         return
     centres = torch.stack([T[:3, 3].double() for T in known.values()])
     far = float(centres.abs().max())
-    spread = float(torch.cdist(centres, centres).max()) if len(known) > 1 else 1.0
+    spread = float(torch.cdist(centres, centres).max()) if len(known) > 1 else 0.0
+    if spread <= 1e-6 * max(1.0, far):  # one camera, or coincident centres (a tripod): no scale is fixed, and the
+        spread = 1.0  # scene is then about one unit across
     rounding = far * 2.0 ** -24
     if rounding > 1e-3 * spread:
         offset = ", ".join(f"{x:.6g}" for x in centres.mean(0).tolist())

@@ -144,7 +144,8 @@ def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
             cx[n], cy[n] = (w - 1) / 2, (h - 1) / 2
             p = preds[stack.keys[own[n]]]
             f = p.focal1.detach().double() if p.focal1 is not None else \
-                focal_from_pointmap(p.pts1_cam1.detach().double(), weights=p.conf1.detach().double().clamp_min(0))
+                focal_from_pointmap(p.pts1_cam1.detach().double(),  # a NaN / inf confidence pixel weighs nothing
+                                    weights=torch.nan_to_num(p.conf1.detach().double(), nan=0.0, posinf=0.0).clamp_min(0))
             f = float(f[0])
             fx[n] = fy[n] = f if math.isfinite(f) and f > 0 else max(h, w)
     return fx, fy, cx, cy

@@ -71,3 +71,13 @@ def test_two_moves_are_recorded_as_one_similarity_from_the_original_world():
     rec = twice.info["transformed"]
     once = recon.transformed(rec["scale"], torch.tensor(rec["R"]), torch.tensor(rec["t"]))
     assert torch.allclose(once.cam2world, twice.cam2world, atol=1e-5) and rec["scale"] == pytest.approx(1.25)
+
+
+def test_reference_rows_the_mask_leaves_out_may_be_nan_placeholders():
+    recon = make_recon(n=4)
+    ref = _reference(recon)
+    ref[3] = float("nan")  # a camera the reference does not have
+    moved, rep = pm.align_to_cameras(recon, ref, mask=[True, True, True, False])
+    assert rep["scale"] == pytest.approx(S, rel=1e-6) and rep["cameras"] == 3
+    with pytest.raises(pm.ShapeError, match="finite where used"):
+        pm.align_to_cameras(recon, ref)

@@ -104,6 +104,34 @@ def test_nan_pixels_are_ignored(scene):
     assert torch.isfinite(recon.depth_z).all() and torch.isfinite(recon.cam2world).all()
 
 
+def test_a_nan_or_inf_confidence_pixel_leaves_the_start_focal_and_the_result_exact(scene):
+    from align_scene import pose_errors
+
+    preds = gt_preds(scene, complete_pairs(4), seed=0)
+    for bad in (float("nan"), float("inf")):
+        for p in preds.values():
+            p.conf1[0, 5, 5] = bad
+        recon = global_align(views_of(scene), preds, config=QUIET)
+        focal_err = np.abs(recon.K[:, 0, 0].double().numpy() / scene["K"][:, 0, 0] - 1).max()
+        assert focal_err < 1e-4 and pose_errors(recon.cam2world.numpy(), scene["cam2world"])[0] < 0.05
+
+
+def test_a_hole_in_an_images_own_map_starts_from_the_other_pairs_maps_and_aligns_exactly(scene):
+    from align_scene import pose_errors
+
+    preds = gt_preds(scene, complete_pairs(4), seed=0)
+    for (i, _), p in preds.items():
+        if i == 0:  # image 0's own-frame passes lose a block; the passes where it is view 2 still see it
+            p.pts1_cam1[0, :16, :24] = float("nan")
+    for opt in ("none", "adam"):
+        recon = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, optimizer=opt))
+        rot, centre, a = pose_errors(recon.cam2world.numpy(), scene["cam2world"])
+        focal_err = np.abs(recon.K[:, 0, 0].double().numpy() / scene["K"][:, 0, 0] - 1).max()
+        depth_err = np.median(np.abs(recon.depth_z[0, :16, :24].double().numpy() * a / scene["depth"][0][:16, :24] - 1))
+        assert rot < 0.05 and centre < 1e-4 and focal_err < 1e-4 and depth_err < 1e-4, (opt, rot, centre, focal_err,
+                                                                                         depth_err)
+
+
 def test_self_pairs_are_ignored_with_a_warning(scene):
     preds = gt_preds(scene, complete_pairs(4), seed=4)
     preds[(1, 1)] = preds[(1, 2)]

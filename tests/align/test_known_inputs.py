@@ -133,3 +133,21 @@ def test_known_poses_too_far_from_the_origin_for_float32_are_refused_with_the_of
         assert float(err.max()) < 0.01
     with pytest.raises(ConventionError, match="spread of 1"):  # one known camera fixes no scale: one unit across
         global_align(views_of(scene), preds, cam2world={0: moved[0]}, config=QUIET)
+
+
+def test_known_poses_sharing_one_centre_a_tripod_are_accepted_and_nan_rows_left_out_by_the_mask_are_ignored(scene):
+    preds = gt_preds(scene, complete_pairs(5), seed=2)
+    c2w = torch.from_numpy(scene["cam2world"]).float()
+    tripod = c2w.clone()
+    tripod[:, :3, 3] = torch.tensor([2.0, 0.3, 1.0])  # rotations known, one centre: no scale, no float32 issue
+    recon = global_align(views_of(scene), preds, cam2world=tripod, pose_mask=[True, True, False, False, False],
+                         config=QUIET)
+    assert torch.equal(recon.cam2world[:2], tripod[:2])
+    placeholders = c2w.clone()
+    placeholders[2:] = float("nan")  # unknown rows as NaN placeholders
+    recon = global_align(views_of(scene), preds, cam2world=placeholders, pose_mask=[True, True, False, False, False],
+                         config=QUIET)
+    assert torch.equal(recon.cam2world[:2], c2w[:2]) and torch.isfinite(recon.cam2world).all()
+    with pytest.raises(ShapeError, match=r"cam2world\[2\] contains NaN"):
+        global_align(views_of(scene), preds, cam2world=placeholders, pose_mask=[True, True, True, False, False],
+                     config=QUIET)
