@@ -37,8 +37,8 @@ def atomic_open(path, mode: str = "wb"):
     """``with atomic_open(p) as f: f.write(...)``; the file appears at ``p`` only if the block succeeds."""
     if not mode.startswith("w"):
         raise ValueError(f"atomic_open expected a write mode ('w' or 'wb'), got {mode!r}")
-    with atomic_path(path) as tmp, open(tmp, mode) as f:
-        yield f
+    with atomic_path(path) as tmp, open(tmp, mode, encoding=None if "b" in mode else "utf-8") as f:
+        yield f  # text as UTF-8 whatever the locale (COLMAP, TUM and JSON readers expect it)
 
 
 def write_bytes(path, data: bytes) -> Path:

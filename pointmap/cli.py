@@ -13,7 +13,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from pointmap.errors import GraphError, ImageError, PointmapError
+from pointmap.errors import CheckpointError, GraphError, ImageError, PointmapError
 
 log = logging.getLogger("pointmap")
 DEFAULT_MODEL = "small"
@@ -346,7 +346,7 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
     index pairs into ``images`` (``pm.reconstruct`` checks that they connect every image); PointmapError naming
     the line otherwise."""
     try:
-        lines = Path(path).read_text().splitlines()
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as e:
         raise PointmapError(f"--pairs expected a text file of image name pairs, got {path!r} ({e})") from None
     exact: dict[str, int] = {}  # a photograph's own path, as given and resolved, names it first
@@ -527,13 +527,15 @@ def cmd_splat(args) -> int:
     out = writable_dir(Path(args.out or npz.parent / "splat"))
     if args.test:  # the test views and the model are read before the fit, which takes minutes
         from pointmap.checkpoint import load_model
-        from pointmap.inference import pooled_tokens
         from pointmap.localization import query_views
+        from pointmap.runtime.onnx import OnnxPointmapModel
 
         every = query_views(recon, expand_images(args.test, out / "test_frames"))  # a video: up to 30 frames
         model = load_model(args.model, device=args.device)
-        pooled_tokens(model, every[:1], device=args.device)  # localize ranks by encoder tokens: a model without
-        # them (a single-graph ONNX export) is refused now, not after the fit
+        if isinstance(model, OnnxPointmapModel) and not model.split:  # refused now, not after the fit
+            raise CheckpointError(f"splat --test localizes the test views by the encoder's tokens, which a "
+                                  f"single-graph ONNX export ({args.model}) does not give: export with --split, or "
+                                  f"use the PyTorch weights")
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch

@@ -66,8 +66,11 @@ def _as_list(paths_or_arrays, caller: str):
 def _read(src, index: int):
     from PIL import Image, ImageOps, UnidentifiedImageError
 
-    if isinstance(src, Image.Image):  # a PIL image: its pixels, as an array would give them
-        src = np.asarray(src.convert("RGBA" if "A" in src.getbands() else "RGB"))
+    if isinstance(src, Image.Image):  # a PIL image: the file rule for its mode (16-bit grey, palette, alpha)
+        try:
+            return _to_rgb(src), f"image_{index:03d}.png"
+        except ValueError as e:
+            raise ImageError(f"image {index}: {e}") from None
     if isinstance(src, np.ndarray):
         arr = src
         name = f"image_{index:03d}.png"
@@ -98,17 +101,29 @@ def _read(src, index: int):
     try:
         im = Image.open(path)
         im.load()
+    except Image.DecompressionBombError as e:
+        raise ImageError(f"{path} is too large to read safely ({e}); downscale it first") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
-    return _to_rgb(ImageOps.exif_transpose(im)), path.name
+    try:
+        return _to_rgb(ImageOps.exif_transpose(im)), path.name
+    except ValueError as e:
+        raise ImageError(f"{path}: {e}") from None
 
 
 def _to_rgb(im):
     """RGB of any PIL image, one rule for files and arrays: 16-bit (and 32-bit integer) grey maps 0-65535 onto
     0-255, as a 16-bit photograph's full scale (not stretched to each image's own maximum, which would give the
-    views of one scene different exposures); transparency is composited on white."""
+    views of one scene different exposures); 32-bit float grey (mode F) must be finite and in [0, 1], as float
+    arrays (ValueError otherwise); transparency is composited on white."""
     from PIL import Image
 
+    if im.mode == "F":
+        a = np.asarray(im, dtype=np.float64)
+        if not np.isfinite(a).all() or a.min() < 0 or a.max() > 1:
+            raise ValueError(f"a 32-bit float image must be finite and in [0, 1], got values in "
+                             f"[{np.nanmin(a):.4g}, {np.nanmax(a):.4g}]")
+        return Image.fromarray((a * 255).round().astype(np.uint8)).convert("RGB")
     if im.mode in ("I;16", "I;16B", "I;16L", "I"):
         a = np.clip(np.asarray(im).astype(np.float64) / 257.0, 0, 255).round().astype(np.uint8)
         return Image.fromarray(a).convert("RGB")

@@ -47,6 +47,8 @@ def directed(pairs) -> list[tuple[int, int]]:
 def encode_views(model, imgs: list[torch.Tensor], batch_size: int = 8, device="cpu", progress=None,
                  caller: str = "encode_views") -> list:
     """Run the encoder once per image, batching images of equal shape. Returns one Encoded per image."""
+    if not (is_int(batch_size) and batch_size >= 1):  # pooled_tokens and image_similarity pass theirs here
+        raise ShapeError(f"{caller}: batch_size expected an int >= 1, got {batch_size!r}")
     device = check_model_device(model, device, caller)
     by_shape = defaultdict(list)
     for k, img in enumerate(imgs):

@@ -65,6 +65,8 @@ class Reconstruction:
             t = getattr(self, name)
             if isinstance(t, np.ndarray):  # arrays are taken as they are; anything else is a mistake
                 setattr(self, name, torch.from_numpy(t))
+            elif isinstance(t, torch.Tensor) and t.requires_grad:  # a result, not a graph: exports call .numpy()
+                setattr(self, name, t.detach())
             elif not isinstance(t, torch.Tensor) and (t is not None or name in _REQUIRED):
                 raise ShapeError(f"{name} expected a torch.Tensor (or numpy array), got {type(t).__name__}")
         n, h, w = self.depth_z.shape if self.depth_z.ndim == 3 else (None, None, None)
@@ -115,6 +117,10 @@ class Reconstruction:
                              f"{list(sizes)[:4] if hasattr(sizes, '__len__') else type(sizes).__name__}")
         self.map_sizes = [(int(a), int(b)) for a, b in sizes]
         if self.original_sizes is None:
+            if not bool((mfo == torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=mfo.dtype)).all()):
+                raise ShapeError("original_sizes expected with a map_from_original that resizes or crops: the "
+                                 "photographs' (width, height) cannot be the maps' sizes then (every export's "
+                                 "cameras would be wrong)")
             self.original_sizes = list(self.map_sizes)
         if not hasattr(self.original_sizes, "__len__") or len(self.original_sizes) != n or not all(
                 hasattr(s, "__len__") and len(s) == 2 and all(is_int(x) and x > 0 for x in s)

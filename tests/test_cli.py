@@ -108,16 +108,15 @@ def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(ti
     monkeypatch.setattr(pointmap.splat, "run", lambda *a, **k: pytest.fail("the fit ran before the inputs were read"))
     assert main(["splat", str(out), "--test", str(folder / "missing.png"), "--model", str(weights)]) == 2
     assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", "no_such_model"]) == 2
-    import pointmap.inference
-    from pointmap.errors import CheckpointError
+    import pointmap.checkpoint
+    from pointmap.runtime.onnx import OnnxPointmapModel
 
-    def no_tokens(*a, **k):
-        raise CheckpointError("pooled_tokens needs the encoder's tokens")
-
-    with monkeypatch.context() as mp:  # a single-graph ONNX export: refused before the fit
-        mp.setattr(pointmap.inference, "pooled_tokens", no_tokens)
-        assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights)]) == 2
-    assert "needs the encoder's tokens" in capsys.readouterr().err
+    single = object.__new__(OnnxPointmapModel)  # a single-graph ONNX export: refused before the fit
+    single.split = False
+    with monkeypatch.context() as mp:
+        mp.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: single)
+        assert main(["splat", str(out), "--test", str(folder / "c.png"), "--model", "export/"]) == 2
+    assert "single-graph ONNX export (export/) does not give" in capsys.readouterr().err
     monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": "the fit"})
 
     def none_posed(*a, **k):

@@ -115,6 +115,29 @@ def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the
         pm.load_images(123)
 
 
+def test_a_pil_image_of_any_mode_loads_as_its_file_does_16_bit_palette_alpha_and_float(tmp_path):
+    dim16 = np.full((32, 32), 32896, np.uint16)  # half scale: 128
+    pal = Image.new("P", (32, 32), 0)
+    pal.putpalette([0, 0, 0] * 256)
+    pal.info["transparency"] = 0  # every pixel transparent: white
+    grey = Image.fromarray(np.full((32, 32), 0.5, np.float32), mode="F")
+    grey.save(tmp_path / "f.tif")
+    for im, want in ((Image.fromarray(dim16), 128), (pal, 255), (grey, 128)):
+        pil = pm.load_images(im, size=32)[0].img
+        assert abs(float(pil.mean()) * 255 - want) < 1, im.mode
+    assert abs(float(pm.load_images([tmp_path / "f.tif"], size=32)[0].img.mean()) * 255 - 128) < 1  # not black
+    Image.fromarray(np.full((32, 32), 7.0, np.float32), mode="F").save(tmp_path / "hot.tif")
+    with pytest.raises(pm.ImageError, match=r"hot.tif: a 32-bit float image must be finite and in \[0, 1\]"):
+        pm.load_images([tmp_path / "hot.tif"], size=32)
+
+
+def test_an_image_too_large_to_decode_safely_is_an_image_error(tmp_path, monkeypatch):
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8)).save(tmp_path / "big.png")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 4,096 pixels: over twice the limit, Pillow's bomb error
+    with pytest.raises(pm.ImageError, match="too large to read safely"):
+        pm.load_images([tmp_path / "big.png"], size=32)
+
+
 def test_whole_keeps_each_photographs_field_of_view_at_its_own_shape_even_at_224_with_the_transform_exact():
     land, port, square = np.zeros((480, 640, 3), np.uint8), np.zeros((640, 480, 3), np.uint8), np.zeros((300, 300, 3), np.uint8)
     land[300:304, 400:404] = 255

@@ -155,3 +155,16 @@ def test_a_device_torch_cannot_use_or_one_the_model_is_not_on_is_refused_before_
     with pytest.raises(PointmapError, match=r"the model's weights are on meta, device is 'cpu'.*pm.load_model"):
         pm.predict_pairs(elsewhere, vs, [(0, 1)])
     assert set(pm.predict_pairs(tiny_model, vs, [(0, 1)], device=torch.device("cpu"))) == {(0, 1), (1, 0)}
+
+
+def test_the_encoders_batch_size_is_checked_by_every_caller(tiny_model):
+    from pointmap.inference import encode_views, image_similarity, pooled_tokens
+
+    imgs = [torch.rand(3, 32, 32) for _ in range(2)]
+    for bad in (0, -1, 2.0):
+        with pytest.raises(pm.ShapeError, match="batch_size expected an int >= 1"):
+            pooled_tokens(tiny_model, imgs, batch_size=bad)
+        with pytest.raises(pm.ShapeError, match="image_similarity: batch_size"):
+            image_similarity(tiny_model, imgs, batch_size=bad)
+        with pytest.raises(pm.ShapeError, match="encode_views: batch_size"):
+            encode_views(tiny_model, imgs, batch_size=bad)

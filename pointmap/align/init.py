@@ -179,7 +179,8 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
 
 def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, ok: torch.Tensor | None = None, chunk: int = 64):
     """Per-edge similarity fitting both maps onto the current world points (batched Procrustes); ``ok`` [N, P]:
-    the world points to fit onto (``own_depth_ok``; the others are starts, not evidence)."""
+    the world points to fit onto (``own_depth_ok``; the others are starts, not evidence), unless that leaves an
+    edge no weight."""
     dt = pts_world.dtype
     out_s, out_R, out_t = [], [], []
     for start in range(0, stack.num_edges, chunk):
@@ -187,8 +188,9 @@ def edge_similarities(stack: EdgeStack, pts_world: torch.Tensor, ok: torch.Tenso
         src = torch.cat([stack.pred_i[sl], stack.pred_j[sl]], 1).to(dt)
         dst = torch.cat([pts_world[stack.i[sl]], pts_world[stack.j[sl]]], 1)
         w = torch.cat([stack.w_i[sl], stack.w_j[sl]], 1).to(dt)
-        if ok is not None:
-            w = w * torch.cat([ok[stack.i[sl]], ok[stack.j[sl]]], 1).to(dt)
+        if ok is not None:  # an edge left without weight keeps all its pixels (a start, however poor)
+            masked = w * torch.cat([ok[stack.i[sl]], ok[stack.j[sl]]], 1).to(dt)
+            w = torch.where((masked.sum(1) > 0)[:, None], masked, w)
         s, R, t = weighted_procrustes(src, dst, w)
         out_s.append(s)
         out_R.append(R)

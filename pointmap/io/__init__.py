@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pointmap.errors import ShapeError, check_seed
-from pointmap.io.colmap import write_colmap, write_colmap_images
+from pointmap.io.colmap import check_shared_camera, write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
 from pointmap.io.nerfstudio import write_transforms
 from pointmap.io.npz import load_npz, write_npz
@@ -44,6 +44,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     check_seed(seed)
     if "tum" in formats:
         tum_timestamps(recon)
+    if "colmap" in formats or "colmap_txt" in formats:
+        check_shared_camera(recon, shared_camera)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")

@@ -47,15 +47,23 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def check_shared_camera(recon, shared_camera: bool | None) -> bool:
+    """Whether the COLMAP model writes one camera for all images: ``shared_camera``, or (None) whether every image
+    has the same intrinsics and size. ValueError for True when they differ."""
+    K = recon.K.double().numpy()
+    sizes = [tuple(int(x) for x in s) for s in recon.original_sizes]
+    same = all(np.allclose(K[k], K[0], rtol=1e-6, atol=1e-6) and sizes[k] == sizes[0] for k in range(len(recon)))
+    if shared_camera and not same:
+        raise ValueError("shared_camera=True but the images have different intrinsics or sizes")
+    return same if shared_camera is None else bool(shared_camera)
+
+
 def _model(recon, points: PointSet, shared_camera: bool | None):
     n = len(recon)
     K = recon.K.double().numpy()
     sizes = [tuple(int(x) for x in s) for s in recon.original_sizes]
     cams = []  # (camera_id, width, height, fx, fy, cx, cy)
-    same = all(np.allclose(K[k], K[0], rtol=1e-6, atol=1e-6) and sizes[k] == sizes[0] for k in range(n))
-    share = same if shared_camera is None else shared_camera
-    if share and not same:
-        raise ValueError("shared_camera=True but the images have different intrinsics or sizes")
+    share = check_shared_camera(recon, shared_camera)
     cam_of = []
     for k in range(n):
         if share and cams:
@@ -151,13 +159,15 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
     """Copy the photographs a COLMAP model refers to into ``out_dir`` (COLMAP's ``images/``) under the model's
     image ``names``: a file whose pixels need no EXIF rotation and whose suffix is the name's is copied byte for
     byte; any other (a rotated JPEG, a renamed duplicate with another suffix) is written as ``load_images`` reads
-    it (EXIF orientation applied: the pixels the poses and intrinsics refer to), in the format of the name's
-    suffix. ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk);
+    it (``read_rgb``: EXIF orientation applied, 16-bit scaled, alpha composited on white: the pixels the poses and
+    intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk);
     a source that no longer exists is skipped with a warning.
     Returns the paths written; every file is written atomically."""
     import shutil
 
-    from PIL import Image, ImageOps
+    from PIL import Image
+
+    from pointmap.images import read_rgb
 
     if len(sources) != len(names):
         raise ValueError(f"write_colmap_images expected one source per name, got {len(sources)} and {len(names)}")
@@ -172,15 +182,12 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
             continue
         with Image.open(src) as im:
             upright = im.getexif().get(0x0112, 1) in (None, 1)
-            with atomic_path(dst) as tmp:
-                if upright and src.suffix.lower() == dst.suffix.lower():
-                    shutil.copyfile(src, tmp)
-                else:
-                    im = ImageOps.exif_transpose(im)
-                    if dst.suffix.lower() in (".jpg", ".jpeg"):
-                        im.convert("RGB").save(tmp, quality=95)
-                    else:
-                        im.save(tmp)
+        with atomic_path(dst) as tmp:
+            if upright and src.suffix.lower() == dst.suffix.lower():
+                shutil.copyfile(src, tmp)
+            else:  # re-encoded from the very pixels the poses refer to (EXIF turned, 16-bit scaled, alpha on white)
+                fmt = Image.registered_extensions().get(dst.suffix.lower(), "PNG")
+                Image.fromarray(read_rgb(src)).save(tmp, format=fmt, **({"quality": 95} if fmt == "JPEG" else {}))
         written.append(dst)
     return written
 
@@ -250,12 +257,12 @@ def _read_binary(folder: Path):
 
 def _read_text(folder: Path):
     cams, images = {}, []
-    for line in (folder / "cameras.txt").read_text().splitlines():
+    for line in (folder / "cameras.txt").read_text(encoding="utf-8").splitlines():
         line = line.strip()
         if line and not line.startswith("#"):
             tok = line.split()
             cams[int(tok[0])] = (tok[1], int(tok[2]), int(tok[3]), tuple(float(v) for v in tok[4:]))
-    lines = (folder / "images.txt").read_text().splitlines()
+    lines = (folder / "images.txt").read_text(encoding="utf-8").splitlines()
     i = 0
     while i < len(lines):  # as COLMAP reads it: an image line, then always its 2D points' line (possibly empty)
         line = lines[i].strip()

@@ -4,6 +4,7 @@ glTF's axes, as every glTF viewer (Blender, three.js, model-viewer) assumes them
 The reconstruction's world (OpenCV axes: y down, z forward; image 0's camera unless poses were given) is turned
 180 degrees about x, ``GLTF_FROM_WORLD``: a point (x, y, z) is stored as (x, -y, -z). Image 0's view then opens
 upright, seen the way its camera saw it, instead of upside down and from behind. Other formats keep the world as is.
+Colours are stored linear, as glTF's COLOR_0 is defined (``srgb_to_linear_u8``); the PLY keeps the photographs' sRGB.
 """
 
 from __future__ import annotations
@@ -13,6 +14,14 @@ import numpy as np
 from pointmap.io.atomic import write_bytes
 
 GLTF_FROM_WORLD = np.diag([1.0, -1.0, -1.0])  # a rotation (det +1): OpenCV axes to glTF's
+
+
+def srgb_to_linear_u8(rgb: np.ndarray) -> np.ndarray:
+    """uint8 sRGB colours -> uint8 linear ones: glTF's vertex colours (COLOR_0) are linear, and viewers encode
+    them to sRGB for display; the photographs' sRGB bytes stored as they are show brighter and paler."""
+    c = np.asarray(rgb, dtype=np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return (lin * 255.0).round().astype(np.uint8)
 
 
 def frustum_lines(cam2world: np.ndarray, K: np.ndarray, size: tuple, depth: float) -> np.ndarray:
@@ -32,7 +41,7 @@ def write_glb(path, recon, points, frustum_scale: float = 0.05) -> None:
 
     scene = trimesh.Scene()
     if len(points.xyz):
-        rgba = np.concatenate([points.rgb, np.full((len(points.rgb), 1), 255, np.uint8)], 1)
+        rgba = np.concatenate([srgb_to_linear_u8(points.rgb), np.full((len(points.rgb), 1), 255, np.uint8)], 1)
         scene.add_geometry(trimesh.PointCloud(points.xyz @ GLTF_FROM_WORLD.T, colors=rgba), geom_name="points")
     c2w = recon.cam2world.double().numpy()
     K = recon.K.double().numpy()
@@ -41,6 +50,6 @@ def write_glb(path, recon, points, frustum_scale: float = 0.05) -> None:
     for k in range(len(recon)):
         segs = frustum_lines(c2w[k], K[k], recon.original_sizes[k], depth) @ GLTF_FROM_WORLD.T
         path3d = trimesh.load_path(segs)
-        path3d.colors = np.tile([[255, 64, 0, 255]], (len(path3d.entities), 1))
+        path3d.colors = np.tile([[*srgb_to_linear_u8([255, 64, 0]), 255]], (len(path3d.entities), 1))
         scene.add_geometry(path3d, geom_name=f"camera_{k:03d}")
     write_bytes(path, scene.export(file_type="glb"))

@@ -19,6 +19,8 @@ def _jsonable(x):
         return [_jsonable(v) for v in x]
     if isinstance(x, (np.generic,)):
         return x.item()
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
     if torch.is_tensor(x):
         return x.tolist()
     if isinstance(x, (str, int, float, bool)) or x is None:

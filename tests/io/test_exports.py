@@ -778,3 +778,83 @@ def test_a_canvas_of_several_image_sizes_exports_only_each_views_own_pixels_and_
         with pytest.raises(ShapeError, match="map_sizes expected 3 .width, height. pairs of ints within the 32x24"):
             Reconstruction(images=recon.images, cam2world=recon.cam2world, K=recon.K, depth_z=recon.depth_z,
                            conf=recon.conf, map_sizes=bad)
+
+
+def test_glb_vertex_colours_are_the_photographs_in_linear_light_as_gltf_defines_them(tmp_path):
+    import trimesh
+
+    from pointmap.io.glb import srgb_to_linear_u8
+
+    recon = make_recon(n=2)
+    save_reconstruction(recon, tmp_path, formats=("glb",), max_points=500)
+    cloud = [g for g in trimesh.load(tmp_path / "scene.glb").geometry.values() if isinstance(g, trimesh.PointCloud)][0]
+    rgb = select_points(recon, max_points=500).rgb
+    assert np.array_equal(np.asarray(cloud.colors)[:, :3], srgb_to_linear_u8(rgb))
+    assert srgb_to_linear_u8([0, 188, 255]).tolist() == [0, 128, 255]  # sRGB 188 is half the light
+
+
+def test_a_hand_made_reconstruction_that_resizes_needs_its_original_sizes():
+    from pointmap.reconstruction import Reconstruction
+
+    r = make_recon(n=2)
+    from pointmap.errors import ShapeError
+
+    with pytest.raises(ShapeError, match="original_sizes expected with a map_from_original"):
+        Reconstruction(images=r.images, cam2world=r.cam2world, K=r.K, depth_z=r.depth_z, conf=r.conf,
+                       map_from_original=torch.tensor([[0.25, 0.25, 0.0, 0.0]] * 2))
+
+
+def test_numpy_arrays_in_info_round_trip_through_the_npz_as_lists(tmp_path):
+    recon = make_recon(n=2)
+    recon.info["timestamps"] = np.array([0.0, 0.5])
+    save_reconstruction(recon, tmp_path, formats=("npz", "tum"))
+    assert load_npz(tmp_path / "reconstruction.npz").info["timestamps"] == [0.0, 0.5]
+
+
+def test_a_reconstruction_holding_tensors_that_require_grad_exports(tmp_path):
+    r = make_recon(n=2)
+    from pointmap.reconstruction import Reconstruction
+
+    grad = Reconstruction(images=r.images, cam2world=r.cam2world.clone().requires_grad_(), K=r.K,
+                          depth_z=r.depth_z.clone().requires_grad_(), conf=r.conf, map_from_original=r.map_from_original,
+                          original_sizes=r.original_sizes)
+    assert not grad.cam2world.requires_grad and not grad.depth_z.requires_grad
+    written = save_reconstruction(grad, tmp_path, formats=("ply", "glb", "colmap", "nerfstudio", "tum", "npz"))
+    assert {"ply", "glb", "colmap", "nerfstudio", "tum", "npz"} <= set(written)
+
+
+def test_shared_camera_with_different_intrinsics_is_refused_before_anything_is_written(tmp_path):
+    recon = make_recon(n=2)
+    recon.K[1, 0, 0] += 10
+    with pytest.raises(ValueError, match="shared_camera=True"):
+        save_reconstruction(recon, tmp_path / "out", formats=("ply", "glb", "colmap"), shared_camera=True)
+    assert not (tmp_path / "out" / "points.ply").exists()
+
+
+def test_text_files_are_written_as_utf8_whatever_the_locale(tmp_path):
+    import os
+    import subprocess
+
+    code = ("import sys; from pointmap.io.atomic import atomic_open\n"
+            "with atomic_open(sys.argv[1], 'w') as f: f.write('caf\\u00e9.jpg')")
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": "ascii"}
+    subprocess.run([sys.executable, "-X", "utf8=0", "-c", code, str(tmp_path / "t.txt")], check=True, env=env)
+    assert (tmp_path / "t.txt").read_bytes() == "café.jpg".encode("utf-8")
+
+
+def test_photographs_that_need_re_encoding_are_written_as_the_loader_reads_them(tmp_path):
+    from PIL import Image
+
+    from pointmap.images import read_rgb
+    from pointmap.io.colmap import write_colmap_images
+
+    Image.fromarray(np.full((16, 24), 30000, np.uint16)).save(tmp_path / "grey16.png")  # 16-bit grey
+    img = Image.fromarray(np.arange(16 * 24 * 3, dtype=np.uint8).reshape(16, 24, 3))
+    exif = img.getexif()
+    exif[0x0112] = 6  # rotated: needs re-encoding
+    img.save(tmp_path / "turned.jpg", exif=exif)
+    (tmp_path / "turned.jpg").rename(tmp_path / "turned")  # no extension
+    out = write_colmap_images([tmp_path / "grey16.png", tmp_path / "turned"], ["grey16.jpg", "turned"], tmp_path / "i")
+    grey = np.asarray(Image.open(out[0]).convert("RGB")).astype(int)
+    assert abs(grey.mean() - read_rgb(tmp_path / "grey16.png").mean()) < 2 and grey.max() < 255  # not saturated
+    assert np.array_equal(np.asarray(Image.open(out[1])), read_rgb(tmp_path / "turned"))  # PNG: exact, turned
