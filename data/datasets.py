@@ -397,9 +397,19 @@ class PairDataset(Dataset):
             self._rng_seed = seed
         return self._rng
 
+    item_seeds = True  # items may carry their augmentation's seed (training.loop.StepBatches)
+
     def __getitem__(self, index):
+        """``index``, ``(index, aspect)`` or ``(index, aspect, seed)``: with a seed (a tuple of ints >= 0) the
+        augmentation is drawn from ``np.random.default_rng(seed)``, a function of it alone; without, from a stream
+        seeded by the process's torch seed."""
+        seed = None
         if isinstance(index, tuple):
-            index, aspect = index
+            index, aspect, *rest = index
+            if len(rest) > 1:
+                raise IndexError(f"an item expected (index, aspect) or (index, aspect, seed), got {len(rest) + 2} "
+                                 "entries")
+            seed = tuple(rest[0]) if rest else None
             if not 0 <= aspect < len(self.aspects):
                 raise IndexError(f"aspect index expected in [0, {len(self.aspects)}), got {aspect}")
         else:
@@ -412,7 +422,7 @@ class PairDataset(Dataset):
         meta = reader.meta(scene)
         corr_pack = reader.read_npz(f"{scene}/pair-{i}-{j}.npz")
         corr = decode_corr(corr_pack["corr_12"])
-        rng = self._get_rng() if self.augment else None
+        rng = (np.random.default_rng(seed) if seed is not None else self._get_rng()) if self.augment else None
         if self.augment and rng.random() < self.swap_p:
             i, j = j, i
             corr = decode_corr(corr_pack["corr_21"])

@@ -642,9 +642,10 @@ def cmd_info(args) -> int:
         lines.append(f"trained: {prov['steps']} steps, batch {prov.get('batch_size', '?')}, data "
                      f"{prov.get('data') or '?'}" + (f"; averaged over {len(prov['averaged'])} inputs"
                                                      if prov.get("averaged") else ""))
-    m = prov.get("heldout_metrics") or {}
+    m = prov.get("heldout_metrics") or prov.get("heldout_metrics_of_input") or {}
     if m:
-        lines.append(f"held-out ({prov.get('eval_data') or '?'}, the run at step {int(m.get('step', 0))}): "
+        whose = "the run" if prov.get("heldout_metrics") else "one averaged input,"
+        lines.append(f"held-out ({prov.get('eval_data') or '?'}, {whose} at step {int(m.get('step', 0))}): "
                      + ", ".join(f"{k} {m[k]:.3g}" for k in ("RRA15", "RTA15", "AbsRel", "match_prec") if k in m))
     if prov.get("note"):
         lines.append(f"note: {prov['note']}")

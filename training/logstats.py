@@ -117,7 +117,13 @@ def _fmt(s: Summary, column: str) -> str:
 
 
 def report(paths, names, columns, start: int, stop: int | None, width: int) -> str:
+    """``columns`` None: the default columns every log has (ValueError when none)."""
     logs = [read_log(p) for p in paths]
+    if columns is None:
+        have = [set().union(*(r.keys() for r in rows.values())) for rows in logs]
+        columns = [c for c in DEFAULT_COLUMNS if all(c in h for h in have)]
+        if not columns:
+            raise ValueError(f"none of the default columns {list(DEFAULT_COLUMNS)} is in every log: name --columns")
     for path, rows in zip(paths, logs):
         have = set().union(*(r.keys() for r in rows.values()))
         missing = [c for c in columns if c not in have]
@@ -163,7 +169,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.logstats", description=__doc__.split("\n\n")[0])
     p.add_argument("logs", nargs="+", help="train.csv files (or run directories holding train.csv)")
     p.add_argument("--names", nargs="+", help="one name per log (default: the run directories' names)")
-    p.add_argument("--columns", nargs="+", default=list(DEFAULT_COLUMNS))
+    p.add_argument("--columns", nargs="+", default=None,
+                   help=f"train.csv columns (default: those of {', '.join(DEFAULT_COLUMNS)} every log has)")
     p.add_argument("--from", dest="start", type=int, default=0, help="first step counted (default 0)")
     p.add_argument("--to", dest="stop", type=int, default=None, help="first step not counted (default: the end)")
     p.add_argument("--window", type=int, default=100, help="steps per window (default 100)")

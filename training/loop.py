@@ -58,11 +58,15 @@ def batch_indices(step: int, rank: int, world: int, batch: int, n: int, seed: in
 
 
 class StepBatches(torch.utils.data.Sampler):
-    """Batch sampler from ``start_step`` to ``steps`` following ``batch_indices``."""
+    """Batch sampler from ``start_step`` to ``steps`` following ``batch_indices``. With ``item_seeds`` (a dataset
+    that takes them: ``PairDataset``) each item is ``(index, aspect, (seed, step, k))``, ``k`` the sample's place in
+    the whole run's order: the dataset draws its augmentation from that seed, so every sample's augmentation is a
+    function of the run's seed and step, whichever worker loads it and however often the run was resumed."""
 
-    def __init__(self, n, batch, steps, start_step, rank, world, seed, n_aspects: int = 1):
+    def __init__(self, n, batch, steps, start_step, rank, world, seed, n_aspects: int = 1, item_seeds: bool = False):
         self.args = (n, batch, steps, start_step, rank, world, seed)
         self.n_aspects = n_aspects
+        self.item_seeds = item_seeds
         self._perm_cache = {}
 
     def __iter__(self):
@@ -77,9 +81,13 @@ class StepBatches(torch.utils.data.Sampler):
                     g = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
                     self._perm_cache = {epoch: torch.randperm(n, generator=g)}
                 idx.append(int(self._perm_cache[epoch][pos]))
+            aspect = 0
             if self.n_aspects > 1:  # one aspect ratio per step (same on every rank), a function of the step
                 g = torch.Generator().manual_seed(seed * 7_919 + step)
                 aspect = int(torch.randint(self.n_aspects, (), generator=g))
+            if self.item_seeds:
+                idx = [(i, aspect, (seed % 2**63, step, first + b)) for b, i in enumerate(idx)]
+            elif self.n_aspects > 1:
                 idx = [(i, aspect) for i in idx]
             yield idx
 
@@ -305,9 +313,11 @@ class Logger:
         if known is not None and set(fields) <= set(known):
             fields = known
         elif path.exists():
-            with open(path, newline="") as fh:
-                reader = csv.DictReader(fh)
-                header, rows = list(reader.fieldnames or []), list(reader)
+            text = path.read_bytes().decode()
+            if text and not text.endswith("\n"):  # a row torn by a kill: dropped, as append_line would cut it
+                text = text[: text.rfind("\n") + 1]
+            reader = csv.DictReader(io.StringIO(text, newline=""))
+            header, rows = list(reader.fieldnames or []), list(reader)
             if header != fields:  # columns changed (e.g. a resumed run with new metrics): one header for all rows
                 fields = header + [f for f in fields if f not in header]
                 with atomic_open(path, "w") as fh:
@@ -404,12 +414,16 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         scheduler.load_state_dict(ck["scheduler"])
         start = int(ck["step"])
         saved = ck.get("train_config", {})
-        if (cfg.decay_by_time and cfg.keep_decay and saved.get("decay_by_time")
-                and start > saved["steps"] - saved["decay_steps"]):
+        kept_decay = (cfg.decay_by_time and cfg.keep_decay and saved.get("decay_by_time")
+                      and start > saved["steps"] - saved["decay_steps"])
+        if kept_decay:
             cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
         if start >= cfg.steps and rank == 0:
-            print(f"warning: {last} is at step {start}, --steps is {cfg.steps}: nothing left to train, only the final "
-                  "evaluation runs if it is owed (raise --steps to go on)", file=sys.stderr)
+            go_on = (f"its decay by time ended at step {cfg.steps}; to train on, resume stable_"
+                     f"{saved['steps'] - saved['decay_steps']}.pt (or pass --keep_decay false)" if kept_decay
+                     else "raise --steps to go on")
+            print(f"warning: {last} is at step {start}, the run's end is step {cfg.steps}: nothing left to train, "
+                  f"only the final evaluation runs if it is owed ({go_on})", file=sys.stderr)
         # the schedule and weight decay are the current config's, not the ones the checkpoint was written with
         fresh_groups = make_optimizer(model, cfg, lr_scale).param_groups
         for group, fresh in zip(optimizer.param_groups, fresh_groups):
@@ -431,7 +445,8 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
     step_model = torch.compile(ddp_model, dynamic=False) if cfg.compile else ddp_model
     logger = Logger(out, rank == 0)
     n_aspects = len(getattr(dataset, "aspects", [None]))
-    sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects)
+    sampler = StepBatches(len(dataset), cfg.batch_size, cfg.steps, start, rank, world, cfg.seed, n_aspects,
+                          item_seeds=bool(getattr(dataset, "item_seeds", False)))
     loader = torch.utils.data.DataLoader(dataset, batch_sampler=sampler, collate_fn=collate,
                                          num_workers=cfg.workers, persistent_workers=False,
                                          worker_init_fn=_leave_sigterm_to_the_main_process,

@@ -33,6 +33,7 @@ class PairMix(Dataset):
             raise ValueError(f"PairMix parts must share their aspect ratios, got {aspects}")
         self.parts = parts
         self.aspects = aspects[0]
+        self.item_seeds = all(getattr(p, "item_seeds", False) for p in parts)
         self.ends = []
         n = 0
         for p in parts:
@@ -73,6 +74,7 @@ class PairSubset(Dataset):
     def __init__(self, dataset, indices) -> None:
         self.dataset, self.indices = dataset, list(indices)
         self.aspects = list(getattr(dataset, "aspects", [None]))
+        self.item_seeds = bool(getattr(dataset, "item_seeds", False))
         if not self.indices:
             raise ValueError("PairSubset expected at least one pair, got none (is the filter too strict?)")
 

@@ -19,10 +19,23 @@ from training.mix import open_pairs
 from training.train import collate
 
 
+def _net(model):
+    """The CrossViewCompletion inside a torch.compile / DDP wrapper."""
+    while hasattr(model, "_orig_mod") or hasattr(model, "module"):
+        model = getattr(model, "_orig_mod", None) or model.module
+    return model
+
+
 def make_step(cfg: TrainConfig):
     def step_fn(model, batch, step):
         view1, view2 = batch
-        pred, mask = model(view1["img"], view2["img"])
+        # the masks are a function of (seed, step, rank), as the data order is: a resumed run draws the same ones
+        rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
+        g = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1024 + rank)
+        p = _net(model).cfg.patch_size
+        B, N = view1["img"].shape[0], (view1["img"].shape[-2] // p) * (view1["img"].shape[-1] // p)
+        mask = _net(model).random_mask(B, N, generator=g, device=view1["img"].device)
+        pred, mask = model(view1["img"], view2["img"], mask)
         with torch.autocast(pred.device.type, enabled=False):  # under --amp the forward ran in bf16; the loss not
             loss = completion_loss(pred.float(), view1["img"], mask, PRESETS[cfg.preset].patch_size)
         return loss, {}
@@ -65,6 +78,7 @@ def main(argv=None) -> int:
               "pretraining starts from scratch and would ignore them", file=sys.stderr)
         return 2
     try:
+        torch.manual_seed(cfg.seed)  # --seed seeds the initial weights too
         model = CrossViewCompletion(PRESETS[cfg.preset], mask_ratio=cfg.mask_ratio)
         train_set = open_pairs(cfg.data, size=cfg.size, augment=True, split="train", crop_link=cfg.crop_link)
         eval_set = open_pairs(cfg.eval_data, size=cfg.size, augment=False, split="all") if cfg.eval_data else None

@@ -144,7 +144,7 @@ def average_checkpoints(paths, weights=None) -> dict:
     licences = sorted({part for ck, w in zip(cks, weights) if w > 0 and (lic := (ck.get("extra") or {}).get("licence"))
                        for part in lic.split(" AND ")})
     out["licence"] = " AND ".join(licences) if licences else None
-    out["averaged_steps"] = [int(cks[i]["step"]) for i in trained]
+    out["averaged_steps"] = [int(cks[i]["step"]) for i in trained if weights[i] > 0]
     out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
                        for src, ck, s in zip(_sources(paths), cks, shares)]
     return out
@@ -198,12 +198,16 @@ def main(argv=None) -> int:
         print(f"error: --licence {a.licence}: the weights derive from ones licensed {inherited}, which they keep",
               file=sys.stderr)
         return 2
-    if metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
+    if metrics and len(a.ckpt) > 1:  # an average was not evaluated: the row is one input's, and recorded as such
+        print(f"warning: --metrics {a.metrics}: its last row (step {int(metrics['step'])}) is the last input's, not "
+              "the average's: recorded as heldout_metrics_of_input", file=sys.stderr)
+    elif metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
         print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
               f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
-                  "heldout_metrics": metrics, "note": a.note, "licence": inherited or a.licence or "Apache-2.0",
+                  **({"heldout_metrics_of_input": {"source": str(a.ckpt[-1]), **metrics}} if len(a.ckpt) > 1
+                     else {"heldout_metrics": metrics}), "note": a.note, "licence": inherited or a.licence or "Apache-2.0",
                   **({"averaged_steps": ck["averaged_steps"], "averaged": ck["averaged"]} if len(a.ckpt) > 1 else {}),
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),
                   "trained_with": "python -m training.train " + " ".join(f"--{k} {v}" for k, v in cfg.items()

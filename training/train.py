@@ -56,7 +56,9 @@ def build_model(cfg: TrainConfig) -> PointmapNet:
     """From scratch, from a cross-view-completion checkpoint (encoder + decoder), or from weights.
 
     ``--init_heads fresh`` builds ``--preset`` and takes only the trunk (and heads whose shapes match) from
-    ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R."""
+    ``--init``: fine-tuning into a changed head, as MASt3R was trained from DUSt3R. Fresh weights are drawn
+    after ``torch.manual_seed(cfg.seed)``: ``--seed`` makes them reproducible."""
+    torch.manual_seed(cfg.seed)
     preset = PRESETS[cfg.preset].replace(pose_head=True) if cfg.pose_head else PRESETS[cfg.preset]
     if cfg.focal_head:
         preset = preset.replace(focal_head=True)
@@ -219,9 +221,7 @@ def _losses(cfg: TrainConfig, model, taps: ForwardTaps, pred, view1, view2, gen)
         loss = loss + cfg.match_weight * lm
         details.update(match_loss=float(lm.detach()), match_acc=acc)
     if pred.has_desc and cfg.desc_conf_weight > 0:  # after matching_loss: its draws from gen stay as they were
-        if not getattr(model, "module", model).cfg.two_confs:  # its desc_conf is then the pointmap's conf
-            raise ValueError("--desc_conf_weight needs a model whose descriptor head predicts its own confidence "
-                             "(two_confs)")
+        # (a model without its own descriptor confidence is refused by check_model_options)
         ld, mean_c = descriptor_confidence_loss(pred.desc1, pred.desc2, pred.desc_conf1, pred.desc_conf2,
                                                 view1["corr"], cfg.n_corr, cfg.temperature, cfg.desc_conf_alpha, gen)
         loss = loss + cfg.desc_conf_weight * ld
@@ -326,6 +326,15 @@ def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
                          "which frame view 2's head predicts in; unless only the focal head trains)")
     if cfg.focal_head_weight > 0 and not model.cfg.focal_head:
         raise ValueError("--focal_head_weight needs a model with a focal head (--focal_head true)")
+    if not model.cfg.has_desc:  # (match_weight's default stays allowed: a DUSt3R-style model trains with defaults)
+        matching = [f"--{k} {getattr(cfg, k)}" for k in ("match_weight", "coarse_weight", "desc_conf_weight")
+                    if getattr(cfg, k) > 0 and getattr(cfg, k) != getattr(TrainConfig, k)]
+        if matching:
+            raise ValueError(f"{', '.join(matching)} train descriptors, which this model does not have (head "
+                             f"{model.cfg.head!r}): set them to 0, or use a model with a descriptor head")
+    if cfg.desc_conf_weight > 0 and not model.cfg.two_confs:
+        raise ValueError("--desc_conf_weight needs a model whose descriptor head predicts its own confidence "
+                         "(two_confs); this one's descriptor confidence is the pointmap's")
 
 
 def main(argv=None) -> int:

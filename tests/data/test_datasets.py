@@ -353,3 +353,14 @@ def test_a_sidecar_that_is_not_an_entry_leaves_its_shard_out_with_a_warning(tiny
         with pytest.warns(UserWarning, match=f"{sides[0].name}: unreadable sidecar"):
             left, problems = completed_shards(copy, verify=False)
         assert len(left) == len(good) - 1 and len(problems) == 1
+
+
+def test_an_item_with_a_seed_is_augmented_the_same_whatever_the_processs_seed(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
+    torch.manual_seed(1)
+    a = ds[(2, 0, (5, 7, 11))]
+    torch.manual_seed(2)
+    b = ds[(2, 0, (5, 7, 11))]
+    c = ds[(2, 0, (5, 7, 12))]
+    assert all(torch.equal(a[v]["img"], b[v]["img"]) for v in (0, 1))
+    assert not all(torch.equal(a[v]["img"], c[v]["img"]) for v in (0, 1))  # another place: another augmentation

@@ -130,3 +130,12 @@ def test_a_binary_file_is_refused_in_one_line_naming_it(tmp_path):
     path.write_bytes(b"step,x\n\x84\xff\xfe\x00\x91,1\n")
     with pytest.raises(ValueError, match=r"train.csv: cannot read a training log \(a text CSV\)"):
         read_log(path)
+
+
+def test_without_columns_the_default_ones_every_log_has_are_reported(tmp_path, capsys):
+    log = _write(tmp_path / "train.csv", ["step", "loss", "match_acc"], [(0, 2.0, 0.1), (10, 1.0, 0.2)])
+    assert main([str(log)]) == 0  # no pose, coarse or attention columns in this run
+    assert "match_acc" in capsys.readouterr().out
+    bare = _write(tmp_path / "b" / "train.csv", ["step", "loss"], [(0, 2.0)])
+    assert main([str(bare)]) == 2
+    assert "none of the default columns" in capsys.readouterr().err

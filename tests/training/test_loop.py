@@ -12,7 +12,7 @@ import pointmap as pm
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.loop import StepBatches, batch_indices, fit, lr_factor
-from training.train import collate, make_step
+from training.train import check_model_options, collate, make_step
 
 sys.path.insert(0, str(Path(__file__).parent))
 from synthetic import PlanePairs  # noqa: E402
@@ -149,6 +149,50 @@ def test_a_resumed_run_ends_with_the_same_weights_as_an_uninterrupted_one(tmp_pa
     assert ck["step"] == 4 and ck["kind"] == "train"
 
 
+def test_a_resumed_run_on_augmented_rendered_pairs_ends_as_an_uninterrupted_one_with_or_without_workers(
+        tmp_path, tiny_pairs):
+    from data.datasets import PairDataset
+
+    def augmented_run(out, steps, workers):
+        torch.manual_seed(0)
+        model = PointmapNet(PRESETS["test"])
+        torch.manual_seed(123 + steps)  # the process's seed must not matter: each item carries its own
+        cfg = dataclasses.replace(config(out, steps), data=str(tiny_pairs), workers=workers, size=64)
+        fit(cfg, model, PairDataset(tiny_pairs, size=64, augment=True, split="all"), collate, make_step(cfg))
+        return model
+
+    for workers in (0, 1):
+        straight = augmented_run(tmp_path / f"a{workers}", 4, workers)
+        augmented_run(tmp_path / f"b{workers}", 2, workers)
+        resumed = augmented_run(tmp_path / f"b{workers}", 4, workers)
+        for k, v in straight.state_dict().items():
+            assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), (workers, k)
+
+
+def test_a_resumed_pretraining_run_draws_the_same_masks_and_ends_as_an_uninterrupted_one(tmp_path):
+    from pointmap.model.pretrain import CrossViewCompletion
+    from training.pretrain import make_step as pretrain_step
+
+    def pretrain(out, steps):
+        torch.manual_seed(0)
+        model = CrossViewCompletion(PRESETS["test"], mask_ratio=0.5)
+        cfg = dataclasses.replace(config(out, steps), task="pretrain")
+        fit(cfg, model, PlanePairs(6), collate, pretrain_step(cfg))
+        return model
+
+    straight = pretrain(tmp_path / "a", 4)
+    pretrain(tmp_path / "b", 2)
+    resumed = pretrain(tmp_path / "b", 4)
+    for k, v in straight.state_dict().items():
+        assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), k
+
+
+def test_items_carry_their_augmentations_seed_a_function_of_the_runs_seed_step_and_place():
+    items = list(StepBatches(n=7, batch=3, steps=4, start_step=2, rank=1, world=2, seed=5, item_seeds=True))
+    assert [[i for i, _, _ in b] for b in items] == [batch_indices(s, 1, 2, 3, 7, 5) for s in range(2, 4)]
+    assert [seed for _, _, seed in items[0]] == [(5, 2, 15), (5, 2, 16), (5, 2, 17)]  # step 2: 12 + rank 1 * 3 + b
+
+
 def test_training_reduces_the_loss_on_a_fixed_batch(tmp_path):
     model, batch = seeded_model_and_batch()
     cfg = config(tmp_path, 1)
@@ -204,6 +248,11 @@ def test_architecture_dependent_options_are_refused_before_training_starts(tmp_p
         check_model_options(dataclasses.replace(config(tmp_path, 1), pose_dir_weight=1.0), posed)
     check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0), posed)
     check_model_options(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, pose_dir_weight=0.5), posed)
+    no_desc = PointmapNet(PRESETS["test"].replace(head="linear", desc_dim=0, two_confs=False))
+    check_model_options(dataclasses.replace(config(tmp_path, 1), match_weight=TrainConfig.match_weight), no_desc)
+    for flag in ("match_weight", "coarse_weight", "desc_conf_weight"):  # would be ignored without descriptors
+        with pytest.raises(ValueError, match=f"--{flag} 3.0 train descriptors, which this model does not have"):
+            check_model_options(dataclasses.replace(config(tmp_path, 1), **{flag: 3.0}), no_desc)
 
 
 def test_negative_loss_weights_are_refused_on_the_command_line(capsys):
@@ -541,6 +590,14 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
     result = fit(cfg, model2, PlanePairs(6), collate, make_step(cfg))
     assert result["step"] == end
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), model2.state_dict().values()))
+    # resumed once more, with the decay over: nothing to train, and the warning says how to go on
+    import contextlib
+    import io as _io
+
+    err = _io.StringIO()
+    with contextlib.redirect_stderr(err):
+        fit(cfg, model2, PlanePairs(6), collate, make_step(cfg))
+    assert f"its decay by time ended at step {end}; to train on, resume stable_{end - 6}.pt" in err.getvalue()
     # --keep_decay false forgets that decay: the resumed leg runs at the stable rate until it places its own
     out3 = tmp_path / "replaced"
     out3.mkdir()
@@ -835,7 +892,7 @@ def test_a_checkpoint_with_nan_weights_or_a_bad_step_is_refused_and_one_without_
         fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
     torch.save(ck, tmp_path / "last.pt")
     fit(config(tmp_path, 2), PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg))
-    assert "is at step 2, --steps is 2: nothing left to train, only the final evaluation" in capsys.readouterr().err
+    assert "is at step 2, the run's end is step 2: nothing left to train, only the final evaluation" in capsys.readouterr().err
 
 
 def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(tmp_path):
@@ -851,6 +908,12 @@ def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(t
     with open(tmp_path / "eval.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["step"] for r in rows] == ["500", "700"] and rows[1]["RRA15"] == "12.0"
+    with open(tmp_path / "eval.csv", "a") as fh:
+        fh.write("800,3")  # torn again, and the next row adds a column: the header is rewritten without it
+    Logger(tmp_path, True).log("eval", 900, {"RRA15": 13.0, "RTA15": 5.0})
+    with open(tmp_path / "eval.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["step"] for r in rows] == ["500", "700", "900"] and rows[2]["RTA15"] == "5.0"
 
 
 def test_sigterm_checkpoints_the_current_step_and_a_resumed_run_ends_as_an_uninterrupted_one(tmp_path):
@@ -1118,4 +1181,17 @@ def test_the_descriptor_confidence_loss_joins_a_step_after_the_matching_loss_wit
     # a head without its own confidence (two_confs false) reports the pointmap's: training it would train that
     one_conf, _ = seeded_model_and_batch(dataclasses.replace(PRESETS["test"], two_confs=False))
     with pytest.raises(ValueError, match="--desc_conf_weight needs a model whose descriptor head predicts its own"):
-        make_step(dataclasses.replace(cfg, desc_conf_weight=0.5))(one_conf, batch, 0)
+        check_model_options(dataclasses.replace(cfg, desc_conf_weight=0.5), one_conf)  # before any data is opened
+
+
+def test_the_seed_fixes_a_fresh_models_initial_weights():
+    from training.train import build_model
+
+    cfg = TrainConfig(data="x", preset="test", seed=3)
+    torch.manual_seed(100)
+    a = build_model(cfg)
+    torch.manual_seed(200)
+    b = build_model(cfg)
+    c = build_model(dataclasses.replace(cfg, seed=4))
+    assert all(torch.equal(v, b.state_dict()[k]) for k, v in a.state_dict().items())
+    assert not all(torch.equal(v, c.state_dict()[k]) for k, v in a.state_dict().items())

@@ -240,3 +240,17 @@ def test_shipping_names_the_input_with_nan_weights_and_refuses_what_it_cannot_re
         assert main(["--ckpt", *args]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_an_averages_metrics_are_recorded_as_one_inputs_and_zero_share_inputs_are_not_averaged_steps(tmp_path, capsys):
+    for i, step in enumerate((100, 200)):
+        _checkpoint(tmp_path / f"{i}.pt", seed=i, step=step)
+    (tmp_path / "eval.csv").write_text("step,RRA15\n200,50.0\n")
+    paths = [str(tmp_path / "0.pt"), str(tmp_path / "1.pt")]
+    assert main(["--ckpt", *paths, "--weights", "1", "3", "--metrics", str(tmp_path / "eval.csv"), "--out",
+                 str(tmp_path / "avg.safetensors")]) == 0
+    assert "is the last input's, not the average's" in capsys.readouterr().err
+    prov = pm.load_model(tmp_path / "avg.safetensors").provenance
+    assert "heldout_metrics" not in prov and prov["heldout_metrics_of_input"]["RRA15"] == 50.0
+    assert prov["heldout_metrics_of_input"]["source"] == paths[1]
+    assert average_checkpoints(paths, [1, 0])["averaged_steps"] == [100]
