@@ -30,7 +30,9 @@ check stays as the safety net.
 
 Mirror check: after the fit each camera pair's gated
 matches are triangulated under the start and the fitted poses (``in_front_share``); a pair whose points moved from in
-front of its cameras to behind them was reversed (``mirrored_pairs``). The fit is then run once more with the
+front of its cameras to behind them was reversed (``mirrored_pairs``), and so is, for this check, a pair whose centres
+the fit brought together (``collapsed_pairs``: under a fifth of their aligned distance, where the pair's residuals
+vanish; listed in the report's ``collapsed_pairs`` too). The fit is then run once more with the
 cameras touching those pairs held at their aligned poses (``pinned_cameras``; the gauge as in the first fit), and
 the aligned poses are kept when that reverses a pair too, or when every camera would be held.
 """
@@ -151,6 +153,21 @@ def mirrored_pairs(R0, C0, R, C, I, J, r1, r2, *, min_matches: int = 10, was: fl
     before, counted_before = _shares(ok0, front0, pid, len(pairs))
     after, counted = _shares(ok, front, pid, len(pairs))
     flag = (counted_before >= min_matches) & (counted >= min_matches) & (before > was) & (after < now)
+    return [[int(i), int(j)] for i, j in pairs[flag]]
+
+
+def collapsed_pairs(C0, C, I, J, ratio: float = 0.2) -> list:
+    """Camera pairs [i, j] (among the matched pairs I, J) whose centres the fit brought closer than ``ratio`` of
+    their aligned distance: the epipolar residuals of a pair vanish when its two centres meet (no baseline, no
+    epipolar plane), so a fit can settle two cameras onto one point at no cost (found on three chessboard photos,
+    session 73)."""
+    if len(I) == 0:
+        return []
+    pairs = np.unique(np.stack([I, J], 1), axis=0)
+    C0, C = np.asarray(C0, dtype=np.float64), np.asarray(C, dtype=np.float64)
+    b0 = np.linalg.norm(C0[pairs[:, 0]] - C0[pairs[:, 1]], axis=1)
+    b = np.linalg.norm(C[pairs[:, 0]] - C[pairs[:, 1]], axis=1)
+    flag = (b0 > 0) & ~(b >= ratio * b0)  # NaN counts as collapsed
     return [[int(i), int(j)] for i, j in pairs[flag]]
 
 
@@ -560,20 +577,24 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     keep_scale, anchor = len(known_poses) < 2, min(held)  # the first fit's gauge, kept by the re-fit
 
     def fit_with(held):
-        return solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
-                           anchor=anchor, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
-                           max_evals=cfg.max_evals, cheirality=cfg.cheirality, second_descent=cfg.second_descent)
+        R, C, fit = solve_poses(c2w[:, :3, :3], c2w[:, :3, 3], I, J, r1, r2, s, held=held, keep_scale=keep_scale,
+                                anchor=anchor, prior_deg=cfg.rotation_prior_deg, rounds=cfg.rounds,
+                                max_evals=cfg.max_evals, cheirality=cfg.cheirality, second_descent=cfg.second_descent)
+        collapsed = [p for p in collapsed_pairs(c2w[:, :3, 3], C, I, J) if p not in fit["mirrored_pairs"]]
+        return R, C, {**fit, "mirrored_pairs": fit["mirrored_pairs"] + collapsed, "collapsed_pairs": collapsed}
 
     R, C, fit = fit_with(held)
     if fit["mirrored_pairs"]:  # once more with the cameras at the reversed pairs held where they were aligned
-        first = {"mirrored_pairs": fit["mirrored_pairs"], "evaluations": fit["evaluations"]}
+        first = {"mirrored_pairs": fit["mirrored_pairs"], "collapsed_pairs": fit["collapsed_pairs"],
+                 "evaluations": fit["evaluations"]}
         pinned = pinned_cameras(fit["mirrored_pairs"], held)
         held = sorted(held + pinned)
 
         def kept(why):
             return replace(recon, info={**recon.info, "epipolar": {
                 "applied": False, "reason": f"the fit reversed the direction of camera pair(s) {first['mirrored_pairs']}"
-                f" (their matches' points moved behind the cameras){why}: the aligned poses are kept", **fit,
+                f" (their matches' points moved behind the cameras, or their centres met){why}: the aligned poses are "
+                "kept", **fit,
                 "first_fit": first, "pinned": pinned, "config": asdict(cfg)}})
 
         if len(held) == n:

@@ -561,3 +561,38 @@ def test_the_stage_refines_views_of_several_sizes_and_keeps_their_canvas():
     assert rot < 15 and dirs < 15
     assert out.map_sizes == recon.map_sizes == [(w, h) for h, w in shapes]
     assert not (out.depth_z > 0)[~out.regions].any()
+
+
+def test_two_centres_the_fit_brings_together_count_as_a_reversed_pair_and_are_refitted_held():
+    from pointmap.align.epipolar import collapsed_pairs
+
+    C0 = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    C = np.array([[0.0, 0, 0], [1.5, 0, 0], [1.55, 0, 0]])  # cameras 1 and 2 met: 0.05 of their aligned 1.0
+    I, J = np.array([0, 0, 1, 1]), np.array([1, 2, 2, 2])
+    assert collapsed_pairs(C0, C, I, J) == [[1, 2]]
+    C[2] = np.nan
+    assert collapsed_pairs(C0, C, I, J) == [[0, 2], [1, 2]]  # no finite centre: nothing to keep
+
+
+def test_a_fit_that_collapses_two_centres_is_refitted_with_one_of_them_held(mid_scene, monkeypatch):
+    import pointmap.align.epipolar as epi
+
+    _, views, preds, recon = mid_scene
+    real = epi.solve_poses
+    calls = []
+
+    def collapsing(R0, C0, *args, **kwargs):
+        R, C, rep = real(R0, C0, *args, **kwargs)
+        calls.append(list(kwargs["held"]))
+        if len(calls) == 1:
+            C[3] = C[2] + 1e-6  # camera 3 settles onto camera 2: that pair's residuals vanish
+        return R, C, rep
+
+    monkeypatch.setattr(epi, "solve_poses", collapsing)
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["first_fit"]["mirrored_pairs"] == [[2, 3]] and rep["collapsed_pairs"] == []
+    assert rep["first_fit"]["collapsed_pairs"] == [[2, 3]]
+    assert calls[1] == [0] + rep["pinned"] and rep["pinned"] in ([2], [3])
+    gap = (out.cam2world[2, :3, 3] - out.cam2world[3, :3, 3]).norm()
+    assert float(gap) > 0.2 * float((recon.cam2world[2, :3, 3] - recon.cam2world[3, :3, 3]).norm())
