@@ -35,10 +35,12 @@ VERSION = "4"  # 3: pose-head models also store cam2_to_cam1 (session 49); 4: fo
 
 @functools.lru_cache(maxsize=1)
 def code_digest() -> bytes:
-    """SHA-256 of the library code that turns weights into predictions (``pointmap/model``, the ONNX runner, the
-    prediction contract): an edit to the network's code is another key, as other weights are."""
+    """SHA-256 of the library code that turns weights into predictions (``pointmap/model``, the geometry its forward
+    pass calls, the ONNX runner, the prediction contract): an edit to the network's code is another key, as other
+    weights are."""
     root = Path(__file__).parent
-    files = sorted((root / "model").rglob("*.py")) + [root / "runtime" / "onnx.py", root / "prediction.py"]
+    files = (sorted((root / "model").rglob("*.py")) + sorted((root / "geometry").rglob("*.py"))
+             + [root / "runtime" / "onnx.py", root / "prediction.py"])
     h = hashlib.sha256()
     for f in files:
         h.update(f.relative_to(root).as_posix().encode())

@@ -120,7 +120,9 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def _image_files(folder: Path) -> list[str]:
-    return sorted(str(f) for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+    """The folder's image files, sorted; hidden ones (macOS's ``._name.jpg`` resource forks) left out."""
+    return sorted(str(f) for f in folder.iterdir()
+                  if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith("."))
 
 
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
@@ -131,7 +133,7 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
     ``frames_dir`` (``pointmap.video.extract_frames``: one per ``stride`` frames, the sharpest of each window,
     at most ``max_frames`` when no stride is given); files are kept as given. ``times``, a dict, receives each
     extracted frame's time in seconds (``extract_frames(with_times=True)``) under its path. PointmapError for a
-    folder without images."""
+    folder without images, or a path that does not exist."""
     from pointmap.video import extract_frames, is_video
 
     stems = [Path(i).stem for i in items if is_video(Path(i))]
@@ -157,6 +159,10 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
                 raise PointmapError(f"folder {p} holds no images (expected files ending in "
                                     f"{', '.join(IMAGE_SUFFIXES)})")
             out += found
+        elif not p.exists():
+            glob = " (an unexpanded shell pattern? the shell expands it only where files match)" \
+                if any(c in item for c in "*?[") else ""
+            raise PointmapError(f"no such file or folder: {item}{glob}")
         else:
             out.append(item)
     return out
@@ -744,7 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
                    help="keep pixels at or above this percentile of confidence over all images' unmasked pixels "
-                   "(0-100; 50 keeps the most confident half of the scene)")
+                   "(0 <= P < 100; 50 keeps the most confident half of the scene)")
     r.add_argument("--masks", default=None, metavar="DIR",
                    help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
                         "are left out of the alignment, the matches and the exports (sky, people, a turntable)")

@@ -108,7 +108,7 @@ def run_demo(out: Path, model_name: str = "small", quiet: bool = False, device="
     print("\nglobal alignment of all views, poses refined on the matches (mean over view pairs):")
     for name, a in aligned.items():
         print(f"  {name:<10} rot err {a['rot_deg']:5.1f}°  dir err {a['trans_deg']:5.1f}°  focal err {a['focal_err_pct']:5.1f}%")
-    print(f"outputs and previews: {out}/  (recon/points.ply and recon/scene.glb open in any 3D viewer)")
+    print(f"outputs and previews: {out}/  (SCENE/recon/points.ply and SCENE/recon/scene.glb open in any 3D viewer)")
     print("  SCENE/pairIJ_depth.png: image | predicted depth (scaled to the ground truth by the median ratio) | "
           "ground-truth depth; one colour range (turbo, blue near, red far: 2-98 % of the scene's ground-truth "
           "depths) for all previews of a scene:")

@@ -158,6 +158,10 @@ def masks_to_maps(masks, views) -> list:
         u = ((torch.arange(w) + 0.5 + left) / sx - 0.5).round().long().clamp(0, W - 1)
         vv = ((torch.arange(h) + 0.5 + top) / sy - 0.5).round().long().clamp(0, H - 1)
         out.append(m[vv][:, u])
+    empty = [k for k, m in enumerate(out) if not bool(m.any())]
+    if empty:  # refused before inference: every pair of such an image would be dropped, the graph then split
+        raise ShapeError(f"mask(s) of image(s) {', '.join(views[k].name or str(k) for k in empty)} keep no pixel of "
+                         f"the network's view (the crop it sees): nothing of those images could be reconstructed")
     return out
 
 
@@ -189,9 +193,10 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         (``pairs_from_similarity``; for photos in no particular order), or a list / [M, 2] array of (i, j) image
         index pairs (``pairs_from_list``: connected; recorded as the graph "given")
     size: network input size (``load_images``); None: the size the model was trained at (512 when unknown).
-        Images of different sizes or orientations (portrait among landscape) are taken whole: each pair is
-        inferred at its images' own shapes and the Reconstruction holds the views on one canvas
-        (``recon.map_sizes``; the padding is never a point)
+        Images of different sizes or orientations (portrait among landscape) are each resized and cropped by
+        ``load_images``'s rule (at 224 a centred square; at 512 their own aspect's crop), each pair is inferred at
+        its images' own shapes, and the Reconstruction holds the views on one canvas (``recon.map_sizes``; the
+        padding is never a point)
     whole: every photograph at its own shape, even at 224 (``load_images(whole=True)``: the long side to ``size``,
         224 x 160 for a 4:3 landscape, instead of the square crop that drops a quarter of it); recorded, so that
         ``pointmap.localization`` prepares new photographs alike

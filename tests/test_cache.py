@@ -323,3 +323,35 @@ def test_a_vouched_check_ends_with_its_block_even_on_an_error_and_does_not_reach
         calls.clear()
         other_cache.check(tiny_model)
         assert len(calls) == 1  # only the cache that vouched skips
+
+
+def test_the_network_code_digest_covers_every_library_module_the_forward_pass_imports():
+    import ast
+    from pathlib import Path
+
+    import pointmap.cache
+
+    root = Path(pointmap.cache.__file__).parent
+    pointmap.cache.code_digest.cache_clear()
+    covered = set()
+    real_read = Path.read_bytes
+
+    def recording(self):
+        covered.add(self.resolve())
+        return real_read(self)
+
+    try:
+        Path.read_bytes = recording
+        pointmap.cache.code_digest()
+    finally:
+        Path.read_bytes = real_read
+        pointmap.cache.code_digest.cache_clear()
+    imported = set()
+    for f in sorted((root / "model").rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("pointmap."):
+                mod = root.parent / Path(*node.module.split("."))
+                path = mod.with_suffix(".py") if mod.with_suffix(".py").exists() else mod / "__init__.py"
+                if not node.module.startswith("pointmap.errors"):  # messages, not numbers
+                    imported.add(path.resolve())
+    assert imported and imported <= covered, sorted(str(p) for p in imported - covered)

@@ -47,6 +47,25 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
     assert "inference" not in capsys.readouterr().err  # --quiet after the command silenced the progress bar
 
 
+
+def test_hidden_files_in_a_folder_are_not_images_and_a_missing_path_is_named(tiny, tmp_path, capsys):
+    import shutil
+
+    from pointmap.cli import expand_images
+
+    _, folder = tiny
+    scene = tmp_path / "scene"
+    shutil.copytree(folder, scene)
+    (scene / "._a.jpg").write_bytes(b"\x00\x05\x16\x07 macOS resource fork")
+    assert [Path(p).name for p in expand_images([str(scene)])] == ["a.jpg", "b.PNG", "c.png"]
+    with pytest.raises(pm.PointmapError, match="no such file or folder: nodir$"):
+        expand_images(["nodir"])
+    with pytest.raises(pm.PointmapError, match=r"an unexpanded shell pattern\?"):
+        expand_images([str(scene / "*.jpeg")])
+    assert main(["reconstruct", "nodir", str(scene / "a.jpg"), "-o", str(tmp_path / "o")]) == 2
+    assert "no such file or folder: nodir" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("extra,message", [
     (["--export", "ply,obj"], "--export expected comma-separated formats from ply, glb, colmap, colmap_txt, nerfstudio, tum, npz, got 'ply,obj'"),
     (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),

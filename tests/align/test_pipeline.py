@@ -157,6 +157,10 @@ def test_masks_to_maps_from_original_size():
         with pytest.raises(ValueError, match=named):
             masks_to_maps(bad, views)
     assert masks_to_maps([(mm.numpy() * 255).astype(np.uint8)], views)[0].equal(mm)  # a 0 / 255 mask image
+    off_crop = np.zeros((120, 200), bool)
+    off_crop[:5] = True  # keeps only rows the crop leaves out (the top ~9 of the original's 120)
+    with pytest.raises(ValueError, match="image_000.png keep no pixel of the network's view"):
+        masks_to_maps([off_crop], views)
 
 
 def test_auto_graph_and_estimates():
