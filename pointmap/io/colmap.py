@@ -91,9 +91,16 @@ def _model(recon, points: PointSet, shared_camera: bool | None):
 
 def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary: bool = True,
                  shared_camera: bool | None = None) -> list[Path]:
-    """Write ``cameras``, ``images``, ``points3D`` (.bin and/or .txt) under ``out_dir``."""
+    """Write ``cameras``, ``images``, ``points3D`` (.bin and/or .txt) under ``out_dir``. Files of the format not
+    written that an earlier run left there are named in a warning (COLMAP and 3DGS loaders read .bin first)."""
     out_dir = Path(out_dir)
     cams, images, tracks = _model(recon, points, shared_camera)
+    other = [s for s, w in ((".bin", binary), (".txt", text)) if not w]
+    stale = [out_dir / f"{n}{s}" for s in other for n in ("cameras", "images", "points3D") if (out_dir / f"{n}{s}").exists()]
+    if stale:
+        warnings.warn(f"{out_dir} still holds {', '.join(p.name for p in stale)} of an earlier run, which readers may take "
+                      f"for this model (COLMAP reads .bin first): remove them, or write into an empty folder",
+                      stacklevel=3)
     written = []
     if binary:
         with atomic_open(out_dir / "cameras.bin") as f:

@@ -858,3 +858,13 @@ def test_photographs_that_need_re_encoding_are_written_as_the_loader_reads_them(
     grey = np.asarray(Image.open(out[0]).convert("RGB")).astype(int)
     assert abs(grey.mean() - read_rgb(tmp_path / "grey16.png").mean()) < 2 and grey.max() < 255  # not saturated
     assert np.array_equal(np.asarray(Image.open(out[1])), read_rgb(tmp_path / "turned"))  # PNG: exact, turned
+
+
+def test_a_colmap_model_written_over_another_formats_files_names_them_in_a_warning(tmp_path):
+    recon = make_recon(n=2)
+    save_reconstruction(recon, tmp_path, formats=("colmap",))
+    with pytest.warns(UserWarning, match="still holds cameras.bin, images.bin, points3D.bin of an earlier run"):
+        save_reconstruction(recon, tmp_path, formats=("colmap_txt",))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        save_reconstruction(recon, tmp_path / "fresh", formats=("colmap_txt",))
