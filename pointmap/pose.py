@@ -140,10 +140,10 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
         if tuple(K1.shape) != (B, 3, 3):
             raise ShapeError(f"K1 expected [3, 3] or [{B}, 3, 3], got {list(K1.shape)}")
         _check_focals("K1", K1)
-        if K2 is None and tuple(pred.pts1_cam1.shape[1:3]) != tuple(pred.pts2_cam1.shape[1:3]):
+        if K2 is None and pred_reverse is None and tuple(pred.pts1_cam1.shape[1:3]) != tuple(pred.pts2_cam1.shape[1:3]):
             raise ShapeError(f"K1 stands for view 2's intrinsics only when the views have one size; got views "
                              f"{list(pred.pts1_cam1.shape[1:3])} and {list(pred.pts2_cam1.shape[1:3])}: give K2")
-    if K2 is None and K1 is not None:
+    if K2 is None and K1 is not None and pred_reverse is None:  # the two-pass path reads no intrinsics
         K2 = K1
     if K2 is not None:
         K2 = torch.as_tensor(K2, dtype=torch.float64).detach().cpu()

@@ -361,6 +361,8 @@ def test_relative_pose_checks_K1_and_refuses_it_for_a_view_2_of_another_size():
     small = pm.PairPrediction(p1[None].float(), p2[None, :, :32].float(), torch.ones(1, H, W), torch.ones(1, H, 32))
     with pytest.raises(pm.ShapeError, match="give K2"):
         pm.relative_pose(small, K1=K)
+    rev = pm.PairPrediction(p2[None, :, :32].float(), p1[None].float(), torch.ones(1, H, 32), torch.ones(1, H, W))
+    assert pm.relative_pose(small, K1=K, pred_reverse=rev).shape == (1, 4, 4)  # the two-pass path reads no K
     same = pm.relative_pose(as_pred(p1, p2), K1=K)[0]  # a shared camera: K1 stands for view 2's
     assert torch.allclose(same, pm.relative_pose(as_pred(p1, p2), K2=K)[0])
 

@@ -198,15 +198,18 @@ def main(argv=None) -> int:
         print(f"error: --licence {a.licence}: the weights derive from ones licensed {inherited}, which they keep",
               file=sys.stderr)
         return 2
+    evaluated = None  # for an average: the input whose step the metrics row is
     if metrics and len(a.ckpt) > 1:  # an average was not evaluated: the row is one input's, and recorded as such
-        print(f"warning: --metrics {a.metrics}: its last row (step {int(metrics['step'])}) is the last input's, not "
-              "the average's: recorded as heldout_metrics_of_input", file=sys.stderr)
+        evaluated = next((str(s["source"]) for s in ck["averaged"] if s["step"] == int(metrics["step"])), None)
+        print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}'s"
+              f"{f' ({evaluated})' if evaluated else ', none of the inputs'}, not the average's: recorded as "
+              "heldout_metrics_of_input", file=sys.stderr)
     elif metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
         print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
               f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
-                  **({"heldout_metrics_of_input": {"source": str(a.ckpt[-1]), **metrics}} if len(a.ckpt) > 1
+                  **({"heldout_metrics_of_input": {"source": evaluated, **metrics}} if metrics and len(a.ckpt) > 1
                      else {"heldout_metrics": metrics}), "note": a.note, "licence": inherited or a.licence or "Apache-2.0",
                   **({"averaged_steps": ck["averaged_steps"], "averaged": ck["averaged"]} if len(a.ckpt) > 1 else {}),
                   **({"grown_from": g} if (g := (ck.get("extra") or {}).get("grown_from")) is not None else {}),

@@ -97,6 +97,8 @@ def depth_from_edges(stack: EdgeStack, depth: torch.Tensor, ok: torch.Tensor, ca
     other pairs' maps of that image instead: each edge's points moved into the world by its similarity, then
     into the image's camera, their z averaged by the edges' weights (pixels no edge sees in front keep theirs)."""
     out = depth.clone()
+    if bool((ok | ~stack.pix_valid).all()):  # every image's own map has all its points: nothing to fill
+        return out
     world2cam = torch.linalg.inv(cam2world)
     num = torch.zeros_like(depth)
     den = torch.zeros_like(depth)
@@ -168,7 +170,9 @@ def init_mst(stack: EdgeStack, fx, fy, cx, cy) -> InitResult:
         m = j if k == i else i
         pred_k, w_k = (stack.pred_i[e], stack.w_i[e]) if k == i else (stack.pred_j[e], stack.w_j[e])
         pred_m, w_m = (stack.pred_j[e], stack.w_j[e]) if k == i else (stack.pred_i[e], stack.w_i[e])
-        s, R, t = _procrustes(pred_k.to(dt), pts_world[k], w_k.to(dt), f"pair ({i}, {j})'s pointmap of image {k}")
+        w_placed = w_k.to(dt) * ok[k].to(dt)  # the placed image's own points, not its filled-in starts
+        s, R, t = _procrustes(pred_k.to(dt), pts_world[k], w_placed if bool(w_placed.sum() > 0) else w_k.to(dt),
+                              f"pair ({i}, {j})'s pointmap of image {k}")
         target = s * pred_m.to(dt) @ R.T + t
         place(m, target, w_m.to(dt))
 

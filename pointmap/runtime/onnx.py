@@ -148,16 +148,14 @@ def read_metadata(path) -> dict:
     return meta
 
 
-def _check_same_export(graph: Path, meta: dict) -> None:
-    """CheckpointError unless the description ``graph`` carries (stamped by the exporter; old graphs may carry
-    none) is ``meta``'s, the parity report aside (added after the stamp): a folder holding graphs of different
-    exports would otherwise run weights the description does not describe."""
-    import onnx
-
+def _check_same_export(graph: Path, session, meta: dict) -> None:
+    """CheckpointError unless the description ``graph`` carries (stamped by the exporter, read from its loaded
+    ``session``; old graphs may carry none) is ``meta``'s, the parity report aside (added after the stamp): a folder
+    holding graphs of different exports would otherwise run weights the description does not describe."""
     try:
-        props = {p.key: p.value for p in onnx.load(str(graph), load_external_data=False).metadata_props}
-        own = json.loads(props[METADATA_KEY]) if METADATA_KEY in props else None
-    except Exception:  # noqa: BLE001 - a bad graph is reported by onnxruntime's load, which follows
+        text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        own = json.loads(text) if text is not None else None
+    except Exception:  # noqa: BLE001 - unreadable metadata: read_metadata reports it where it is the source
         return
     if isinstance(own, dict) and {k: v for k, v in own.items() if k != "parity"} != \
             {k: v for k, v in meta.items() if k != "parity"}:
@@ -213,11 +211,11 @@ class OnnxPointmapModel:
             gp = Path(graph) if graph is not None and not self.split else self.path / f
             if not gp.exists():
                 raise CheckpointError(f"{self.path} is missing {f} (listed as {'split' if self.split else 'full'} export)")
-            _check_same_export(gp, meta)
             try:
                 self._sessions[f] = ort.InferenceSession(str(gp), sess_options=so, providers=provs)
             except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
+            _check_same_export(gp, self._sessions[f], meta)
         # an export written before the pose head's transform was a graph output (session 49) lacks it: the
         # prediction then has no cam2_to_cam1, and relative_pose falls back to the pointmaps' Procrustes
         have = {o.name for o in self._sessions[files[-1]].get_outputs()}

@@ -249,8 +249,15 @@ def test_an_averages_metrics_are_recorded_as_one_inputs_and_zero_share_inputs_ar
     paths = [str(tmp_path / "0.pt"), str(tmp_path / "1.pt")]
     assert main(["--ckpt", *paths, "--weights", "1", "3", "--metrics", str(tmp_path / "eval.csv"), "--out",
                  str(tmp_path / "avg.safetensors")]) == 0
-    assert "is the last input's, not the average's" in capsys.readouterr().err
+    assert "its last row is step 200's" in capsys.readouterr().err
     prov = pm.load_model(tmp_path / "avg.safetensors").provenance
     assert "heldout_metrics" not in prov and prov["heldout_metrics_of_input"]["RRA15"] == 50.0
-    assert prov["heldout_metrics_of_input"]["source"] == paths[1]
+    assert prov["heldout_metrics_of_input"]["source"].endswith("1.pt")  # the input of step 200, in any order
+    assert main(["--ckpt", paths[1], paths[0], "--metrics", str(tmp_path / "eval.csv"), "--out",
+                 str(tmp_path / "rev.safetensors")]) == 0
+    rev = pm.load_model(tmp_path / "rev.safetensors").provenance["heldout_metrics_of_input"]
+    assert rev["source"].endswith("1.pt")
+    assert main(["--ckpt", *paths, "--out", str(tmp_path / "none.safetensors")]) == 0  # no --metrics: no entry
+    none = pm.load_model(tmp_path / "none.safetensors").provenance
+    assert not none.get("heldout_metrics") and "heldout_metrics_of_input" not in none
     assert average_checkpoints(paths, [1, 0])["averaged_steps"] == [100]
