@@ -133,25 +133,24 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     if pred_reverse is not None:
         check_prediction(pred_reverse, "pred_reverse")
     B = pred.batch_size
+
+    def batch_of_K(name, K):
+        K = torch.as_tensor(K, dtype=torch.float64).detach().cpu()
+        K = K.expand(B, 3, 3) if K.shape == (3, 3) else K
+        if tuple(K.shape) != (B, 3, 3):
+            raise ShapeError(f"{name} expected [3, 3] or [{B}, 3, 3], got {list(K.shape)}")
+        _check_focals(name, K)
+        return K
+
     if K1 is not None:
-        K1 = torch.as_tensor(K1, dtype=torch.float64).detach().cpu()
-        if K1.shape == (3, 3):
-            K1 = K1.expand(B, 3, 3)
-        if tuple(K1.shape) != (B, 3, 3):
-            raise ShapeError(f"K1 expected [3, 3] or [{B}, 3, 3], got {list(K1.shape)}")
-        _check_focals("K1", K1)
+        K1 = batch_of_K("K1", K1)
         if K2 is None and pred_reverse is None and tuple(pred.pts1_cam1.shape[1:3]) != tuple(pred.pts2_cam1.shape[1:3]):
             raise ShapeError(f"K1 stands for view 2's intrinsics only when the views have one size; got views "
                              f"{list(pred.pts1_cam1.shape[1:3])} and {list(pred.pts2_cam1.shape[1:3])}: give K2")
     if K2 is None and K1 is not None and pred_reverse is None:  # the two-pass path reads no intrinsics
         K2 = K1
-    if K2 is not None:
-        K2 = torch.as_tensor(K2, dtype=torch.float64).detach().cpu()
-        if K2.shape == (3, 3):
-            K2 = K2.expand(B, 3, 3)
-        if tuple(K2.shape) != (B, 3, 3):
-            raise ShapeError(f"K2 expected [3, 3] or [{B}, 3, 3], got {list(K2.shape)}")
-        _check_focals("K2", K2)
+    elif K2 is not None:
+        K2 = batch_of_K("K2", K2)
     if pred_reverse is not None and pred_reverse.batch_size != B:
         raise ShapeError(f"pred_reverse batch size {pred_reverse.batch_size} differs from pred's {B}")
     if matches is not None and (pred_reverse is not None or not isinstance(matches, (list, tuple))
