@@ -433,6 +433,13 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images]))
         except GraphError as e:  # e.g. pairs that leave a photograph out: said with the file's name
             raise PointmapError(f"--pairs {args.pairs}: {e}") from None
+    elif isinstance(graph, str) and graph != "auto" and not graph.startswith("retrieval"):
+        from pointmap.pairs import make_pairs
+
+        try:  # a graph that does not fit this many images is said now, before the model loads
+            make_pairs(len(images), graph)
+        except (GraphError, ValueError) as e:
+            raise PointmapError(f"--graph {graph}: {e}") from None
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)

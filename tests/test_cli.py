@@ -64,6 +64,9 @@ def test_hidden_files_in_a_folder_are_not_images_and_a_missing_path_is_named(tin
         expand_images([str(scene / "*.jpeg")])
     assert main(["reconstruct", "nodir", str(scene / "a.jpg"), "-o", str(tmp_path / "o")]) == 2
     assert "no such file or folder: nodir" in capsys.readouterr().err
+    assert main(["reconstruct", str(scene), "-o", str(tmp_path / "o"), "--graph", "oneref-5", "--model",
+                 "no_such_model"]) == 2  # said before the model loads
+    assert "--graph oneref-5: oneref-5: reference index out of range for 3 images" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("extra,message", [
