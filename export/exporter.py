@@ -93,7 +93,7 @@ def fold_weight_transposes(ir_model) -> int:
         new = made.get((src.name, axes))
         if new is None:
             arr = np.ascontiguousarray(np.transpose(src.const_value.numpy(), axes))
-            name = f"{src.name}.T" if not made else f"{src.name}.T{len(made)}"
+            name = f"{src.name}.T"
             while name in graph.initializers:
                 name += "_"
             new = ir.Value(name=name, shape=ir.Shape(arr.shape), type=src.type, const_value=ir.tensor(arr, name=name))

@@ -68,8 +68,8 @@ class DecoderGraph(_Graph):
 
 def half_backbone(model: PointmapNet) -> PointmapNet:
     """A copy of ``model`` with the patch embedding, encoder and decoders (and the normalisation
-    buffers) in float16 and the heads (and pose head) in float32. PointmapNet.heads casts the tokens to float32, so
-    the output transforms (exp of depth and confidence, norms) stay float32. The pose and focal heads stay float32 too.""" 
+    buffers) in float16 and the heads (and the pose and focal heads) in float32. PointmapNet.heads casts the tokens
+    to float32, so the output transforms (exp of depth and confidence, norms) stay float32."""
     import copy
 
     half = copy.deepcopy(model).half()

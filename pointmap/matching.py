@@ -167,8 +167,8 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
     ``patch`` cell and re-normalised, mutual nearest neighbours by dot product (all cells, brute force).
 
     Coarse to fine: xy1 is the centre pixel (``patch // 2``) of a view-1 cell; xy2 is the centre pixel of the
-    matched view-2 cell (the same ``patch // 2`` offset), or with ``refine`` the pixel whose descriptor best matches xy1's within that cell grown by half a
-    cell on each side (cell centres alone cap PnP at a few degrees). Score: sqrt of the two cells' mean
+    matched view-2 cell (the same ``patch // 2`` offset), or with ``refine`` the pixel whose descriptor best matches
+    xy1's within that cell grown by half a cell on each side (cell centres alone cap PnP at a few degrees). Score: sqrt of the two cells' mean
     descriptor confidences. Coarser than ``match`` (one match per cell at most) but robust when pixel
     descriptors are not yet distinctive: the cell descriptor is what the coarse matching loss
     (training.losses.patch_matching_loss) trains.

@@ -289,9 +289,9 @@ def score_auc(scores, labels) -> float:
     keep = torch.isfinite(y) & torch.isfinite(s)
     s, y = s[keep], y[keep]
     n1, n0 = int((y == 1).sum()), int((y == 0).sum())
-    if n1 == 0 or n0 == 0 or n1 + n0 != len(y):
-        if n1 + n0 != len(y):
-            raise ValueError("score_auc expected labels 0, 1 or NaN")
+    if n1 + n0 != len(y):
+        raise ValueError("score_auc expected labels 0, 1 or NaN")
+    if n1 == 0 or n0 == 0:
         return float("nan")
     _, inv, counts = torch.unique(s, return_inverse=True, return_counts=True)
     first = torch.cumsum(counts, 0) - counts  # ranks 1..n, tied values sharing their mean rank

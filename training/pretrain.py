@@ -19,22 +19,16 @@ from training.mix import open_pairs
 from training.train import collate
 
 
-def _net(model):
-    """The CrossViewCompletion inside a torch.compile / DDP wrapper."""
-    while hasattr(model, "_orig_mod") or hasattr(model, "module"):
-        model = getattr(model, "_orig_mod", None) or model.module
-    return model
-
-
 def make_step(cfg: TrainConfig):
     def step_fn(model, batch, step):
         view1, view2 = batch
         # the masks are a function of (seed, step, rank), as the data order is: a resumed run draws the same ones
         rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
         g = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1024 + rank)
-        p = _net(model).cfg.patch_size
+        net = getattr(model, "module", model)  # DDP's model (torch.compile's wrapper forwards attributes itself)
+        p = net.cfg.patch_size
         B, N = view1["img"].shape[0], (view1["img"].shape[-2] // p) * (view1["img"].shape[-1] // p)
-        mask = _net(model).random_mask(B, N, generator=g, device=view1["img"].device)
+        mask = net.random_mask(B, N, generator=g, device=view1["img"].device)
         pred, mask = model(view1["img"], view2["img"], mask)
         with torch.autocast(pred.device.type, enabled=False):  # under --amp the forward ran in bf16; the loss not
             loss = completion_loss(pred.float(), view1["img"], mask, PRESETS[cfg.preset].patch_size)

@@ -167,8 +167,9 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
     image ``names``: a file whose pixels need no EXIF rotation and whose suffix is the name's is copied byte for
     byte; any other (a rotated JPEG, a renamed duplicate with another suffix) is written as ``load_images`` reads
     it (``read_rgb``: EXIF orientation applied, 16-bit scaled, alpha composited on white: the pixels the poses and
-    intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file paths, or None for images given as arrays (skipped: they exist nowhere on disk);
-    a source that no longer exists is skipped with a warning.
+    intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file
+    paths, or None for images given as arrays (skipped: they exist nowhere on disk); a source that no longer exists
+    is skipped with a warning.
     Returns the paths written; every file is written atomically."""
     import shutil
 
