@@ -17,6 +17,11 @@ from pointmap.errors import CheckpointError, GraphError, ImageError, PointmapErr
 
 log = logging.getLogger("pointmap")
 DEFAULT_MODEL = "small"
+MAX_FRAMES = 30  # defaults of flags parsed as None (refuse_ignored tells a given flag from its default)
+DEPTH_PNG_SCALE = 1e-3
+SPLAT_BUDGET = 120.0
+COLMAP_POINTS = 100_000
+TEST_ALIGN_STEPS = 100
 
 
 def check_size_graph_budget(args) -> None:
@@ -52,6 +57,27 @@ def _model_and_size(name: str, size: int | None, device: str = "cpu"):
 
     model = load_model(name, device=device)
     return model, size if size is not None else model_input_size(model)
+
+
+def refuse_ignored(args, rules) -> None:
+    """Flags given where they would do nothing: ``rules`` are (dest, flag, applies, where) and a flag whose value is
+    not None (its parser default is None: given) while ``applies`` is False is refused, naming ``where`` it
+    applies. A flag the command would silently ignore hides a mistake (a typo'd input, a forgotten parent flag)."""
+    for dest, flag, applies, where in rules:
+        if getattr(args, dest, None) is not None and not applies:
+            raise PointmapError(f"{flag} applies only {where}; here it would be ignored")
+
+
+def fill_defaults(args, **defaults) -> None:
+    """The defaults of flags parsed as None (so that ``refuse_ignored`` can tell a given flag from its default)."""
+    for dest, value in defaults.items():
+        if getattr(args, dest) is None:
+            setattr(args, dest, value)
+
+
+def model_has_pose_head(model) -> bool:
+    """Whether ``model`` (PyTorch or ONNX runtime) predicts the pose head's transforms."""
+    return bool(getattr(getattr(model, "cfg", None), "pose_head", False))
 
 
 def parse_focals(text: str, n: int) -> list[float]:
@@ -268,7 +294,21 @@ def cmd_reconstruct(args) -> int:
     # every argument is checked before the model runs: nothing fails after minutes of inference
     from pointmap.io.points import check_conf_filter
 
+    from pointmap.video import is_video
+
     formats = parse_export(args.export)
+    video = not args.each_folder and any(is_video(i) for i in args.images)
+    refuse_ignored(args, [
+        ("stride", "--stride", video, "to a video among IMG"),
+        ("max_frames", "--max-frames", video and args.stride is None, "to a video among IMG, without --stride "
+         "(which sets the frames itself)"),
+        ("depth_png_scale", "--depth-png-scale", args.metric_depth is not None, "with --metric-depth"),
+        ("splat_budget", "--splat-budget", args.splat, "with --splat"),
+        ("colmap_points", "--colmap-points", bool({"colmap", "colmap_txt", "nerfstudio"} & set(formats)),
+         "to the colmap, colmap_txt and nerfstudio exports"),
+        ("max_points", "--max-points", bool({"ply", "glb"} & set(formats)), "to the ply and glb exports")])
+    fill_defaults(args, max_frames=MAX_FRAMES, depth_png_scale=DEPTH_PNG_SCALE, splat_budget=SPLAT_BUDGET,
+                  colmap_points=COLMAP_POINTS, max_points=0)
     check_size_graph_budget(args)
     check_conf_filter(args.min_conf, args.conf_percentile, ("--min-conf", "--conf-percentile"))
     if args.max_points < 0 or args.colmap_points < 0:
@@ -294,6 +334,7 @@ def cmd_reconstruct(args) -> int:
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
+        refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model), "to a model with a pose head")])
         return reconstruct_scene(model, size, args, scene, formats, prediction_cache(args, model))
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
@@ -310,6 +351,7 @@ def cmd_reconstruct(args) -> int:
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
     model, size = _model_and_size(args.model, args.size, args.device)  # loaded once for every scene
+    refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model), "to a model with a pose head")])
     cache = prediction_cache(args, model)  # its weights hashed once too
     failed = []
     for scene in scenes:
@@ -419,8 +461,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     times: dict = {}
     images = expand_images(inputs, out / "frames", args.stride, args.max_frames, times)
     if len(images) < 2:  # said now, before the model loads, and for a video in its own terms
-        how = (f"; the video gave {len(images)} frame(s) at --stride {args.stride} / --max-frames {args.max_frames}: "
-               "a smaller --stride keeps more" if video else "")
+        how = ("" if not video else f"; the video gave {len(images)} frame(s) at --stride {args.stride}: a smaller "
+               "--stride keeps more" if args.stride is not None else f"; the video holds {len(images)} frame(s)")
         raise PointmapError(f"a reconstruction needs at least 2 images, got {len(images)} from {inputs}{how}")
     timestamps = video_timestamps(inputs, images, times)
     graph = args.graph
@@ -533,6 +575,9 @@ def cmd_splat(args) -> int:
     from pointmap.splat import run as run_splat
 
     npz = reconstruction_npz(args.recon)
+    refuse_ignored(args, [(dest, flag, bool(args.test), "with --test (the held-out views)")  # --device is every
+                          for dest, flag in (("test_align_steps", "--test-align-steps"), ("model", "--model"))])  # command's
+    fill_defaults(args, test_align_steps=TEST_ALIGN_STEPS, model=DEFAULT_MODEL)
     check_size_graph_budget(args)
     if args.test_align_steps < 0:
         raise PointmapError(f"--test-align-steps expected >= 0, got {args.test_align_steps}")
@@ -583,10 +628,16 @@ def cmd_localize(args) -> int:
     from pointmap.io import load_npz
     from pointmap.io.tum import write_tum
     from pointmap.localization import localize
+    from pointmap.video import is_video
 
     npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
+    video = any(is_video(i) for i in args.images)
+    refuse_ignored(args, [("stride", "--stride", video, "to a video among IMG"),
+                          ("max_frames", "--max-frames", video and args.stride is None,
+                           "to a video among IMG, without --stride (which sets the frames itself)")])
+    fill_defaults(args, max_frames=MAX_FRAMES)
     if (args.stride is not None and args.stride < 1) or args.max_frames < 1:  # one frame can be localized
         raise PointmapError(f"--stride expected >= 1 and --max-frames >= 1, got {args.stride} and {args.max_frames}")
     if Path(args.out).resolve() == npz.parent.resolve():  # its trajectory.txt and a video's frames/ are the recon's
@@ -705,8 +756,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--stride", type=int, default=None,
                    help="video: keep one frame per STRIDE frames, the sharpest of each window (default: the "
                         "smallest stride giving at most --max-frames)")
-    r.add_argument("--max-frames", dest="max_frames", type=int, default=30,
-                   help="video: at most this many frames when --stride is not given (default 30)")
+    r.add_argument("--max-frames", dest="max_frames", type=int, default=None,
+                   help=f"video: at most this many frames when --stride is not given (default {MAX_FRAMES})")
     r.add_argument("-o", "--out", required=True)
     r.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     r.add_argument("--size", type=int, default=None,
@@ -729,11 +780,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated: ply (points.ply), glb (scene.glb), colmap (sparse/0/*.bin), colmap_txt "
                         "(sparse/0/*.txt), nerfstudio (transforms.json + sparse_pc.ply), tum (trajectory.txt), npz (reconstruction.npz, which "
                         "'pointmap splat' reads); the COLMAP and nerfstudio formats copy the photographs to images/")
-    r.add_argument("--max-points", dest="max_points", type=int, default=0,
+    r.add_argument("--max-points", dest="max_points", type=int, default=None,
                    help="cap on the points of the PLY / GLB cloud, drawn at random (default 0: all)")
-    r.add_argument("--colmap-points", dest="colmap_points", type=int, default=100_000,
+    r.add_argument("--colmap-points", dest="colmap_points", type=int, default=None,
                    help="cap on COLMAP's points3D and nerfstudio's sparse_pc.ply, the 3DGS initial cloud "
-                        "(default 100000; 0: all)")
+                        f"(default {COLMAP_POINTS}; 0: all)")
     r.add_argument("--focal", default=None, metavar="F[,F2,...]",
                    help="known focal length in pixels of the images as given (one for all, or one per image); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
@@ -749,8 +800,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="measured depth maps (a LiDAR / RGB-D camera's, any resolution of the image's aspect), named "
                    "by image stem: .npy float z-depth, or 16-bit .png times --depth-png-scale; the reconstruction is "
                    "scaled to their units (median ratio, pm.scale_to_depth)")
-    r.add_argument("--depth-png-scale", dest="depth_png_scale", type=float, default=1e-3,
-                   help="units per step of a 16-bit depth PNG (default 0.001: millimetres to metres)")
+    r.add_argument("--depth-png-scale", dest="depth_png_scale", type=float, default=None,
+                   help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                    help="the images come from one camera (same size, same zoom): estimate one focal for all")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
@@ -772,22 +823,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the pose refinement on the model's coarse matches that follows alignment (the poses "
                         "then come from the dense pointmaps alone)")
     r.add_argument("--splat", action="store_true", help="fit Gaussians after alignment")
-    r.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
-                   help="wall-clock seconds the splat fit may take (0: no limit)")
+    r.add_argument("--splat-budget", dest="splat_budget", type=float, default=None,
+                   help=f"wall-clock seconds the splat fit may take (default {SPLAT_BUDGET:g}; 0: no limit)")
     r.set_defaults(fn=cmd_reconstruct)
 
     s = sub.add_parser("splat", parents=[common], help="fit Gaussian splats to a saved reconstruction")
     s.add_argument("recon", help="directory written by 'pointmap reconstruct', or its reconstruction.npz")
     s.add_argument("-o", "--out", default=None, help="output folder (default: splat/ beside the reconstruction.npz)")
-    s.add_argument("--splat-budget", dest="splat_budget", type=float, default=120.0,
-                   help="wall-clock seconds the fit may take (0: no limit)")
+    s.add_argument("--splat-budget", dest="splat_budget", type=float, default=SPLAT_BUDGET,
+                   help=f"wall-clock seconds the fit may take (default {SPLAT_BUDGET:g}; 0: no limit)")
     s.add_argument("--test", nargs="+", default=None, metavar="IMG",
                    help="held-out photographs (or a video: up to 30 of its frames, written to test_frames/) to "
                         "score novel views on: each is localized in the reconstruction (pointmap localize), its pose "
                         "aligned on the splats, and its PSNR / SSIM reported (renders/test_views.json)")
-    s.add_argument("--test-align-steps", dest="test_align_steps", type=int, default=100,
-                   help="photometric pose-alignment steps per test view, Gaussians frozen (0: the localized pose)")
-    s.add_argument("--model", default=DEFAULT_MODEL, help="the network that localizes --test views")
+    s.add_argument("--test-align-steps", dest="test_align_steps", type=int, default=None,
+                   help=f"photometric pose-alignment steps per test view, Gaussians frozen (default {TEST_ALIGN_STEPS}; "
+                        "0: the localized pose)")
+    s.add_argument("--model", default=None, help=f"the network that localizes --test views (default {DEFAULT_MODEL})")
     s.set_defaults(fn=cmd_splat)
 
     loc = sub.add_parser("localize", parents=[common],
@@ -805,8 +857,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="reconstruction views each photograph is paired with, the most similar by their encoder "
                           "tokens; the most similar pair that gives a pose is kept, the others are fallbacks (default 2)")
     loc.add_argument("--stride", type=int, default=None, help="video: one frame per STRIDE frames")
-    loc.add_argument("--max-frames", dest="max_frames", type=int, default=30,
-                     help="video: at most this many frames when --stride is not given (default 30)")
+    loc.add_argument("--max-frames", dest="max_frames", type=int, default=None,
+                     help=f"video: at most this many frames when --stride is not given (default {MAX_FRAMES})")
     loc.set_defaults(fn=cmd_localize)
 
     i = sub.add_parser("info", parents=[common],

@@ -32,15 +32,17 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     """Write frames of ``video`` to ``out_dir`` as ``<stem>_<frame index>.png`` and return their paths in time order.
 
     ``stride``: one frame per window of that many frames (default: the smallest stride giving at most
-    ``max_frames`` frames, from ``count_frames``); the frame kept in each window is its sharpest when
-    ``pick_sharpest`` (else the first). Memory holds one window's best frame, whatever the video's length.
+    ``max_frames`` frames); the frame kept in each window is its sharpest when ``pick_sharpest`` (else the first).
+    Without a stride the frame count comes from the container (``count_frames``) and is checked while reading:
+    a file holding more frames than its header states (the read stops once ``max_frames`` windows are full, the
+    rest is counted by grabbing) or fewer (truncated, or an over-stated header) is read again at the stride its
+    true count gives, the first pass's frames that the second does not keep removed. Memory holds one window's
+    best frame, whatever the video's length.
     ``with_times``: (path, seconds) pairs instead, each frame's presentation time as the container gives it
     (right for the variable frame rates phones record), else its index over the stated frame rate when the
     container's times are missing or not increasing, else None (no rate stated either).
     ImageError when the file cannot be decoded or holds no frame; every image is written atomically as soon as
     its window closes."""
-    import cv2
-
     video = Path(video)
     if not video.is_file():
         raise ImageError(f"video not found: {video}")
@@ -49,25 +51,53 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     if not (is_int(max_frames) and max_frames >= 1):
         raise ImageError(f"max_frames expected an integer >= 1, got {max_frames!r}")
     out_dir = Path(out_dir)
-    paths: list[Path] = []
-    kept: list[tuple[int, float]] = []  # (frame index, the container's time in seconds) of each written frame
+    if stride is not None:
+        kept, _, fps = _read_windows(video, out_dir, stride, pick_sharpest, None)
+    else:
+        stated = count_frames(video)
+        step = max(1, math.ceil(stated / max_frames))
+        kept, total, fps = _read_windows(video, out_dir, step, pick_sharpest, step * max_frames)
+        if max(1, math.ceil(total / max_frames)) != step:  # the header was wrong: once more at the true count's stride
+            first = kept
+            step = max(1, math.ceil(total / max_frames))
+            kept, _, fps = _read_windows(video, out_dir, step, pick_sharpest, None)
+            for stale in {p for p, _, _ in first} - {p for p, _, _ in kept}:
+                stale.unlink(missing_ok=True)
+    if not kept:
+        raise ImageError(f"no frame could be decoded from {video}")
+    paths = [p for p, _, _ in kept]
+    if not with_times:
+        return paths
+    return list(zip(paths, _frame_seconds([(i, t) for _, i, t in kept], fps)))
+
+
+def _read_windows(video: Path, out_dir: Path, stride: int, pick_sharpest: bool, limit: int | None):
+    """One pass over ``video``: the best frame of each window of ``stride`` frames written to ``out_dir``.
+    Returns ([(path, frame index, container seconds)], the frames in the file, its stated frame rate). With
+    ``limit``, the pass stops writing after that many frames when the file holds more, and counts the rest by
+    grabbing (the total is what the caller's stride was wrong about)."""
+    import cv2
+
+    kept: list[tuple[Path, int, float]] = []
 
     def write(index: int, seconds: float, frame: np.ndarray) -> None:  # one window's frame, written as it closes
         path = out_dir / f"{video.stem}_{index:06d}.png"
         with atomic_path(path) as tmp:
             if not cv2.imwrite(str(tmp), frame):
                 raise ImageError(f"could not write frame {index} of {video} to {path}")
-        paths.append(path)
-        kept.append((index, seconds))
+        kept.append((path, index, seconds))
 
-    if stride is None:
-        stride = max(1, math.ceil(count_frames(video) / max_frames))
     cap = _open(video)
     try:
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         best: tuple[float, int, float, np.ndarray] | None = None  # only the current window's best frame is held
         index = 0
         while True:
+            if limit is not None and index == limit and cap.grab():  # more frames than the header said
+                index += 1
+                while cap.grab():
+                    index += 1
+                return kept, index, fps
             ok, frame = cap.read()
             if not ok:
                 break
@@ -82,11 +112,7 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
             write(*best[1:])
     finally:
         cap.release()
-    if not paths:
-        raise ImageError(f"no frame could be decoded from {video}")
-    if not with_times:
-        return paths
-    return list(zip(paths, _frame_seconds(kept, fps)))
+    return kept, index, fps
 
 
 def _frame_seconds(kept: list[tuple[int, float]], fps: float) -> list[float | None]:

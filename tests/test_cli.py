@@ -455,16 +455,25 @@ def test_align_init_chooses_the_alignments_start(tiny, tmp_path, monkeypatch, ca
     assert "invalid choice: 'tree'" in capsys.readouterr().err
 
 
-def test_head_prior_reaches_the_alignment_and_a_negative_weight_is_refused(tiny, tmp_path, monkeypatch, capsys):
+def test_head_prior_reaches_the_alignment_and_a_negative_weight_or_a_model_without_pose_head_is_refused(
+        tiny, tmp_path, monkeypatch, capsys):
+    from dataclasses import replace
+
     from pointmap.align import AlignConfig
 
-    seen, _ = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: k["align"].head_prior,
+    weights, folder = tiny
+    torch.manual_seed(0)
+    posed = pm.save_model(pm.PointmapNet(replace(pm.PRESETS["test"], pose_head=True)), tmp_path / "posed.safetensors")
+    seen, _ = _reconstruct_recording((posed, folder), tmp_path, monkeypatch, lambda k: k["align"].head_prior,
                                      ([], ["--head-prior", "0.5"], ["--head-prior", "2"]), "--no-epipolar")
     assert seen == [AlignConfig().head_prior, 0.5, 2.0]
-    weights, folder = tiny
-    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--model", str(weights), "--size", "64",
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "x"), "--model", str(posed), "--size", "64",
                  "--head-prior", "-1"]) != 0
     assert "--head-prior expected a finite weight >= 0 (0: off), got -1.0" in capsys.readouterr().err
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "y"), "--model", str(weights), "--size", "64",
+                 "--head-prior", "0.5"]) == 2  # the tiny model has no pose head: the weight would do nothing
+    assert "--head-prior applies only to a model with a pose head" in capsys.readouterr().err
+    assert not (tmp_path / "y" / "reconstruction.npz").exists()
 
 
 def test_align_init_offers_exactly_the_alignments_starts():
@@ -849,3 +858,44 @@ def test_a_warning_during_a_command_is_one_line_and_the_library_formatting_is_re
     assert seen == ["pointmap: warning: duplicates add no parallax\n"] and warnings.formatwarning is before
     assert main(["-v", "info"]) == 0  # verbose: the source line stays
     assert "pointmap/align/inputs.py:80" in seen[1]
+
+
+def test_flags_that_would_be_ignored_are_refused_before_the_model_loads(tiny, tmp_path, capsys, monkeypatch):
+    import pointmap.checkpoint
+    from pointmap.io import save_reconstruction
+
+    sys.path.insert(0, str(Path(__file__).parent / "io"))
+    from recon_factory import make_recon
+
+    weights, folder = tiny
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
+    base = ["reconstruct", str(folder), "-o", str(tmp_path / "out"), "--model", str(weights)]
+    cases = [(["--stride", "5"], "--stride applies only to a video among IMG"),
+             (["--max-frames", "5"], "--max-frames applies only to a video among IMG, without --stride"),
+             (["--depth-png-scale", "0.01"], "--depth-png-scale applies only with --metric-depth"),
+             (["--splat-budget", "10"], "--splat-budget applies only with --splat"),
+             (["--colmap-points", "10", "--export", "npz,ply"], "--colmap-points applies only to the colmap"),
+             (["--max-points", "10", "--export", "npz,colmap"], "--max-points applies only to the ply and glb")]
+    for extra, said in cases:
+        assert main(base + extra) == 2, extra
+        assert said in capsys.readouterr().err
+    assert main(["splat", str(tmp_path / "rec"), "--test-align-steps", "7"]) == 2  # no reconstruction needed first
+    assert "no reconstruction.npz" in capsys.readouterr().err
+    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    for extra in (["--test-align-steps", "7"], ["--model", "nonexistent_model"]):
+        assert main(["splat", str(tmp_path / "rec"), *extra]) == 2
+        assert f"{extra[0]} applies only with --test" in capsys.readouterr().err
+    assert main(["localize", str(tmp_path / "rec"), str(folder), "-o", str(tmp_path / "loc"), "--stride", "2"]) == 2
+    assert "--stride applies only to a video among IMG" in capsys.readouterr().err
+
+
+def test_a_video_with_both_stride_and_max_frames_is_refused_and_one_frame_is_said_in_its_terms(tmp_path, capsys):
+    from tests.test_video import _video
+
+    video = _video(tmp_path / "clip.avi", n=1)
+    out = ["-o", str(tmp_path / "out"), "--model", "no_such_model"]
+    assert main(["reconstruct", str(video), *out, "--stride", "2", "--max-frames", "5"]) == 2
+    assert "--max-frames applies only to a video among IMG, without --stride" in capsys.readouterr().err
+    assert main(["reconstruct", str(video), *out]) == 2
+    err = capsys.readouterr().err
+    assert "needs at least 2 images, got 1" in err and "the video holds 1 frame(s)" in err and "None" not in err

@@ -1,5 +1,7 @@
 """Frames from a video: the window stride, the sharpest frame of each window, refusals; and the command line."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -112,6 +114,42 @@ def test_a_video_that_states_no_frame_count_is_counted_frame_by_frame(tmp_path, 
     assert cv2.VideoCapture(str(video)).get(cv2.CAP_PROP_FRAME_COUNT) <= 0
     assert count_frames(video) == 17
     assert len(extract_frames(video, tmp_path / "f", max_frames=5)) == 5  # stride 4 from the counted 17
+
+
+def _avi_stating(data: bytes, n: int) -> bytes:
+    """An AVI file's bytes with its headers' frame counts (avih dwTotalFrames, strh dwLength) set to ``n``."""
+    import struct
+
+    b = bytearray(data)
+    struct.pack_into("<I", b, b.find(b"avih") + 8 + 16, n)
+    struct.pack_into("<I", b, b.find(b"strh") + 8 + 32, n)
+    return bytes(b)
+
+
+def test_a_header_that_under_or_over_states_the_frames_or_a_cut_file_still_gives_max_frames(tmp_path):
+    from pointmap.video import count_frames
+
+    data = _video(tmp_path / "full.avi", n=60).read_bytes()
+    (tmp_path / "under.avi").write_bytes(_avi_stating(data, 6))
+    (tmp_path / "over.avi").write_bytes(_avi_stating(data, 600))
+    (tmp_path / "cut.avi").write_bytes(data[:int(len(data) * 0.4)])
+    assert count_frames(tmp_path / "under.avi") == 6 and count_frames(tmp_path / "over.avi") == 600  # as stated
+    full = [f.name for f in extract_frames(tmp_path / "full.avi", tmp_path / "full", max_frames=10)]
+    assert len(full) == 10
+    for name in ("under", "over"):  # the same frames as the truthful file, and nothing else left in the folder
+        frames = extract_frames(tmp_path / f"{name}.avi", tmp_path / name, max_frames=10, with_times=True)
+        assert [f.name.replace(name, "full") for f, _ in frames] == full
+        assert sorted(p.name for p in (tmp_path / name).iterdir()) == [f.name for f, _ in frames]
+        assert [round(t, 3) for _, t in frames] == [int(f[-10:-4]) / 10 for f in full]  # 10 fps
+    decodable = 0
+    cap = cv2.VideoCapture(str(tmp_path / "cut.avi"))
+    while cap.grab():
+        decodable += 1
+    cap.release()
+    assert 10 < decodable < 60
+    cut = extract_frames(tmp_path / "cut.avi", tmp_path / "cut", max_frames=10)
+    assert len(cut) == math.ceil(decodable / math.ceil(decodable / 10))  # the stride of the frames it holds
+    assert len(list((tmp_path / "cut").iterdir())) == len(cut)
 
 
 def test_two_videos_of_one_file_name_are_refused_before_their_frames_overwrite_each_other(tmp_path):
