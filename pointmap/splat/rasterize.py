@@ -217,7 +217,9 @@ class _Composite(torch.autograd.Function):
         px = ca * mx + cb * my                                          # (conic @ m)_x
         py = cb * mx + cc * my
         const = logo - 0.5 * (px * mx + py * my)
-        coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, px, py, const.masked_fill_(pad, -1e4)], dim=-1)
+        coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, px, py, const], dim=-1)
+        coef.masked_fill_(pad[..., None], 0.0)[..., 5].masked_fill_(pad, -1e4)  # a padding slot: alpha 0 at every pixel
+        # (its quadratic and linear terms are Gaussian 0's, large enough to beat -1e4 when it lies far off-screen)
         vals = vals.index_select(0, gi).reshape(*gid.shape, vals.shape[-1])
         # layout [nc, C, P]: Gaussians of a chunk along dim 1, the tile's pixels contiguous along dim 2
         a = torch.matmul(coef, feat.T)                                  # log alpha (one folded GEMM)

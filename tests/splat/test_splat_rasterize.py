@@ -41,6 +41,17 @@ def test_image_matches_float64_reference():
     assert out.radii.shape == (400,) and int((out.radii > 0).sum()) > 100
 
 
+def test_a_tiny_gaussian_far_off_screen_at_index_0_does_not_paint_the_padding_slots():
+    W, H = 32, 24  # the tile lists are padded with Gaussian 0's parameters, blanked whatever they are
+    means, quats, scales, opac, cols, w2c, K = _scene(40, W, H)
+    means[0] = torch.tensor([150.0, 110.0, 4.0], dtype=means.dtype)  # projects ~1000 px off the image
+    scales[0] = 0.001
+    ref_img, ref_alpha, _ = reference_render(means, quats, scales, opac, cols, w2c, K, W, H)
+    out = rasterize(*[a.float() for a in (means, quats, scales, opac, cols, w2c, K)], W, H)
+    assert (out.image.double() - ref_img).abs().max() < 1e-5
+    assert (out.alpha.double() - ref_alpha).abs().max() < 1e-5
+
+
 def test_float64_fast_path_is_exact():
     W, H = 32, 24
     args = _scene(120, W, H, seed=3)
