@@ -152,10 +152,35 @@ class PredictionCache:
         digests = {k: image_digest(imgs[k]) for k in sorted({k for e in edges for k in e})}
         return {(i, j): self.key(digests[i], digests[j]) for i, j in edges}
 
-    def present(self, imgs, edges) -> int:
+    def present(self, imgs, edges, desc: bool = False) -> int:
         """How many of the directed pairs ``edges`` ((i, j) into ``imgs``, [3, H, W] tensors) have a file here
-        (whether it will be usable is known only when it is read)."""
-        return sum(self.path(key).is_file() for key in self.keys(imgs, edges).values())
+        whose header ``get`` would take (this library's format and version, the pair's key, the descriptors
+        ``desc`` asks for, the cache's precision or better); only a file corrupted inside fails later."""
+        from safetensors import SafetensorError, safe_open
+
+        n = 0
+        for key in self.keys(imgs, edges).values():
+            try:
+                with safe_open(str(self.path(key)), framework="pt") as f:
+                    n += self._unusable(f, key, desc) is None
+            except (SafetensorError, OSError, ValueError):
+                pass
+        return n
+
+    def _unusable(self, f, key: str, desc: bool) -> str | None:
+        """Why the open cache file ``f`` cannot serve the pair ``key`` (``desc``: with descriptors): "foreign: ..."
+        for a file that is not this cache's (logged as unreadable), "weaker: ..." for one this cache must
+        recompute (no descriptors, lower precision), None when it can."""
+        meta = f.metadata() or {}
+        if meta.get("format") != FORMAT or meta.get("key") != key:
+            return f"foreign: not a pointmap pair prediction for this key (metadata {meta})"
+        if meta.get("version") != VERSION:
+            return f"foreign: format version {meta.get('version')!r}, this library reads {VERSION}"
+        if desc and "desc1" not in f.keys():
+            return "weaker: no descriptors"
+        if meta.get("dtype") == "float16" and self.dtype == torch.float32:
+            return "weaker: float16, this cache writes float32"
+        return None
 
     def get(self, key: str, shape1: tuple, shape2: tuple, desc: bool) -> PairPrediction | None:
         """The cached prediction (batch of one, float32, CPU), or None: absent, without the descriptors ``desc``
@@ -169,16 +194,14 @@ class PredictionCache:
             return None
         try:
             with safe_open(str(path), framework="pt") as f:
-                meta = f.metadata() or {}
-                if meta.get("format") != FORMAT or meta.get("key") != key:
-                    raise ValueError(f"not a pointmap pair prediction for this key (metadata {meta})")
-                if meta.get("version") != VERSION:
-                    raise ValueError(f"format version {meta.get('version')!r}, this library reads {VERSION}")
-                names = list(f.keys())
-                if desc and "desc1" not in names or meta.get("dtype") == "float16" and self.dtype == torch.float32:
+                why = self._unusable(f, key, desc)
+                if why is not None and why.startswith("foreign"):
+                    raise ValueError(why.removeprefix("foreign: "))
+                if why is not None:
                     self.misses += 1
                     return None
-                tensors = {name: f.get_tensor(name) for name in names}  # all of them: the checksum covers all
+                meta = f.metadata()
+                tensors = {name: f.get_tensor(name) for name in f.keys()}  # all of them: the checksum covers all
             if _checksum(tensors) != meta.get("sha256"):
                 raise ValueError("its tensors do not match the checksum in its header (corrupted)")
             pred = PairPrediction(**{fl.name: None if fl.name not in tensors or (not desc and "desc" in fl.name)
@@ -196,12 +219,17 @@ class PredictionCache:
 
     def put(self, key: str, pred: PairPrediction) -> Path | None:
         """Write one pair's prediction (batch of one) atomically, in the cache's ``dtype``; None when writing
-        failed (logged once; no later write is tried)."""
+        failed or the prediction was made under ``torch.autocast`` (logged once; no later write is tried)."""
         from safetensors.torch import save_file
 
         if pred.batch_size != 1:
             raise PointmapError(f"the cache stores one pair per file, got a batch of {pred.batch_size}")
         if not self.writable:
+            return None
+        if any(torch.is_autocast_enabled(d) for d in ("cpu", "cuda")):  # lower precision than the key says
+            log.warning("prediction cache: predictions made under torch.autocast are not stored (the key holds the "
+                        "weights and pixels, not the precision); the cache stops writing for this run")
+            self.writable = False
             return None
         big = torch.finfo(self.dtype).max
         tensors = {fl.name: getattr(pred, fl.name).detach().to("cpu", torch.float32).clamp(-big, big)

@@ -281,7 +281,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     if cache is not None:  # pairs already on disk cost a read, not the network: the estimate says so
         from pointmap.inference import directed
 
-        cached = cache.present([v.img for v in views], directed(pairs))
+        cached = cache.present([v.img for v in views], directed(pairs), desc=(bool(epipolar) or bool(refine))
+                               and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0)
         cost["cached_pairs"] = cached
         cost["inference_seconds"] *= 1 - cached / (2 * len(pairs))
     if not quiet:

@@ -89,6 +89,8 @@ def test_descriptors_are_cached_even_when_not_kept_and_a_file_without_them_misse
     p = out[(0, 1)]
     cache.put(key, pm.PairPrediction(p.pts1_cam1, p.pts2_cam1, p.conf1, p.conf2))  # a file without descriptors
     cache = PredictionCache(tmp_path, tiny_model)
+    imgs = [v.img for v in vs]
+    assert cache.present(imgs, [(0, 1), (1, 0)], desc=True) == 1 and cache.present(imgs, [(0, 1), (1, 0)]) == 2
     out = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
     assert (cache.hits, cache.misses) == (1, 1) and out[(0, 1)].has_desc
     cache = PredictionCache(tmp_path, tiny_model)
@@ -196,6 +198,8 @@ def test_a_float16_cache_halves_the_files_and_reads_back_close_to_the_fresh_pred
     size = {k: sum(p.stat().st_size for p in (tmp_path / k).rglob("*.safetensors")) for k in ("full", "half")}
     assert size["half"] < 0.55 * size["full"]
     full = PredictionCache(tmp_path / "half", tiny_model)  # a float32 cache: the float16 files are misses
+    imgs = [v.img for v in vs]
+    assert again.present(imgs, [(0, 1), (1, 0)]) == 2 and full.present(imgs, [(0, 1), (1, 0)]) == 0  # estimated so
     exact = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=full)
     assert full.misses == 2 and all(torch.equal(getattr(exact[e], n), t) for e in fresh
                                      for n, t in fresh[e].as_dict().items())
@@ -355,3 +359,14 @@ def test_the_network_code_digest_covers_every_library_module_the_forward_pass_im
                 if not node.module.startswith("pointmap.errors"):  # messages, not numbers
                     imported.add(path.resolve())
     assert imported and imported <= covered, sorted(str(p) for p in imported - covered)
+
+
+def test_predictions_made_under_autocast_are_not_stored_as_full_precision_ones(tiny_model, tmp_path, caplog):
+    vs = views(2)
+    cache = PredictionCache(tmp_path, tiny_model)
+    with torch.autocast("cpu", torch.bfloat16):
+        pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=cache)
+    assert "made under torch.autocast are not stored" in caplog.text and not list(tmp_path.rglob("*.safetensors"))
+    again = PredictionCache(tmp_path, tiny_model)
+    pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=again)
+    assert again.misses == 2 and len(list(tmp_path.rglob("*.safetensors"))) == 2  # written by the full-precision run
