@@ -735,7 +735,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     a = sub.add_parser("pair", parents=[common], help="pointmaps, matches and relative pose of two images")
     a.add_argument("images", nargs=2, metavar="IMG")
-    a.add_argument("-o", "--out", required=True)
+    a.add_argument("-o", "--out", required=True, help="output folder (pair.npz, pair.ply and PNG previews)")
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     a.add_argument("--size", type=int, default=None,
                    help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
@@ -869,7 +869,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.set_defaults(fn=cmd_info)
 
     d = sub.add_parser("demo", parents=[common], help="reconstruct the demo scenes shipped with the package")
-    d.add_argument("-o", "--out", default="demo_out")
+    d.add_argument("-o", "--out", default="demo_out", help="output folder (default: %(default)s)")
     d.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     d.set_defaults(fn=cmd_demo)
     where = {r: " The alignment runs on the CPU.", s: " Used only with --test; the splat fit runs on the CPU."}

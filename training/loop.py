@@ -57,6 +57,14 @@ def batch_indices(step: int, rank: int, world: int, batch: int, n: int, seed: in
     return out
 
 
+def step_generator(seed: int, step: int) -> torch.Generator:
+    """The generator of the random draws a training step makes itself (pretraining's masks, the losses' sampled
+    correspondences): a function of (seed, step, this process's rank), so a resumed run draws what the
+    uninterrupted one did and no two ranks draw the same (equal-sized pairs would sample the same pixels)."""
+    rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) * 1024 + rank)
+
+
 class StepBatches(torch.utils.data.Sampler):
     """Batch sampler from ``start_step`` to ``steps`` following ``batch_indices``. With ``item_seeds`` (a dataset
     that takes them: ``PairDataset``) each item is ``(index, aspect, (seed, step, k))``, ``k`` the sample's place in

@@ -13,7 +13,7 @@ from pointmap.errors import PointmapError
 from pointmap.model import PRESETS
 from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
-from training.loop import TERMINATED_EXIT, error_line, fit
+from training.loop import TERMINATED_EXIT, error_line, fit, step_generator
 from training.losses import completion_loss
 from training.mix import open_pairs
 from training.train import collate
@@ -22,9 +22,7 @@ from training.train import collate
 def make_step(cfg: TrainConfig):
     def step_fn(model, batch, step):
         view1, view2 = batch
-        # the masks are a function of (seed, step, rank), as the data order is: a resumed run draws the same ones
-        rank = torch.distributed.get_rank() if torch.distributed.is_initialized() else 0
-        g = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1024 + rank)
+        g = step_generator(cfg.seed, step)  # the masks: a resumed run draws the same ones, each rank its own
         net = getattr(model, "module", model)  # DDP's model (torch.compile's wrapper forwards attributes itself)
         p = net.cfg.patch_size
         B, N = view1["img"].shape[0], (view1["img"].shape[-2] // p) * (view1["img"].shape[-1] // p)

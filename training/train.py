@@ -18,7 +18,7 @@ from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
 from training.evaluate import evaluate_pairs
 from training.grow import is_growth, silent_parameters
-from training.loop import TERMINATED_EXIT, error_line, fit, load_checkpoint
+from training.loop import TERMINATED_EXIT, error_line, fit, load_checkpoint, step_generator
 from training.losses import (
     cell_correspondence_counts,
     cross_attention_loss,
@@ -188,7 +188,7 @@ class ForwardTaps:
 
 def make_step(cfg: TrainConfig):
     def step_fn(model, batch, step):
-        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # a function of the step: resumable
+        gen = step_generator(cfg.seed, step)  # sampled correspondences: resumable, each rank its own
         view1, view2 = batch
         if step_fn.taps is None:
             step_fn.taps = ForwardTaps(model, attention=cfg.attn_weight > 0, pose=cfg.pose_weight > 0)

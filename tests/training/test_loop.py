@@ -1195,3 +1195,20 @@ def test_the_seed_fixes_a_fresh_models_initial_weights():
     c = build_model(dataclasses.replace(cfg, seed=4))
     assert all(torch.equal(v, b.state_dict()[k]) for k, v in a.state_dict().items())
     assert not all(torch.equal(v, c.state_dict()[k]) for k, v in a.state_dict().items())
+
+
+def test_the_steps_own_draws_repeat_on_resume_and_differ_between_ranks(monkeypatch):
+    from training.loop import step_generator
+
+    def draw(seed, step):
+        return torch.randperm(1000, generator=step_generator(seed, step))[:8].tolist()
+
+    assert draw(3, 17) == draw(3, 17) and draw(3, 17) != draw(3, 18) and draw(3, 17) != draw(4, 17)
+    ranks = []
+    for rank in (0, 1):
+        monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+        monkeypatch.setattr(torch.distributed, "get_rank", lambda rank=rank: rank)
+        ranks.append(draw(3, 17))
+    assert ranks[0] != ranks[1]
+    monkeypatch.undo()
+    assert ranks[0] == draw(3, 17)  # rank 0 draws what a single process does
