@@ -293,7 +293,6 @@ def depths_from_folder(folder: str, images: list[str], png_scale: float) -> list
 def cmd_reconstruct(args) -> int:
     # every argument is checked before the model runs: nothing fails after minutes of inference
     from pointmap.io.points import check_conf_filter
-
     from pointmap.video import is_video
 
     formats = parse_export(args.export)
