@@ -20,6 +20,7 @@ import argparse
 import csv
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import torch
@@ -145,9 +146,21 @@ def average_checkpoints(paths, weights=None) -> dict:
                        for part in lic.split(" AND ")})
     out["licence"] = " AND ".join(licences) if licences else None
     out["averaged_steps"] = [int(cks[i]["step"]) for i in trained if weights[i] > 0]
-    out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6)}
+    out["averaged"] = [{"source": src, "kind": ck["kind"], "step": int(ck["step"]), "share": round(s, 6),
+                        **{k: v for k, v in (ck.get("train_config") or {}).items() if k in RUN_KEYS}}
                        for src, ck, s in zip(_sources(paths), cks, shares)]
+    runs = {k: sorted({str((cks[i].get("train_config") or {}).get(k)) for i in trained if weights[i] > 0})
+            for k in RUN_KEYS}
+    differ = {k: v for k, v in runs.items() if len(v) > 1}
+    if differ:  # a soup of runs is a choice (fine-tunes of one start); independent starts average to nothing
+        warnings.warn(f"the checkpoints come from different runs: their {', '.join(differ)} differ "
+                      f"({'; '.join(f'{k}: {v}' for k, v in differ.items())}); the shipped file records "
+                      f"step {int(base['step'])}'s run (image size {(base.get('train_config') or {}).get('size')}) "
+                      "and each input's own in 'averaged'. Averaging is meaningful only for runs from one start")
     return out
+
+
+RUN_KEYS = ("seed", "size", "data", "init")  # what tells one training run from another, recorded per input
 
 
 def _sources(paths) -> list[str]:
@@ -179,7 +192,11 @@ def main(argv=None) -> int:
                         "pointmap.checkpoint.save_model)")
     a = p.parse_args(argv)
     try:
-        ck = average_checkpoints(a.ckpt, a.weights)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            ck = average_checkpoints(a.ckpt, a.weights)
+        for w in said:
+            print(f"warning: {w.message}", file=sys.stderr)
         model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
         load_state_strict(model, ck["model"], source=a.ckpt[-1])
         metrics = last_eval(Path(a.metrics)) if a.metrics else {}

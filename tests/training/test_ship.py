@@ -1,5 +1,6 @@
 """training.ship: a training checkpoint (or the average of several) becomes a model file load_model reads."""
 
+import warnings
 from dataclasses import replace
 
 import pytest
@@ -11,11 +12,12 @@ from training.config import TrainConfig
 from training.ship import average_checkpoints, main
 
 
-def _checkpoint(path, seed, step, cfg=PRESETS["test"], kind="train", extra=None):
+def _checkpoint(path, seed, step, cfg=PRESETS["test"], kind="train", extra=None, run_seed=0):
     torch.manual_seed(seed)
     model = PointmapNet(cfg)
     torch.save({"model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": step, "kind": kind,
-                "train_config": TrainConfig().to_dict(), **({"extra": extra} if extra is not None else {})}, path)
+                "train_config": TrainConfig(seed=run_seed).to_dict(), **({"extra": extra} if extra is not None else {})},
+               path)
     return model
 
 
@@ -172,11 +174,15 @@ def test_the_shipped_file_records_the_latest_step_whatever_order_the_shell_gives
 def test_the_provenance_tells_apart_inputs_of_the_same_name_from_two_runs(tmp_path):
     for run, seed in (("run_a", 0), ("run_b", 1)):
         (tmp_path / run / "train").mkdir(parents=True)
-        _checkpoint(tmp_path / run / "train" / "decay_100.pt", seed=seed, step=100)
+        _checkpoint(tmp_path / run / "train" / "decay_100.pt", seed=seed, step=100, run_seed=seed)
     paths = [tmp_path / run / "train" / "decay_100.pt" for run in ("run_a", "run_b")]
-    ck = average_checkpoints(paths)
+    with pytest.warns(UserWarning, match="the checkpoints come from different runs: their seed differ"):
+        ck = average_checkpoints(paths)
+    assert [d["seed"] for d in ck["averaged"]] == [0, 1]  # each input's run recorded
     assert [d["source"] for d in ck["averaged"]] == ["run_a/train/decay_100.pt", "run_b/train/decay_100.pt"]
-    twice = average_checkpoints([paths[0], paths[0]])  # one file given twice stays one short name
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # one run: nothing to warn about
+        twice = average_checkpoints([paths[0], paths[0]])  # one file given twice stays one short name
     assert [d["source"] for d in twice["averaged"]] == ["train/decay_100.pt"] * 2
 
 
