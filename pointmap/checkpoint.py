@@ -80,11 +80,20 @@ _IGNORED_KWARGS = {"img_size", "patch_embed_cls", "landscape_only", "freeze", "d
 def _official_sizes(a: dict, pos: str, head: str, desc_dim: int, conf_mode: tuple, desc_conf, name: str) -> dict:
     """The ModelConfig fields of an official constructor's arguments ``a`` (popped from it); KeyError, TypeError or
     ValueError for missing or malformed ones (``config_from_ctor`` turns them into CheckpointError)."""
+    def whole(key):  # an integer as written (int() would truncate 2.7 and take True as 1)
+        v = a.pop(key)
+        if not is_int(v):
+            raise ValueError(f"{key} expected an integer, got {v!r}")
+        return v
+
+    two_confs = a.pop("two_confs", False)
+    if not isinstance(two_confs, bool):  # bool('no') is True
+        raise ValueError(f"two_confs expected True or False, got {two_confs!r}")
     return dict(
-        enc_dim=int(a.pop("enc_embed_dim")), enc_depth=int(a.pop("enc_depth")), enc_heads=int(a.pop("enc_num_heads")),
-        dec_dim=int(a.pop("dec_embed_dim")), dec_depth=int(a.pop("dec_depth")), dec_heads=int(a.pop("dec_num_heads")),
-        mlp_ratio=float(a.pop("mlp_ratio")), patch_size=int(a.pop("patch_size")), rope_base=float(pos[4:] or 100),
-        head=head, desc_dim=desc_dim, two_confs=bool(a.pop("two_confs", False)),
+        enc_dim=whole("enc_embed_dim"), enc_depth=whole("enc_depth"), enc_heads=whole("enc_num_heads"),
+        dec_dim=whole("dec_embed_dim"), dec_depth=whole("dec_depth"), dec_heads=whole("dec_num_heads"),
+        mlp_ratio=float(a.pop("mlp_ratio")), patch_size=whole("patch_size"), rope_base=float(pos[4:] or 100),
+        head=head, desc_dim=desc_dim, two_confs=two_confs,
         depth_mode=tuple(a.pop("depth_mode", ("exp", -math.inf, math.inf))), conf_mode=conf_mode,
         desc_conf_mode=tuple(desc_conf) if desc_conf is not None else conf_mode,
         metric=name == "AsymmetricMASt3R",
@@ -279,10 +288,13 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
     if not isinstance(ctor, str):
         raise CheckpointError(f"{path} has no architecture string (args.model)")
     cfg = config_from_ctor(ctor)
+    if "CroCoNet" in ctor and not allow_missing_heads:
+        raise CheckpointError(f"{path} is a CroCo pretraining checkpoint (encoder and decoder, no prediction heads): "
+                              "loaded as a model its heads would be random. Start training from it (python -m "
+                              "training.train --init PATH), or load_official(path, allow_missing_heads=True)")
     model = PointmapNet(cfg)
     state = official_to_ours(ckpt["model"])
-    load_state_strict(model, state, allow_missing_heads=allow_missing_heads or "CroCoNet" in ctor,
-                      source=str(path))
+    load_state_strict(model, state, allow_missing_heads=allow_missing_heads, source=str(path))
     model.provenance = {"source": "official", "path": str(path), "ctor": ctor, "licence": OFFICIAL_LICENCE}
     warn_if_noncommercial(model, path, "official NAVER weights")
     img_size = parse_ctor(ctor)[1].get("img_size")

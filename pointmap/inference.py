@@ -85,9 +85,15 @@ def _require_tokens(encodings, caller: str, remedy: str = "export with --split, 
     return encodings
 
 
-def checked_encodings(encodings, imgs: list[torch.Tensor]) -> list:
+def _patch(model) -> int | None:
+    """The model's patch size (PyTorch or ONNX runtime), None when it does not say."""
+    return getattr(getattr(model, "cfg", None), "patch_size", None)
+
+
+def checked_encodings(encodings, imgs: list[torch.Tensor], patch: int | None = None) -> list:
     """``encodings`` (``encode_views``'s output for these images, one per image) checked against the images: one
-    entry per image, each a batch of one on the patch grid of its image's shape. ShapeError (one line) otherwise."""
+    entry per image, each a batch of one on the patch grid of its image's shape (``patch``: the model's patch size,
+    when known). ShapeError (one line) otherwise."""
     if not isinstance(encodings, (list, tuple)) or len(encodings) != len(imgs):
         got = f"{len(encodings)} entries" if isinstance(encodings, (list, tuple)) else type(encodings).__name__
         raise ShapeError(f"encodings expected encode_views's list, one per image ({len(imgs)}), got {got}")
@@ -99,7 +105,8 @@ def checked_encodings(encodings, imgs: list[torch.Tensor]) -> list:
             raise ShapeError(f"encodings[{k}] expected one image's encoding (tokens [1, N, D]), got {got}")
         if tokens.shape[1] != grid[0] * grid[1] or grids.setdefault(tuple(img.shape), tuple(grid)) != tuple(grid) \
                 or img.shape[1] % grid[0] or img.shape[2] % grid[1] \
-                or img.shape[1] // grid[0] != img.shape[2] // grid[1]:
+                or img.shape[1] // grid[0] != img.shape[2] // grid[1] \
+                or patch is not None and img.shape[1] != grid[0] * patch:
             raise ShapeError(f"encodings[{k}] (grid {tuple(grid)}, {tokens.shape[1]} tokens) is not an encoding of "
                              f"image {k} ({list(img.shape)})")
     return list(encodings)
@@ -117,7 +124,7 @@ def image_similarity(model, views, batch_size: int = 8, device="cpu", *, encodin
     imgs = _as_images(views)
     if encodings is None:
         encodings = encode_views(model, imgs, batch_size, device, caller="image_similarity")
-    enc = checked_encodings(_require_tokens(encodings, "image_similarity"), imgs)
+    enc = checked_encodings(_require_tokens(encodings, "image_similarity"), imgs, _patch(model))
     toks = [torch.nn.functional.normalize(e.tokens[0].float().cpu(), dim=-1) for e in enc]  # off the GPU
     del enc
     n = len(toks)
@@ -161,7 +168,7 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
         raise ShapeError(f"store_dtype expected None or a floating torch dtype (e.g. torch.float16), got "
                          f"{store_dtype!r}")
     device = check_model_device(model, device, "predict_pairs")
-    given = None if encodings is None else checked_encodings(encodings, imgs)
+    given = None if encodings is None else checked_encodings(encodings, imgs, _patch(model))
     out: dict[tuple[int, int], PairPrediction] = {}
     edges = order = directed(pairs)
     if cache is not None:

@@ -1,6 +1,7 @@
 """Checkpoints: official .pth files (safely), our safetensors format, shipped names, clear failures."""
 
 import argparse
+import re
 import json
 import math
 
@@ -295,7 +296,8 @@ def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_st
                                           ({"conf_mode": ["exp", 3, 1]}, "conf_mode expected"),
                                           ({"conf_mode": ["linear", 1, "inf"]}, "conf_mode expected"),
                                           ({"depth_mode": ["exp", 0, 1]}, "no bounds"),
-                                          ({"depth_mode": ["sigmoid", "-inf", "inf"]}, "depth_mode expected")])
+                                          ({"depth_mode": ["sigmoid", "-inf", "inf"]}, "depth_mode expected"),
+                                          ({"head": ["dpt"]}, "head expected one of .*got \\('dpt',\\)")])
 def test_a_safetensors_file_whose_config_has_impossible_sizes_is_refused_naming_them(tmp_path, tiny_model, change,
                                                                                       named):
     from safetensors import safe_open
@@ -317,6 +319,12 @@ def test_an_official_constructor_with_a_malformed_number_is_refused_as_a_checkpo
         config_from_ctor(TINY_CTOR.replace("dec_num_heads=2", "dec_num_heads=2, mlp_ratio='a'"))
     with pytest.raises(pm.CheckpointError, match="pts3d\\+descN with N a number"):
         config_from_ctor(TINY_CTOR.replace("pts3d+desc8", "pts3d+descX"))
+    for bad in ("enc_depth=2.7", "enc_depth=True", "two_confs='no'"):  # truncated or read as truthy before
+        key = bad.split("=")[0]
+        ctor = re.sub(rf"{key}=[^,)]+", bad, TINY_CTOR) if f"{key}=" in TINY_CTOR else TINY_CTOR.replace(
+            "dec_num_heads=2", f"dec_num_heads=2, {bad}")
+        with pytest.raises(pm.CheckpointError, match=f"{key} expected"):
+            config_from_ctor(ctor)
 
 
 @pytest.mark.parametrize("src", [None, 123, 1.5])
@@ -404,3 +412,22 @@ def test_an_official_state_dict_with_a_malformed_layer_rn_alias_is_a_checkpoint_
             official_to_ours({key: w})
     ok = official_to_ours({"downstream_head1.dpt.scratch.layer_rn.0.weight": w})
     assert list(ok) == ["downstream_head1.dpt.scratch.layer1_rn.weight"]
+
+
+def test_a_croco_pretraining_checkpoint_is_refused_as_a_model_and_starts_training_with_its_trunk(tmp_path):
+    from pointmap.model.pretrain import CrossViewCompletion
+    from training.config import TrainConfig
+    from training.train import build_model
+
+    cfg = pm.PRESETS["test"].replace(head="linear", desc_dim=0)
+    croco = CrossViewCompletion(cfg)
+    kw = dict(enc_embed_dim=cfg.enc_dim, enc_depth=cfg.enc_depth, enc_num_heads=cfg.enc_heads,
+              dec_embed_dim=cfg.dec_dim, dec_depth=cfg.dec_depth, dec_num_heads=cfg.dec_heads, pos_embed="RoPE100",
+              img_size=224)
+    torch.save({"model": croco.state_dict(), "croco_kwargs": kw}, tmp_path / "croco.pth")
+    with pytest.raises(pm.CheckpointError, match="CroCo pretraining checkpoint .* its heads would be random"):
+        pm.load_model(tmp_path / "croco.pth")
+    with pytest.warns(UserWarning, match="CC-BY-NC-SA"):
+        model = build_model(TrainConfig(data="x", preset="test", init=str(tmp_path / "croco.pth")))
+    own = croco.state_dict()
+    assert torch.equal(model.state_dict()["enc_blocks.0.attn.qkv.weight"], own["enc_blocks.0.attn.qkv.weight"])

@@ -127,7 +127,9 @@ def test_encodings_that_do_not_belong_to_the_views_are_refused(tiny_model):
 
     vs = views(3, [(48, 64), (64, 48), (48, 64)])
     enc = encode_views(tiny_model, [v.img for v in vs])
-    for bad, message in [(enc[:2], "one per image \\(3\\), got 2 entries"), (enc[0], "got Encoded"),
+    big = encode_views(tiny_model, [torch.nn.functional.interpolate(v.img[None], scale_factor=2.0)[0] for v in vs])
+    for bad, message in [(big, "encodings\\[0\\] \\(grid \\(6, 8\\), 48 tokens\\) is not an encoding of image 0"),
+                         (enc[:2], "one per image \\(3\\), got 2 entries"), (enc[0], "got Encoded"),
                          ([enc[1], enc[0], enc[2]], "encodings\\[0\\] \\(grid \\(4, 3\\), 12 tokens\\) is not an encoding"),
                          ([enc[0].cat([enc[0], enc[2]]), enc[1], enc[2]], "tokens \\[1, N, D\\]\\), got \\[2, 12, "),
                          ([None, enc[1], enc[2]], "got NoneType")]:

@@ -12,7 +12,14 @@ from pathlib import Path
 
 import torch
 
-from pointmap.checkpoint import load_model, load_state_strict, load_trunk, model_licence, official_to_ours
+from pointmap.checkpoint import (
+    load_model,
+    load_official,
+    load_state_strict,
+    load_trunk,
+    model_licence,
+    official_to_ours,
+)
 from pointmap.errors import CheckpointError, PointmapError
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig, grown_depths
@@ -44,7 +51,8 @@ def _init_state(path: Path):
         extra = ck.get("extra") or {}
         return (official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind"),
                 {"grown_from": extra.get("grown_from"), "licence": extra.get("licence")})
-    model = load_model(str(path))
+    official = path.is_file() and path.suffix not in (".safetensors", ".onnx")  # a CroCo one brings no heads
+    model = load_official(path, allow_missing_heads=True) if official else load_model(str(path))
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"--init {path} is not a PyTorch model")
     prov = getattr(model, "provenance", None) or {}

@@ -58,6 +58,8 @@ class ModelConfig:
         bad += [f"{n}={getattr(self, n)!r}" for n in ("mlp_ratio", "rope_base", "desc_hidden_factor")
                 if isinstance(getattr(self, n), bool) or not isinstance(getattr(self, n), (int, float))
                 or not 0 < getattr(self, n) < math.inf]
+        if not isinstance(self.head, str) or self.head not in HEADS:  # the checks below read it as a name
+            raise CheckpointError(f"invalid model config: head expected one of {HEADS}, got {self.head!r}")
         if bad:  # before the checks below, which divide by these
             raise CheckpointError(f"invalid model config: expected positive integer sizes and finite positive ratios "
                                   f"(desc_dim, desc_stem >= 0), got {', '.join(bad)}")
@@ -84,8 +86,6 @@ class ModelConfig:
             errors.append("focal_head needs pose_head (the focal of view 2 is read off its own-frame pointmap)")
         if "dpt" in self.head and self.patch_size != 16:
             errors.append(f"a DPT head needs patch_size 16 (its upsampling is built for it), got {self.patch_size}")
-        if self.head not in HEADS:
-            errors.append(f"head expected one of {HEADS}, got {self.head!r}")
         if self.enc_dim % self.enc_heads or (self.enc_dim // self.enc_heads) % 4:
             errors.append(f"enc_dim/enc_heads must be a multiple of 4 (RoPE 2D), got {self.enc_dim}/{self.enc_heads}")
         if self.dec_dim % self.dec_heads or (self.dec_dim // self.dec_heads) % 4:
