@@ -1,9 +1,9 @@
 """Checkpoints: official .pth files (safely), our safetensors format, shipped names, clear failures."""
 
 import argparse
-import re
 import json
 import math
+import re
 
 import numpy as np
 import pytest
