@@ -427,6 +427,9 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
             quantized.append(k)
         elif v.is_floating_point() and dtype is not None:
             tensors[k] = v.to(torch.float16 if dtype == "int8" else dtype)
+            if not bool(torch.isfinite(tensors[k]).all()):  # beyond float16's range (65504): a file load refuses
+                raise ShapeError(f"save_model: tensor {k} holds values beyond float16's range (max |value| "
+                                 f"{float(v.abs().max()):.4g} > 65504): save it in float32 (dtype=None)")
         else:
             tensors[k] = v
     tensors = {k: v.contiguous() for k, v in tensors.items()}

@@ -19,7 +19,8 @@ PATCH = 16
 # The network's cost grows with the fourth power of the input size (attention over (size / 16)^2 tokens): 2048 is
 # already 256 times 512's, and a typo such as 5120 for 512 would run for hours or exhaust memory without a word.
 MAX_INPUT_SIZE = 2048
-INPUT_SIZE_RULE = f"224 or a multiple of {PATCH} from {PATCH} to {MAX_INPUT_SIZE} (e.g. 512)"
+MIN_INPUT_SIZE = 2 * PATCH  # a square photograph's 4:3 crop keeps one patch of height
+INPUT_SIZE_RULE = f"224 or a multiple of {PATCH} from {MIN_INPUT_SIZE} to {MAX_INPUT_SIZE} (e.g. 512)"
 
 
 @dataclass
@@ -47,8 +48,9 @@ class View:
 
 def is_input_size(size) -> bool:
     """Whether ``size`` is an input size ``load_images`` takes: 224 (the official 224 models' crop), or a multiple of
-    the patch size (16) from one patch up to ``MAX_INPUT_SIZE``."""
-    return is_int(size) and PATCH <= size <= MAX_INPUT_SIZE and (size == 224 or size % PATCH == 0)
+    the patch size (16) from two patches (``MIN_INPUT_SIZE``: at one, a 4:3 crop is less than a patch high) up to
+    ``MAX_INPUT_SIZE``."""
+    return is_int(size) and MIN_INPUT_SIZE <= size <= MAX_INPUT_SIZE and (size == 224 or size % PATCH == 0)
 
 
 def _as_list(paths_or_arrays, caller: str):
@@ -76,13 +78,15 @@ def _read(src, index: int):
         name = f"image_{index:03d}.png"
         if arr.ndim == 2:
             arr = np.repeat(arr[..., None], 3, axis=-1)
-        if arr.ndim != 3 or arr.shape[-1] not in (1, 3, 4):
-            raise ImageError(f"image {index}: expected an HxWx3 (or HxW, HxWx4) array, got shape {arr.shape}")
+        if arr.ndim != 3 or arr.shape[-1] not in (1, 3, 4) or arr.size == 0:
+            raise ImageError(f"image {index}: expected an HxWx3 (or HxW, HxWx4) array with pixels, got shape "
+                             f"{arr.shape}")
         if arr.shape[-1] == 1:
             arr = np.repeat(arr, 3, axis=-1)
         if arr.dtype == np.uint16:  # as a 16-bit file: 0-65535 onto 0-255
             arr = (arr / 257.0).round().astype(np.uint8)
-        elif arr.dtype in (np.float32, np.float64):
+        elif np.issubdtype(arr.dtype, np.floating):  # float16, float32, float64
+            arr = arr.astype(np.float64)
             if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
                 raise ImageError(f"image {index}: float arrays must be finite and in [0, 1]")
             arr = (arr * 255).round().astype(np.uint8)

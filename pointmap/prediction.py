@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from pointmap.errors import ShapeError
+from pointmap.errors import ShapeError, is_int
 
 OPTIONAL_FIELDS = ("desc1", "desc2", "desc_conf1", "desc_conf2", "cam2_to_cam1", "focal1", "focal2")  # None
 # for models without them
@@ -93,9 +93,13 @@ class PairPrediction:
                                 for f in fields(self)})
 
     def __getitem__(self, idx) -> PairPrediction:
-        """Batch slice, keeping the batch dimension: ``pred[i:i+1]``; an int keeps it too."""
-        if isinstance(idx, int):
-            idx = slice(idx, idx + 1 if idx != -1 else None)
+        """Batch slice, keeping the batch dimension: ``pred[i:i+1]``; an integer (Python or numpy; negative counts
+        from the end) keeps it too, and one outside the batch is an IndexError."""
+        if is_int(idx):
+            i, n = int(idx), self.batch_size
+            if not -n <= i < n:
+                raise IndexError(f"PairPrediction index {i} is outside its batch of {n}")
+            idx = slice(i % n, i % n + 1)
         return self.map(lambda t: t[idx])
 
     def to(self, *args, **kwargs) -> PairPrediction:

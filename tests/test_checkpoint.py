@@ -350,6 +350,14 @@ def test_save_model_refuses_what_is_not_a_model_a_path_or_a_provenance_and_weigh
         next(model.parameters()).fill_(float("nan"))
     with pytest.raises(ValueError, match=r"is not finite \(NaN or inf values\): a model that diverged is not saved"):
         pm.save_model(model, tmp_path / "nan")
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    with torch.no_grad():
+        model.downstream_head1.dpt.head[-1].bias[0] = 7e4  # finite in float32, inf in float16
+    for dtype in (torch.float16, "int8"):
+        with pytest.raises(ValueError, match="downstream_head1.dpt.head.4.bias holds values beyond float16's range"):
+            pm.save_model(model, tmp_path / "big", dtype=dtype)
+    assert not (tmp_path / "big.safetensors").exists()
+    pm.load_model(pm.save_model(model, tmp_path / "big"))  # float32 keeps it
 
 
 def test_a_file_whose_weights_are_nan_is_refused_on_loading(tmp_path):

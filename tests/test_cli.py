@@ -505,7 +505,7 @@ def test_an_output_path_that_is_a_file_is_refused_before_the_model_is_even_loade
 
 @pytest.mark.parametrize("extra,message", [
     (["--size", "17"], "--size expected 224 or a multiple of 16"),
-    (["--size", "5120"], "--size expected 224 or a multiple of 16 from 16 to 2048 (e.g. 512), got 5120"),
+    (["--size", "5120"], "--size expected 224 or a multiple of 16 from 32 to 2048 (e.g. 512), got 5120"),
     (["--graph", "swin-0"], "--graph: swin-0: window must be >= 1"),
     (["--graph", "bogus"], "--graph: unknown graph 'bogus'"),
     (["--splat", "--splat-budget", "-5"], "--splat-budget expected seconds >= 0"),

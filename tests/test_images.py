@@ -98,9 +98,16 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
     with pytest.raises(pm.ImageError, match="size"):
         pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=500)
     for too_big in (2064, 5120, 10**6):  # refused before any resize: a typo for 512 would exhaust memory
-        with pytest.raises(pm.ImageError, match=f"from 16 to 2048 \\(e.g. 512\\), got {too_big}"):
+        with pytest.raises(pm.ImageError, match=f"from 32 to 2048 \\(e.g. 512\\), got {too_big}"):
             pm.load_images([np.zeros((64, 64, 3), np.uint8)], size=too_big)
     assert pm.load_images([np.zeros((16, 16, 3), np.uint8)], size=2048)[0].img.shape == (3, 1536, 2048)  # a square at 4:3, as at 512
+    with pytest.raises(pm.ImageError, match="from 32 to 2048 \\(e.g. 512\\), got 16"):  # a 4:3 crop 16 x 0
+        pm.load_images([np.zeros((100, 100, 3), np.uint8)], size=16)
+    assert pm.load_images([np.zeros((100, 100, 3), np.uint8)], size=32)[0].img.shape == (3, 16, 32)
+    with pytest.raises(pm.ImageError, match="with pixels, got shape \\(0, 0, 3\\)"):
+        pm.load_images([np.zeros((0, 0, 3), np.float32)])
+    half = np.random.default_rng(0).random((32, 32, 3)).astype(np.float16)  # float16 is a float in [0, 1] too
+    assert torch.equal(pm.load_images([half], size=32)[0].img, pm.load_images([half.astype(np.float32)], size=32)[0].img)
 
 
 def test_a_pil_image_loads_exactly_as_its_array_and_a_tensor_is_refused_with_the_conversion_to_use():

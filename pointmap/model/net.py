@@ -123,6 +123,11 @@ class PointmapNet(nn.Module):
         if ref is not None and (torch.promote_types(img.dtype, ref.dtype) != ref.dtype or img.device != ref.device):
             raise ShapeError(f"{name} expected the model's {ref.dtype} on {ref.device}, got {img.dtype} on "
                              f"{img.device} (img.to(model's dtype and device))")
+        head = next(iter(self.downstream_head1.parameters()), None) if isinstance(self, nn.Module) else None
+        if head is not None and head.dtype != torch.float32:  # heads() hands them float32 tokens
+            raise ShapeError(f"the prediction heads expected float32 weights, got {head.dtype}: convert the backbone "
+                             "alone (export.graphs.half_backbone) or run under torch.autocast, not model.half() / "
+                             ".to(torch.bfloat16)")
         if img.numel():
             lo, hi = float(img.min()), float(img.max())
             if not (lo >= -1e-3 and hi <= 1 + 1e-3):  # also catches NaN

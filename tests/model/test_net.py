@@ -279,6 +279,21 @@ def test_images_of_another_dtype_than_the_models_are_refused_naming_both(tiny_mo
     assert torch.equal(half, full)
 
 
+def test_a_model_converted_whole_to_half_or_bfloat16_is_refused_and_a_half_backbone_runs(tiny_model):
+    import copy
+
+    from export.graphs import half_backbone
+
+    x = torch.rand(1, 3, 32, 32)
+    for dtype in (torch.float16, torch.bfloat16):
+        whole = copy.deepcopy(tiny_model).to(dtype)
+        with pytest.raises(pm.ShapeError, match=f"heads expected float32 weights, got {dtype}"):
+            whole(x.to(dtype), x.to(dtype))
+    with torch.inference_mode():
+        out = half_backbone(tiny_model)(x.half(), x.half())
+    assert out.pts1_cam1.dtype == torch.float32 and bool(torch.isfinite(out.pts1_cam1).all())
+
+
 def test_the_stages_check_what_they_are_given(tiny_model):
     with pytest.raises(pm.ShapeError, match="positive multiples of 16, got \\[1, 3, 30, 30\\]"):
         tiny_model.encode(torch.rand(1, 3, 30, 30))
@@ -394,3 +409,16 @@ def test_a_focal_head_needs_a_pose_head_and_loads_into_a_model_built_with_one(tm
     assert back.cfg.focal_head and torch.equal(back.focal_head.out.weight, with_focal.focal_head.out.weight)
     fresh = load_trunk(PointmapNet(with_focal.cfg), plain.state_dict())  # the focal head is a head: it starts fresh
     assert fresh and all(k.startswith("focal_head.") for k in fresh)
+
+
+def test_indexing_a_prediction_keeps_the_batch_dimension_and_refuses_indices_outside_it(tiny_model):
+    import numpy as np
+
+    x = torch.rand(3, 3, 32, 32)
+    with torch.inference_mode():
+        pred = tiny_model(x, x.flip(0))
+    for idx, row in ((0, 0), (2, 2), (-1, 2), (-3, 0), (np.int64(1), 1)):
+        assert torch.equal(pred[idx].pts1_cam1, pred.pts1_cam1[row:row + 1]), idx
+    for idx in (3, -4):
+        with pytest.raises(IndexError, match=f"index {idx} is outside its batch of 3"):
+            pred[idx]

@@ -387,7 +387,7 @@ def test_the_evaluate_command_refuses_a_checkpoint_missing_its_training_config_a
     weights = pm.save_model(model, tmp_path / "m.safetensors")
     with pytest.raises(SystemExit):
         main(["--model", str(weights), "--data", str(tmp_path), "--size", "0"])
-    assert "--size expected 224 or a multiple of 16 from 16 to 2048 (e.g. 512), got 0" in capsys.readouterr().err
+    assert "--size expected 224 or a multiple of 16 from 32 to 2048 (e.g. 512), got 0" in capsys.readouterr().err
 
 
 def test_a_view_whose_focal_cannot_be_estimated_counts_as_a_full_error_not_as_missing():

@@ -793,7 +793,7 @@ def test_a_run_from_non_commercial_weights_records_their_licence_in_every_checkp
     (["--lr", "-1"], "--lr expected a finite value > 0, got -1.0"),
     (["--preset", "nope"], "--preset expected one of"),
     (["--mask_ratio", "1.5"], "--mask_ratio expected a fraction in (0, 1), got 1.5"),
-    (["--size", "100"], "--size expected 224 or a multiple of 16 from 16 to 2048 (e.g. 512), got 100"),
+    (["--size", "100"], "--size expected 224 or a multiple of 16 from 32 to 2048 (e.g. 512), got 100"),
     (["--min_lr", "1"], "--min_lr expected <= --lr"),
     (["--match_weight", "nan"], "--match_weight expected a finite number, got nan"),
     (["--pose_head", "true", "--pose_weight", "nan"], "--pose_weight expected a finite number, got nan"),
