@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from pointmap.errors import ShapeError, check_device, check_seed, is_int, is_number
-from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, scale_intrinsics
+from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, is_rigid, scale_intrinsics
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
@@ -145,6 +145,9 @@ def _check_image(image, name="image") -> torch.Tensor:
     if img.dtype == torch.uint8:
         img = img.float() / 255.0
     img = img.float()
+    if not bool(torch.isfinite(img).all()):
+        raise ShapeError(f"{name} values expected finite, in [0, 1] (or uint8), got "
+                         f"{int((~torch.isfinite(img)).any(-1).sum())} pixels with NaN or inf")
     if float(img.min()) < -1e-3 or float(img.max()) > 1 + 1e-3:
         raise ShapeError(f"{name} values expected in [0, 1] (or uint8), got range "
                          f"[{float(img.min()):.3g}, {float(img.max()):.3g}]")
@@ -153,8 +156,8 @@ def _check_image(image, name="image") -> torch.Tensor:
 
 def _check_pose(T, name) -> torch.Tensor:
     T = torch.as_tensor(T, dtype=torch.float32)
-    if tuple(T.shape) != (4, 4) or not bool(torch.isfinite(T).all()):
-        raise ShapeError(f"{name} expected a finite [4, 4] cam2world, got "
+    if tuple(T.shape) != (4, 4) or not bool(torch.isfinite(T).all()) or not bool(is_rigid(T)):
+        raise ShapeError(f"{name} expected a finite [4, 4] cam2world, rigid [R t; 0 0 0 1] with R a rotation, got "
                          f"{list(T.shape) if tuple(T.shape) != (4, 4) else T.tolist()}")
     return T
 
@@ -167,11 +170,24 @@ def _check_K(K) -> torch.Tensor:
     return K
 
 
+def _check_background(background, name: str = "background") -> torch.Tensor | None:
+    """None (black) or an RGB colour [3] in [0, 1], as a float32 tensor; ShapeError otherwise."""
+    if background is None:
+        return None
+    try:
+        bg = torch.as_tensor(background, dtype=torch.float32)
+    except (TypeError, ValueError, RuntimeError):
+        bg = None
+    if bg is None or tuple(bg.shape) != (3,) or not bool(((bg >= 0) & (bg <= 1)).all()):
+        raise ShapeError(f"{name} expected an RGB colour [3] in [0, 1] (None: black), got {background!r}")
+    return bg
+
+
 LR_KEYS = ("means", "sh_dc", "opacity", "scales", "quats")
 
 
 def _check_fit_options(*, steps, max_side, coarse_frac, lr, pose_lr, ssim_weight, densify_every, densify_grad,
-                       time_budget) -> None:
+                       time_budget, background) -> None:
     """ShapeError (one line) for a ``fit`` option out of its range (None means "the default" where allowed)."""
     def is_num(x):
         return is_number(x) and math.isfinite(x)
@@ -202,12 +218,23 @@ def _check_fit_options(*, steps, max_side, coarse_frac, lr, pose_lr, ssim_weight
         bad.append(f"densify_grad expected a finite threshold > 0, got {densify_grad!r}")
     if time_budget is not None and not (is_num(time_budget) and time_budget > 0):
         bad.append(f"time_budget expected seconds > 0 (None: no limit), got {time_budget!r}")
+    try:
+        _check_background(background)
+    except ShapeError as e:
+        bad.append(str(e))
     if bad:
         raise ShapeError("fit: " + "; ".join(bad))
 
 
 def _render_params(g: Gaussians):
     return g.means, g.quats, g.scales, g.opacities, g.colors
+
+
+def _diverged(it: int, view, what: str, history: list) -> ShapeError:
+    """The error that stops a fit whose step ``it`` left ``what`` NaN or inf."""
+    last = f"; the last finite loss was {history[-1]['loss']:.4g}" if history else ""
+    return ShapeError(f"fit: {what} NaN or inf at step {it} (view {view}{last}): the optimisation diverged; lower "
+                      "the learning rates (lr=, pose_lr=)")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -233,7 +260,7 @@ class SplatFit:
         ``width`` x ``height``; returns [H, W, 3] in [0, 1] (or the full RenderOutput)."""
         cam2world = _check_pose(cam2world, "cam2world")
         K = _check_K(K)
-        bg = None if background is None else torch.as_tensor(background, dtype=torch.float32)
+        bg = _check_background(background)
         with torch.no_grad():
             out = rasterize(*_render_params(self.gaussians), invert_rigid(cam2world), K, width, height, bg,
                             backend=self.config.get("backend", "torch"))
@@ -246,8 +273,16 @@ class SplatFit:
         img = _check_image(image)
         c2w0 = _check_pose(cam2world_init, "cam2world_init")
         K = _check_K(K)
-        if steps < 0:
-            raise ShapeError(f"steps must be >= 0, got {steps}")
+        bad = []
+        if not (is_int(steps) and steps >= 0):
+            bad.append(f"steps expected an int >= 0, got {steps!r}")
+        if max_side is not None and not (is_int(max_side) and max_side >= 16):
+            bad.append(f"max_side expected an int >= 16 (pixels), got {max_side!r}")
+        for key, v, default in (("lr_rot", lr_rot, ""), ("lr_trans", lr_trans, " (None: 1e-3 x depth_scale)")):
+            if not ((v is None and default) or (is_number(v) and math.isfinite(v) and v >= 0)):
+                bad.append(f"{key} expected a finite rate >= 0{default}, got {v!r}")
+        if bad:
+            raise ShapeError("align_view: " + "; ".join(bad))
         H, W = img.shape[:2]
         max_side = max_side or self.config.get("max_side", max(W, H))
         levels = _levels(W, H, max_side, coarse=0.5)
@@ -317,7 +352,9 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     steps / max_side (working resolution, long side) / coarse_frac (fraction of steps at half
     resolution) default to ``auto_budget``. ``lr`` overrides per-parameter learning rates (keys
     means, sh_dc, opacity, scales, quats); ``pose_lr`` = (rotation rad/step, translation as a fraction
-    of the scene extent per step), both decayed 10x over the run. ``time_budget`` (seconds) stops early.
+    of ``depth_scale``, the median camera-to-Gaussian distance, per step), both decayed 10x over the run.
+    ``time_budget`` (seconds) stops early. ``background``: None (black) or an RGB colour [3] in [0, 1]. A step that
+    leaves the loss, the Gaussians or a pose NaN or inf stops the fit with a ShapeError (it diverged).
     """
     if not isinstance(recon, Reconstruction):
         raise ShapeError(f"fit expects a pointmap Reconstruction, got {type(recon).__name__}")
@@ -327,7 +364,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         raise ShapeError("fit needs at least one Gaussian")
     _check_fit_options(steps=steps, max_side=max_side, coarse_frac=coarse_frac, lr=lr, pose_lr=pose_lr,
                        ssim_weight=ssim_weight, densify_every=densify_every, densify_grad=densify_grad,
-                       time_budget=time_budget)
+                       time_budget=time_budget, background=background)
     seed = check_seed(seed)
     if not isinstance(masked, bool):
         raise ShapeError(f"masked expected True or False, got {masked!r}")
@@ -376,7 +413,7 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
     depth_scale = float(torch.cdist(g0.means[:: max(1, len(g0) // 4000)], centres).median())
     spread = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
     extent = max(spread, 0.05 * depth_scale)
-    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32)
+    bg = _check_background(background)
 
     # parameters; positions are base + mult * offset so Adam's step is scaled per point
     conf = g0.conf if g0.conf is not None else torch.full((len(g0),), 10.0)
@@ -445,6 +482,9 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
             out.means2d.retain_grad()
         mask = fit_masks[lv][i]
         loss = photometric_loss(out.image, imgs[i], ssim_weight, mask)
+        lval = float(loss.detach())
+        if not math.isfinite(lval):
+            raise _diverged(it, recon.names[i], "the loss is", history)
         opt.zero_grad(set_to_none=True)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)
@@ -453,8 +493,10 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
         if pose_opt is not None:
             pose_opt.step()
         p = psnr(out.image.detach(), imgs[i], mask)
-        lval = float(loss.detach())
         history.append({"step": it, "view": i, "loss": lval, "psnr": p, "res": lv, "size": (vw, vh)})
+        with torch.no_grad():
+            if not all(bool(torch.isfinite(t).all()) for t in (*_render_params(current_gaussians()), rho, phi)):
+                raise _diverged(it, recon.names[i], "the step left the Gaussians or the poses", history)
         if bar is not None:
             bar.set_postfix(loss=f"{lval:.4f}", psnr=f"{p:.2f}")
             bar.update(1)

@@ -59,8 +59,11 @@ class Gaussians:
         if self.sh_rest is not None and (self.sh_rest.ndim != 3 or self.sh_rest.shape[0] != n
                                          or self.sh_rest.shape[2] != 3):
             raise ShapeError(f"Gaussians.sh_rest expected [N, K, 3], got {list(self.sh_rest.shape)}")
-        if self.conf is not None and tuple(self.conf.shape) != (n,):
-            raise ShapeError(f"Gaussians.conf expected [{n}], got {list(self.conf.shape)}")
+        if self.conf is not None and not (isinstance(self.conf, torch.Tensor) and tuple(self.conf.shape) == (n,)
+                                          and bool(torch.isfinite(self.conf).all())):
+            got = (type(self.conf).__name__ if not isinstance(self.conf, torch.Tensor) else list(self.conf.shape)
+                   if tuple(self.conf.shape) != (n,) else f"{int((~torch.isfinite(self.conf)).sum())} NaN or inf")
+            raise ShapeError(f"Gaussians.conf expected finite confidences [{n}] (N = len(means)) or None, got {got}")
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -146,6 +149,10 @@ class Gaussians:
                  + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
         data = torch.cat([g.means, torch.zeros(n, 3), g.sh_dc, rest_flat, g.opacity_logits[:, None],
                           g.log_scales, g.quats], dim=1).numpy().astype("<f4")
+        bad = int((~np.isfinite(data).all(axis=1)).sum())
+        if bad:
+            raise ShapeError(f"save_ply expected finite Gaussians, got {bad} of {n} with NaN or inf values (a fit "
+                             f"that diverged?): {path} not written (load_ply refuses such a file)")
         header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
         header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
         with atomic_open(path, "wb") as f:
@@ -168,15 +175,19 @@ class Gaussians:
         n, props = None, []
         for line in header:
             parts = line.split()
-            if parts[:2] == ["element", "vertex"]:
+            if parts[:1] == ["element"]:
+                if n is not None:
+                    break  # an element after the vertices: its data follows theirs, and is not read
+                if parts[1:2] != ["vertex"]:  # its data would come first: the vertices would be read shifted
+                    raise ShapeError(f"{path}: expected the vertex element first (as 3DGS writes it), got "
+                                     f"{line.strip()!r} before it")
                 if len(parts) != 3 or not parts[2].isdigit():
                     raise ShapeError(f"{path}: 'element vertex' expected a count, got {line.strip()!r}")
                 n = int(parts[2])
-            elif parts[:1] == ["element"] and n is not None:
-                break
             elif parts[:1] == ["property"] and n is not None:
-                if parts[1] not in ("float", "float32"):
-                    raise ShapeError(f"{path}: property {parts[-1]} has type {parts[1]}, expected float")
+                if len(parts) != 3 or parts[1] not in ("float", "float32"):
+                    raise ShapeError(f"{path}: vertex properties expected 'property float NAME', got "
+                                     f"{line.strip()!r}")
                 props.append(parts[2])
         if not n:
             raise ShapeError(f"{path}: no vertex element" if n is None else f"{path}: holds no Gaussian (0 vertices)")
@@ -200,9 +211,14 @@ class Gaussians:
             return arr[:, [col[p] for p in names]]
 
         n_rest = sum(1 for p in props if p.startswith("f_rest_"))
+        k = n_rest // 3
+        if n_rest and ((round((k + 1) ** 0.5) ** 2 != k + 1 or n_rest != 3 * k)
+                       or set(p for p in props if p.startswith("f_rest_")) != {f"f_rest_{i}" for i in range(n_rest)}):
+            raise ShapeError(f"{path}: f_rest properties expected f_rest_0 .. f_rest_{{3K - 1}} with K = (degree + 1)^2 "
+                             f"- 1 (9, 24 or 45 of them for degrees 1-3), got {n_rest}: "
+                             f"{[p for p in props if p.startswith('f_rest_')][:6]}")
         sh_rest = None
         if n_rest:
-            k = n_rest // 3
             rest = take([f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k).transpose(1, 2)
             sh_rest = rest.contiguous() if rest.abs().max() > 0 else None
             if sh_rest is not None:

@@ -13,6 +13,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -51,12 +53,14 @@ def covisibility_keep(recon: Reconstruction, valid: torch.Tensor, order, covis_t
 
 
 def _voxel_downsample(points: np.ndarray, score: np.ndarray, budget: int) -> np.ndarray:
-    """Indices of at most ``budget`` points: the best-scoring point of each voxel, voxel size by bisection."""
-    lo_pt, hi_pt = points.min(0), points.max(0)
-    extent = float((hi_pt - lo_pt).max()) + 1e-9
+    """Indices of at most ``budget`` points: the best-scoring point of each voxel, voxel size by bisection. The
+    search starts from a voxel holding every point (in float64: float32 coordinates divided by their own extent
+    put the far corner in a second voxel, and budget 1 gave 2 points)."""
+    pos = points.astype(np.float64) - points.min(0).astype(np.float64)
+    extent = float(pos.max()) * (1 + 1e-6) + 1e-9
 
     def pick(size):
-        key = np.floor((points - lo_pt) / size).astype(np.int64)
+        key = np.floor(pos / size).astype(np.int64)
         dims = key.max(0) + 1
         flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
         order = np.lexsort((-score, flat))            # by voxel, best score first
@@ -122,6 +126,10 @@ def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_
         raise ShapeError(f"max_gaussians expected an int >= 1 or None, got {max_gaussians!r}")
     if not (is_number(opacity) and 0.0 < opacity < 1.0):
         raise ShapeError(f"opacity must be a number in (0, 1), got {opacity!r}")
+    if not (is_number(min_conf) and math.isfinite(min_conf)):
+        raise ShapeError(f"min_conf expected a finite confidence, got {min_conf!r}")
+    if not (is_number(covis_tol) and 0 < covis_tol < math.inf):
+        raise ShapeError(f"covis_tol expected a finite relative depth tolerance > 0, got {covis_tol!r}")
     seed = check_seed(seed)
     check_has_points(recon, min_conf)
     valid = recon.valid(min_conf)

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from pointmap.atomic import atomic_path, write_bytes
-from pointmap.errors import ShapeError, check_seed, is_int, is_number
+from pointmap.errors import ShapeError, check_seed, check_shape, is_int, is_number
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid
 from pointmap.geometry.rotations import axis_angle_to_matrix
 from pointmap.reconstruction import Reconstruction
 
@@ -30,20 +31,17 @@ def save_png(img: torch.Tensor, path) -> Path:
     return path
 
 
-def _matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
-    cos = ((R[0, 0] + R[1, 1] + R[2, 2] - 1) / 2).clamp(-1, 1)
-    v = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = v.norm() / 2
-    ang = torch.atan2(s, cos)
-    if float(s) < 1e-8:
-        return torch.zeros(3, dtype=R.dtype)
-    return v / (2 * s) * ang
-
-
 def interpolate_pose(c2w_a: torch.Tensor, c2w_b: torch.Tensor, t: float) -> torch.Tensor:
-    """Geodesic interpolation of two cam2world [4, 4] (rotation slerp, centre lerp)."""
+    """Geodesic interpolation of two cam2world [4, 4] (rotation slerp, centre lerp). The relative rotation's
+    axis-angle is scipy's, which holds at 180 degrees too (one of the two shortest arcs)."""
+    from scipy.spatial.transform import Rotation
+
+    check_shape("c2w_a", c2w_a, (4, 4))
+    check_shape("c2w_b", c2w_b, (4, 4))
+    if not (is_number(t) and math.isfinite(t)):
+        raise ShapeError(f"interpolate_pose: t expected a finite number, got {t!r}")
     Ra, Rb = c2w_a[:3, :3].double(), c2w_b[:3, :3].double()
-    aa = _matrix_to_axis_angle(Ra.T @ Rb)
+    aa = torch.from_numpy(Rotation.from_matrix((Ra.T @ Rb).cpu().numpy()).as_rotvec())
     out = torch.eye(4, dtype=torch.float64)
     out[:3, :3] = Ra @ axis_angle_to_matrix(aa * t)
     out[:3, 3] = (1 - t) * c2w_a[:3, 3].double() + t * c2w_b[:3, 3].double()
@@ -214,6 +212,14 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
     if not (torch.isfinite(cam2world).all() and torch.isfinite(K).all()):
         raise ShapeError("evaluate_views: every test view needs a finite pose and K (drop the ones localize "
                          "could not pose)")
+    for name, T, ok, what in (("cam2world", cam2world, is_rigid(cam2world), "rigid [R t; 0 0 0 1] (R a rotation)"),
+                              ("K", K, is_pinhole_K(K), f"pinhole intrinsics {K_LAYOUT} with positive focals")):
+        if not bool(ok.all()):
+            k = int((~ok).nonzero()[0])
+            raise ShapeError(f"evaluate_views: {name} expected {what}, got {name}[{k}] = {T[k].tolist()}")
+    if not (is_int(align_steps) and align_steps >= 0):
+        raise ShapeError(f"evaluate_views: align_steps expected an int >= 0 (0: score the given poses), got "
+                         f"{align_steps!r}")
     names = names or [f"test_{k:03d}" for k in range(m)]
     rows = []
     for k in range(m):

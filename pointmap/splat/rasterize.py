@@ -7,7 +7,8 @@ integer pixel coordinates at pixel centres, so pixel (row i, column j) is evalua
 Semantics follow the 3DGS / gsplat kernels:
 
 - projection with the EWA Jacobian, camera-space x/z and y/z clamped to 1.3x the frustum for the
-  Jacobian, plus a 0.3 px^2 low-pass on the 2D covariance (``eps2d``);
+  Jacobian (the frustum through the image's outer pixel edges, -0.5 and W - 0.5: x/z in
+  [-1.3 (cx + 0.5) / fx, 1.3 (W - 0.5 - cx) / fx]), plus a 0.3 px^2 low-pass on the 2D covariance (``eps2d``);
 - alpha = min(0.999, opacity * exp(-q/2)); alphas below 1/255 are skipped;
 - front-to-back compositing in global depth order, a pixel stops at the first Gaussian that would
   bring its transmittance below 1e-4 (that Gaussian is not composited);
@@ -29,6 +30,7 @@ from typing import NamedTuple
 import torch
 
 from pointmap.errors import ConventionError, ShapeError, is_int
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
@@ -74,11 +76,12 @@ def project_gaussians(means, quats, scales, world2cam, K, width, height, *, near
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     u = fx * x / zs + cx
     v = fy * y / zs + cy
-    # Jacobian with x/z, y/z clamped to 1.3x the frustum (3DGS), computed without in-place ops
-    lim_xp = 1.3 * (width - cx) / fx
-    lim_xn = 1.3 * (cx + 1.0) / fx
-    lim_yp = 1.3 * (height - cy) / fy
-    lim_yn = 1.3 * (cy + 1.0) / fy
+    # Jacobian with x/z, y/z clamped to 1.3x the frustum (3DGS), computed without in-place ops; the frustum's
+    # edges are the image's outer pixel edges, u = -0.5 and u = W - 0.5 (pixel centres at integers)
+    lim_xp = 1.3 * (width - 0.5 - cx) / fx
+    lim_xn = 1.3 * (cx + 0.5) / fx
+    lim_yp = 1.3 * (height - 0.5 - cy) / fy
+    lim_yn = 1.3 * (cy + 0.5) / fy
     tx = zs * torch.minimum(torch.maximum(x / zs, -lim_xn), lim_xp)
     ty = zs * torch.minimum(torch.maximum(y / zs, -lim_yn), lim_yp)
     zero = torch.zeros_like(zs)
@@ -422,11 +425,13 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
         raise ShapeError(f"colors expected [N, D] with N = {n}, got {list(colors.shape)}")
     if background is not None and tuple(background.shape) != (colors.shape[1],):
         raise ShapeError(f"background expected [{colors.shape[1]}], got {list(background.shape)}")
-    Kd = K.detach()
-    if not (bool(torch.isfinite(Kd).all()) and bool(torch.isfinite(world2cam.detach()).all())):
-        raise ShapeError("K and world2cam expected finite values, got NaN or inf (a camera lost in the fit?)")
-    if abs(float(Kd[0, 1])) > 1e-9 or float(Kd[0, 0]) <= 0 or float(Kd[1, 1]) <= 0:
-        raise ConventionError("K must have positive focals and zero skew")
+    for name, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("background", background), ("world2cam", world2cam), ("K", K)):
+        if t is not None and not bool(torch.isfinite(t.detach()).all()):
+            raise ShapeError(f"{name} expected finite values, got {int((~torch.isfinite(t.detach())).sum())} NaN or inf")
+    if not bool(is_pinhole_K(K.detach())):
+        raise ConventionError(f"K expected pinhole intrinsics {K_LAYOUT} with positive focals and zero skew (a "
+                              f"transposed K puts cx, cy in the bottom row), got {K.detach().tolist()}")
     if tile < 1 or chunk < 1:
         raise ShapeError(f"tile and chunk must be >= 1, got {tile}, {chunk}")
     if backend not in ("torch", "gsplat", "auto"):

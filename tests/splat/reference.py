@@ -41,9 +41,9 @@ def reference_render(means, quats, scales, opacities, colors, world2cam, K, widt
             continue
         u = fx * x / z + cx
         v = fy * y / z + cy
-        # Jacobian at the frustum-clamped point
-        xz = torch.clamp(x / z, -1.3 * (cx + 1) / fx, 1.3 * (width - cx) / fx)
-        yz = torch.clamp(y / z, -1.3 * (cy + 1) / fy, 1.3 * (height - cy) / fy)
+        # Jacobian at the point clamped to 1.3x the frustum, whose edges are the outer pixel edges -0.5, W - 0.5
+        xz = torch.clamp(x / z, -1.3 * (cx + 0.5) / fx, 1.3 * (width - 0.5 - cx) / fx)
+        yz = torch.clamp(y / z, -1.3 * (cy + 0.5) / fy, 1.3 * (height - 0.5 - cy) / fy)
         J = torch.stack([torch.stack([fx / z, torch.zeros((), dtype=dt), -fx * xz / z]),
                          torch.stack([torch.zeros((), dtype=dt), fy / z, -fy * yz / z])])
         S = torch.diag(scales[i] ** 2)

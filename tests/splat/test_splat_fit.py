@@ -305,3 +305,77 @@ def test_each_views_intrinsics_at_a_working_level_are_scaled_as_its_own_image_wa
         uv = project(corner[None], Ks[i])[0][0]
         assert torch.allclose(uv, torch.tensor([lw - 0.5, lh - 0.5], dtype=torch.float64), atol=1e-9), (i, uv, lw, lh)
     assert fit_module._level_view(recon, recon.images, 1, lv, fit_module._resize_image).shape[1] == 25
+
+
+def test_a_fit_renders_aligns_and_evaluates_from_rigid_poses_only(tiny):
+    from pointmap.splat import evaluate_views
+
+    d, _, res = tiny
+    K, img = d["K"], d["test_images"][0]
+    scaled, no_last_row, mirror = torch.eye(4), torch.eye(4), torch.eye(4)
+    scaled[:3, :3] *= 2.0            # a similarity: rendered as if the camera had moved
+    no_last_row[3, 3] = 0.0
+    mirror[2, 2] = -1.0              # det -1: rendered blank
+    for T in (scaled, no_last_row, mirror):
+        with pytest.raises(ShapeError, match=r"cam2world expected a finite \[4, 4\] cam2world, rigid \[R t; 0 0 0 1\]"):
+            res.render(T, K, 96, 72)
+        with pytest.raises(ShapeError, match=r"cam2world_init expected a finite \[4, 4\] cam2world, rigid"):
+            res.align_view(img, T, K, steps=1)
+        with pytest.raises(ShapeError, match=r"evaluate_views: cam2world expected rigid \[R t; 0 0 0 1\] .*"
+                                             r"got cam2world\[1\] = "):
+            evaluate_views(res, [img, img], torch.stack([d["test_c2w_gt"][0], T]), torch.stack([K, K]), quiet=True)
+    # a rigid pose renders the photograph
+    assert psnr(res.render(d["test_c2w_gt"][0], K, 96, 72), img) > 20
+
+
+def test_align_view_and_evaluate_views_refuse_a_photograph_with_nan_pixels(tiny):
+    from pointmap.splat import evaluate_views
+
+    d, _, res = tiny
+    img, init, K = d["test_images"][0].clone(), d["test_c2w_init"][0], d["K"]
+    img[3, 4, 1] = float("nan")      # passed the [0, 1] range check: min and max are NaN-blind
+    with pytest.raises(ShapeError, match=r"image values expected finite, in \[0, 1\] .*got 1 pixels with NaN"):
+        res.align_view(img, init, K, steps=1)
+    with pytest.raises(ShapeError, match="test image 0 values expected finite"):
+        evaluate_views(res, [img], init[None], K[None], align_steps=0, quiet=True)  # scored NaN
+
+
+def test_align_view_and_evaluate_views_refuse_step_counts_out_of_their_range(tiny):
+    from pointmap.splat import evaluate_views
+
+    d, _, res = tiny
+    img, init, K = d["test_images"][0], d["test_c2w_init"][0], d["K"]
+    for kw, message in [({"steps": 2.5}, "steps expected an int >= 0, got 2.5"),  # TypeErrors before
+                        ({"steps": "3"}, "steps expected an int >= 0, got '3'"),
+                        ({"max_side": 8}, "max_side expected an int >= 16"),
+                        ({"lr_rot": float("nan")}, "lr_rot expected a finite rate >= 0, got nan"),
+                        ({"lr_trans": -1.0}, "lr_trans expected a finite rate >= 0 .*got -1.0")]:
+        with pytest.raises(ShapeError, match="align_view: " + message):
+            res.align_view(img, init, K, **kw)
+    with pytest.raises(ShapeError, match="align_steps expected an int >= 0 .*got -5"):  # was accepted, as 0
+        evaluate_views(res, [img], init[None], K[None], align_steps=-5, quiet=True)
+    assert torch.allclose(res.align_view(img, init, K, steps=0), init, atol=1e-6)
+
+
+@pytest.mark.parametrize("background", [[2.0, 2.0, 2.0], [0.5, 0.5], [0.0, float("nan"), 0.0], "white"])
+def test_fit_and_render_refuse_a_background_that_is_no_colour(tiny, background):
+    d, g, res = tiny
+    with pytest.raises(ShapeError, match=r"fit: background expected an RGB colour \[3\] in \[0, 1\]"):
+        fit(d["recon"], g, steps=1, progress=False, background=background)
+    with pytest.raises(ShapeError, match=r"background expected an RGB colour \[3\] in \[0, 1\]"):
+        res.render(res.cam2world[0], d["K"], 16, 12, background=background)
+
+
+def test_a_fit_that_diverges_stops_naming_the_step_instead_of_returning_nan_gaussians():
+    from tests.splat.test_splat_init import _plane_recon
+
+    recon = _plane_recon()
+    g = init_from(recon, max_gaussians=300)
+    # a log-scale rate of 200 takes the scales to inf in one step: the fit went on, returned NaN Gaussians and
+    # save_ply wrote a file load_ply refuses
+    with pytest.raises(ShapeError, match=r"fit: the step left the Gaussians or the poses NaN or inf at step 0 "
+                                         r"\(view view_00\d.png; the last finite loss was 0\.\d+\): the "
+                                         r"optimisation diverged"):
+        fit(recon, g, steps=6, progress=False, lr={"scales": 200.0}, coarse_frac=0.0)
+    ok = fit(recon, g, steps=6, progress=False, coarse_frac=0.0)
+    assert len(ok.history) == 6 and bool(torch.isfinite(ok.gaussians.means).all())

@@ -104,3 +104,81 @@ def test_a_truncated_3dgs_ply_and_unusable_points_are_refused_naming_what_is_wro
         Gaussians.from_points(pts, rgb * 4, 0.05)
     with pytest.raises(ShapeError, match="scale expected a finite standard deviation >= 0"):
         Gaussians.from_points(pts, rgb, -0.05)
+
+
+def test_nan_confidences_are_refused_and_save_ply_refuses_gaussians_load_ply_would_refuse(tmp_path):
+    pts, rgb = torch.zeros(3, 3), torch.full((3, 3), 0.5)
+    g = Gaussians.from_points(pts, rgb, 0.05, conf=[1.0, 2.0, 3.0])
+    assert torch.equal(g.conf, torch.tensor([1.0, 2.0, 3.0]))
+    # a NaN confidence made the fit's per-point rate multiplier NaN: every Gaussian came out NaN
+    with pytest.raises(ShapeError, match=r"Gaussians.conf expected finite confidences \[3\] .*got 1 NaN or inf"):
+        Gaussians.from_points(pts, rgb, 0.05, conf=torch.tensor([1.0, float("nan"), 3.0]))
+    with pytest.raises(ShapeError, match=r"Gaussians.conf expected finite confidences \[3\] .*got \[2\]"):
+        Gaussians.from_points(pts, rgb, 0.05, conf=torch.ones(2))
+    bad = _g(4)
+    bad.means[2, 0] = float("inf")
+    with pytest.raises(ShapeError, match=r"save_ply expected finite Gaussians, got 1 of 4 with NaN or inf values"):
+        bad.save_ply(tmp_path / "bad.ply")
+    assert not (tmp_path / "bad.ply").exists()
+
+
+def _ply(path, props, n=4, before="", data=None):
+    header = ("ply\nformat binary_little_endian 1.0\n" + before + f"element vertex {n}\n"
+              + "".join(line if line.startswith("property") else f"property float {line}\n" for line in props)
+              + "end_header\n")
+    count = sum(1 for line in props if line.startswith("property") or " " not in line)
+    body = np.arange(n * count, dtype="<f4").tobytes() if data is None else data
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+NEED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+        "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def test_load_ply_refuses_an_element_before_the_vertices_and_malformed_f_rest_or_property_lines(tmp_path):
+    # an element before the vertices: its data comes first, and the vertices were read shifted by it
+    path = _ply(tmp_path / "pre.ply", NEED, before="element camera 1\nproperty float fx\n",
+                data=np.float32(7.0).tobytes() + np.ones((4, 14), "<f4").tobytes())
+    with pytest.raises(ShapeError, match="pre.ply: expected the vertex element first .*got 'element camera 1'"):
+        Gaussians.load_ply(path)
+    # f_rest sets that are no SH degree, or not f_rest_0.. in order (a KeyError and a reshape error before)
+    for name, rest, got in (("two", ["f_rest_0", "f_rest_1"], "got 2"), ("gap", ["f_rest_1"], "got 1"),
+                            ("skip", [f"f_rest_{i}" for i in range(10) if i != 4], "got 9")):
+        with pytest.raises(ShapeError, match=f"{name}.ply: f_rest properties expected f_rest_0 .. f_rest_{{3K - 1}} "
+                                             f".*{got}"):
+            Gaussians.load_ply(_ply(tmp_path / f"{name}.ply", NEED[:6] + rest + NEED[6:]))
+    # a property line without a name (an IndexError before), or of a list
+    for name, line in (("short", "property float\n"), ("list", "property list uchar int idx\n")):
+        with pytest.raises(ShapeError, match=f"{name}.ply: vertex properties expected 'property float NAME', got "
+                                             f"'{line.strip()}'"):
+            Gaussians.load_ply(_ply(tmp_path / f"{name}.ply", NEED + [line]))
+    # what 3DGS writes still loads: degree 1 (9 f_rest), the vertex element first, another one after it
+    nine = [f"f_rest_{i}" for i in range(9)]
+    with pytest.warns(RuntimeWarning, match="SH degree 1"):
+        g = Gaussians.load_ply(_ply(tmp_path / "ok.ply", NEED[:6] + nine + NEED[6:]))
+    assert g.sh_rest.shape == (4, 3, 3) and g.means[1].tolist() == [23.0, 24.0, 25.0]
+
+
+def test_interpolate_pose_halfway_through_a_half_turn_is_a_quarter_turn_about_its_axis():
+    import math
+
+    from pointmap.geometry.rotations import axis_angle_to_matrix, rotation_angle
+    from pointmap.splat.outputs import interpolate_pose
+
+    a = torch.eye(4, dtype=torch.float64)
+    a[:3, 3] = torch.tensor([1.0, 0.0, 0.0])
+    for w in ([0.0, math.pi, 0.0], [0.3, -0.2, 0.9], [2.0, 1.0, 0.5]):
+        w = torch.tensor(w, dtype=torch.float64)
+        b = torch.eye(4, dtype=torch.float64)
+        b[:3, :3] = axis_angle_to_matrix(w)
+        b[:3, 3] = torch.tensor([3.0, 2.0, 0.0])
+        for t in (0.25, 0.5):
+            m = interpolate_pose(a, b, t)
+            # the half turn about y gave camera A back (the identity): its axis-angle came out zero. It has two
+            # shortest arcs, about +y and -y: either will do
+            arcs = (w, -w) if abs(float(w.norm()) - math.pi) < 1e-12 else (w,)
+            assert any(torch.allclose(m[:3, :3], axis_angle_to_matrix(v * t), atol=1e-9) for v in arcs), (w, t)
+            assert torch.allclose(m[:3, 3], torch.tensor([1.0 + 2 * t, 2 * t, 0.0], dtype=torch.float64))
+        assert float(rotation_angle(interpolate_pose(a, b, 0.5)[:3, :3])) == pytest.approx(float(w.norm()) / 2)
+    assert torch.allclose(interpolate_pose(a, b, 1.0), b, atol=1e-12) and torch.equal(interpolate_pose(a, b, 0.0), a)

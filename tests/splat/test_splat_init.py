@@ -94,3 +94,23 @@ def test_init_refuses_a_fractional_budget_and_a_seed_neither_generator_takes():
     assert torch.equal(a.means, b.means) and 0 < len(a) <= 100
     c, d = (init_from(recon, max_gaussians=100, downsample="conf", seed=s) for s in (3, 4))
     assert len(c) == len(d) == 100 and not torch.equal(c.means, d.means)
+
+
+def test_voxel_downsampling_keeps_to_the_budget_down_to_a_single_gaussian():
+    recon = _plane_recon()  # float32 points divided by their own extent put the far corner in a second voxel
+    for m in (1, 2, 3, 5, 40):
+        g = init_from(recon, max_gaussians=m)
+        assert 1 <= len(g) <= m, (m, len(g))
+    assert len(init_from(recon, max_gaussians=1)) == 1  # was 2
+
+
+def test_init_refuses_a_min_conf_or_covis_tol_it_cannot_use():
+    recon = _plane_recon()
+    for kw, message in [({"min_conf": "1"}, "min_conf expected a finite confidence, got '1'"),  # a TypeError
+                        ({"min_conf": float("nan")}, "min_conf expected a finite confidence, got nan"),
+                        ({"covis_tol": -1.0}, "covis_tol expected a finite relative depth tolerance > 0, got -1.0"),
+                        ({"covis_tol": 0}, "covis_tol expected .* got 0"), ({"covis_tol": "0.01"}, "got '0.01'")]:
+        with pytest.raises(ShapeError, match=message):
+            init_from(recon, max_gaussians=None, **kw)
+    # a negative tolerance kept every point of both views: no pixel pruned (1536); 1% prunes the shared ones
+    assert len(init_from(recon, max_gaussians=None, covis_tol=0.01)) < 2 * 32 * 24

@@ -146,7 +146,7 @@ def test_input_validation():
     for k in (5, 6):  # a NaN camera rendered a blank image without a word
         bad = [t.clone() for t in a]
         bad[k][0, 0] = float("nan")
-        with pytest.raises(ShapeError, match="K and world2cam expected finite values"):
+        with pytest.raises(ShapeError, match=f"{['world2cam', 'K'][k - 5]} expected finite values, got 1 NaN or inf"):
             rasterize(*bad, W, H)
     K = a[6].clone()
     K[0, 1] = 0.5
@@ -199,3 +199,50 @@ def test_the_gsplat_glue_gives_the_torch_backends_image_depth_and_alpha_under_gs
     assert got.image.shape == (H, W, 3)
     assert torch.allclose(got.image, ref.image, atol=1e-6)
     assert torch.allclose(got.alpha, ref.alpha) and torch.equal(got.radii, ref.radii)
+
+
+def test_a_transposed_K_and_non_finite_gaussians_or_background_are_refused_naming_the_input():
+    W, H = 20, 16
+    a = [t.float() for t in _scene(5, W, H)]
+    with pytest.raises(ConventionError, match=r"K expected pinhole intrinsics .* transposed K puts cx, cy in the "
+                                              r"bottom row\), got \[\[18\.0, 0\.0, 0\.0\], .*\[9\.69\d*, 7\.4\d*, 1\.0\]\]"):
+        rasterize(*a[:6], a[6].T.contiguous(), W, H)  # cx, cy in the bottom row: drew a fifth of the coverage
+    for k, name in enumerate(["means", "quats", "scales", "opacities", "colors"]):
+        bad = [t.clone() for t in a]
+        bad[k].view(-1)[1] = float("nan") if k != 2 else float("inf")
+        with pytest.raises(ShapeError, match=f"{name} expected finite values, got 1 NaN or inf"):
+            rasterize(*bad, W, H)  # a NaN colour painted NaN pixels; a NaN mean was dropped without a word
+    with pytest.raises(ShapeError, match="background expected finite values, got 1 NaN or inf"):
+        rasterize(*a, W, H, torch.tensor([0.0, float("nan"), 0.0]))
+    assert bool(torch.isfinite(rasterize(*a, W, H, torch.tensor([0.0, 0.5, 0.0])).image).all())
+
+
+def test_the_jacobian_is_clamped_at_1_3_times_the_frustum_through_the_outer_pixel_edges():
+    """docs/conventions.md: pixel centres at integers, the image spans [-0.5, W - 0.5]. Beyond 1.3x that frustum
+    the EWA Jacobian is taken at the clamped point: x/z in [-1.3 (cx + 0.5) / fx, 1.3 (W - 0.5 - cx) / fx]."""
+    from pointmap.splat.rasterize import project_gaussians
+
+    W, H, f = 32, 24, 30.0
+    K = torch.tensor([[f, 0, 10.0], [0, f, 14.0], [0, 0, 1]], dtype=torch.float64)  # off-centre principal point
+    q = torch.tensor([[1.0, 0, 0, 0]] * 4, dtype=torch.float64)
+    s = torch.tensor([[0.1, 0.1, 1.0]] * 4, dtype=torch.float64)
+    z = 2.0
+    means = torch.tensor([[3.0, 0, z], [-3.0, 0, z], [0, 3.0, z], [0, -3.0, z]], dtype=torch.float64)  # |x/z| 1.5
+    _, _, _, ok, (a, b, c, _) = project_gaussians(means, q, s, torch.eye(4, dtype=torch.float64), K, W, H)
+    assert bool(ok.all())
+    lim = {"x+": 1.3 * (W - 0.5 - 10.0) / f, "x-": -1.3 * (10.0 + 0.5) / f,
+           "y+": 1.3 * (H - 0.5 - 14.0) / f, "y-": -1.3 * (14.0 + 0.5) / f}
+    # J = [[f/z, 0, -f t/z], [0, f/z, -f t'/z]] at t = the clamped x/z (y/z), Sigma = diag(s^2): by hand
+    expect_a = [(f / z * 0.1) ** 2 + (f * lim["x+"] / z * 1.0) ** 2, (f / z * 0.1) ** 2 + (f * lim["x-"] / z) ** 2,
+                (f / z * 0.1) ** 2, (f / z * 0.1) ** 2]
+    expect_c = [(f / z * 0.1) ** 2, (f / z * 0.1) ** 2, (f / z * 0.1) ** 2 + (f * lim["y+"] / z) ** 2,
+                (f / z * 0.1) ** 2 + (f * lim["y-"] / z) ** 2]
+    assert torch.allclose(a - 0.3, torch.tensor(expect_a, dtype=torch.float64), rtol=1e-12)
+    assert torch.allclose(c - 0.3, torch.tensor(expect_c, dtype=torch.float64), rtol=1e-12)
+    assert float(a[0] - 0.3) == pytest.approx(197.55, abs=0.01)  # 1.3 (W - cx) / fx gave 206.74
+    # the reference applies the same clamp: a wide Gaussian beyond it renders the same
+    big = torch.tensor([[0.1, 0.1, 3.0]] * 4, dtype=torch.float64)
+    op, cols = torch.full((4,), 0.9, dtype=torch.float64), torch.eye(4, 3, dtype=torch.float64) + 0.1
+    ref, _, _ = reference_render(means, q, big, op, cols, torch.eye(4, dtype=torch.float64), K, W, H)
+    out = rasterize(means, q, big, op, cols, torch.eye(4, dtype=torch.float64), K, W, H)
+    assert float(ref.max()) > 0.1 and (out.image - ref).abs().max() < 1e-12
