@@ -15,7 +15,8 @@ def heldout(root_dir, *, kind: str = "pairs", size: int = 224, scenes: int = 32,
     reserved seed (training runs refuse reserved seeds), then opened without augmentation.
 
     Returns a ``PairDataset`` (split "all", augment=False) for kind "pairs", a ``MultiViewDataset``
-    for kind "views". Rendering again with the same arguments reuses the existing shards.
+    for kind "views". Rendering again with the same arguments reuses the existing shards, and a set made by an older
+    generator version (data.generate.GENERATOR_VERSION) is completed with that version's scenes.
     """
     from data.datasets import MultiViewDataset, PairDataset
     from data.generate import GenConfig, generate
@@ -24,7 +25,14 @@ def heldout(root_dir, *, kind: str = "pairs", size: int = 224, scenes: int = 32,
         raise ValueError(f"kind expected 'pairs' or 'views', got {kind!r}")
     out = Path(root_dir) / f"heldout-{kind}-{size}"
     cfg = GenConfig(kind=kind, scenes=scenes, views=views, size=size, shard_size=min(16, scenes), seed=HELDOUT_SEED)
+    if (out / "config.json").is_file():  # a set rendered before: again with its own generator version
+        from dataclasses import replace
+
+        from data.shards import load_json
+
+        cfg = replace(cfg, version=load_json(out / "config.json").get("version"))
     generate(out, cfg, workers=workers, progress=progress, log=None)
     if kind == "pairs":
         return PairDataset(out, size=size, augment=False, split="all")
     return MultiViewDataset(out, split="all")
+

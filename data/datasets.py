@@ -6,8 +6,8 @@
   frame) and, in view 1 only, ``corr [H, W, 2]`` (pixel of each view-1 pixel in view 2, NaN where not
   co-visible). Index with an int (square ``size`` x ``size`` output) or with ``(index, aspect)``
   tuples from ``AspectBatchSampler`` (one aspect ratio per batch).
-- ``MultiViewDataset(root, size=None)``: one item per scene with all its views stacked, for
-  alignment and splatting evaluation.
+- ``MultiViewDataset(root, split="all", val_percent=2.0, verify=True)``: one item per scene with all its views
+  stacked as rendered (no resizing, no augmentation), for alignment and splatting evaluation.
 - ``pair_views(dataset)`` / ``camera_rotations_deg(view_pairs)``: each pair's scene metadata and the angle between
   its two cameras, without decoding an image (``data.stats``, the rotation curriculum).
 - ``heldout(root_dir)``: renders (once) and opens the fixed evaluation set from reserved seeds.
@@ -26,6 +26,7 @@ and with probability ``pad_p`` each view letterboxed on its own (a band at two e
 from __future__ import annotations
 
 import math
+import warnings
 import zlib
 from pathlib import Path
 
@@ -35,8 +36,8 @@ import torch
 from torch.utils.data import Dataset, Sampler
 
 from data.geom import decode_corr
-from data.shards import ShardError, ShardReader, completed_shards, load_json
-from pointmap.errors import ShapeError
+from data.shards import ShardError, ShardReader, completed_shards, load_json, scene_metas
+from pointmap.errors import ShapeError, is_int
 from pointmap.geometry.rotations import relative_rotation_error_deg
 
 SPLITS = ("train", "val", "all")
@@ -75,6 +76,9 @@ class _ShardStore:
 
 
 def _open_root(root, verify):
+    """(root, config, shard store, scenes): ``scenes`` holds ``(k, scene, meta)`` of every scene of the store's
+    shards ``k`` in order. A shard that is not this run's (``completed_shards``' checks, then ``scene_metas``':
+    scenes of another seed or outside the sidecar's range) is reported with a warning and left out."""
     root = Path(root)
     if not root.is_dir():
         raise ShardError(f"dataset directory {root} does not exist")
@@ -82,10 +86,30 @@ def _open_root(root, verify):
     if not cfg_path.is_file():
         raise ShardError(f"{root} has no config.json: not a directory written by `python -m data.render`")
     config = load_json(cfg_path)
-    entries, _ = completed_shards(root, verify=verify, warn=True)
-    if not entries:
+    seed = config.get("seed")
+    entries, _ = completed_shards(root, verify=verify, warn=True, seed=seed)
+    store = _ShardStore(root, entries)
+    scenes = []
+    for k, entry in enumerate(entries):
+        metas, problem = scene_metas(store.reader(k), entry, seed)
+        if problem is not None:
+            warnings.warn(f"{root}: shard skipped: {problem}; not used", stacklevel=3)
+            continue
+        scenes += [(k, scene, meta) for scene, meta in metas]
+    store._readers.clear()
+    if not scenes:
         raise ShardError(f"{root} has no complete, valid shard")
-    return root, config, entries
+    return root, config, store, scenes
+
+
+def _check_index(index, n: int, what: str, item) -> None:
+    """An item's index: an int (not a bool: docs/conventions.md) in [-n, n); TypeError or IndexError naming ``item``
+    (the whole item asked for) otherwise."""
+    if not is_int(index):
+        raise TypeError(f"index expected an int, got {type(index).__name__} {index!r}"
+                        + ("" if item is index else f" in item {item!r}"))
+    if not -n <= index < n:
+        raise IndexError(f"index {index} out of range for {n} {what}" + ("" if item is index else f" in item {item!r}"))
 
 
 def _load_view(reader: ShardReader, scene: str, meta: dict, k: int):
@@ -365,22 +389,17 @@ class PairDataset(Dataset):
         if not 0 <= pad_p <= 1:
             raise ValueError(f"pad_p expected a probability in [0, 1], got {pad_p}")
         self.pad_p = float(pad_p)
-        self.root, self.config, entries = _open_root(root, verify)
+        self.root, self.config, self._store, scenes = _open_root(root, verify)
         if self.config.get("kind") != "pairs":
             raise ShardError(f"{self.root} was rendered with --kind {self.config.get('kind')}; PairDataset needs "
                              "--kind pairs (MultiViewDataset reads view sets)")
-        self._store = _ShardStore(self.root, entries)
         seed = int(self.config.get("seed", 0))
         items = []
-        for k, _ in enumerate(entries):
-            r = self._store.reader(k)
-            for scene in r.scenes():
-                meta = r.meta(scene)
-                if split != "all" and _split_of(meta["scene"], seed, val_percent) != split:
-                    continue
-                for i, j in meta["pairs"]:
-                    items.append((k, scene, i, j))
-        self._store._readers.clear()
+        for k, scene, meta in scenes:
+            if split != "all" and _split_of(meta["scene"], seed, val_percent) != split:
+                continue
+            for i, j in meta["pairs"]:
+                items.append((k, scene, i, j))
         self.items = items
         if not items:
             raise ShardError(f"{self.root}: no pairs in split {split!r}")
@@ -404,18 +423,24 @@ class PairDataset(Dataset):
         augmentation is drawn from ``np.random.default_rng(seed)``, a function of it alone; without, from a stream
         seeded by the process's torch seed."""
         seed = None
+        item = index
         if isinstance(index, tuple):
+            if len(index) not in (2, 3):
+                raise IndexError(f"an item expected (index, aspect) or (index, aspect, seed), got {len(index)} "
+                                 f"entries: {item!r}")
             index, aspect, *rest = index
-            if len(rest) > 1:
-                raise IndexError(f"an item expected (index, aspect) or (index, aspect, seed), got {len(rest) + 2} "
-                                 "entries")
-            seed = tuple(rest[0]) if rest else None
+            if not is_int(aspect):
+                raise TypeError(f"aspect index expected an int, got {aspect!r} in item {item!r}")
             if not 0 <= aspect < len(self.aspects):
-                raise IndexError(f"aspect index expected in [0, {len(self.aspects)}), got {aspect}")
+                raise IndexError(f"aspect index expected in [0, {len(self.aspects)}), got {aspect} in item {item!r}")
+            if rest:
+                seed = rest[0]
+                if not (isinstance(seed, (tuple, list)) and seed and all(is_int(v) and v >= 0 for v in seed)):
+                    raise TypeError(f"an item's seed expected a tuple of ints >= 0, got {seed!r} in item {item!r}")
+                seed = tuple(int(v) for v in seed)
         else:
             aspect = 0
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"index {index} out of range for {len(self)} pairs")
+        _check_index(index, len(self), "pairs", item)
         out_h, out_w = self.aspects[aspect]
         k, scene, i, j = self.items[index]
         reader = self._store.reader(k)
@@ -518,17 +543,13 @@ class MultiViewDataset(Dataset):
     def __init__(self, root, *, split: str = "all", val_percent: float = 2.0, verify: bool = True):
         if split not in SPLITS:
             raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
-        self.root, self.config, entries = _open_root(root, verify)
-        self._store = _ShardStore(self.root, entries)
+        self.root, self.config, self._store, scenes = _open_root(root, verify)
         seed = int(self.config.get("seed", 0))
         self.items = []
-        for k, _ in enumerate(entries):
-            r = self._store.reader(k)
-            for scene in r.scenes():
-                idx = int(scene.split("-")[1])
-                if split == "all" or _split_of(idx, seed, val_percent) == split:
-                    self.items.append((k, scene))
-        self._store._readers.clear()
+        for k, scene, _ in scenes:
+            idx = int(scene.split("-")[1])
+            if split == "all" or _split_of(idx, seed, val_percent) == split:
+                self.items.append((k, scene))
         if not self.items:
             raise ShardError(f"{self.root}: no scenes in split {split!r}")
 
@@ -536,8 +557,7 @@ class MultiViewDataset(Dataset):
         return len(self.items)
 
     def __getitem__(self, index):
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"index {index} out of range for {len(self)} scenes")
+        _check_index(index, len(self), "scenes", index)
         k, scene = self.items[index]
         reader = self._store.reader(k)
         meta = reader.meta(scene)

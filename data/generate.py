@@ -12,6 +12,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
@@ -20,29 +21,38 @@ from pathlib import Path
 import numpy as np
 
 from data.cameras import MOVES, CameraConfig, DegenerateScene, sample_views
-from data.geom import encode_corr
-from data.scene import make_scene
+from data.geom import CORR_MAX, encode_corr
+from data.scene import SCENE_VERSIONS, make_scene
 from data.shards import (
     FORMAT,
     ShardError,
+    ShardReader,
     completed_shards,
     json_bytes,
     load_json,
     npz_bytes,
     png_bytes,
     save_manifest,
+    scene_metas,
     sha256_file,
     shard_name,
     sidecar_name,
+    sidecar_problem,
     write_atomic,
     write_shard,
 )
 
 # Seeds in this range are reserved for held-out evaluation sets (data.heldout); training runs refuse them.
 RESERVED_SEEDS = range(2**31 - 1000, 2**31)
-GENERATOR_VERSION = 1
+# The scenes a run draws from its seeds (data.scene.SCENE_VERSIONS), stored in config.json: a run resumes, and a
+# held-out set renders again, with its own version (--generator-version); datasets read shards of every version.
+# 2: small objects stacked only on the flat tops they were drawn for (1 could put them on the chair placed next).
+GENERATOR_VERSION = SCENE_VERSIONS[-1]
 SCENE_ATTEMPTS = 8
 MAX_VIEWS = 64  # views per scene
+# the longest image side --kind pairs can store: correspondences are 1/64-px fixed point up to pixel CORR_MAX (data.geom)
+# and the last pixel centre of a side S is S - 1 (its far edge S - 0.5): 1024
+MAX_PAIR_SIZE = int(CORR_MAX + 0.5) // 16 * 16
 
 
 @dataclass(frozen=True)
@@ -75,6 +85,11 @@ class GenConfig:
             raise ValueError(f"views expected at most {MAX_VIEWS} per scene, got {self.views}")
         if self.size % 16:
             raise ValueError(f"size expected a multiple of 16, got {self.size}")
+        if self.version not in SCENE_VERSIONS:
+            raise ValueError(f"version expected a generator version of {SCENE_VERSIONS}, got {self.version!r}")
+        if self.kind == "pairs" and self.size > MAX_PAIR_SIZE:  # refused before anything is rendered or written
+            raise ValueError(f"size expected at most {MAX_PAIR_SIZE} with kind 'pairs' (correspondences are stored as "
+                             f"1/64-px fixed point up to pixel {CORR_MAX:.2f}, data.geom.CORR_MAX), got {self.size}")
         if not isinstance(self.seed, int) or self.seed < 0 or self.seed >= 2**31:
             raise ValueError(f"seed expected an int in [0, 2**31), got {self.seed!r}")
         if not 0 <= self.low_texture_share <= 1:
@@ -140,7 +155,7 @@ def render_scene(index: int, cfg: GenConfig, renderer):
     cam = cfg.camera()
     for attempt in range(SCENE_ATTEMPTS):
         scene = make_scene(rng, low_texture_share=cfg.low_texture_share, photos=cfg.photos(),
-                           photo_share=cfg.photo_share)
+                           photo_share=cfg.photo_share, version=cfg.version)
         try:
             vs = sample_views(rng, scene, renderer, cfg.views, cfg.size, cam)
         except DegenerateScene:
@@ -185,23 +200,33 @@ def render_shard(shard: int, cfg: GenConfig, out: Path, renderer, progress=None)
         n_views += len(meta["views"])
         if progress is not None:
             progress(1)
-    return write_shard(out, shard, members, (lo, hi), n_pairs, n_views)
+    return write_shard(out, shard, members, (lo, hi), n_pairs, n_views, seed=cfg.seed)
 
 
-def shard_is_complete(out: Path, shard: int) -> bool:
+def shard_is_complete(out: Path, shard: int, seed: int | None = None) -> bool:
+    """Shard ``shard`` of ``out`` is there, whole, and this run's: its sidecar is its own (``sidecar_problem``: its
+    index, its file name, its tar's name, and its format and seed where recorded), its tar matches the sidecar's
+    size and sha256, and, when ``seed`` is given, no scene in it was made with another seed (``scene_metas``)."""
     side, tar = out / sidecar_name(shard), out / shard_name(shard)
     if not (side.is_file() and tar.is_file()):
         return False
     try:
         entry = load_json(side)
-    except (OSError, ValueError, ShardError):
+        if sidecar_problem(side, entry, seed) is not None:
+            return False
+    except (OSError, ValueError, KeyError, TypeError, ShardError):
         return False
-    return tar.stat().st_size == entry.get("bytes") and sha256_file(tar) == entry.get("sha256")
+    if not (tar.stat().st_size == entry.get("bytes") and sha256_file(tar) == entry.get("sha256")):
+        return False
+    try:
+        return scene_metas(ShardReader(tar), entry, seed)[1] is None
+    except ShardError:
+        return False
 
 
 def write_manifest(out: Path, cfg: GenConfig) -> dict:
     """Rebuild ``manifest.json`` from the sidecars present (deterministic content, no timestamps)."""
-    entries, _ = completed_shards(out, verify=False, warn=False)
+    entries, _ = completed_shards(out, verify=False, warn=False, seed=cfg.seed)
     return save_manifest(out, cfg.to_dict(), entries, complete=len(entries) == cfg.n_shards)
 
 
@@ -215,6 +240,10 @@ def prepare_out(out: Path, cfg: GenConfig) -> None:
     want = cfg.to_dict()
     if path.exists():
         have = load_json(path)
+        if have.get("version") != want["version"]:
+            raise ShardError(f"{out} was rendered by generator version {have.get('version')!r}, this run asks for "
+                             f"version {want['version']} (other scenes from the same seeds): resume it with "
+                             f"--generator-version {have.get('version')!r}, or use a new --out")
         if have != want:
             diff = {k: (have.get(k), want.get(k)) for k in set(have) | set(want) if have.get(k) != want.get(k)}
             raise ShardError(f"{out} holds shards of another configuration (existing vs requested: {diff}); "
@@ -228,11 +257,14 @@ def _remove_stale_temps(out: Path) -> None:
     """Delete temporary files left by killed writers on this host (their process no longer exists)."""
     import socket
     host = socket.gethostname()
-    for tmp in out.glob(f".*.tmp-{host}-*"):
-        try:
-            pid = int(tmp.name.rsplit("-", 1)[1])
-        except ValueError:
+    # the whole name: ``.NAME.tmp-HOST-PID`` (data.shards._tmp_path); a glob on ``HOST-*`` also matched another
+    # host whose name starts with this one's (``vm-2`` for ``vm``) and deleted its temp files in flight
+    pattern = re.compile(rf"\..+\.tmp-{re.escape(host)}-(\d+)")
+    for tmp in out.glob(".*.tmp-*"):
+        m = pattern.fullmatch(tmp.name)
+        if m is None:
             continue
+        pid = int(m.group(1))
         try:
             os.kill(pid, 0)
             alive = pid != os.getpid()
@@ -285,7 +317,7 @@ def generate(out, cfg: GenConfig, *, shards: range | None = None, workers: int =
     shards = range(cfg.n_shards) if shards is None else shards
     if len(shards) and (shards.start < 0 or shards.stop > cfg.n_shards):
         raise ValueError(f"shard range {shards.start}:{shards.stop} outside 0:{cfg.n_shards}")
-    todo = [s for s in shards if not shard_is_complete(out, s)]
+    todo = [s for s in shards if not shard_is_complete(out, s, cfg.seed)]
     skipped = len(shards) - len(todo)
     n_scenes = sum(min((s + 1) * cfg.shard_size, cfg.scenes) - s * cfg.shard_size for s in todo)
     if skipped and log:
@@ -371,6 +403,9 @@ def build_parser():
                    help="share of scenes whose views are all taken with one camera (view 0's intrinsics); "
                         "the rest draw a field of view per view (data/cameras.py; default 0: renders as "
                         "before)")
+    p.add_argument("--generator-version", dest="generator_version", type=int, default=GENERATOR_VERSION,
+                   help=f"the scenes' generator version, one of {SCENE_VERSIONS} (default {GENERATOR_VERSION}, the "
+                        "latest): an older one renders (or resumes) a dataset made with it, scene for scene")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -409,7 +444,7 @@ def main(argv=None, *, _allow_reserved: bool = False) -> int:
                         shard_size=args.shard_size, seed=args.seed, low_texture_share=args.low_texture_share,
                         overlap_lo=args.overlap[0], overlap_hi=args.overlap[1], photo_share=args.photo_share,
                         photo_dirs=tuple(args.photo_dirs or ()), moves=parse_moves(args.moves),
-                        same_camera=args.same_camera_share)
+                        same_camera=args.same_camera_share, version=args.generator_version)
         if cfg.photo_share > 0:
             try:
                 fingerprint = cfg.photos().fingerprint

@@ -16,6 +16,7 @@ import numpy as np
 
 from data.geom import decode_corr
 from data.shards import ShardError, ShardReader
+from pointmap.errors import is_int
 
 TILE = 160
 
@@ -69,7 +70,12 @@ def _label(tile, text):
 
 
 def contact_sheet(shard_path, *, max_rows: int = 8, seed: int = 0) -> np.ndarray:
-    """The contact sheet image (uint8 RGB) of a shard."""
+    """The contact sheet image (uint8 RGB) of a shard: at most ``max_rows`` rows (an int >= 1), pairs and
+    correspondence lines drawn with ``seed`` (an int >= 0); ValueError naming the argument otherwise."""
+    if not (is_int(max_rows) and max_rows >= 1):
+        raise ValueError(f"max_rows expected an int >= 1, got {max_rows!r}")
+    if not (is_int(seed) and seed >= 0):
+        raise ValueError(f"seed expected an int >= 0, got {seed!r}")
     reader = ShardReader(shard_path)
     rng = np.random.default_rng(seed)
     rows = []
@@ -107,10 +113,12 @@ def main(argv=None) -> int:
     p.add_argument("shard", help="a shard-NNNNNN.tar file")
     p.add_argument("-o", "--out", required=True, help="output PNG")
     p.add_argument("--rows", type=int, default=8)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="which pairs and correspondences are drawn (an int >= 0)")
     args = p.parse_args(argv)
     if args.rows < 1:
         p.error(f"--rows expected >= 1, got {args.rows}")
+    if args.seed < 0:
+        p.error(f"--seed expected an int >= 0, got {args.seed}")
     try:
         if not Path(args.shard).is_file():
             raise ShardError(f"{args.shard} does not exist")

@@ -18,6 +18,7 @@ import trimesh
 from data.textures import photo_texture, random_color, random_texture
 
 KINDS = ("room", "cluster", "courtyard")
+SCENE_VERSIONS = (1, 2)  # the scene versions make_scene draws (data.generate.GENERATOR_VERSION is the last)
 DEFAULT_KIND_WEIGHTS = {"room": 0.4, "cluster": 0.35, "courtyard": 0.25}
 
 
@@ -488,10 +489,12 @@ def _footprint_radius(parts):
 def _place_discs(rng, parts_list, lo, hi, placed, margin=0.05, tries=60, against=None):
     """Place objects (given as part lists) at random x/y in [lo, hi] without overlapping bounding circles.
 
-    ``placed`` holds (x, y, r) of circles already on the ground; returns [(parts, pose, (x, y, r))].
+    ``placed`` holds (x, y, r) of circles already on the ground; returns [(k, parts, pose, (x, y, r))] for the
+    objects placed, ``k`` the object's index in ``parts_list``: an object that finds no room is left out, so the
+    output is not parallel to ``parts_list`` (zipping the two gave an object another one's flags).
     """
     out = []
-    for parts in parts_list:
+    for k, parts in enumerate(parts_list):
         r, _ = _footprint_radius(parts)
         for _ in range(tries):
             x, y = rng.uniform(lo[0] + r, hi[0] - r) if hi[0] - lo[0] > 2 * r else None, \
@@ -503,7 +506,7 @@ def _place_discs(rng, parts_list, lo, hi, placed, margin=0.05, tries=60, against
                 pose = trimesh.transformations.rotation_matrix(yaw, [0, 0, 1])
                 pose[:3, 3] = [x, y, 0]
                 placed.append((x, y, r))
-                out.append((parts, pose, (x, y, r)))
+                out.append((k, parts, pose, (x, y, r)))
                 break
     return out
 
@@ -518,7 +521,7 @@ def _stack_small_on(rng, b: _Builder, top_lo, top_hi, n):
     for _ in range(n):
         parts, _ = _pick(rng, SMALL_OBJECTS)(rng, size * rng.uniform(0.25, 0.5))
         objs.append(parts)
-    for parts, pose, _ in _place_discs(rng, objs, top_lo[:2], top_hi[:2], placed, margin=0.01, tries=20):
+    for _, parts, pose, _ in _place_discs(rng, objs, top_lo[:2], top_hi[:2], placed, margin=0.01, tries=20):
         pose[2, 3] = top_hi[2]
         b.add_object(parts, pose)
 
@@ -552,7 +555,13 @@ def _wall_with_openings(length, height, thick, openings):
     return meshes
 
 
-def _room(rng, b: _Builder):
+def _flag_source(k: int, n_placed: int, version: int) -> int:
+    """Whose flat-top flag the ``n_placed``-th placed object (object ``k`` of the list) takes: its own (version 2),
+    or version 1's, the ``n_placed``-th object's (once an object found no room, the next inherited another's)."""
+    return k if version >= 2 else n_placed
+
+
+def _room(rng, b: _Builder, version: int = 2):
     W, D, H = rng.uniform(3.0, 8.0), rng.uniform(3.0, 7.0), rng.uniform(2.4, 3.4)
     t = 0.12
     floor_mat, wall_mat, ceil_mat = b.material(), b.material(), b.material()
@@ -604,9 +613,9 @@ def _room(rng, b: _Builder):
     objs = [(_pick(rng, FURNITURE), ) for _ in range(n)]
     built = [f[0](rng) for f in objs]
     against = face_center if rng.random() < 0.6 else None
-    for (parts, pose, _), (_, flat) in zip(_place_discs(rng, [p for p, _ in built], (0.05, 0.05), (W - 0.05, D - 0.05),
-                                                        placed, against=against),
-                                           built):
+    for n_placed, (k, parts, pose, _) in enumerate(_place_discs(rng, [p for p, _ in built], (0.05, 0.05),
+                                                                (W - 0.05, D - 0.05), placed, against=against)):
+        flat = built[_flag_source(k, n_placed, version)][1]  # only a flat top takes small objects
         lo, hi = b.add_object(parts, pose)
         if flat and rng.random() < 0.7:
             top_lo = lo.copy()
@@ -641,7 +650,7 @@ def _room(rng, b: _Builder):
     return lights, lo, hi, float(np.hypot(W, D) + 25 * any_window)
 
 
-def _cluster(rng, b: _Builder):
+def _cluster(rng, b: _Builder, version: int = 2):
     R = rng.uniform(1.0, 4.0)
     _ground(b, 40.0)
     placed = []
@@ -651,8 +660,9 @@ def _cluster(rng, b: _Builder):
         s = rng.uniform(0.25, 1.4) * R / 2.5
         parts, flat = _pick(rng, SMALL_OBJECTS + [(obj_table, 0.05), (obj_cabinet, 0.05), (obj_chair, 0.03)])(rng, s)
         objs.append((parts, flat))
-    for (parts, pose, _), (_, flat) in zip(_place_discs(rng, [p for p, _ in objs], (-R, -R), (R, R), placed,
-                                                        margin=rng.uniform(0.02, 0.3)), objs):
+    for n_placed, (k, parts, pose, _) in enumerate(_place_discs(rng, [p for p, _ in objs], (-R, -R), (R, R), placed,
+                                                                margin=rng.uniform(0.02, 0.3))):
+        flat = objs[_flag_source(k, n_placed, version)][1]
         lo, hi = b.add_object(parts, pose)
         if flat and rng.random() < 0.5:
             shrink = 0.1 * (hi - lo)
@@ -697,8 +707,8 @@ def _courtyard(rng, b: _Builder):
             x += w + (rng.uniform(0.5, 3) if rng.random() < 0.3 else 0.0)
     placed = []
     objs = [_pick(rng, OUTDOOR)(rng, rng.uniform(0.4, 1.5)) for _ in range(int(rng.integers(5, 16)))]
-    for (parts, pose, _), _flat in zip(_place_discs(rng, [p for p, _ in objs], (-Lx / 2 + 0.5, -Ly / 2 + 0.5),
-                                                    (Lx / 2 - 0.5, Ly / 2 - 0.5), placed, margin=0.3), objs):
+    for _, parts, pose, _ in _place_discs(rng, [p for p, _ in objs], (-Lx / 2 + 0.5, -Ly / 2 + 0.5),
+                                          (Lx / 2 - 0.5, Ly / 2 - 0.5), placed, margin=0.3):
         b.add_object(parts, pose)
     lights = _outdoor_lights(rng)
     lo = np.array([-Lx / 2 + 0.3, -Ly / 2 + 0.3, 1.0])
@@ -733,17 +743,22 @@ def _outdoor_lights(rng):
 
 def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture_share: float = 0.15,
                kind_weights: dict | None = None, texture_size: int = 256, photos=None,
-               photo_share: float = 0.0) -> Scene:
+               photo_share: float = 0.0, version: int = SCENE_VERSIONS[-1]) -> Scene:
     """Draw one procedural scene.
 
     kind: "room", "cluster", "courtyard" or None (drawn with ``kind_weights``).
     low_texture_share: probability in [0, 1] that the scene is low-texture (mostly plain colours).
     photos, photo_share: a data.textures.PhotoCollection and the share of textures cut from its photographs.
+    version: the generator version whose scenes to draw (``SCENE_VERSIONS``; data.generate.GENERATOR_VERSION):
+    2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets hold
+    (held-out sets rendered with it render again identically).
     """
     if not 0.0 <= float(photo_share) <= 1.0:
         raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
     if photo_share > 0 and photos is None:
         raise ValueError("photo_share > 0 needs photos (a data.textures.PhotoCollection)")
+    if version not in SCENE_VERSIONS:
+        raise ValueError(f"version expected one of {SCENE_VERSIONS}, got {version!r}")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng expected a numpy.random.Generator, got {type(rng).__name__}")
     if not 0.0 <= float(low_texture_share) <= 1.0:
@@ -759,7 +774,8 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
         raise ValueError(f"scene kind expected one of {KINDS}, got {kind!r}")
     low = bool(rng.random() < low_texture_share)
     b = _Builder(rng, low, texture_size, photos, photo_share)
-    lights, lo, hi, extent = {"room": _room, "cluster": _cluster, "courtyard": _courtyard}[kind](rng, b)
+    build = {"room": _room, "cluster": _cluster, "courtyard": _courtyard}[kind]
+    lights, lo, hi, extent = build(rng, b) if kind == "courtyard" else build(rng, b, version)
     if not b.targets:
         b.targets.append((lo + hi) / 2)
         b.radii.append(1.0)

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pointmap.errors import PointmapError
+from pointmap.errors import PointmapError, is_int
 
 FORMAT = "pointmap-synth/1"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
@@ -123,15 +123,18 @@ def tar_bytes(members: list) -> bytes:
     return out.getvalue()
 
 
-def write_shard(out, index: int, members: list, scenes: tuple, pairs: int, views: int) -> dict:
+def write_shard(out, index: int, members: list, scenes: tuple, pairs: int, views: int, *, seed=None) -> dict:
     """Write shard ``index`` of ``out`` atomically, its tar first, then its sidecar (what ``completed_shards``
-    reads). ``members``: (name, bytes) as ``tar_bytes`` takes them; ``scenes``: its [lo, hi) scene range. Returns
-    the sidecar entry."""
+    reads). ``members``: (name, bytes) as ``tar_bytes`` takes them; ``scenes``: its [lo, hi) scene range; ``seed``:
+    the run's seed (config.json's), recorded with the format so a shard copied in from another run is told apart.
+    Returns the sidecar entry."""
     out = Path(out)
     data = tar_bytes(members)
     write_atomic(out / shard_name(index), data)
     entry = {"index": index, "name": shard_name(index), "sha256": sha256_bytes(data), "bytes": len(data),
-             "scenes": list(scenes), "pairs": pairs, "views": views}
+             "scenes": list(scenes), "pairs": pairs, "views": views, "format": FORMAT}
+    if seed is not None:
+        entry["seed"] = seed
     write_atomic(out / sidecar_name(index), json_bytes(entry))
     return entry
 
@@ -222,7 +225,19 @@ class ShardReader:
         return seen
 
     def meta(self, scene: str) -> dict:
-        return json.loads(self.read(f"{scene}/meta.json"))
+        """Scene ``scene``'s ``meta.json``, a JSON object; ShardError naming the shard and the member when it is not
+        UTF-8 JSON or not an object."""
+        name = f"{scene}/meta.json"
+        data = self.read(name)
+        try:
+            value = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ShardError(f"shard {self.path}: member {name!r} is not valid UTF-8 JSON "
+                             f"({e.__class__.__name__}: {e})") from None
+        if not isinstance(value, dict):
+            raise ShardError(f"shard {self.path}: member {name!r} expected a JSON object, got "
+                             f"{type(value).__name__}")
+        return value
 
 
 def load_json(path) -> dict:
@@ -238,24 +253,75 @@ def load_json(path) -> dict:
     return value
 
 
-def completed_shards(root, *, verify: bool = True, warn: bool = True) -> tuple[list[dict], list[str]]:
+def sidecar_problem(side, entry: dict, seed=None) -> str | None:
+    """Why the sidecar file ``side`` (its JSON object ``entry``) does not describe a shard of its own folder's run,
+    or None. Its ``index`` must be an int >= 0, its own file name ``sidecar_name(index)`` and its ``name``
+    ``shard_name(index)``: a sidecar copied under another name (a stray copy of shard 0 as ``shard-000007.json``)
+    or naming a tar elsewhere describes another shard. ``format`` and ``seed``, which newer sidecars record, must
+    be this format and ``seed`` (config.json's; None: not checked) when present; sidecars written before they were
+    recorded are accepted. KeyError when ``index`` or ``name`` is missing."""
+    side = Path(side)
+    index, name = entry["index"], entry["name"]
+    if not is_int(index) or index < 0:
+        return f"{side.name}: index expected an int >= 0, got {index!r}"
+    if side.name != sidecar_name(index):
+        return (f"{side.name}: describes shard {index}, whose sidecar is {sidecar_name(index)}, not {side.name} "
+                "(a stray or renamed copy)")
+    if name != shard_name(index):
+        return f"{side.name}: tar name expected {shard_name(index)!r} (shard {index}), got {name!r}"
+    if "format" in entry and entry["format"] != FORMAT:
+        return f"{side.name}: format expected {FORMAT!r}, got {entry['format']!r}"
+    if seed is not None and "seed" in entry and entry["seed"] != seed:
+        return (f"{side.name}: made by a run with seed {entry['seed']!r}, but config.json has seed {seed!r} "
+                "(a shard of another run)")
+    return None
+
+
+def scene_metas(reader: ShardReader, entry: dict, seed=None) -> tuple[list[tuple[str, dict]], str | None]:
+    """``(scene, meta)`` of every scene in the shard ``reader`` (stored order) whose sidecar is ``entry``, and why the
+    shard does not belong to the run with ``seed`` (config.json's; None: not checked), or None: a scene whose
+    ``meta.json`` carries another ``seed``, or a scene index outside the sidecar's ``scenes`` [lo, hi). (A shard
+    rendered by another run and given a sidecar, or renamed, passes its checksum; its scenes tell.) ShardError for
+    a ``meta.json`` that cannot be read."""
+    out = []
+    lo_hi = entry.get("scenes")
+    span = tuple(lo_hi) if isinstance(lo_hi, list) and len(lo_hi) == 2 and all(is_int(v) for v in lo_hi) else None
+    for scene in reader.scenes():
+        meta = reader.meta(scene)
+        if seed is not None and "seed" in meta and meta["seed"] != seed:
+            return out, (f"{reader.path.name}: {scene} was made with seed {meta['seed']!r}, but config.json has seed "
+                         f"{seed!r} (a shard of another run)")
+        index = meta.get("scene")
+        if span is not None and is_int(index) and not span[0] <= index < span[1]:
+            return out, (f"{reader.path.name}: {scene} is scene {index}, outside its sidecar's scenes "
+                         f"[{span[0]}, {span[1]}) (a shard renamed from another index)")
+        out.append((scene, meta))
+    return out, None
+
+
+def completed_shards(root, *, verify: bool = True, warn: bool = True, seed=None) -> tuple[list[dict], list[str]]:
     """Sidecars of the shards in ``root`` that are complete and (if ``verify``) match their sha256.
 
     Returns (good entries sorted by index, problems). Problems (missing tar, size or checksum
-    mismatch, unreadable sidecar) are reported with a warning and the shard is left out.
+    mismatch, unreadable sidecar, a sidecar that is not its own shard's or, when ``seed`` is given, records
+    another run's seed: ``sidecar_problem``) are reported with a warning and the shard is left out.
     """
     root = Path(root)
     good, problems = [], []
     for side in sorted(root.glob("shard-*.json")):
         try:
             entry = load_json(side)
-            tar = root / entry["name"]
-            missing = sorted({"index", "bytes", "sha256"} - set(entry))
+            missing = sorted({"index", "name", "bytes", "sha256"} - set(entry))
             if missing:
                 raise KeyError(", ".join(missing))
+            problem = sidecar_problem(side, entry, seed)
         except (OSError, ValueError, KeyError, TypeError, ShardError) as e:
             problems.append(f"{side.name}: unreadable sidecar ({e.__class__.__name__}: {e})")
             continue
+        if problem is not None:
+            problems.append(f"{problem}; not used")
+            continue
+        tar = root / entry["name"]
         if not tar.is_file():
             problems.append(f"{entry['name']}: listed but missing")
             continue

@@ -2,12 +2,20 @@
 
 Reads only the scenes' metadata (no image is decoded) and prints, one column per root, the shares a training
 set and a held-out set should be compared on before any training: scene kinds, low-texture scenes, the camera
-move that made view 2, the rotation between the two cameras (binned as ``training.evaluate`` scores it), their
-co-visible overlap, and how often the two views have different focal lengths. A training set whose rotation
-histogram sits well left of the held-out one's cannot be expected to score wide-baseline pairs (docs/data.md).
+move that made each pair's later view, the rotation between the two cameras (binned as ``training.evaluate``
+scores it), their co-visible overlap, and how often the two views have different focal lengths. A training set
+whose rotation histogram sits well left of the held-out one's cannot be expected to score wide-baseline pairs
+(docs/data.md).
 
-Statistics are over pairs as ``data.datasets.PairDataset`` serves them (the pairs the engine kept, each once,
-in the stored order; the loader's random order swap changes no statistic here).
+Statistics are over pairs as ``data.datasets.PairDataset`` stores them: the pairs (i, j), i < j, the engine kept,
+each once, in the stored order. The loader's random order swap (view j served first, with probability
+``swap_p``) changes none of kind, low-texture, rotation, overlap (the smaller of the two directions) and focal
+ratio, which are the same either way round; "view 2 by move" counts the move stored with view j, the stored
+order's view 2, whichever view the loader serves second. That move is how view j was made from its own reference
+view (its ``ref``), which is the pair's view i only when ``ref == i``: in a set of three or more views a pair can
+join view j to a view it was not made from (two views made from a third one, or view j made from a view made from
+view i). So the statistic says which moves made the views that ended up as a pair's later view, not the motion
+between the pair's two views (the rotation and overlap statistics measure that).
 """
 
 from __future__ import annotations
@@ -28,8 +36,8 @@ FOCAL_RATIO = 1.01  # above this, the two views' focal lengths count as differen
 
 
 def pair_records(root, split: str = "all", verify: bool = False) -> dict:
-    """Per-pair arrays of a ``--kind pairs`` root: ``kind`` (str), ``low_texture`` (bool), ``move`` (str, how view 2
-    was made), ``rotation_deg``, ``overlap`` (min of the two directions), ``focal_ratio`` (>= 1), ``scene`` (int);
+    """Per-pair arrays of a ``--kind pairs`` root: ``kind`` (str), ``low_texture`` (bool), ``move`` (str, the move stored with
+    view j: how it was made from its own reference view, not necessarily from view i), ``rotation_deg``, ``overlap`` (min of the two directions), ``focal_ratio`` (>= 1), ``scene`` (int);
     plus ``scenes`` (the number of distinct scenes). ShardError (one line) for a root that is not a pair set."""
     from data.datasets import PairDataset, camera_rotations_deg, pair_views
 

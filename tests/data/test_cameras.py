@@ -94,3 +94,17 @@ def test_the_same_camera_share_is_stored_only_when_used_and_bad_shares_are_refus
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="same_camera expected a share"):
             GenConfig(scenes=1, same_camera=bad)
+
+
+def test_a_pair_whose_larger_overlap_exceeds_hi_is_kept_and_the_docs_say_so():
+    from pathlib import Path
+
+    from data.cameras import ViewSet
+
+    zoomed_out = ViewSet(views=[None, None], overlap=np.array([[1.0, 0.99], [0.50, 1.0]]))
+    assert zoomed_out.pairs(0.15, 0.95) == [(0, 1)]  # only the smaller direction has to be <= HI
+    assert ViewSet(views=[None, None], overlap=np.array([[1.0, 0.99], [0.97, 1.0]])).pairs(0.15, 0.95) == []
+    assert ViewSet(views=[None, None], overlap=np.array([[1.0, 0.5], [0.1, 1.0]])).pairs(0.15, 0.95) == []
+    doc = " ".join((Path(__file__).resolve().parents[2] / "docs" / "data.md").read_text().split())
+    assert "in either direction" not in doc and "(both directions) is stored" not in doc
+    assert "both directions must be at least LO, and the smaller of the two at most HI" in doc

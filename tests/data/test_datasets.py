@@ -364,3 +364,152 @@ def test_an_item_with_a_seed_is_augmented_the_same_whatever_the_processs_seed(ti
     c = ds[(2, 0, (5, 7, 12))]
     assert all(torch.equal(a[v]["img"], b[v]["img"]) for v in (0, 1))
     assert not all(torch.equal(a[v]["img"], c[v]["img"]) for v in (0, 1))  # another place: another augmentation
+
+
+def _copy_with_shard0_rewritten(src, dst, edit_meta=None, tar_from=None, sidecar=None):
+    """A copy of the dataset ``src`` whose shard 0 tar is rebuilt (each scene's meta.json passed through ``edit_meta``,
+    or the members of ``tar_from`` taken whole) under a sidecar as the code before format and seed were recorded
+    wrote it (``sidecar`` edits it further): a shard that passes its checksum but is not this run's."""
+    import json
+    import shutil
+
+    from data.shards import ShardReader, json_bytes, sha256_bytes, tar_bytes
+
+    shutil.copytree(src, dst)
+    reader = ShardReader(dst / (tar_from or "shard-000000.tar"))
+    members = []
+    for name in reader.names():
+        data = reader.read(name)
+        if edit_meta is not None and name.endswith("/meta.json"):
+            data = json_bytes(edit_meta(json.loads(data)))
+        members.append((name, data))
+    data = tar_bytes(members)
+    (dst / "shard-000000.tar").write_bytes(data)
+    entry = json.loads((dst / "shard-000000.json").read_text())
+    entry.pop("format", None), entry.pop("seed", None)
+    entry.update(sha256=sha256_bytes(data), bytes=len(data), **(sidecar or {}))
+    (dst / "shard-000000.json").write_bytes(json_bytes(entry))
+    return dst
+
+
+def test_a_shard_of_another_seed_under_a_matching_sidecar_is_left_out_with_a_warning_naming_both_seeds(tiny_pairs,
+                                                                                                         tmp_path):
+    from data.generate import shard_is_complete
+
+    all_pairs = PairDataset(tiny_pairs, size=64, split="all")
+    foreign = _copy_with_shard0_rewritten(tiny_pairs, tmp_path / "foreign", edit_meta=lambda m: {**m, "seed": 8})
+    with pytest.warns(UserWarning, match="shard-000000.tar: scene-00000000 was made with seed 8, but config.json has "
+                                         "seed 7"):
+        ds = PairDataset(foreign, size=64, split="all")
+    assert len(ds) < len(all_pairs) and {ds.items[n][1] for n in range(len(ds))} == {"scene-00000002",
+                                                                                      "scene-00000003"}
+    assert all(ds[n][0]["scene"].startswith("7:") for n in range(len(ds)))
+    with pytest.warns(UserWarning, match="seed 8"):
+        assert [s for _, s in MultiViewDataset(foreign).items] == ["scene-00000002", "scene-00000003"]
+    assert not shard_is_complete(foreign, 0, 7) and shard_is_complete(foreign, 1, 7)  # the generator renders it again
+    # a newer sidecar records its run's seed: told apart without opening the tar
+    other = _copy_with_shard0_rewritten(tiny_pairs, tmp_path / "other", sidecar={"seed": 8})
+    with pytest.warns(UserWarning, match="shard-000000.json: made by a run with seed 8, but config.json has seed 7"):
+        assert len(PairDataset(other, size=64, split="all")) == len(ds)
+    assert not shard_is_complete(other, 0, 7)
+
+
+def test_a_tar_of_another_shard_index_under_a_sidecar_is_left_out_naming_the_scene_outside_its_range(tiny_pairs,
+                                                                                                      tmp_path):
+    moved = _copy_with_shard0_rewritten(tiny_pairs, tmp_path / "moved", tar_from="shard-000001.tar")
+    with pytest.warns(UserWarning, match=r"scene-00000002 is scene 2, outside its sidecar's scenes \[0, 2\)"):
+        mv = MultiViewDataset(moved)
+    assert [s for _, s in mv.items] == ["scene-00000002", "scene-00000003"]  # each scene once
+
+
+def test_a_stray_sidecar_copy_or_one_naming_a_tar_elsewhere_is_left_out_and_no_scene_is_read_twice(tiny_pairs,
+                                                                                                   tmp_path):
+    import json
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_pairs, copy)
+    n_pairs = len(PairDataset(tiny_pairs, size=64, split="all"))
+    shutil.copy(copy / "shard-000000.json", copy / "shard-000007.json")  # a stray copy: names shard 0
+    with pytest.warns(UserWarning, match="shard-000007.json: describes shard 0, whose sidecar is shard-000000.json"):
+        ds = PairDataset(copy, size=64, split="all")
+    assert len(ds) == n_pairs
+    with pytest.warns(UserWarning, match="shard-000007.json"):
+        scenes = [s for _, s in MultiViewDataset(copy).items]
+    assert scenes == sorted(set(scenes)) and len(scenes) == 4
+    (copy / "shard-000007.json").unlink()
+    elsewhere = tmp_path / "elsewhere"  # a sidecar whose name points out of the folder
+    shutil.copytree(tiny_pairs, elsewhere / "sub")
+    entry = json.loads((copy / "shard-000000.json").read_text())
+    (copy / "shard-000000.json").write_text(json.dumps({**entry, "name": "../elsewhere/sub/shard-000000.tar"}))
+    with pytest.warns(UserWarning, match=r"shard-000000.json: tar name expected 'shard-000000.tar' \(shard 0\), got "
+                                         r"'../elsewhere/sub/shard-000000.tar'"):
+        assert [s for _, s in MultiViewDataset(copy).items] == ["scene-00000002", "scene-00000003"]
+
+
+def test_shards_whose_sidecars_predate_the_recorded_format_and_seed_read_as_before(tiny_pairs, tmp_path):
+    import json
+    import shutil
+    import warnings
+
+    legacy = tmp_path / "legacy"
+    shutil.copytree(tiny_pairs, legacy)
+    for side in legacy.glob("shard-*.json"):
+        entry = json.loads(side.read_text())
+        assert entry["seed"] == 7 and entry["format"] == "pointmap-synth/1"  # what a new run records
+        side.write_text(json.dumps({k: v for k, v in entry.items() if k not in ("seed", "format")}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = PairDataset(legacy, size=64, split="all")
+        assert ds.items == PairDataset(tiny_pairs, size=64, split="all").items and len(MultiViewDataset(legacy)) == 4
+
+
+def test_a_scene_meta_that_is_not_utf8_json_or_not_an_object_is_a_shard_error_naming_the_shard_and_the_member(
+        tmp_path):
+    from data.shards import ShardReader, tar_bytes
+
+    path = tmp_path / "shard-000000.tar"
+    path.write_bytes(tar_bytes([("scene-1/meta.json", b"\xff{}"), ("scene-2/meta.json", b'{"seed": '),
+                                ("scene-3/meta.json", b"[1, 2]"), ("scene-4/meta.json", b'{"seed": 1}')]))
+    reader = ShardReader(path)
+    for scene, what in (("scene-1", "is not valid UTF-8 JSON"), ("scene-2", "is not valid UTF-8 JSON"),
+                        ("scene-3", "expected a JSON object, got list")):
+        with pytest.raises(ShardError, match=f"shard-000000.tar: member '{scene}/meta.json' {what}"):
+            reader.meta(scene)
+    assert reader.meta("scene-4") == {"seed": 1}
+
+
+def test_an_item_that_is_a_bool_a_float_or_a_malformed_tuple_is_refused_naming_the_item(tiny_pairs):
+    ds = PairDataset(tiny_pairs, size=64, split="all")
+    for key, error, text in ((True, TypeError, "index expected an int, got bool True"),
+                             (1.5, TypeError, "index expected an int, got float 1.5"),
+                             ((0, True), TypeError, r"aspect index expected an int, got True in item \(0, True\)"),
+                             ((0, 1.0), TypeError, r"aspect index expected an int, got 1.0"),
+                             ((0.0, 0), TypeError, r"index expected an int, got float 0.0 in item \(0.0, 0\)"),
+                             ((0, 0, 7), TypeError, r"seed expected a tuple of ints >= 0, got 7 in item \(0, 0, 7\)"),
+                             ((0, 0, (-1,)), TypeError, r"seed expected a tuple of ints >= 0, got \(-1,\)"),
+                             ((0, 0, ()), TypeError, r"seed expected a tuple of ints >= 0, got \(\)"),
+                             ((0,), IndexError, r"\(index, aspect\) or \(index, aspect, seed\), got 1 entries"),
+                             ((0, 5), IndexError, r"aspect index expected in \[0, 3\), got 5 in item \(0, 5\)"),
+                             ((len(ds), 0), IndexError, f"index {len(ds)} out of range for {len(ds)} pairs")):
+        with pytest.raises(error, match=text):
+            ds[key]
+    assert ds[(np.int64(0), np.int64(1), [1, 2])][0]["img"].shape == ds[(0, 1, (1, 2))][0]["img"].shape
+    mv = MultiViewDataset(tiny_pairs)
+    with pytest.raises(TypeError, match="index expected an int, got bool False"):
+        mv[False]
+    with pytest.raises(IndexError, match="index 4 out of range for 4 scenes"):
+        mv[4]
+
+
+def test_the_module_docstring_calls_the_datasets_with_the_arguments_they_take():
+    import inspect
+    import re
+
+    import data.datasets as D
+
+    for cls in (D.PairDataset, D.MultiViewDataset):
+        call = re.search(rf"``{cls.__name__}\((.*?)\)``", D.__doc__, re.S)
+        assert call is not None
+        named = re.findall(r"(\w+)=", call.group(1))
+        assert set(named) <= set(inspect.signature(cls).parameters), (cls.__name__, named)

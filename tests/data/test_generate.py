@@ -4,6 +4,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -140,3 +141,62 @@ def test_cli_refuses_an_output_path_that_is_a_file_in_one_line(tmp_path, capsys)
     assert main(["--out", str(tmp_path / "taken"), "--scenes", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--out expected a folder for the dataset" in err[0]
+
+
+def test_stale_temp_removal_leaves_the_temps_of_a_host_whose_name_starts_with_this_ones(tmp_path, monkeypatch):
+    import socket
+
+    from data.generate import _remove_stale_temps
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid no process has any more (here)
+    monkeypatch.setattr(socket, "gethostname", lambda: "vm")
+    ours = tmp_path / f".shard-000001.tar.tmp-vm-{dead.pid}"           # this host's, its writer gone: removed
+    other = tmp_path / f".shard-000003.tar.tmp-vm-2-{dead.pid}"        # host "vm-2"'s, in flight there: kept
+    dotted = tmp_path / f".shard-000004.tar.tmp-vm.lan-{dead.pid}"     # host "vm.lan"'s: kept
+    for p in (ours, other, dotted):
+        p.write_bytes(b"in flight")
+    _remove_stale_temps(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, dotted.name])
+    monkeypatch.setattr(socket, "gethostname", lambda: "vm-2")  # on its own host, vm-2 removes its dead writer's
+    _remove_stale_temps(tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == [dotted.name]
+
+
+def test_a_pair_size_the_correspondence_format_cannot_hold_is_refused_before_anything_is_written(tmp_path, capsys):
+    from data.geom import CORR_MAX
+
+    with pytest.raises(ValueError, match=r"size expected at most 1024 with kind 'pairs' .*, got 1040"):
+        GenConfig(kind="pairs", scenes=1, size=1040)
+    assert GenConfig(kind="pairs", scenes=1, size=1024).size - 0.5 <= CORR_MAX  # the last pixel's far edge fits
+    assert GenConfig(kind="views", scenes=1, size=1040).size == 1040  # view sets store no correspondences
+    out = tmp_path / "big"
+    assert main(["--out", str(out), "--scenes", "1", "--size", "1040", "--quiet"]) == 2
+    assert "size expected at most 1024" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_run_of_an_older_generator_version_resumes_only_with_that_version_and_a_heldout_set_keeps_its_own(
+        tmp_path, capsys):
+    import data
+    from data.generate import GENERATOR_VERSION
+
+    old = GENERATOR_VERSION - 1
+    cfg = GenConfig(kind="views", scenes=2, views=1, size=64, seed=1, shard_size=1, version=old)
+    generate(tmp_path / "run", cfg, shards=range(1), progress=False, log=None)  # one of its two shards, then stopped
+    before = _files(tmp_path / "run")
+    with pytest.raises(ShardError, match=f"rendered by generator version {old}, this run asks for version "
+                                         f"{GENERATOR_VERSION}.*resume it with --generator-version {old}"):
+        generate(tmp_path / "run", replace(cfg, version=GENERATOR_VERSION), progress=False, log=None)
+    assert _files(tmp_path / "run") == before
+    assert main(["--out", str(tmp_path / "run"), "--kind", "views", "--scenes", "2", "--views", "1", "--size", "64",
+                 "--seed", "1", "--shard-size", "1", "--generator-version", str(old), "--quiet"]) == 0
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["complete"]
+    with pytest.raises(ValueError, match="version expected a generator version of"):
+        GenConfig(kind="views", scenes=1, version=GENERATOR_VERSION + 1)
+    held = tmp_path / "older" / "heldout-views-64"  # a held-out set the older code rendered: read with its version
+    generate(held, GenConfig(kind="views", scenes=1, views=2, size=64, shard_size=1, seed=data.HELDOUT_SEED,
+                             version=old), progress=False, log=None)
+    before = _files(held)
+    assert data.heldout(tmp_path / "older", kind="views", size=64, scenes=1, views=2).config["version"] == old
+    assert _files(held) == before
+    assert data.heldout(tmp_path, kind="views", size=64, scenes=1, views=2).config["version"] == GENERATOR_VERSION

@@ -60,3 +60,20 @@ def test_cli_prints_one_column_per_set_and_refuses_what_is_not_a_pair_set(tiny_p
     assert main([str(empty)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {empty}") and len(err.strip().splitlines()) == 1
+
+
+def test_the_move_statistic_counts_view_js_own_move_and_the_docs_say_it_need_not_be_from_view_i(tiny_pairs):
+    import data.stats
+
+    rec = pair_records(tiny_pairs)
+    ds = PairDataset(tiny_pairs, size=64, augment=False, split="all")
+    from data.datasets import pair_views
+
+    refs = []
+    for n, (meta, i, j) in enumerate(pair_views(ds)):
+        assert rec["move"][n] == meta["views"][j]["move"]  # view j's own move, whatever view it was made from
+        refs.append(meta["views"][j]["ref"] == i)
+    assert not all(refs)  # some pair joins view j to a view it was not made from: the move is not the pair's motion
+    doc = " ".join(data.stats.__doc__.split())
+    assert "changes no statistic" not in doc and "only when ``ref == i``" in doc
+    assert "not necessarily from view i" in " ".join(pair_records.__doc__.split())
