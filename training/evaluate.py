@@ -267,6 +267,16 @@ def match_precision(pred, corr: torch.Tensor, tol: float = 3.0) -> float:
     return float((err < tol).float().mean())
 
 
+def _median(values) -> float:
+    """The median of ``values`` (a list or tensor), NaN left out, the mean of the two middle values for an even
+    count (torch's median takes the lower one); NaN when nothing is left."""
+    import numpy as np
+
+    x = np.asarray(torch.as_tensor(values, dtype=torch.float64).reshape(-1))
+    x = x[~np.isnan(x)]
+    return float(np.median(x)) if x.size else float("nan")
+
+
 def coarse_match_labels(m, corr: torch.Tensor, valid: torch.Tensor, tol: float) -> torch.Tensor:
     """[M] labels of the matches ``m`` (xy1 in view 1's pixels) against view 1's ground truth: 1.0 where the true
     correspondence of xy1 is within ``tol`` px of xy2, 0.0 where it is farther or where xy1 has valid depth but no
@@ -401,24 +411,24 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
         nan = float("nan")
         per_pair += sorted(PairResult(k, r, t, a, rot_p.get(k, nan), tr_p.get(k, nan))
                            for k, r, t, a in zip(order, rot_err, tr_err, angle_gt))
-    rot, tr = torch.tensor(rot_err), torch.tensor(tr_err)
+    rot, tr = torch.tensor(rot_err, dtype=torch.float64), torch.tensor(tr_err, dtype=torch.float64)  # as the per-pair file
     rels_t = torch.tensor([r for r in rels if not math.isnan(r)])
     ratios_t = torch.tensor([r for r in ratios if not math.isnan(r)])
     fwd_corr, fwd_sign = forward_agreement(torch.cat(t_pred), torch.cat(t_true)) if t_pred else (math.nan,) * 2
     under30, over45 = rra_by_angle(rot, torch.tensor(angle_gt, dtype=torch.float64))
     return {"RRA15": float((rot < 15).float().mean() * 100), "RTA15": float((tr < 15).float().mean() * 100),
-            "rot_err_med": float(rot.median()), "trans_err_med": float(tr.median()),
+            "rot_err_med": _median(rot), "trans_err_med": _median(tr),
             "AbsRel": float(rels_t.mean()) if rels_t.numel() else float("nan"),
-            "baseline_ratio": float(ratios_t.median()) if ratios_t.numel() else float("nan"),
-            "depth_ratio_err": float(torch.tensor(dratios).median()) if dratios else float("nan"),
+            "baseline_ratio": _median(ratios_t),
+            "depth_ratio_err": _median(dratios),
             "fwd_corr": fwd_corr, "fwd_sign": fwd_sign, "RRA15_under30": under30, "RRA15_over45": over45,
-            "focal_err": float(torch.tensor(focal_errs).nanmedian()) if focal_errs else float("nan"),
+            "focal_err": _median(focal_errs),
             "focal_slope": focal_slope(focal_est, focal_true) if focal_est else float("nan"),
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             "match_score_auc": score_auc(torch.cat(m_scores), torch.cat(m_labels)) if m_scores else float("nan"),
             "conf_spread": float(torch.tensor(spreads).nanmean()) if spreads else float("nan"),
-            "conf_order": float(torch.tensor(orders).nanmedian()) if orders else float("nan"),
+            "conf_order": _median(orders),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),
                 "RTA15_matches": 100 * sum(t < 15 for t in tr_m) / len(tr_m),
                 "RRA15_refined": 100 * sum(r < 15 for r in rot_r) / len(rot_r),
@@ -499,7 +509,7 @@ def pose_error_sources(model, dataset, n_pairs: int = 64, n_true: int = 300, see
             continue
         out[name] = {"RRA15": float((t[:, 0] < 15).double().mean() * 100),
                      "RTA15": float((t[:, 1] < 15).double().mean() * 100),
-                     "rot_err_med": float(t[:, 0].median()), "trans_err_med": float(t[:, 1].median()),
+                     "rot_err_med": _median(t[:, 0]), "trans_err_med": _median(t[:, 1]),
                      "pairs": len(t)}
     return out
 

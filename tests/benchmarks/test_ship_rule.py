@@ -36,9 +36,11 @@ def test_a_candidate_with_more_pairs_and_no_significant_loss_ships(tmp_path, cap
     inc = (_card(tmp_path, "inc", (0.30, 0.27, 0.36)), _pairs(tmp_path, "inc", 10))
     cand = (_card(tmp_path, "cand", (0.30, 0.27, 0.36)), _pairs(tmp_path, "cand", 11))
     rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--names", "old", "new"])
-    out = capsys.readouterr().out
-    assert rc == 0 and "new ships under the rule (not checked: global alignment)." in out
+    out = capsys.readouterr().out  # global alignment not checked: the rule is not met without it
+    assert rc == 1 and "new does not ship under the rule (not checked: global alignment; --partial lets" in out
     assert "| count | 160 | 176 | PASS | +16 pairs |" in out  # 4 sets x 10 pairs x 4 errors, then 4 x 11 x 4
+    rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--names", "old", "new", "--partial"])
+    assert rc == 0 and "new ships under the rule (not checked: global alignment)." in capsys.readouterr().out
 
 
 def test_a_candidate_with_fewer_pairs_or_a_significant_loss_does_not_ship(tmp_path):
@@ -169,3 +171,19 @@ def test_files_carded_on_different_pairs_or_renders_are_unreadable_not_compared(
     with pytest.raises(ValueError, match="the global-alignment files hold different pairs"):
         check(inc_card, read_per_pair(inc[1]), inc_card, read_per_pair(inc[1]),
               (ga, {k: v for k, v in ga.items() if k[1] != 0}))
+
+
+def test_the_rule_refuses_global_alignment_files_of_other_renders_and_nan_errors_on_card_pairs(tmp_path):
+    card = parse_card(_card(tmp_path, "c", (0.3, 0.3, 0.3)).read_text())
+    inc, cand = read_per_pair(_pairs(tmp_path, "i", 10)), read_per_pair(_pairs(tmp_path, "c", 11))
+    ga = []
+    for name, true_rot in (("a", 10.0), ("b", 50.0)):  # the same pair keys, other camera pairs
+        write_per_pair(tmp_path / f"ga_{name}.csv", "eval_s424242", [PairResult(i, 5.0, 5.0, true_rot + i)
+                                                                    for i in range(5)])
+        ga.append(read_per_pair(tmp_path / f"ga_{name}.csv"))
+    with pytest.raises(ValueError, match="global-alignment files hold the same pair names but 5 true rotations"):
+        check(card, inc, card, cand, tuple(ga))
+    key = next(k for k in cand if k[0] in CARD_SETS)
+    cand[key] = (cand[key][0], float("nan"), *cand[key][2:])
+    with pytest.raises(ValueError, match="candidate's per-pair file holds NaN errors on 1 card pairs"):
+        check(card, inc, card, cand)
