@@ -40,6 +40,7 @@ EVAL_ROWS = (("RRA@15 %", "RRA15", "{:.1f}"), ("RTA@15 %", "RTA15", "{:.1f}"), (
              ("RTA@15 % of the pipeline's pose (+ own matches)", "RTA15_pair", "{:.1f}"),
              ("match precision", "match_prec", "{:.3f}"), ("RRA@15 from matches %", "RRA15_matches", "{:.1f}"),
              ("coarse match score AUC (0.5: says nothing)", "match_score_auc", "{:.3f}"),
+             ("the same within each pair (mean)", "match_score_auc_within", "{:.3f}"),
              ("confidence >= 1.1, share of pixels", "conf_spread", "{:.3f}"),
              ("AbsRel of the confident half / all", "conf_order", "{:.3f}"))
 BENCH_CATEGORIES = ("all", "low-texture", "wide (>30 deg)", "short baseline (<0.1 depth)")

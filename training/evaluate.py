@@ -277,6 +277,13 @@ def _median(values) -> float:
     return float(np.median(x)) if x.size else float("nan")
 
 
+def within_pair_auc(scores: list, labels: list) -> float:
+    """The mean over pairs of ``score_auc`` of each pair's ``scores`` and ``labels`` (pairs with right and wrong
+    matches only): how well the score ranks one pair's matches, whatever it says about pairs against each other."""
+    aucs = [a for a in (score_auc(s, y) for s, y in zip(scores, labels)) if not math.isnan(a)]
+    return sum(aucs) / len(aucs) if aucs else float("nan")
+
+
 def coarse_match_labels(m, corr: torch.Tensor, valid: torch.Tensor, tol: float) -> torch.Tensor:
     """[M] labels of the matches ``m`` (xy1 in view 1's pixels) against view 1's ground truth: 1.0 where the true
     correspondence of xy1 is within ``tol`` px of xy2, 0.0 where it is farther or where xy1 has valid depth but no
@@ -326,7 +333,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     component, which per-view focal lengths had hidden from training);
     ``match_score_auc``: ``score_auc`` of the coarse matches' scores (the descriptor confidence) for right (true
     correspondence within half a patch) against wrong ones (farther, or a cell view 2 does not see), pooled over
-    the pairs: 0.5 when the score says nothing about a match;
+    the pairs: 0.5 when the score says nothing about a match; ``match_score_auc_within``: the mean over pairs of
+    each pair's own AUC (pairs with right and wrong matches): whether the score ranks the matches of one pair, what
+    a filter of matches needs (a pooled AUC also rises when the score merely tells easy pairs from hard ones);
     ``RRA15_matches``/``RTA15_matches``: pose from the model's own matches (``match_coarse``) lifted by view 1's
     pointmap, PnP with the true K (MASt3R-style; models with descriptors); ``RRA15_refined``/``RTA15_refined``: the
     model's pose refined on the same matches with the true K (``pointmap.pose.refine_pose_with_matches``; a pair
@@ -427,6 +436,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             "match_prec": float(torch.tensor(precs).mean()) if precs else float("nan"),
             "coarse_acc": sum(coarse) / len(coarse) if coarse else float("nan"),
             "match_score_auc": score_auc(torch.cat(m_scores), torch.cat(m_labels)) if m_scores else float("nan"),
+            "match_score_auc_within": within_pair_auc(m_scores, m_labels),
             "conf_spread": float(torch.tensor(spreads).nanmean()) if spreads else float("nan"),
             "conf_order": _median(orders),
             **({"RRA15_matches": 100 * sum(r < 15 for r in rot_m) / len(rot_m),

@@ -464,3 +464,16 @@ def test_the_cards_medians_are_the_middle_values_mean_for_an_even_count_nan_left
     assert _median([0.1, 0.2, 0.3, 0.9]) == pytest.approx(0.25)  # torch's median gives 0.2
     assert _median(torch.tensor([3.0, float("nan"), 1.0, 2.0])) == 2.0
     assert math.isnan(_median([])) and math.isnan(_median([float("nan")]))
+
+
+def test_a_score_that_only_tells_easy_pairs_from_hard_ones_ranks_nothing_within_a_pair():
+    from training.evaluate import score_auc, within_pair_auc
+
+    easy = (torch.tensor([0.9, 0.8, 0.7, 0.6]), torch.tensor([1.0, 0.0, 1.0, 0.0]))  # right and wrong interleaved
+    hard = (torch.tensor([0.3, 0.2, 0.1, 0.05]), torch.tensor([0.0, 1.0, 0.0, 0.0]))
+    pooled = score_auc(torch.cat([easy[0], hard[0]]), torch.cat([easy[1], hard[1]]))
+    assert pooled > 0.7  # the easy pair's matches score higher and are right more often
+    within = within_pair_auc([easy[0], hard[0]], [easy[1], hard[1]])
+    assert within == pytest.approx((0.75 + 2 / 3) / 2)  # each pair's own ranking, counted by hand
+    one_kind = (torch.tensor([0.5, 0.4]), torch.tensor([1.0, 1.0]))  # no wrong match: no AUC of its own
+    assert within_pair_auc([easy[0], one_kind[0]], [easy[1], one_kind[1]]) == pytest.approx(0.75)
