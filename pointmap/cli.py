@@ -205,6 +205,17 @@ def parse_export(text: str) -> tuple[str, ...]:
     return formats
 
 
+def refuse_shared_keys(images: list[str], keys: list[str], matched, flag: str, by: str) -> None:
+    """PointmapError when two of ``images`` that a file of ``flag`` matches (indices ``matched``) share the key
+    ``keys[k]`` it matches them by (``by``): two photographs would get one entry (one camera, one mask)."""
+    first: dict = {}
+    for k in matched:
+        other = first.setdefault(keys[k], k)
+        if other != k:
+            raise PointmapError(f"{flag} matches images by {by}, and {images[other]} and {images[k]} are both "
+                                f"{keys[k]!r}: they would get one entry; rename one, or give them in separate runs")
+
+
 def cameras_from_file(path: str, images: list[str], poses: bool):
     """``--cameras``: ({image index: K}, with ``poses`` {image index: cam2world} else None, {image index: lens
     Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``)
@@ -220,6 +231,8 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
     # by file name; NeRF-synthetic files name frames without a suffix ("./train/r_0" for r_0.png)
     matched = {k: cams[nm] if nm in cams else cams[Path(nm).stem] for k, nm in enumerate(names)
                if nm in cams or Path(nm).stem in cams}
+    refuse_shared_keys(images, [nm if nm in cams else Path(nm).stem for nm in names], matched, "--cameras",
+                       "file name")
     if not matched:
         raise PointmapError(f"--cameras {path} names none of the {len(names)} images (it has "
                             f"{', '.join(sorted(cams)[:4])}{', ...' if len(cams) > 4 else ''}; the images are "
@@ -249,6 +262,8 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
         raise PointmapError(f"--masks expected a folder of mask images, got {folder!r}")
     by_stem = {f.stem: f for f in sorted(root.iterdir()) if f.suffix.lower() in IMAGE_SUFFIXES}
     found = [by_stem.get(Path(p).stem) for p in images]
+    refuse_shared_keys(images, [Path(p).stem for p in images], [k for k, f in enumerate(found) if f], "--masks",
+                       "file name without suffix")
     if not any(found):
         raise PointmapError(f"--masks {folder} holds no mask named like the images ({Path(images[0]).stem}.png, ...)")
     masks = []

@@ -899,3 +899,30 @@ def test_a_video_with_both_stride_and_max_frames_is_refused_and_one_frame_is_sai
     assert main(["reconstruct", str(video), *out]) == 2
     err = capsys.readouterr().err
     assert "needs at least 2 images, got 1" in err and "the video holds 1 frame(s)" in err and "None" not in err
+
+
+def test_two_images_of_one_file_name_are_refused_when_cameras_or_masks_match_by_it(tmp_path):
+    import json
+
+    from pointmap.cli import cameras_from_file, masks_from_folder
+    from pointmap.errors import PointmapError
+
+    rng = np.random.default_rng(0)
+    for d in ("x", "y", "masks"):
+        (tmp_path / d).mkdir()
+    for d in ("x", "y"):
+        cv2.imwrite(str(tmp_path / d / "a.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    cv2.imwrite(str(tmp_path / "x" / "b.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    frame = {"file_path": "images/a.png", "w": 80, "h": 60, "fl_x": 70.0, "fl_y": 70.0, "cx": 40.0, "cy": 30.0,
+             "transform_matrix": np.eye(4).tolist()}
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [frame]}))
+    images = [str(tmp_path / "x" / "a.png"), str(tmp_path / "y" / "a.png"), str(tmp_path / "x" / "b.png")]
+    with pytest.raises(PointmapError, match="--cameras matches images by file name, and .*x/a.png and .*y/a.png are "
+                                            "both 'a.png'"):
+        cameras_from_file(str(tmp_path / "transforms.json"), images, poses=True)
+    K, poses, _ = cameras_from_file(str(tmp_path / "transforms.json"), images[1:], poses=True)  # one a.png: fine
+    assert sorted(K) == [0] and sorted(poses) == [0]
+    cv2.imwrite(str(tmp_path / "masks" / "a.png"), np.full((60, 80), 255, np.uint8))
+    with pytest.raises(PointmapError, match="--masks matches images by file name without suffix"):
+        masks_from_folder(str(tmp_path / "masks"), images)
+    assert len(masks_from_folder(str(tmp_path / "masks"), images[1:])) == 2

@@ -53,6 +53,9 @@ class SparseConfig:
             raise ShapeError("SparseConfig: " + "; ".join(bad))
 
 
+MAX_FOCAL_CHANGE = 4.0  # a sparse fit that scales a focal beyond this either way is refused (degenerate)
+
+
 def _unpack(m):
     if isinstance(m, (tuple, list)):
         xy1, xy2 = m[0], m[1]
@@ -193,6 +196,13 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     if not (math.isfinite(final) and torch.isfinite(c2w).all()) or final > loss0:
         return replace(recon, info={**recon.info, "sparse": {"applied": False, "reason": "did not improve",
                                                                  "init_loss": loss0, "final_loss": final}})
+    change = fx / K0[:, 0, 0]
+    moved = [k for k in range(n) if not 1 / MAX_FOCAL_CHANGE <= float(change[k]) <= MAX_FOCAL_CHANGE]
+    if moved:  # matches that fit anything (few, or wrong) let a focal run to 0: a degenerate fit, not an answer
+        return replace(recon, info={**recon.info, "sparse": {
+            "applied": False, "reason": f"the fit scaled the focal of image(s) {moved} by "
+            f"{[round(float(change[k]), 4) for k in moved]} (beyond {MAX_FOCAL_CHANGE:g}x either way): degenerate; "
+            "the aligned result is kept", "init_loss": loss0, "final_loss": final}})
     cam2world = c2w.clone()
     cam2world[:, :3, 3] *= unit
     cam2world = cam2world.float()

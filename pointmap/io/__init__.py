@@ -33,11 +33,23 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     ``colmap_max_points`` the COLMAP points3D and nerfstudio's sparse_pc.ply (dense clouds slow 3DGS trainers
     down; None = all).
     """
+    from pointmap.reconstruction import Reconstruction
+
+    if not isinstance(recon, Reconstruction):
+        raise ShapeError(f"save_reconstruction expected a Reconstruction, got {type(recon).__name__}")
     if isinstance(formats, str):
         formats = tuple(f.strip() for f in formats.split(",") if f.strip())
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise ValueError(f"formats expected a subset of {FORMATS}, got {bad}")
+    for name, flag in (("colmap_text", colmap_text), ("shared_camera", shared_camera)):
+        if not (isinstance(flag, bool) or (name == "shared_camera" and flag is None)):
+            raise ShapeError(f"{name} expected True or False{' (or None)' if name == 'shared_camera' else ''}, got "
+                             f"{flag!r}")
+    undecodable = [n for n in recon.names if not _utf8(n)]
+    if undecodable:  # every format stores names as UTF-8 text: refused before a file is written, not half-way
+        raise ShapeError(f"image name(s) {[n.encode('utf-8', 'surrogateescape') for n in undecodable][:3]} are not "
+                         "UTF-8 (a file name in another encoding): rename the file(s) to export")
     check_conf_filter(min_conf, conf_percentile)  # every argument before anything is written
     check_point_cap(max_points, "max_points")
     check_point_cap(colmap_max_points, "colmap_max_points")
@@ -87,3 +99,12 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
 
 __all__ = ["confidence_mask", "load_npz", "read_ply", "save_reconstruction", "select_points", "write_colmap",
            "write_colmap_images", "write_glb", "write_npz", "write_ply", "write_transforms", "write_tum"]
+
+
+def _utf8(name: str) -> bool:
+    """Whether ``name`` encodes as UTF-8 (a file name read in another encoding holds surrogate escapes)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True

@@ -135,3 +135,21 @@ def test_matches_and_fixed_indices_outside_the_reconstruction_and_impossible_set
                         ({"depth_prior": float("nan")}, "depth_prior expected")]:
         with pytest.raises(ShapeError, match=message):
             SparseConfig(**kw)
+
+
+def test_a_sparse_fit_that_runs_a_focal_towards_zero_is_refused_and_the_aligned_result_kept():
+    import warnings
+
+    import pointmap as pm
+
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"]).eval()  # random weights: matches that fit anything
+    rng = np.random.default_rng(0)
+    imgs = [rng.integers(0, 255, s, dtype=np.uint8) for s in ((48, 64, 3), (64, 48, 3), (60, 80, 3))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        aligned = pm.reconstruct(model, imgs, size=64, quiet=True, epipolar=False)
+        refined = pm.reconstruct(model, imgs, size=64, quiet=True, epipolar=False, refine=True)
+    rep = refined.info["sparse"]
+    assert rep["applied"] is False and "beyond 4x either way): degenerate" in rep["reason"], rep
+    assert torch.equal(refined.K, aligned.K) and torch.equal(refined.cam2world, aligned.cam2world)

@@ -868,3 +868,21 @@ def test_a_colmap_model_written_over_another_formats_files_names_them_in_a_warni
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         save_reconstruction(recon, tmp_path / "fresh", formats=("colmap_txt",))
+
+
+def test_a_name_that_is_not_utf8_or_a_flag_that_is_not_a_bool_is_refused_before_any_file_is_written(tmp_path):
+    from dataclasses import replace
+
+    from pointmap.errors import ShapeError
+
+    recon = make_recon()
+    latin1 = replace(recon, names=["caf\udce9.png", *recon.names[1:]])  # how Python reads a Latin-1 file name
+    with pytest.raises(ShapeError, match="not UTF-8 .*rename the file"):
+        save_reconstruction(latin1, tmp_path / "a", formats=("ply", "colmap", "npz"))
+    assert not (tmp_path / "a").exists() or not any((tmp_path / "a").rglob("*"))
+    for kw, said in (({"colmap_text": "false"}, "colmap_text expected True or False"),
+                     ({"shared_camera": "no"}, "shared_camera expected True or False \\(or None\\)")):
+        with pytest.raises(ShapeError, match=said):
+            save_reconstruction(recon, tmp_path / "b", formats=("colmap",), **kw)
+    with pytest.raises(ShapeError, match="save_reconstruction expected a Reconstruction, got NoneType"):
+        save_reconstruction(None, tmp_path / "c")
