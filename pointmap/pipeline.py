@@ -326,12 +326,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         for i, j in pairs:
             m = match(preds[(i, j)])
             matches[(i, j)] = m
-        known = recon.info["align"].get("known_pose_indices", [])
-        # a shared focal is held as aligned: the sparse stage's per-image focal factors would split it
-        fixed_K = True if cfg.shared_focal or (K is not None and not isinstance(K, dict)) else \
-            (list(K) if isinstance(K, dict) else ())
-        recon = refine_matches(recon, matches, config=scfg, fixed_poses=known,
-                               fixed_intrinsics=fixed_K)
+        # the known poses and intrinsics stay as given, a shared focal as aligned (refine_matches' defaults: the
+        # sparse stage's per-image focal factors would split it)
+        recon = refine_matches(recon, matches, config=scfg)
         lap("sparse")
     # the percentile is taken over the pixels the user's masks keep (masked pixels, confidence 0, would drag it
     # down), on the views' own pixels (not a canvas's padding)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from pointmap.errors import GraphError, ShapeError
+from pointmap.errors import GraphError, ShapeError, is_int
 from pointmap.prediction import check_prediction
 
 CONF_TRANSFORMS = ("log", "m1", "sqrt", "id")
@@ -98,8 +98,8 @@ def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> li
                          f"{type(preds).__name__} with {len(preds) if hasattr(preds, '__len__') else '?'} entries")
     keys = []
     for key, p in preds.items():
-        if not (isinstance(key, tuple) and len(key) == 2):
-            raise GraphError(f"preds keys expected (i, j) tuples, got {key!r}")
+        if not (isinstance(key, tuple) and len(key) == 2 and is_int(key[0]) and is_int(key[1])):
+            raise GraphError(f"preds keys expected (i, j) tuples of image indices (integers), got {key!r}")
         check_prediction(p, f"preds[{key}]")
         i, j = int(key[0]), int(key[1])
         if not (0 <= i < n_images and 0 <= j < n_images):
@@ -174,8 +174,10 @@ def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: 
             ok = _valid_points(sub) & torch.isfinite(c)
             out_p[e, :counts[img]] = torch.where(ok[:, None], sub, torch.zeros_like(sub))
             out_w[e, :counts[img]] = torch.where(ok, conf_to_weight(c, conf_transform), torch.zeros_like(c))
-        c1, c2 = (torch.where(torch.isfinite(c), c, torch.zeros_like(c)).mean()
-                  for c in (p.conf1.detach().double(), p.conf2.detach().double()))
+        # the pair's score (DUSt3R's mean conf1 x mean conf2) counts the pixels whose points alignment can use:
+        # a pair with a few usable points and full confidences elsewhere would otherwise lead the spanning tree
+        c1, c2 = (torch.where(torch.isfinite(c) & _valid_points(pts.detach()[0].double()), c, torch.zeros_like(c)).mean()
+                  for c, pts in ((p.conf1.detach().double()[0], p.pts1_cam1), (p.conf2.detach().double()[0], p.pts2_cam1)))
         score[e] = c1 * c2
     heads = [preds[k].cam2_to_cam1 for k in keys]
     T = None if any(h is None for h in heads) else torch.cat([h.detach().to("cpu", torch.float64) for h in heads])

@@ -49,7 +49,7 @@ import torch
 
 from pointmap.errors import ShapeError, is_int
 from pointmap.pose import _bearings
-from pointmap.reconstruction import K_to_original
+from pointmap.reconstruction import K_to_original, Reconstruction
 
 # lsmr's default tolerances stop its steps early: hundreds of slow iterations, ending 1 degree off
 LSMR_TIGHT = {"atol": 1e-12, "btol": 1e-12, "regularize": False}
@@ -504,14 +504,16 @@ def _pair_list(preds: dict) -> list:
 
 
 def own_focals(preds: dict, n: int) -> np.ndarray:
-    """[N] per image: the median of its focals over the pairs it leads (``focal_from_prediction``: a focal head's,
-    else the Weiszfeld focal of its own-frame pointmap; NaN when it has none)."""
-    from pointmap.pose import focal_from_prediction
+    """[N] per image: the median of its focals over the pairs it leads (a focal head's, else the Weiszfeld focal of
+    its own-frame pointmap over the pixels of positive confidence: a mask's zeroed pixels are left out, as the
+    alignment's start leaves them; NaN when it has none)."""
+    from pointmap.geometry.focal import focal_from_pointmap
 
     per = [[] for _ in range(n)]
     for (i, j), p in preds.items():
         if i != j:
-            f = float(focal_from_prediction(p)[0])
+            f = float(p.focal1[0]) if p.focal1 is not None else float(focal_from_pointmap(
+                p.pts1_cam1.float(), valid=torch.nan_to_num(p.conf1.float(), nan=0.0) > 0)[0])
             if math.isfinite(f) and f > 0:
                 per[i].append(f)
     return np.array([float(np.median(v)) if v else math.nan for v in per])
@@ -525,6 +527,11 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     ``recon.info["epipolar"]`` reports the fit, or why it was skipped (a model without descriptors, every pose
     known, too few matches)."""
     cfg = config or EpipolarConfig()
+    if not isinstance(recon, Reconstruction) or not isinstance(cfg, EpipolarConfig) or not isinstance(preds, dict) \
+            or not all(isinstance(k, tuple) and len(k) == 2 and all(is_int(x) for x in k) for k in preds):
+        raise ShapeError(f"refine_epipolar expected a Reconstruction, preds {{(i, j): PairPrediction}} with integer "
+                         f"indices and an EpipolarConfig, got {type(recon).__name__}, {type(preds).__name__} "
+                         f"{list(preds)[:3] if isinstance(preds, dict) else ''} and {type(cfg).__name__}")
     t0 = time.perf_counter()
     n = len(recon)
     rep = recon.info.get("align", {})

@@ -66,9 +66,16 @@ def align_to_cameras(recon, cam2world, mask=None, *, with_scale: bool = True):
     ``rot_err_deg_median`` / ``_max``."""
     from pointmap.errors import ShapeError
     from pointmap.geometry.rotations import rotation_angle
+    from pointmap.reconstruction import Reconstruction
 
+    if not isinstance(recon, Reconstruction) or not isinstance(with_scale, bool):
+        raise ShapeError(f"align_to_cameras expected a Reconstruction and with_scale True or False, got "
+                         f"{type(recon).__name__} and {with_scale!r}")
     n = len(recon)
-    ref = torch.as_tensor(cam2world, dtype=torch.float64)
+    try:
+        ref = torch.as_tensor(cam2world, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ShapeError(f"cam2world expected [{n}, 4, 4] reference poses, got {type(cam2world).__name__}") from None
     keep = torch.ones(n, dtype=torch.bool) if mask is None else as_mask(mask, "mask")
     if tuple(keep.shape) != (n,) or not bool(keep.any()):
         raise ShapeError(f"mask expected [{n}] bool with at least one True, got {list(keep.shape)}")
@@ -109,9 +116,13 @@ def scale_to_depth(recon, depth, *, min_pixels: int = 50):
     fewer than ``min_pixels`` usable pixels; ShapeError for a map of the wrong count or aspect ratio."""
     import numpy as np
 
-    from pointmap.errors import PointmapError, ShapeError
+    from pointmap.errors import PointmapError, ShapeError, is_int
     from pointmap.io.depth import same_aspect
+    from pointmap.reconstruction import Reconstruction
 
+    if not isinstance(recon, Reconstruction) or not (is_int(min_pixels) and min_pixels >= 1):
+        raise ShapeError(f"scale_to_depth expected a Reconstruction and min_pixels an int >= 1, got "
+                         f"{type(recon).__name__} and {min_pixels!r}")
     n = len(recon)
     if not isinstance(depth, (list, tuple)) or len(depth) != n:
         got = f"{len(depth)} entries" if isinstance(depth, (list, tuple)) else type(depth).__name__

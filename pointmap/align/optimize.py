@@ -167,6 +167,9 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     Returns a Reconstruction (K in original pixels); ``recon.info["align"]`` holds the report.
     """
     cfg = config or AlignConfig()
+    if not isinstance(cfg, AlignConfig):
+        raise ShapeError(f"global_align: config expected an AlignConfig, got {type(cfg).__name__} (AlignConfig(**d) "
+                         "for a dict)")
     if quiet is not None:
         cfg = AlignConfig(**{**asdict(cfg), "quiet": quiet})
     t_start = time.perf_counter()

@@ -106,14 +106,16 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
 
 
 def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig | None = None,
-                   fixed_poses=(), fixed_intrinsics=()) -> Reconstruction:
+                   fixed_poses=None, fixed_intrinsics=None) -> Reconstruction:
     """Refine poses and intrinsics of ``recon`` on 2D matches; returns a new Reconstruction.
 
     matches: {(i, j): (xy_i [M, 2], xy_j [M, 2], score [M])} in MAP pixels (the network input, as
         ``pm.match`` returns), or objects with ``xy1``, ``xy2``, ``score``.
-    fixed_poses: indices whose cam2world stays bit-identical (if empty, the image with the most matches
-        is held fixed to pin the frame, and the result then moved rigidly so that image 0's pose is the one given:
-        the world stays where it was); fixed_intrinsics: indices (or True for all) with K kept as is.
+    fixed_poses: indices (or True for all) whose cam2world stays bit-identical; None (default): the poses the
+        alignment was given (``recon.info["align"]["known_pose_indices"]``). If none is held, the image with the
+        most matches is held fixed to pin the frame, and the result then moved rigidly so that image 0's pose is
+        the one given: the world stays where it was. fixed_intrinsics: indices (or True for all) with K kept as
+        is; None (default): the intrinsics the alignment was given, all of them for a shared focal.
     """
     cfg = config or SparseConfig()
     if not isinstance(recon, Reconstruction) or not isinstance(cfg, SparseConfig):
@@ -121,18 +123,29 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
                          f"and {type(cfg).__name__}")
     t0 = time.perf_counter()
     n = len(recon)
-    for name, idx in (("fixed_poses", fixed_poses), ("fixed_intrinsics", () if fixed_intrinsics is True
-                                                     else fixed_intrinsics or ())):
-        out_of_range = [i for i in idx if not 0 <= int(i) < n]
+    aligned = recon.info.get("align", {}) if isinstance(recon.info, dict) else {}
+    if fixed_poses is None:
+        fixed_poses = aligned.get("known_pose_indices", [])
+    if fixed_intrinsics is None:
+        fixed_intrinsics = True if aligned.get("config", {}).get("shared_focal") else \
+            aligned.get("known_K_indices", [])
+    for name, idx in (("fixed_poses", fixed_poses), ("fixed_intrinsics", fixed_intrinsics)):
+        if idx is True:
+            continue
+        if not isinstance(idx, (list, tuple, set, range)) or not all(is_int(i) for i in idx):
+            raise ShapeError(f"{name} expected image indices (integers) or True for all, got {idx!r}")
+        out_of_range = [i for i in idx if not 0 <= i < n]
         if out_of_range:
             raise ShapeError(f"{name} expected image indices in 0..{n - 1}, got {out_of_range}")
+    if fixed_poses is True:
+        fixed_poses = range(n)
     I, J, xy_i, xy_j, score = gather_matches(recon, matches, cfg)
     fixed_poses = sorted(int(i) for i in fixed_poses)
     anchor = not fixed_poses  # then image 0 is put back where it was given (global_align's world: its frame)
     user_fixed = list(fixed_poses)
     if not fixed_poses:  # the gauge: the most-matched image is held during the optimisation, then moved back
         fixed_poses = [int(torch.bincount(torch.cat([I, J]), minlength=n).argmax())]
-    fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in (fixed_intrinsics or ())}
+    fixed_K = set(range(n)) if fixed_intrinsics is True else {int(i) for i in fixed_intrinsics}
     K0 = recon.K_map.double()
     unit = float(recon.depth_z[(recon.depth_z > 0) & recon.regions].double().median())
     base = recon.cam2world.double().clone()

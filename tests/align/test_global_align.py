@@ -226,3 +226,16 @@ def test_portrait_and_landscape_views_are_aligned_whole_and_held_on_one_canvas()
         assert own.shape == (h, w) and np.median(np.abs(own * a / sc["depth"][k] - 1)) < 1e-3
         pad = ~recon.regions[k]
         assert (recon.depth_z[k][pad] == 0).all() and (recon.conf[k][pad] == 0).all() and not recon.valid()[k][pad].any()
+
+
+@pytest.mark.parametrize("init", ["mst", "averaging"])
+def test_a_pair_with_a_few_usable_points_does_not_lead_the_start_on_its_confidences_alone(init):
+    sc = make_scene(4, 24, 32, seed=1)
+    preds = gt_preds(sc, complete_pairs(4))
+    for k in [(0, 1), (1, 0)]:  # view 2's map NaN but for 2 pixels, its confidences still full
+        gone = torch.ones(24 * 32, dtype=torch.bool)
+        gone[torch.randperm(24 * 32, generator=torch.Generator().manual_seed(0))[:2]] = False
+        preds[k].pts2_cam1[0].view(-1, 3)[gone] = float("nan")
+    recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, niter=30, init=init))
+    rot, _, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
+    assert rot < 0.1  # the spanning tree took that pair first: 71 degrees off

@@ -182,3 +182,26 @@ def test_an_image_whose_weighted_pixels_never_overlap_its_placing_pair_is_refuse
     views = views_of(scene)[:2]
     with pytest.raises(GraphError, match="no pixel with a positive confidence weight"):
         global_align(views, preds, config=AlignConfig(quiet=True, niter=5, conf_transform="log", init="mst"))
+
+
+def test_entry_points_refuse_keys_configs_and_switches_of_the_wrong_type_naming_them():
+    import pointmap as pm
+    from pointmap.align import align_to_cameras, refine_epipolar, scale_to_depth
+
+    sc = make_scene(3, 24, 32, seed=1)
+    views, preds = views_of(sc), gt_preds(sc, complete_pairs(3))
+    for key in ((0.0, 1.5), ("1", 2), (2, 0.5)):  # truncated to another pair's key, or a raw KeyError before
+        with pytest.raises(GraphError, match="tuples of image indices \\(integers\\)"):
+            global_align(views, {**preds, key: preds[(0, 1)]}, config=AlignConfig(quiet=True, niter=2))
+    with pytest.raises(ShapeError, match="config expected an AlignConfig, got dict"):
+        global_align(views, preds, config={"niter": 5})
+    recon = global_align(views, preds, config=AlignConfig(quiet=True, niter=2))
+    with pytest.raises(ShapeError, match="refine_epipolar expected a Reconstruction"):
+        refine_epipolar(views, [1, 2], recon)
+    with pytest.raises(ShapeError, match="with_scale True or False, got Reconstruction and 'no'"):
+        align_to_cameras(recon, torch.tensor(sc["cam2world"]), with_scale="no")
+    with pytest.raises(ShapeError, match="cam2world expected \\[3, 4, 4\\] reference poses, got str"):
+        align_to_cameras(recon, "abc")
+    with pytest.raises(ShapeError, match="min_pixels an int >= 1, got Reconstruction and -1"):
+        scale_to_depth(recon, [None] * 3, min_pixels=-1)
+    assert isinstance(recon, pm.Reconstruction)

@@ -153,3 +153,31 @@ def test_a_sparse_fit_that_runs_a_focal_towards_zero_is_refused_and_the_aligned_
     rep = refined.info["sparse"]
     assert rep["applied"] is False and "beyond 4x either way): degenerate" in rep["reason"], rep
     assert torch.equal(refined.K, aligned.K) and torch.equal(refined.cam2world, aligned.cam2world)
+
+
+def test_the_poses_and_intrinsics_the_alignment_was_given_stay_as_given_by_default():
+    from align_scene import complete_pairs, gt_preds, views_of
+
+    from pointmap.align import AlignConfig, global_align
+    from pointmap.errors import ShapeError
+
+    sc = make_scene(3, 24, 32, seed=1)
+    K = torch.tensor(sc["K"], dtype=torch.float32)
+    c2w = torch.tensor(sc["cam2world"], dtype=torch.float32)
+    preds = gt_preds(sc, complete_pairs(3), noise=0.02, seed=3)
+    aligned = global_align(views_of(sc), preds, K=K, cam2world={0: c2w[0], 1: c2w[1]},
+                           config=AlignConfig(quiet=True, niter=30))
+    rng = np.random.default_rng(0)
+    matches = {}
+    for i, j in complete_pairs(3):
+        xy1, xy2, s = gt_matches(sc, i, j, step=2)
+        matches[(i, j)] = (xy1, xy2 + rng.normal(scale=0.5, size=xy2.shape), s)
+    refined = refine_matches(aligned, matches, config=CFG)
+    assert refined.info["sparse"]["applied"]
+    assert torch.equal(refined.K, aligned.K) and torch.equal(refined.cam2world[:2], aligned.cam2world[:2])
+    assert not torch.equal(refined.cam2world[2], aligned.cam2world[2])  # the free camera did move
+    free = refine_matches(aligned, matches, config=CFG, fixed_poses=(), fixed_intrinsics=())  # asked for: free
+    assert not torch.equal(free.K, aligned.K)
+    for bad in ([1.9], [True], "0"):
+        with pytest.raises(ShapeError, match="fixed_poses expected image indices"):
+            refine_matches(aligned, matches, config=CFG, fixed_poses=bad)
