@@ -164,8 +164,9 @@ def _write_text(out_dir: Path, cams, images, tracks, points) -> list[Path]:
 
 def write_colmap_images(sources, names, out_dir) -> list[Path]:
     """Copy the photographs a COLMAP model refers to into ``out_dir`` (COLMAP's ``images/``) under the model's
-    image ``names``: a file whose pixels need no EXIF rotation and whose suffix is the name's is copied byte for
-    byte; any other (a rotated JPEG, a renamed duplicate with another suffix) is written as ``load_images`` reads
+    image ``names``: an upright 8-bit RGB or grey file whose suffix is the name's is copied byte for byte; any
+    other (a rotated JPEG, a 16-bit, transparent or palette PNG, a renamed duplicate with another suffix) is
+    written as ``load_images`` reads
     it (``read_rgb``: EXIF orientation applied, 16-bit scaled, alpha composited on white: the pixels the poses and
     intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file
     paths, or None for images given as arrays (skipped: they exist nowhere on disk); a source that no longer exists
@@ -188,10 +189,10 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
         if not src.is_file():  # e.g. a reconstruction.npz reloaded on another machine
             warnings.warn(f"write_colmap_images: {src} no longer exists; {dst} not written", stacklevel=2)
             continue
-        with Image.open(src) as im:
-            upright = im.getexif().get(0x0112, 1) in (None, 1)
-        with atomic_path(dst) as tmp:
-            if upright and src.suffix.lower() == dst.suffix.lower():
+        with Image.open(src) as im:  # byte for byte only when the file's pixels are the ones the model read:
+            as_read = im.getexif().get(0x0112, 1) in (None, 1) and im.mode in ("RGB", "L")  # upright 8-bit
+        with atomic_path(dst) as tmp:  # (16-bit, alpha or palette files decode otherwise in a trainer's loader)
+            if as_read and src.suffix.lower() == dst.suffix.lower():
                 shutil.copyfile(src, tmp)
             else:  # re-encoded from the very pixels the poses refer to (EXIF turned, 16-bit scaled, alpha on white)
                 fmt = Image.registered_extensions().get(dst.suffix.lower(), "PNG")

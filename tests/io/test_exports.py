@@ -858,6 +858,14 @@ def test_photographs_that_need_re_encoding_are_written_as_the_loader_reads_them(
     grey = np.asarray(Image.open(out[0]).convert("RGB")).astype(int)
     assert abs(grey.mean() - read_rgb(tmp_path / "grey16.png").mean()) < 2 and grey.max() < 255  # not saturated
     assert np.array_equal(np.asarray(Image.open(out[1])), read_rgb(tmp_path / "turned"))  # PNG: exact, turned
+    rgba = np.zeros((16, 24, 4), np.uint8)
+    rgba[..., 0] = 200  # red, half of it transparent: the loader composites it on white
+    rgba[:, :12, 3] = 255
+    Image.fromarray(rgba).save(tmp_path / "cut.png")
+    Image.fromarray(np.full((16, 24, 3), 90, np.uint8)).save(tmp_path / "plain.png")
+    out = write_colmap_images([tmp_path / "cut.png", tmp_path / "plain.png"], ["cut.png", "plain.png"], tmp_path / "j")
+    assert np.array_equal(np.asarray(Image.open(out[0])), read_rgb(tmp_path / "cut.png"))  # not the RGBA bytes
+    assert out[1].read_bytes() == (tmp_path / "plain.png").read_bytes()  # an 8-bit RGB file: copied as it is
 
 
 def test_a_colmap_model_written_over_another_formats_files_names_them_in_a_warning(tmp_path):
