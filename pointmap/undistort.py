@@ -175,6 +175,8 @@ def undistort(image: np.ndarray, K, distortion: Distortion, K_new=None, *, neare
     if image.dtype not in (np.uint8, np.uint16, np.float32, np.float64, bool):
         raise PointmapError(f"undistort expected an image of dtype uint8, uint16, float32, float64 or bool, got "
                             f"{image.dtype}")
+    if not isinstance(distortion, Distortion):
+        raise PointmapError(f"undistort expected a Distortion (pointmap.undistort), got {type(distortion).__name__}")
     h, w = image.shape[:2]
     K = _check_K(K, (w, h))
     K_new = pinhole_for(K, distortion, (w, h)) if K_new is None else _check_K(K_new, (w, h))

@@ -136,6 +136,7 @@ def test_masks_are_resampled_by_nearest_and_stay_boolean():
     (lambda: undistort(np.zeros((H, W, 0), np.uint8), K, LENSES[0]), r"\(C 1..4\)"),
     (lambda: Distortion("OPENCV", 0.1), "expected a sequence of up to 5 numbers"),
     (lambda: undistort_photos(["a.jpg"], {0: K}, {3: LENSES[0]}, "."), r"photograph indices in 0..0, got \[3\]"),
+    (lambda: undistort(np.zeros((H, W, 3), np.uint8), K, None), "expected a Distortion .*got NoneType"),
 ])
 def test_bad_lenses_and_inputs_are_refused_with_what_was_expected(make, message):
     with pytest.raises(PointmapError, match=message):

@@ -26,16 +26,22 @@ def tum_timestamps(recon, timestamps=None) -> np.ndarray:
         raise ValueError(f"timestamps expected {n} finite numbers (one per image), got {timestamps!r}") from None
     if ts.shape != (n,) or not np.isfinite(ts).all():
         raise ValueError(f"timestamps expected {n} finite numbers (one per image), got shape {ts.shape}")
+    if len(np.unique(ts)) != n:  # trajectory tools associate poses by time: two at one time are ambiguous
+        dup = ts[np.searchsorted(np.sort(ts), ts, side="right") - np.searchsorted(np.sort(ts), ts) > 1]
+        raise ValueError(f"timestamps expected one distinct time per image, got {sorted(set(dup.tolist()))[:3]} "
+                         "more than once")
     return ts
 
 
 def write_tum(recon, path, timestamps=None) -> Path:
-    """Write ``recon``'s cam2world poses to ``path`` in TUM format; returns the path."""
+    """Write ``recon``'s cam2world poses to ``path`` in TUM format, one line per image in time order (distinct
+    times: ``tum_timestamps``); returns the path."""
     ts = tum_timestamps(recon, timestamps)
     c2w = recon.cam2world.double().numpy()
     with atomic_open(path, "w") as f:
         f.write("# timestamp tx ty tz qx qy qz qw (camera-to-world, OpenCV camera axes) written by pointmap\n")
-        for t, T in zip(ts, c2w):
+        for k in np.argsort(ts, kind="stable"):  # in time order, as trajectory tools expect
+            t, T = ts[k], c2w[k]
             w, x, y, z = rotation_to_quaternion(T[:3, :3])
             f.write(f"{t:.6f} {T[0, 3]:.9g} {T[1, 3]:.9g} {T[2, 3]:.9g} {x:.9g} {y:.9g} {z:.9g} {w:.9g}\n")
     return Path(path)

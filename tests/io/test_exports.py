@@ -697,6 +697,12 @@ def test_tum_timestamps_come_from_the_argument_else_the_recorded_times_else_the_
     with pytest.raises(ValueError, match="timestamps expected 3 finite numbers"):
         save_reconstruction(recon, tmp_path / "out", formats=("ply", "tum"))
     assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match="one distinct time per image, got \\[1.0\\] more than once"):
+        tum_timestamps(recon, [1.0, 1.0, 2.0])  # two poses at one time: trajectory tools cannot associate them
+    recon.info = None
+    lines = write_tum(recon, tmp_path / "back.txt", [5.0, 1.0, 3.0]).read_text().splitlines()[1:]
+    assert [float(line.split()[0]) for line in lines] == [1.0, 3.0, 5.0]  # in time order
+    assert lines[0].split()[1:4] == [f"{v:.9g}" for v in recon.cam2world[1, :3, 3].double().tolist()]  # image 1's
 
 
 def test_colours_on_the_0_255_scale_are_refused_as_floats_and_taken_as_uint8_where_a_reconstruction_is_made():
