@@ -202,7 +202,7 @@ class PredictionCache:
                     return None
                 meta = f.metadata()
                 tensors = {name: f.get_tensor(name) for name in f.keys()}  # all of them: the checksum covers all
-            if _checksum(tensors) != meta.get("sha256"):
+            if tensors_checksum(tensors) != meta.get("sha256"):
                 raise ValueError("its tensors do not match the checksum in its header (corrupted)")
             pred = PairPrediction(**{fl.name: None if fl.name not in tensors or (not desc and "desc" in fl.name)
                                      else tensors[fl.name].float() for fl in fields(PairPrediction)})
@@ -235,7 +235,7 @@ class PredictionCache:
         tensors = {fl.name: getattr(pred, fl.name).detach().to("cpu", torch.float32).clamp(-big, big)
                    .to(self.dtype).contiguous() for fl in fields(pred) if getattr(pred, fl.name) is not None}
         meta = {"format": FORMAT, "version": VERSION, "key": key, "dtype": str(self.dtype).removeprefix("torch."),
-                "sha256": _checksum(tensors)}
+                "sha256": tensors_checksum(tensors)}
         from safetensors import SafetensorError
 
         path = self.path(key)
@@ -250,7 +250,7 @@ class PredictionCache:
         return path
 
 
-def _checksum(tensors: dict) -> str:
+def tensors_checksum(tensors: dict) -> str:
     """SHA-256 over the tensors' names, dtypes, shapes and bytes, in name order."""
     h = hashlib.sha256()
     for name in sorted(tensors):

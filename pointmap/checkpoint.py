@@ -180,10 +180,27 @@ def official_to_ours(state: dict, *, allow_missing_heads: bool = False) -> dict:
     return out
 
 
+def built_for(cfg: ModelConfig, state: dict, *, allow_missing_heads: bool = False,
+              source: str = "checkpoint") -> PointmapNet:
+    """A PointmapNet of ``cfg`` holding ``state`` (``load_state_strict``), the state first checked against the
+    architecture built on the meta device: a foreign or corrupt config (a huge size) is a CheckpointError naming
+    the mismatch, not gigabytes allocated and then a raw allocator error."""
+    with torch.device("meta"):
+        _check_fits(PointmapNet(cfg).state_dict(), state, allow_missing_heads, source)
+    model = PointmapNet(cfg)
+    load_state_strict(model, state, allow_missing_heads=allow_missing_heads, source=source)
+    return model
+
+
 def load_state_strict(model: PointmapNet, state: dict, *, allow_missing_heads: bool = False,
                       source: str = "checkpoint") -> None:
     """load_state_dict that lists every missing/unexpected key and shape mismatch in one CheckpointError."""
-    own = model.state_dict()
+    _check_fits(model.state_dict(), state, allow_missing_heads, source)
+    model.load_state_dict(state, strict=not allow_missing_heads)
+
+
+def _check_fits(own: dict, state: dict, allow_missing_heads: bool, source: str) -> None:
+    """CheckpointError listing every missing / unexpected key and shape mismatch of ``state`` against ``own``."""
     missing = [k for k in own if k not in state]
     if allow_missing_heads:
         missing = [k for k in missing if not k.startswith(HEAD_PREFIXES)]
@@ -199,7 +216,6 @@ def load_state_strict(model: PointmapNet, state: dict, *, allow_missing_heads: b
         if shapes:
             parts.append(f"{len(shapes)} shape mismatches (e.g. {shapes[:3]})")
         raise CheckpointError(f"{source} does not match the architecture: " + "; ".join(parts))
-    model.load_state_dict(state, strict=not allow_missing_heads)
 
 
 def load_trunk(model: PointmapNet, state: dict, *, source: str = "checkpoint") -> list[str]:
@@ -292,9 +308,7 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
         raise CheckpointError(f"{path} is a CroCo pretraining checkpoint (encoder and decoder, no prediction heads): "
                               "loaded as a model its heads would be random. Start training from it (python -m "
                               "training.train --init PATH), or load_official(path, allow_missing_heads=True)")
-    model = PointmapNet(cfg)
-    state = official_to_ours(ckpt["model"])
-    load_state_strict(model, state, allow_missing_heads=allow_missing_heads, source=str(path))
+    model = built_for(cfg, official_to_ours(ckpt["model"]), allow_missing_heads=allow_missing_heads, source=str(path))
     model.provenance = {"source": "official", "path": str(path), "ctor": ctor, "licence": OFFICIAL_LICENCE}
     warn_if_noncommercial(model, path, "official NAVER weights")
     img_size = parse_ctor(ctor)[1].get("img_size")
@@ -433,8 +447,10 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
         else:
             tensors[k] = v
     tensors = {k: v.contiguous() for k, v in tensors.items()}
+    from pointmap.cache import tensors_checksum
+
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
-            "provenance": json.dumps(prov, default=_provenance_value)}
+            "provenance": json.dumps(prov, default=_provenance_value), "sha256": tensors_checksum(tensors)}
     if quantized:
         meta["int8"] = json.dumps(quantized)
     with atomic_path(path) as tmp:
@@ -482,15 +498,19 @@ def load_own(path: Path) -> PointmapNet:
         raise CheckpointError(f"cannot read {path} as safetensors (corrupt or truncated?): {e}") from None
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a pointmap checkpoint (metadata format={meta.get('format')!r})")
+    if "sha256" in meta:  # files written since session 74 carry one; older ones load unchecked
+        from pointmap.cache import tensors_checksum
+
+        if tensors_checksum(state) != meta["sha256"]:
+            raise CheckpointError(f"{path}: its tensors do not match the checksum in its header (corrupted)")
     try:
         cfg = ModelConfig.from_dict(json.loads(meta["config"]))
     except (KeyError, json.JSONDecodeError, TypeError) as e:
         raise CheckpointError(f"{path} has a broken config: {e}") from None
-    model = PointmapNet(cfg)
     state = _dequantize_state(state, meta, path)
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     check_state(state, path)
-    load_state_strict(model, state, source=str(path))
+    model = built_for(cfg, state, source=str(path))
     try:
         model.provenance = json.loads(meta.get("provenance", "{}"))
     except json.JSONDecodeError as e:

@@ -373,6 +373,7 @@ def test_a_file_whose_weights_are_nan_is_refused_on_loading(tmp_path):
     tensors = load_file(str(path))
     name = next(k for k, v in tensors.items() if v.is_floating_point())
     tensors[name] = torch.full_like(tensors[name], float("nan"))
+    meta.pop("sha256")  # a file written before files carried a checksum: the finiteness check is its guard
     save_file(tensors, str(path), metadata=meta)
     with pytest.raises(CheckpointError, match=rf"holds NaN or inf weights \(e.g. \['{name}'\]\)"):
         pm.load_model(path)
@@ -439,3 +440,36 @@ def test_a_croco_pretraining_checkpoint_is_refused_as_a_model_and_starts_trainin
         model = build_model(TrainConfig(data="x", preset="test", init=str(tmp_path / "croco.pth")))
     own = croco.state_dict()
     assert torch.equal(model.state_dict()["enc_blocks.0.attn.qkv.weight"], own["enc_blocks.0.attn.qkv.weight"])
+
+
+def test_a_model_file_whose_tensors_changed_after_saving_is_refused_and_one_without_a_checksum_loads(tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    path = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "m.safetensors", dtype="int8")
+    with safe_open(str(path), "pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(path))
+    name = next(k for k, v in tensors.items() if k.endswith("norm1.weight"))  # fp16 ones
+    tensors[name] = tensors[name].clone()
+    tensors[name].view(-1)[: tensors[name].numel() // 2] = 0  # half of one tensor lost, every value finite
+    save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(pm.CheckpointError, match="do not match the checksum in its header \\(corrupted\\)"):
+        pm.load_model(tmp_path / "bad.safetensors")
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata={k: v for k, v in meta.items() if k != "sha256"})
+    pm.load_model(tmp_path / "old.safetensors")  # written before files carried a checksum: loads as before
+
+
+def test_a_config_of_impossible_size_is_refused_before_the_network_is_allocated(tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    good = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "m.safetensors")
+    with safe_open(str(good), "pt") as f:
+        meta = f.metadata()
+    cfg = json.loads(meta["config"])
+    meta = {**meta, "config": json.dumps({**cfg, "enc_dim": 2**24, "enc_heads": 2**20})}
+    meta.pop("sha256")
+    save_file(load_file(str(good)), str(tmp_path / "huge.safetensors"), metadata=meta)
+    with pytest.raises(pm.CheckpointError, match="does not match the architecture: .*shape mismatches"):
+        pm.load_model(tmp_path / "huge.safetensors")  # 50 GB asked of the allocator before
