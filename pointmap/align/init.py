@@ -70,8 +70,10 @@ def own_maps(n_images: int, stack: EdgeStack) -> list[int]:
             own[i] = e
     missing = [n for n in range(n_images) if own[n] < 0]
     if missing:
-        raise GraphError(f"images {missing[:10]} never appear first in a pair, so no pointmap in their own "
-                         "camera frame exists; pass both orders (i, j) and (j, i) as predict_pairs does")
+        raise GraphError(f"images {missing[:10]} have no pair left in which they come first, so no pointmap in "
+                         "their own camera frame exists: pass both orders (i, j) and (j, i) as predict_pairs does, "
+                         "or, when both were given, their first-view maps held no usable point (all NaN or inf, "
+                         "or confidence 0: masked) and those pairs were dropped")
     return own
 
 

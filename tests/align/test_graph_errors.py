@@ -42,10 +42,18 @@ def test_pair_index_out_of_range(scene):
         global_align(views_of(scene)[:3], preds, config=QUIET)
 
 
-def test_one_direction_only_is_explained(scene):
+def test_one_direction_only_or_first_view_maps_without_a_usable_point_are_explained(scene):
     preds = {k: v for k, v in gt_preds(scene, complete_pairs(4), seed=1).items() if k[0] < k[1]}
-    with pytest.raises(GraphError, match="never appear first"):
+    with pytest.raises(GraphError, match="have no pair left in which they come first"):
         global_align(views_of(scene), preds, config=QUIET)
+    preds = gt_preds(scene, complete_pairs(4), seed=1)
+    for j in (0, 1, 3):  # image 2's own maps all NaN: both orders given, still no own frame
+        preds[(2, j)].pts1_cam1[0] = float("nan")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(GraphError, match="their first-view maps held no usable point"):
+            global_align(views_of(scene), preds, config=QUIET)
+    assert any("no finite points" in str(w.message) for w in said)
 
 
 def test_wrong_map_size(scene):
