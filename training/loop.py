@@ -425,7 +425,13 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
         kept_decay = (cfg.decay_by_time and cfg.keep_decay and saved.get("decay_by_time")
                       and start > saved["steps"] - saved["decay_steps"])
         if kept_decay:
-            cfg.steps = min(cfg.steps, saved["steps"] - saved["decay_steps"] + cfg.decay_steps)  # the same decay
+            placed_end = saved["steps"] - saved["decay_steps"] + cfg.decay_steps
+            if cfg.steps < placed_end:  # lr_factor places the decay from --steps: a shorter run would move it
+                raise CheckpointError(f"{last}: its decay by time runs from step {saved['steps'] - saved['decay_steps']}"
+                                      f" to {placed_end}, and --steps {cfg.steps} ends inside it (the decay would "
+                                      f"start over at step {cfg.steps - cfg.decay_steps}): pass --steps "
+                                      f"{placed_end} or more, or --keep_decay false")
+            cfg.steps = placed_end  # the same decay
         if start >= cfg.steps and rank == 0:
             go_on = (f"its decay by time ended at step {cfg.steps}; to train on, resume stable_"
                      f"{saved['steps'] - saved['decay_steps']}.pt (or pass --keep_decay false)" if kept_decay

@@ -128,7 +128,8 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     loss = rot.mean() + (tr * scaled).sum() / scaled.sum().clamp_min(1)
     with torch.no_grad():
         deg = torch.rad2deg(2 * torch.asin((rot / (2 * 2 ** 0.5)).clamp(max=1)))
-    details = {"pose_rot_deg": float(deg.mean()), "pose_trans": float(tr.detach().mean())}
+    details = {"pose_rot_deg": float(deg.mean()),  # the translation error of the pairs the loss counts
+               "pose_trans": float((tr.detach() * scaled).sum() / scaled.sum()) if bool(scaled.any()) else math.nan}
     if dir_weight > 0:
         ok = (t_gt.norm(dim=1) >= MIN_BASELINE) & scaled
         # directions with a smooth norm t / sqrt(|t|^2 + DIR_EPS^2), the same for both (zero at the truth): the
@@ -139,7 +140,7 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
 
         chord = (soft_unit(t_pr) - soft_unit(t_gt)).norm(dim=1)
         if bool(ok.any()):
-            loss = loss + dir_weight * chord[ok].sum() / T.shape[0]
+            loss = loss + dir_weight * chord[ok].mean()  # over the pairs it covers (the docs' formula)
             with torch.no_grad():
                 cos = (F.normalize(t_pr[ok], dim=1, eps=1e-8) * F.normalize(t_gt[ok], dim=1, eps=1e-8)).sum(1)
                 angle = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))

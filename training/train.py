@@ -351,6 +351,10 @@ def main(argv=None) -> int:
         print("error: --task pretrain is python -m training.pretrain's (cross-view completion); training.train "
               "trains pointmaps + matching", file=sys.stderr)
         return 2
+    if cfg.mask_ratio != TrainConfig.mask_ratio:  # pretraining's setting (as pretrain refuses training's)
+        print(f"error: --mask_ratio sets cross-view completion pretraining (python -m training.pretrain); "
+              f"training.train masks nothing and would ignore it (got {cfg.mask_ratio})", file=sys.stderr)
+        return 2
     try:
         model = build_model(cfg)
         check_model_options(cfg, model)

@@ -606,6 +606,16 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
         collate, make_step(cfg))
     lr3 = {int(r["step"]): float(r["lr"]) for r in csv.DictReader(open(out3 / "train.csv"))}
     assert lr3[end - 2] == pytest.approx(2e-4) and max(lr3) > end
+    # a --steps that ends inside the placed decay is refused (it would start the decay over from --steps)
+    from pointmap.errors import CheckpointError
+
+    out4 = tmp_path / "short"
+    out4.mkdir()
+    shutil.copy(tmp_path / f"ckpt_{end - 3}.pt", out4 / "last.pt")
+    with pytest.raises(CheckpointError, match=f"runs from step {end - 6} to {end}, and --steps {end - 1} ends "
+                                              f"inside it .*pass --steps {end} or more, or --keep_decay false"):
+        fit(dataclasses.replace(cfg, out=str(out4), steps=end - 1), PointmapNet(PRESETS["test"]), PlanePairs(6),
+            collate, make_step(cfg))
 
 
 def test_decay_by_time_is_refused_without_wsd_or_a_time_limit(tmp_path):
@@ -844,6 +854,10 @@ def test_pretraining_refuses_the_flags_of_pointmap_training_it_would_ignore(tmp_
     assert "--focal_head, --train_only set pointmap training" in capsys.readouterr().err
     assert main(["--data", "x", "--preset", "test", "--task", "train"]) == 2
     assert "--task train is python -m training.train's" in capsys.readouterr().err
+    from training.train import main as train_main
+
+    assert train_main(["--data", str(tmp_path / "none"), "--preset", "test", "--mask_ratio", "0.5"]) == 2
+    assert "--mask_ratio sets cross-view completion pretraining" in capsys.readouterr().err  # before the data
 
 
 def test_every_setting_pretraining_does_not_read_is_one_it_refuses():

@@ -12,6 +12,7 @@ from training.losses import (
     completion_loss,
     cross_attention_loss,
     focal_loss,
+    gt_cam2_to_cam1,
     gt_points_cam1,
     matching_loss,
     patch_matching_loss,
@@ -464,3 +465,24 @@ def test_the_descriptor_confidence_loss_is_masts_conf_matching_loss_with_the_inf
     assert float(none) == 0 and math.isnan(c_none)
     with pytest.raises(ShapeError, match=r"expected conf2 \[2, 6, 8\], got \[2, 6\]"):
         descriptor_confidence_loss(desc1, desc2, conf1, conf2[..., 0], corr)
+
+
+def test_the_direction_term_averages_over_the_pairs_it_covers_and_the_log_over_the_pairs_with_a_scale():
+    v1, v2 = make_views()
+    still = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in v2.items()}
+    still["cam2world"][1] = v1["cam2world"][1]  # pair 1: no baseline, no direction
+    g1, g2 = gt_points_cam1(v1, still)
+    pred = pred_from(g1, g2)
+    T = gt_cam2_to_cam1(v1, still).float().clone()
+    T[0, :3, 3] = torch.tensor([0.0, 0.0, float(T[0, :3, 3].norm())])  # pair 0: 90 degrees off, same length
+    plain, _ = pose_loss(T, pred, v1, still)
+    with_dir, d = pose_loss(T, pred, v1, still, dir_weight=1.0)
+    n = float(T[0, :3, 3].norm()) / float(_scales(pred, v1, still, False)[3][0])
+    u = n / (n ** 2 + DIR_EPS ** 2) ** 0.5
+    assert abs(float(with_dir - plain) - u * 2 ** 0.5) < 1e-4  # pair 0's chord alone: it was halved by B = 2
+    blank = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in v1.items()}
+    blank["valid"][1] = False
+    blank2 = {k: (v.clone() if torch.is_tensor(v) else v) for k, v in v2.items()}
+    blank2["valid"][1] = False
+    _, d = pose_loss(gt_cam2_to_cam1(v1, v2).float(), pred_from(*gt_points_cam1(v1, v2)), blank, blank2)
+    assert d["pose_trans"] < 1e-4  # pair 1 has no scale: its translation left out of the log as of the loss
