@@ -141,7 +141,7 @@ def export_graphs(model: PointmapNet, tmp: Path, *, split: bool, opset: int, ext
         got = dict(prog.model.opset_imports)  # onnx_ir: {domain: version}
         if got.get("", opset) != opset:  # the exporter converts only where it can, and says so only in a log
             raise CheckpointError(f"ONNX export of the {spec['role']} graph asked for opset {opset} and got "
-                                  f"{got.get('')}: ask for {got.get('')} or newer")
+                                  f"{got.get('')}: the exporter could not convert it; ask for {got.get('')}")
         path = tmp / spec["file"]
         prog.save(str(path), external_data=external)
         spec["export_seconds"] = round(time.perf_counter() - t0, 1)
@@ -180,10 +180,15 @@ def _atomic_publish(tmp: Path, out: Path) -> None:
 def check_target(out_dir, opset: int) -> Path:
     """The export's folder (new, empty, or an earlier export, which is replaced) and opset checked; the folder as a
     Path. ``python -m export`` calls it before the model loads."""
-    if not (isinstance(opset, int) and not isinstance(opset, bool) and opset >= 18):
-        raise ValueError(f"opset expected an int >= 18 (the dynamo exporter's own; it cannot convert down to 17), "
-                         f"got {opset!r}")
-    out = Path(out_dir)
+    import onnx
+
+    top = onnx.defs.onnx_opset_version()
+    if not (isinstance(opset, int) and not isinstance(opset, bool) and 18 <= opset <= top):
+        raise ValueError(f"opset expected an int from 18 (the dynamo exporter's own; it cannot convert down to 17) to "
+                         f"{top} (the newest this onnx knows), got {opset!r}")
+    if not str(out_dir).strip():
+        raise ValueError("out_dir expected a folder to export to, got an empty path")
+    out = Path(out_dir).resolve()  # '.' has no name to stage beside; a symlink's target is the folder replaced
     if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
         raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
     return out
@@ -216,6 +221,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     if parity not in PARITY_CASES and parity != "none":
         raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
     out = check_target(out_dir, opset)
+    prov = provenance_keeping_licence(model, provenance)  # checked (JSON values) before minutes of export
     model = copy.deepcopy(model).float().eval().cpu()  # the caller's model keeps its mode, dtype and device
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
@@ -247,7 +253,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
             "graphs": {s["role"]: {"file": s["file"], "inputs": s["inputs"], "outputs": s["outputs"],
                                    "dtype_io": "float32", "external_data": external} for s in specs},
             "provenance": {
-                **provenance_keeping_licence(model, provenance),
+                **prov,
                 "exporter": "torch.onnx.export(dynamo=True)", "created": _dt.datetime.now(_dt.timezone.utc)
                 .isoformat(timespec="seconds"), "versions": _versions(), "parameters_bytes_fp32": nbytes,
                 "export_seconds": {s["role"]: s["export_seconds"] for s in specs},

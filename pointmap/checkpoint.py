@@ -330,12 +330,13 @@ def provenance_keeping_licence(model, provenance=None) -> dict:
     """What a file written from ``model`` records as its provenance: ``provenance`` if given, else the model's own;
     either way with the licence the model's weights carry (``model_licence``) when the given one names none, so
     that a caller's provenance cannot drop a non-commercial licence. ShapeError for a provenance that is not a
-    dict."""
+    dict, or holding what JSON cannot take (numpy values, tensors and paths become JSON's; ``provenance_json_value``)."""
     prov = provenance or getattr(model, "provenance", None) or {}
     if not isinstance(prov, dict):
         raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
     lic = model_licence(model)
-    return {**prov, "licence": lic} if lic and not prov.get("licence") else dict(prov)
+    prov = {**prov, "licence": lic} if lic and not prov.get("licence") else dict(prov)
+    return json.loads(json.dumps(prov, default=provenance_json_value))
 
 
 def warn_if_noncommercial(model, path, what: str) -> None:
@@ -398,7 +399,7 @@ def provenance_ok(prov) -> bool:
     return isinstance(prov, dict) and (size is None or (is_int(size) and size > 0))
 
 
-def _provenance_value(x):
+def provenance_json_value(x):
     """JSON for what ``json`` does not take itself in a provenance: numpy scalars and arrays, tensors, paths."""
     if isinstance(x, (np.generic, np.ndarray)) or torch.is_tensor(x):
         return x.tolist()
@@ -450,7 +451,7 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     from pointmap.cache import tensors_checksum
 
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
-            "provenance": json.dumps(prov, default=_provenance_value), "sha256": tensors_checksum(tensors)}
+            "provenance": json.dumps(prov, default=provenance_json_value), "sha256": tensors_checksum(tensors)}
     if quantized:
         meta["int8"] = json.dumps(quantized)
     with atomic_path(path) as tmp:

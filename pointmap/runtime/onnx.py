@@ -164,6 +164,23 @@ def _check_same_export(graph: Path, session, meta: dict) -> None:
                               f"{meta.get('provenance', {}).get('created')!r}): export again into a folder of its own")
 
 
+def _check_io(graph: Path, session, meta: dict, file: str) -> None:
+    """CheckpointError unless the loaded graph takes the inputs and gives the outputs its description lists (a
+    graph without the description's metadata, e.g. from another export, would otherwise fail inside onnxruntime at
+    the first call); the pose head's transform may be missing (exports before session 49)."""
+    listed = next((g for g in (meta.get("graphs") or {}).values() if isinstance(g, dict) and g.get("file") == file),
+                  None)
+    if listed is None:
+        return
+    ins = [i.name for i in session.get_inputs()]
+    outs = {o.name for o in session.get_outputs()}
+    missing = [o for o in listed.get("outputs", []) if o not in outs and o != "cam2_to_cam1"]
+    if ins != list(listed.get("inputs", ins)) or missing:
+        raise CheckpointError(f"{graph} takes inputs {ins} and lacks outputs {missing}, but its export's description "
+                              f"lists inputs {listed.get('inputs')}: a graph of another export; export again into a "
+                              "folder of its own")
+
+
 class _ImageBatch:
     """What ``encode`` returns for a single-graph export: the images themselves, encoded later per pair.
     Quacks like Encoded (``tokens``, ``grid``, slicing, ``type(x)(tokens, grid)``)."""
@@ -216,6 +233,7 @@ class OnnxPointmapModel:
             except Exception as e:  # noqa: BLE001 - ORT raises several types for a bad graph
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
             _check_same_export(gp, self._sessions[f], meta)
+            _check_io(gp, self._sessions[f], meta, f)
         # an export written before the pose head's transform was a graph output (session 49) lacks it: the
         # prediction then has no cam2_to_cam1, and relative_pose falls back to the pointmaps' Procrustes
         have = {o.name for o in self._sessions[files[-1]].get_outputs()}
@@ -307,6 +325,8 @@ class OnnxPointmapModel:
         if isinstance(enc1, _ImageBatch) or isinstance(enc2, _ImageBatch):
             if not (isinstance(enc1, _ImageBatch) and isinstance(enc2, _ImageBatch)):
                 raise ShapeError("decode_pair got one deferred and one real encoding; use this model's encode for both")
+            self.check_images("enc1", enc1.tokens)  # the images the deferred encodings hold
+            self.check_images("enc2", enc2.tokens)
             if enc1.tokens.shape[0] != enc2.tokens.shape[0]:
                 raise ShapeError(f"batch sizes differ: {enc1.tokens.shape[0]} and {enc2.tokens.shape[0]}")
             outs = self._run(FULL_GRAPH, {"img1": self._np(enc1.tokens), "img2": self._np(enc2.tokens)},

@@ -155,7 +155,7 @@ def test_export_rejects_bad_arguments(tmp_path, test_model):
         export_model(test_model, tmp_path / "a", quantize="int4")
     with pytest.raises(ValueError, match="opset"):
         export_model(test_model, tmp_path / "a", opset=13)
-    with pytest.raises(ValueError, match="opset expected an int >= 18"):  # the exporter cannot convert down to 17
+    with pytest.raises(ValueError, match="opset expected an int from 18"):  # the exporter cannot convert down to 17
         export_model(test_model, tmp_path / "a", opset=17)
     with pytest.raises(ValueError, match="parity"):
         export_model(test_model, tmp_path / "a", parity="sometimes")
@@ -196,7 +196,7 @@ def test_cli_checks_the_output_folder_and_opset_before_it_loads_the_model(tmp_pa
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("mine")
     for extra, message in ((["--out", str(tmp_path / "full")], "exists and is not a pointmap export"),
-                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int >= 18")):
+                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int from 18")):
         assert main(["--model", "some/huge.pth", *extra]) == 2
         assert message in capsys.readouterr().err
 
@@ -341,3 +341,34 @@ def test_cli_refuses_an_output_path_under_a_file_in_one_line(tmp_path, capsys):
     assert main(["--model", "preset:test", "--out", str(tmp_path / "taken" / "sub"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: --out expected a folder to write the export into")
+
+
+def test_an_opset_beyond_onnx_an_unnamed_folder_and_a_symlinked_one_are_handled_before_the_export(tmp_path,
+                                                                                                   monkeypatch):
+    import onnx
+
+    from export.exporter import check_target
+
+    top = onnx.defs.onnx_opset_version()
+    with pytest.raises(ValueError, match=f"opset expected an int from 18 .* to {top}"):
+        check_target(tmp_path / "a", top + 1)
+    monkeypatch.chdir(tmp_path)
+    assert check_target(".", 18) == tmp_path.resolve()  # '.' has a name once resolved
+    with pytest.raises(ValueError, match="empty path"):
+        check_target("", 18)
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    assert check_target(tmp_path / "link", 18) == real.resolve()  # the target folder is what gets replaced
+
+
+def test_a_provenance_with_paths_and_numpy_values_is_recorded_as_json_and_an_odd_patch_size_passes_parity(tmp_path):
+    from pathlib import Path
+
+    torch.manual_seed(0)
+    model = pm.PointmapNet(PRESETS["test"].replace(head="linear", desc_dim=0, patch_size=14))
+    model.provenance = {"source": Path("/data/ckpt.pth"), "image_size": np.int64(224)}
+    meta = export_model(model, tmp_path / "odd")  # standard parity: 512 x 384 is no whole number of 14 px patches
+    assert meta["parity"]["passed"]
+    side = json.loads((tmp_path / "odd" / SIDECAR).read_text())
+    assert side["provenance"]["source"] == "/data/ckpt.pth" and side["provenance"]["image_size"] == 224

@@ -269,3 +269,27 @@ def test_a_sidecar_that_is_not_utf8_is_a_checkpoint_error(tmp_path, split_export
     (bad / SIDECAR).write_bytes(b"\xff\xfe{}")
     with pytest.raises(CheckpointError, match="not valid JSON"):
         load_onnx(bad)
+
+
+def test_a_graph_without_its_exports_description_that_takes_other_inputs_is_refused_at_load(tmp_path, split_export):
+    import shutil
+
+    import onnx
+
+    odd = tmp_path / "odd"
+    shutil.copytree(split_export, odd)
+    proto = onnx.load(str(odd / "encoder.onnx"))
+    del proto.metadata_props[:]  # an old graph carries no description: the description's inputs are the check
+    onnx.save(proto, str(odd / "decoder.onnx"))
+    with pytest.raises(CheckpointError, match="decoder.onnx takes inputs .* a graph of another export"):
+        load_onnx(odd)
+
+
+def test_a_single_graph_exports_deferred_encoding_indexed_to_one_image_is_refused_as_pytorch_refuses_it(
+        full_export, test_model):
+    x = torch.rand(2, 3, 32, 32)
+    runner = pm.load_model(full_export)
+    with pytest.raises(ShapeError, match="enc1 expected"):
+        runner.decode_pair(runner.encode(x)[0], runner.encode(x)[0])  # the batch dimension indexed away
+    with torch.inference_mode(), pytest.raises(ShapeError, match="enc1 expected"):
+        test_model.decode_pair(test_model.encode(x)[0], test_model.encode(x)[0])
