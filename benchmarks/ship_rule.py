@@ -122,9 +122,10 @@ def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga
     the two ``bench_ga.py`` per-pair files read the same way."""
     rows = []
     _same_pairs(inc_pairs, cand_pairs, "per-pair files", card_only=True)
-    for who, pp in (("incumbent's", inc_pairs), ("candidate's", cand_pairs)):  # the count would take a NaN for a
-        nan = [k for k in pp if k[0] in CARD_SETS and any(math.isnan(pp[k][c]) for c in (0, 1, 3, 4))]  # miss,
-        if nan:  # McNemar would leave the pair out: refused rather than judged two ways (no card writes NaN)
+    for who, pp in (("incumbent's", inc_pairs), ("candidate's", cand_pairs)):  # a NaN error the count would take
+        nan = [k for k in pp if k[0] in CARD_SETS and (math.isnan(pp[k][0]) or math.isnan(pp[k][1])  # for a miss and
+                                                       or (math.isnan(pp[k][4]) and not math.isnan(pp[k][3])))]  # McNemar
+        if nan:  # leave out: refused rather than judged two ways (a file without the pipeline's columns has no count)
             raise ValueError(f"the {who} per-pair file holds NaN errors on {len(nan)} card pairs (e.g. {nan[0]}): "
                              "the count and the pair-by-pair tests would judge them differently")
     if ga is not None:

@@ -50,9 +50,9 @@ RESERVED_SEEDS = range(2**31 - 1000, 2**31)
 GENERATOR_VERSION = SCENE_VERSIONS[-1]
 SCENE_ATTEMPTS = 8
 MAX_VIEWS = 64  # views per scene
-# the longest image side --kind pairs can store: correspondences are 1/64-px fixed point up to pixel CORR_MAX (data.geom)
-# and the last pixel centre of a side S is S - 1 (its far edge S - 0.5): 1024
-MAX_PAIR_SIZE = int(CORR_MAX + 0.5) // 16 * 16
+# the longest image side --kind pairs can store: correspondences are stored as 1/64-px fixed point of c + 0.5 up to
+# CORR_MAX (data.geom), and a correspondence may reach the far edge of a side S (c + 0.5 up to S): 1008
+MAX_PAIR_SIZE = int(CORR_MAX) // 16 * 16
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,7 @@ class GenConfig:
             raise ValueError(f"version expected a generator version of {SCENE_VERSIONS}, got {self.version!r}")
         if self.kind == "pairs" and self.size > MAX_PAIR_SIZE:  # refused before anything is rendered or written
             raise ValueError(f"size expected at most {MAX_PAIR_SIZE} with kind 'pairs' (correspondences are stored as "
-                             f"1/64-px fixed point up to pixel {CORR_MAX:.2f}, data.geom.CORR_MAX), got {self.size}")
+                             f"1/64-px fixed point up to pixel {CORR_MAX - 0.5:.2f}, data.geom.CORR_MAX), got {self.size}")
         if not isinstance(self.seed, int) or self.seed < 0 or self.seed >= 2**31:
             raise ValueError(f"seed expected an int in [0, 2**31), got {self.seed!r}")
         if not 0 <= self.low_texture_share <= 1:

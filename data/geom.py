@@ -156,8 +156,8 @@ def encode_corr(corr: np.ndarray) -> np.ndarray:
         raise ShapeError(f"corr expected [H, W, 2], got {list(corr.shape)}")
     none = ~np.isfinite(corr).all(-1)
     c = np.where(none[..., None], 0.0, corr)
-    if np.any((c < -0.5) | (c > CORR_MAX)):
-        raise ShapeError(f"corr values expected in [-0.5, {CORR_MAX:.1f}] to fit the stored fixed point")
+    if np.any((c < -0.5) | (c + 0.5 > CORR_MAX)):  # what is stored is c + 0.5 (65535 means none)
+        raise ShapeError(f"corr values expected in [-0.5, {CORR_MAX - 0.5:.2f}] to fit the stored fixed point")
     q = np.rint(np.clip(c + 0.5, 0, None) * CORR_SCALE).astype(np.uint16)  # +0.5: pixel -0.5 is the image edge
     q[none] = CORR_NONE
     return q

@@ -226,7 +226,9 @@ class PredictionCache:
             raise PointmapError(f"the cache stores one pair per file, got a batch of {pred.batch_size}")
         if not self.writable:
             return None
-        if any(torch.is_autocast_enabled(d) for d in ("cpu", "cuda")):  # lower precision than the key says
+        from pointmap.model.net import _autocast_on
+
+        if any(_autocast_on(d) for d in ("cpu", "cuda")):  # lower precision than the key says
             log.warning("prediction cache: predictions made under torch.autocast are not stored (the key holds the "
                         "weights and pixels, not the precision); the cache stops writing for this run")
             self.writable = False

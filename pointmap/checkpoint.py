@@ -77,6 +77,10 @@ _IGNORED_KWARGS = {"img_size", "patch_embed_cls", "landscape_only", "freeze", "d
                    "norm_layer", "enc_pos_embed", "dec_pos_embed"}
 
 
+class HeadlessCheckpointError(CheckpointError):
+    """A pretraining checkpoint (CroCo's: encoder and decoder) loaded as a model: it has no prediction heads."""
+
+
 def _official_sizes(a: dict, pos: str, head: str, desc_dim: int, conf_mode: tuple, desc_conf, name: str) -> dict:
     """The ModelConfig fields of an official constructor's arguments ``a`` (popped from it); KeyError, TypeError or
     ValueError for missing or malformed ones (``config_from_ctor`` turns them into CheckpointError)."""
@@ -305,7 +309,7 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
         raise CheckpointError(f"{path} has no architecture string (args.model)")
     cfg = config_from_ctor(ctor)
     if "CroCoNet" in ctor and not allow_missing_heads:
-        raise CheckpointError(f"{path} is a CroCo pretraining checkpoint (encoder and decoder, no prediction heads): "
+        raise HeadlessCheckpointError(f"{path} is a CroCo pretraining checkpoint (encoder and decoder, no prediction heads): "
                               "loaded as a model its heads would be random. Start training from it (python -m "
                               "training.train --init PATH), or load_official(path, allow_missing_heads=True)")
     model = built_for(cfg, official_to_ours(ckpt["model"]), allow_missing_heads=allow_missing_heads, source=str(path))

@@ -348,7 +348,8 @@ def cmd_reconstruct(args) -> int:
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
-        refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model), "to a model with a pose head")])
+        refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model) or not args.head_prior,
+                           "to a model with a pose head")])  # (0, off, is off for any model)
         return reconstruct_scene(model, size, args, scene, formats, prediction_cache(args, model))
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
@@ -365,7 +366,8 @@ def cmd_reconstruct(args) -> int:
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
     model, size = _model_and_size(args.model, args.size, args.device)  # loaded once for every scene
-    refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model), "to a model with a pose head")])
+    refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model) or not args.head_prior,
+                           "to a model with a pose head")])  # (0, off, is off for any model)
     cache = prediction_cache(args, model)  # its weights hashed once too
     failed = []
     for scene in scenes:

@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from pointmap.checkpoint import (
+    HeadlessCheckpointError,
     load_model,
     load_official,
     load_state_strict,
@@ -51,8 +52,10 @@ def _init_state(path: Path):
         extra = ck.get("extra") or {}
         return (official_to_ours(ck["model"]), ModelConfig.from_dict(ck["model_config"]), ck.get("kind"),
                 {"grown_from": extra.get("grown_from"), "licence": extra.get("licence")})
-    official = path.is_file() and path.suffix not in (".safetensors", ".onnx")  # a CroCo one brings no heads
-    model = load_official(path, allow_missing_heads=True) if official else load_model(str(path))
+    try:
+        model = load_model(str(path))
+    except HeadlessCheckpointError:  # a CroCo pretraining file: its trunk, the heads start fresh (seeded)
+        model = load_official(path, allow_missing_heads=True)
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"--init {path} is not a PyTorch model")
     prov = getattr(model, "provenance", None) or {}

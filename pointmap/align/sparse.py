@@ -129,6 +129,10 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     if fixed_intrinsics is None:
         fixed_intrinsics = True if aligned.get("config", {}).get("shared_focal") else \
             aligned.get("known_K_indices", [])
+    if hasattr(fixed_poses, "tolist"):  # a numpy array or tensor of indices
+        fixed_poses = fixed_poses.tolist()
+    if hasattr(fixed_intrinsics, "tolist"):
+        fixed_intrinsics = fixed_intrinsics.tolist()
     for name, idx in (("fixed_poses", fixed_poses), ("fixed_intrinsics", fixed_intrinsics)):
         if idx is True:
             continue

@@ -183,6 +183,8 @@ def test_the_rule_refuses_global_alignment_files_of_other_renders_and_nan_errors
         ga.append(read_per_pair(tmp_path / f"ga_{name}.csv"))
     with pytest.raises(ValueError, match="global-alignment files hold the same pair names but 5 true rotations"):
         check(card, inc, card, cand, tuple(ga))
+    old = {k: (*v[:3], float("nan"), float("nan")) for k, v in inc.items()}  # a file without the pipeline's columns
+    assert check(card, old, card, cand)[0][3] is None  # the count cannot be checked: not an unreadable input
     key = next(k for k in cand if k[0] in CARD_SETS)
     cand[key] = (cand[key][0], float("nan"), *cand[key][2:])
     with pytest.raises(ValueError, match="candidate's per-pair file holds NaN errors on 1 card pairs"):

@@ -7,10 +7,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from data.generate import GenConfig, generate, main, parse_shards
 from data.shards import ShardError, completed_shards
+from pointmap.errors import ShapeError
 
 ROOT = Path(__file__).resolve().parents[2]
 ARGS = ["--scenes", "5", "--shard-size", "1", "--size", "64", "--views", "2", "--seed", "5", "--quiet"]
@@ -166,13 +168,18 @@ def test_stale_temp_removal_leaves_the_temps_of_a_host_whose_name_starts_with_th
 def test_a_pair_size_the_correspondence_format_cannot_hold_is_refused_before_anything_is_written(tmp_path, capsys):
     from data.geom import CORR_MAX
 
-    with pytest.raises(ValueError, match=r"size expected at most 1024 with kind 'pairs' .*, got 1040"):
-        GenConfig(kind="pairs", scenes=1, size=1040)
-    assert GenConfig(kind="pairs", scenes=1, size=1024).size - 0.5 <= CORR_MAX  # the last pixel's far edge fits
+    with pytest.raises(ValueError, match=r"size expected at most 1008 with kind 'pairs' .*, got 1024"):
+        GenConfig(kind="pairs", scenes=1, size=1024)
+    from data.geom import decode_corr, encode_corr
+
+    edge = GenConfig(kind="pairs", scenes=1, size=1008).size - 0.5 - 1e-6  # the far edge of the largest size
+    assert edge + 0.5 <= CORR_MAX and abs(float(decode_corr(encode_corr(np.full((1, 1, 2), edge)))[0, 0, 0]) - edge) < 0.01
+    with pytest.raises(ShapeError, match="corr values expected in"):  # 1024's last half pixel: stored as 'none'
+        encode_corr(np.full((1, 1, 2), 1023.48))
     assert GenConfig(kind="views", scenes=1, size=1040).size == 1040  # view sets store no correspondences
     out = tmp_path / "big"
     assert main(["--out", str(out), "--scenes", "1", "--size", "1040", "--quiet"]) == 2
-    assert "size expected at most 1024" in capsys.readouterr().err and not out.exists()
+    assert "size expected at most 1008" in capsys.readouterr().err and not out.exists()
 
 
 def test_a_run_of_an_older_generator_version_resumes_only_with_that_version_and_a_heldout_set_keeps_its_own(
