@@ -24,6 +24,7 @@ import torch
 
 from pointmap.atomic import atomic_path
 from pointmap.errors import CheckpointError, PointmapError
+from pointmap.model.net import autocast_on
 from pointmap.prediction import PairPrediction
 
 log = logging.getLogger(__name__)
@@ -167,19 +168,19 @@ class PredictionCache:
                 pass
         return n
 
-    def _unusable(self, f, key: str, desc: bool) -> str | None:
-        """Why the open cache file ``f`` cannot serve the pair ``key`` (``desc``: with descriptors): "foreign: ..."
-        for a file that is not this cache's (logged as unreadable), "weaker: ..." for one this cache must
-        recompute (no descriptors, lower precision), None when it can."""
+    def _unusable(self, f, key: str, desc: bool) -> tuple[bool, str] | None:
+        """Why the open cache file ``f`` cannot serve the pair ``key`` (``desc``: with descriptors), as (foreign,
+        reason): foreign True for a file that is not this cache's (logged as unreadable), False for one this cache
+        must recompute (no descriptors, lower precision); None when it can serve it."""
         meta = f.metadata() or {}
         if meta.get("format") != FORMAT or meta.get("key") != key:
-            return f"foreign: not a pointmap pair prediction for this key (metadata {meta})"
+            return True, f"not a pointmap pair prediction for this key (metadata {meta})"
         if meta.get("version") != VERSION:
-            return f"foreign: format version {meta.get('version')!r}, this library reads {VERSION}"
+            return True, f"format version {meta.get('version')!r}, this library reads {VERSION}"
         if desc and "desc1" not in f.keys():
-            return "weaker: no descriptors"
+            return False, "no descriptors"
         if meta.get("dtype") == "float16" and self.dtype == torch.float32:
-            return "weaker: float16, this cache writes float32"
+            return False, "float16, this cache writes float32"
         return None
 
     def get(self, key: str, shape1: tuple, shape2: tuple, desc: bool) -> PairPrediction | None:
@@ -195,8 +196,8 @@ class PredictionCache:
         try:
             with safe_open(str(path), framework="pt") as f:
                 why = self._unusable(f, key, desc)
-                if why is not None and why.startswith("foreign"):
-                    raise ValueError(why.removeprefix("foreign: "))
+                if why is not None and why[0]:
+                    raise ValueError(why[1])
                 if why is not None:
                     self.misses += 1
                     return None
@@ -226,9 +227,7 @@ class PredictionCache:
             raise PointmapError(f"the cache stores one pair per file, got a batch of {pred.batch_size}")
         if not self.writable:
             return None
-        from pointmap.model.net import _autocast_on
-
-        if any(_autocast_on(d) for d in ("cpu", "cuda")):  # lower precision than the key says
+        if any(autocast_on(d) for d in ("cpu", "cuda")):  # lower precision than the key says
             log.warning("prediction cache: predictions made under torch.autocast are not stored (the key holds the "
                         "weights and pixels, not the precision); the cache stops writing for this run")
             self.writable = False

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from pointmap.atomic import atomic_path
+from pointmap.cache import tensors_checksum
 from pointmap.errors import CheckpointError, ShapeError, check_device, is_int
 from pointmap.model.config import PRESETS, ModelConfig
 from pointmap.model.net import PointmapNet
@@ -192,7 +193,7 @@ def built_for(cfg: ModelConfig, state: dict, *, allow_missing_heads: bool = Fals
     with torch.device("meta"):
         _check_fits(PointmapNet(cfg).state_dict(), state, allow_missing_heads, source)
     model = PointmapNet(cfg)
-    load_state_strict(model, state, allow_missing_heads=allow_missing_heads, source=source)
+    model.load_state_dict(state, strict=not allow_missing_heads)  # checked above: the real model has its keys
     return model
 
 
@@ -452,8 +453,6 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
         else:
             tensors[k] = v
     tensors = {k: v.contiguous() for k, v in tensors.items()}
-    from pointmap.cache import tensors_checksum
-
     meta = {"format": FORMAT, "config": json.dumps(model.cfg.to_dict()),
             "provenance": json.dumps(prov, default=provenance_json_value), "sha256": tensors_checksum(tensors)}
     if quantized:
@@ -504,8 +503,6 @@ def load_own(path: Path) -> PointmapNet:
     if meta.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a pointmap checkpoint (metadata format={meta.get('format')!r})")
     if "sha256" in meta:  # files written since session 74 carry one; older ones load unchecked
-        from pointmap.cache import tensors_checksum
-
         if tensors_checksum(state) != meta["sha256"]:
             raise CheckpointError(f"{path}: its tensors do not match the checksum in its header (corrupted)")
     try:

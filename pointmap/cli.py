@@ -75,9 +75,12 @@ def fill_defaults(args, **defaults) -> None:
             setattr(args, dest, value)
 
 
-def model_has_pose_head(model) -> bool:
-    """Whether ``model`` (PyTorch or ONNX runtime) predicts the pose head's transforms."""
-    return bool(getattr(getattr(model, "cfg", None), "pose_head", False))
+def refuse_head_prior_without_pose_head(args, model) -> None:
+    """``--head-prior W`` (W > 0; 0 is off for any model) on a model (PyTorch or ONNX runtime) without the pose head
+    whose transforms the prior reads: refused once the model is loaded, before inference."""
+    has_pose_head = bool(getattr(getattr(model, "cfg", None), "pose_head", False))
+    refuse_ignored(args, [("head_prior", "--head-prior", has_pose_head or not args.head_prior,
+                           "to a model with a pose head")])
 
 
 def parse_focals(text: str, n: int) -> list[float]:
@@ -348,8 +351,7 @@ def cmd_reconstruct(args) -> int:
     if not args.each_folder:
         scene = prepare_scene(args, args.images, Path(args.out))  # the inputs checked before the model loads
         model, size = _model_and_size(args.model, args.size, args.device)
-        refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model) or not args.head_prior,
-                           "to a model with a pose head")])  # (0, off, is off for any model)
+        refuse_head_prior_without_pose_head(args, model)
         return reconstruct_scene(model, size, args, scene, formats, prediction_cache(args, model))
     if len(args.images) != 1 or not Path(args.images[0]).is_dir():
         raise PointmapError(f"--each-folder expected one folder whose sub-folders are scenes, got {args.images}")
@@ -366,8 +368,7 @@ def cmd_reconstruct(args) -> int:
     if not scenes:
         raise PointmapError(f"--each-folder: {args.images[0]} has no sub-folders")
     model, size = _model_and_size(args.model, args.size, args.device)  # loaded once for every scene
-    refuse_ignored(args, [("head_prior", "--head-prior", model_has_pose_head(model) or not args.head_prior,
-                           "to a model with a pose head")])  # (0, off, is off for any model)
+    refuse_head_prior_without_pose_head(args, model)
     cache = prediction_cache(args, model)  # its weights hashed once too
     failed = []
     for scene in scenes:

@@ -90,6 +90,12 @@ def _patch(model) -> int | None:
     return getattr(getattr(model, "cfg", None), "patch_size", None)
 
 
+def wants_desc(model, keep_desc: bool) -> bool:
+    """Whether predictions of ``model`` are to carry descriptors: asked for (``keep_desc``) and the model has a
+    descriptor head (what ``predict_pairs`` reads from its cache)."""
+    return bool(keep_desc) and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
+
+
 def checked_encodings(encodings, imgs: list[torch.Tensor], patch: int | None = None) -> list:
     """``encodings`` (``encode_views``'s output for these images, one per image) checked against the images: one
     entry per image, each a batch of one on the patch grid of its image's shape (``patch``: the model's patch size,
@@ -178,7 +184,7 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
             cache.check(model)  # made for this model's weights
         else:
             cache = PredictionCache(cache, model)
-        want_desc = keep_desc and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0
+        want_desc = wants_desc(model, keep_desc)
         keys = cache.keys(imgs, edges)
         for i, j in edges:
             pred = cache.get(keys[(i, j)], tuple(imgs[i].shape[1:]), tuple(imgs[j].shape[1:]), want_desc)

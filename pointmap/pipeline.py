@@ -278,11 +278,12 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         pairs = make_pairs(n, graph)
     largest = max((v.shape for v in views), key=lambda hw: hw[0] * hw[1])  # images of several sizes: the upper bound
     cost = estimate_cost(n, len(pairs), largest, model, cfg, device, epipolar, refine, retrieval)
+    # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
+    keep_desc = bool(epipolar) or bool(refine)
     if cache is not None:  # pairs already on disk cost a read, not the network: the estimate says so
-        from pointmap.inference import directed
+        from pointmap.inference import directed, wants_desc
 
-        cached = cache.present([v.img for v in views], directed(pairs), desc=(bool(epipolar) or bool(refine))
-                               and getattr(getattr(model, "cfg", None), "desc_dim", 0) > 0)
+        cached = cache.present([v.img for v in views], directed(pairs), desc=wants_desc(model, keep_desc))
         cost["cached_pairs"] = cached
         cost["inference_seconds"] *= 1 - cached / (2 * len(pairs))
     if not quiet:
@@ -291,10 +292,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
               f"~{_fmt_s(cost['inference_seconds'])}{hits}, alignment ~{_fmt_s(cost['align_seconds'])}, "
               f"peak memory ~{cost['memory_gb']:.1f} GB (rough)", file=sys.stderr)
     clock = time.perf_counter()  # the inference's lap starts here, after the estimate was printed
-    # descriptors are kept only for the stages that match on them (6x the pointmaps' memory at MASt3R's desc_dim 24)
     with contextlib.nullcontext() if cache is None else cache._vouched(model):  # checked above: hashed once
         preds = predict_pairs(model, views, pairs, batch_size=batch_size, device=device, quiet=quiet,
-                              keep_desc=bool(epipolar) or bool(refine), encodings=encodings, cache=cache)
+                              keep_desc=keep_desc, encodings=encodings, cache=cache)
     del encodings
     lap("inference")
     if user_masks is not None:

@@ -57,10 +57,10 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         stated = count_frames(video)
         step = max(1, math.ceil(stated / max_frames))
         kept, total, fps = _read_windows(video, out_dir, step, pick_sharpest, step * max_frames)
-        if max(1, math.ceil(total / max_frames)) != step:  # the header was wrong: once more at the true count's stride
+        true_step = max(1, math.ceil(total / max_frames))
+        if true_step != step:  # the header was wrong: once more at the true count's stride
             first = kept
-            step = max(1, math.ceil(total / max_frames))
-            kept, _, fps = _read_windows(video, out_dir, step, pick_sharpest, None)
+            kept, _, fps = _read_windows(video, out_dir, true_step, pick_sharpest, None)
             for stale in {p for p, _, _ in first} - {p for p, _, _ in kept}:
                 stale.unlink(missing_ok=True)
     if not kept:

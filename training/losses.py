@@ -125,11 +125,12 @@ def pose_loss(T: torch.Tensor, pred, view1: dict, view2: dict, metric: bool = Fa
     # a pair without a valid pixel has no scale (the clamp's 1e-8: a true baseline of 5e7 and a gradient of 5e8
     # that clipping then let drive the whole update): its rotation counts, its translation does not
     scaled = (v1.flatten(1).sum(1) + v2.flatten(1).sum(1)) > 0
-    loss = rot.mean() + (tr * scaled).sum() / scaled.sum().clamp_min(1)
+    trans = (tr * scaled).sum() / scaled.sum().clamp_min(1)
+    loss = rot.mean() + trans
     with torch.no_grad():
         deg = torch.rad2deg(2 * torch.asin((rot / (2 * 2 ** 0.5)).clamp(max=1)))
     details = {"pose_rot_deg": float(deg.mean()),  # the translation error of the pairs the loss counts
-               "pose_trans": float((tr.detach() * scaled).sum() / scaled.sum()) if bool(scaled.any()) else math.nan}
+               "pose_trans": float(trans.detach()) if bool(scaled.any()) else math.nan}
     if dir_weight > 0:
         ok = (t_gt.norm(dim=1) >= MIN_BASELINE) & scaled
         # directions with a smooth norm t / sqrt(|t|^2 + DIR_EPS^2), the same for both (zero at the truth): the

@@ -504,16 +504,14 @@ def _pair_list(preds: dict) -> list:
 
 
 def own_focals(preds: dict, n: int) -> np.ndarray:
-    """[N] per image: the median of its focals over the pairs it leads (a focal head's, else the Weiszfeld focal of
-    its own-frame pointmap over the pixels of positive confidence: a mask's zeroed pixels are left out, as the
-    alignment's start leaves them; NaN when it has none)."""
-    from pointmap.geometry.focal import focal_from_pointmap
+    """[N] per image: the median of its focals over the pairs it leads (``focal_from_prediction``: a focal head's,
+    else the Weiszfeld focal of its own-frame pointmap's unmasked pixels; NaN when it has none)."""
+    from pointmap.pose import focal_from_prediction
 
     per = [[] for _ in range(n)]
     for (i, j), p in preds.items():
         if i != j:
-            f = float(p.focal1[0]) if p.focal1 is not None else float(focal_from_pointmap(
-                p.pts1_cam1.float(), valid=torch.nan_to_num(p.conf1.float(), nan=0.0) > 0)[0])
+            f = float(focal_from_prediction(p)[0])
             if math.isfinite(f) and f > 0:
                 per[i].append(f)
     return np.array([float(np.median(v)) if v else math.nan for v in per])

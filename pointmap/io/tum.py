@@ -26,9 +26,9 @@ def tum_timestamps(recon, timestamps=None) -> np.ndarray:
         raise ValueError(f"timestamps expected {n} finite numbers (one per image), got {timestamps!r}") from None
     if ts.shape != (n,) or not np.isfinite(ts).all():
         raise ValueError(f"timestamps expected {n} finite numbers (one per image), got shape {ts.shape}")
-    if len(np.unique(ts)) != n:  # trajectory tools associate poses by time: two at one time are ambiguous
-        dup = ts[np.searchsorted(np.sort(ts), ts, side="right") - np.searchsorted(np.sort(ts), ts) > 1]
-        raise ValueError(f"timestamps expected one distinct time per image, got {sorted(set(dup.tolist()))[:3]} "
+    times, counts = np.unique(ts, return_counts=True)
+    if (counts > 1).any():  # trajectory tools associate poses by time: two at one time are ambiguous
+        raise ValueError(f"timestamps expected one distinct time per image, got {times[counts > 1][:3].tolist()} "
                          "more than once")
     return ts
 

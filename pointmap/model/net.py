@@ -26,7 +26,7 @@ class PatchEmbed(nn.Module):
         return self.proj(x).flatten(2).transpose(1, 2)
 
 
-def _autocast_on(device_type: str) -> bool:
+def autocast_on(device_type: str) -> bool:
     """Whether autocast is on for ``device_type`` (its tokens may then be bf16): torch >= 2.4 takes the device type,
     older versions answer for CUDA only and have ``is_autocast_cpu_enabled``."""
     try:
@@ -216,7 +216,7 @@ class PointmapNet(nn.Module):
             t = enc.tokens
             if t.is_meta:  # shapes only (the pipeline counts FLOPs on the meta device): no values to check
                 continue
-            if ref is not None and (t.device != ref.device or (t.dtype != ref.dtype and not _autocast_on(t.device.type))):
+            if ref is not None and (t.device != ref.device or (t.dtype != ref.dtype and not autocast_on(t.device.type))):
                 raise ShapeError(f"{name} expected tokens of the model's {ref.dtype} on {ref.device}, got {t.dtype} "
                                  f"on {t.device}")
             if not bool(torch.isfinite(t).all()):
