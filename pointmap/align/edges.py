@@ -84,11 +84,13 @@ class EdgeStack:
 
 
 def sample_index(h: int, w: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rows and columns kept by stride-``stride`` subsampling (centre of each cell)."""
-    off = stride // 2
-    rows = torch.arange(off, h, stride)
-    cols = torch.arange(off, w, stride)
-    return rows, cols
+    """Rows and columns kept by stride-``stride`` subsampling (centre of each cell); a side no longer than half the
+    stride keeps its middle pixel (the cell's centre would lie beyond it: no pixel, or a raw error from arange)."""
+    def keep(n: int) -> torch.Tensor:
+        off = stride // 2
+        return torch.arange(off if off < n else (n - 1) // 2, n, stride)
+
+    return keep(h), keep(w)
 
 
 def check_preds(preds: dict, n_images: int, shapes: list[tuple[int, int]]) -> list[tuple[int, int]]:
@@ -238,4 +240,9 @@ def choose_stride(shapes: list[tuple[int, int]], n_edges: int, max_opt_pixels: i
     if not max_opt_pixels:
         return 1
     biggest = max(h * w for h, w in shapes)
-    return max(1, math.ceil(math.sqrt(biggest / max_opt_pixels)))
+    stride = max(1, math.ceil(math.sqrt(biggest / max_opt_pixels)))
+    # the square root ignores the rounding up of rows and columns (a 176 x 960 map at 1000 pixels kept 1036)
+    while stride < max(max(s) for s in shapes) and max(
+            len(r) * len(c) for r, c in (sample_index(h, w, stride) for h, w in shapes)) > max_opt_pixels:
+        stride += 1
+    return stride

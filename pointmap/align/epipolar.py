@@ -47,7 +47,7 @@ from functools import partial
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, is_int
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.pose import _bearings
 from pointmap.reconstruction import K_to_original, Reconstruction
 
@@ -79,10 +79,17 @@ class EpipolarConfig:
 
     def __post_init__(self):
         ints = (self.rounds, self.max_evals, self.patch)
-        if not all(is_int(v) for v in ints) or not self.rotation_prior_deg > 0 or min(ints) < 1 \
-                or (self.threshold_px is not None and not self.threshold_px > 0):
-            raise ShapeError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 or None, rounds, "
+        # numbers, not strings (a raw TypeError from the comparison) nor bools; switches True or False, not strings
+        # ("no" is truthy and would have run the stage it names)
+        if not all(is_int(v) for v in ints) or min(ints) < 1 \
+                or not (is_number(self.rotation_prior_deg) and self.rotation_prior_deg > 0) \
+                or (self.threshold_px is not None and not (is_number(self.threshold_px)
+                                                          and 0 < self.threshold_px < math.inf)):
+            raise ShapeError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 (finite) or None, rounds, "
                              f"max_evals and patch ints >= 1; got {self}")
+        for name in ("refit_depth", "cheirality", "second_descent"):
+            if not isinstance(getattr(self, name), bool):
+                raise ShapeError(f"EpipolarConfig.{name} expected True or False, got {getattr(self, name)!r}")
 
 
 def epipolar_residuals(R: np.ndarray, C: np.ndarray, I: np.ndarray, J: np.ndarray, r1: np.ndarray,

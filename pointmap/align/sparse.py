@@ -49,6 +49,9 @@ class SparseConfig:
             bad.append(f"min_score expected a finite score, got {self.min_score!r}")
         if not (is_int(self.max_matches_per_pair) and self.max_matches_per_pair >= 1):
             bad.append(f"max_matches_per_pair expected an int >= 1, got {self.max_matches_per_pair!r}")
+        for name in ("optimize_focal", "optimize_pp", "quiet"):  # "no" is truthy: it would move what it names
+            if not isinstance(getattr(self, name), bool):
+                bad.append(f"{name} expected True or False, got {getattr(self, name)!r}")
         if bad:
             raise ShapeError("SparseConfig: " + "; ".join(bad))
 

@@ -318,6 +318,20 @@ def test_bad_settings_are_refused_when_the_config_is_made(kwargs):
         EpipolarConfig(**kwargs)
 
 
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(refit_depth="no"), "refit_depth expected True or False, got 'no'"),  # truthy: the refit ran
+    (dict(cheirality=0), "cheirality expected True or False, got 0"),
+    (dict(second_descent="False"), "second_descent expected True or False"),
+    (dict(rotation_prior_deg="3"), "EpipolarConfig expected rotation_prior_deg > 0"),  # a raw TypeError before
+    (dict(threshold_px="4"), "EpipolarConfig expected"),
+    (dict(threshold_px=float("inf")), "EpipolarConfig expected"),  # every residual 0: the fit moved nothing
+    (dict(rotation_prior_deg=True), "EpipolarConfig expected")])
+def test_switches_given_as_strings_and_numbers_given_as_strings_or_bools_are_refused(kwargs, message):
+    with pytest.raises(ShapeError, match=message):
+        EpipolarConfig(**kwargs)
+    assert EpipolarConfig(refit_depth=False, rotation_prior_deg=2, threshold_px=3).rotation_prior_deg == 2
+
+
 def test_the_analytic_residual_jacobian_agrees_with_central_differences(scene):
     """``_residual_jacobian`` and ``_left_jacobian`` against central differences of the residuals through the fit's
     own parameterisation R_k = exp(w_k) R_k0 (w well away from 0, where the left Jacobian matters)."""

@@ -106,6 +106,32 @@ def test_downsampled_optimisation_matches_full_resolution(scene):
     assert sub.depth_z.shape == full.depth_z.shape == (6, 32, 48)  # depth is always full resolution
 
 
+def test_a_stride_beyond_the_maps_keeps_their_middle_pixel_instead_of_failing():
+    from pointmap.align.edges import sample_index
+
+    rows, cols = sample_index(16, 24, 40)  # was arange(20, 16, 40): "upper bound and lower bound inconsistent"
+    assert rows.tolist() == [7] and cols.tolist() == [20]  # the cell centre where the side reaches it
+    assert [len(x) for x in sample_index(16, 24, 32)] == [1, 1]  # was no row at all
+    assert [x.tolist() for x in sample_index(32, 48, 16)] == [[8, 24], [8, 24, 40]]  # within the map: as before
+    sc = make_scene(3, 16, 24, seed=4)
+    preds = gt_preds(sc, complete_pairs(3), seed=4)
+    for stride in (32, 40):  # was a GraphError (every pair "zero weight"), then a raw RuntimeError
+        with pytest.warns(UserWarning):  # one pixel per image places nothing well
+            recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, stride=stride, niter=2))
+        assert recon.info["align"]["opt_pixels_per_image"] == 1 and torch.isfinite(recon.cam2world).all()
+
+
+def test_the_automatic_stride_keeps_at_most_max_opt_pixels_per_image():
+    from pointmap.align.edges import choose_stride, sample_index
+
+    # the square root alone rounds rows and columns up past the cap: 176 x 960 kept 1036 of 1000, 8 x 11 kept 12 of 10
+    for (h, w), cap in (((176, 960), 1000), ((8, 11), 10), ((20, 8), 1), ((384, 512), 96 * 64)):
+        stride = choose_stride([(h, w)], 1, cap, None)
+        rows, cols = sample_index(h, w, stride)
+        assert 1 <= len(rows) * len(cols) <= cap, (h, w, cap, stride, len(rows) * len(cols))
+    assert choose_stride([(384, 512)], 1, 96 * 64, None) == 6  # where the root already fits, it is kept
+
+
 def test_chunk_size_does_not_change_the_result(scene):
     preds = gt_preds(scene, complete_pairs(6), seed=6, noise=0.01)
     a = global_align(views_of(scene), preds, config=AlignConfig(quiet=True, niter=20, max_chunk_pixels=10**9))

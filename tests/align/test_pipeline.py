@@ -150,8 +150,11 @@ def test_masks_to_maps_from_original_size():
     m[:, 100:] = True  # right half of the original
     mm = masks_to_maps([m], views)[0]
     assert mm.shape == (h, w) and mm[:, : w // 2 - 1].sum() == 0 and mm[:, w // 2 + 1:].all()
-    with pytest.raises(Exception, match="mask 0 expected"):
-        masks_to_maps([np.zeros((5, 5), bool)], views)
+    with pytest.raises(Exception, match=r"mask 0 \(of image image_000.png\) expected the image's original size "
+                                        r"200x120 or the network's map size 64x32 \(width x height\), got 5x3"):
+        masks_to_maps([np.zeros((3, 5), bool)], views)
+    with pytest.raises(Exception, match=r"got an array of shape \[120, 200, 3\] \(one channel \[H, W\] expected\)"):
+        masks_to_maps([np.zeros((120, 200, 3), np.uint8)], views)  # a colour mask image as cv2.imread reads it
     for bad, named in ((5, "masks expected a list of per-image masks, got int"), ([None], "mask 0 expected bools"),
                        ([np.full((h, w), 0.5)], "mask 0 expected bools")):  # 0.5 was quietly True
         with pytest.raises(ValueError, match=named):
@@ -437,7 +440,7 @@ def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_enc
         reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, epipolar="yes")
     with pytest.raises(PointmapError, match="refine expected True, False or a SparseConfig, got str"):
         reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, refine="no")
-    with pytest.raises(Exception, match="mask 0 expected"):
+    with pytest.raises(Exception, match=r"mask 0 \(of image image_000.png\) expected"):
         reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, masks=[np.zeros((5, 5), bool)] * 5)
 
 

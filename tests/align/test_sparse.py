@@ -132,7 +132,11 @@ def test_matches_and_fixed_indices_outside_the_reconstruction_and_impossible_set
         refine_matches(recon, m, fixed_intrinsics=[7])
     for kw, message in [({"niter": -1}, "niter expected an int >= 1"), ({"max_matches_per_pair": -1},
                         "max_matches_per_pair expected an int >= 1"), ({"robust_px": 0.0}, "robust_px expected"),
-                        ({"depth_prior": float("nan")}, "depth_prior expected")]:
+                        ({"depth_prior": float("nan")}, "depth_prior expected"),
+                        # switches as strings were truthy: "no" moved the focals, "False" the principal points
+                        ({"optimize_focal": "no"}, "optimize_focal expected True or False, got 'no'"),
+                        ({"optimize_pp": "False"}, "optimize_pp expected True or False"),
+                        ({"quiet": 1}, "quiet expected True or False")]:
         with pytest.raises(ShapeError, match=message):
             SparseConfig(**kw)
 
