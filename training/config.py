@@ -7,6 +7,7 @@ import inspect
 import io
 import json
 import math
+import os
 import sys
 import tokenize
 from dataclasses import MISSING, asdict, dataclass, fields
@@ -122,7 +123,7 @@ class TrainConfig:
             try:
                 with open(ns.config) as fh:
                     loaded = json.load(fh)
-            except (OSError, json.JSONDecodeError) as e:
+            except (OSError, ValueError) as e:  # ValueError: JSONDecodeError, or UnicodeDecodeError (a binary file)
                 p.error(f"--config {ns.config}: not a readable JSON file ({e})")
             if not isinstance(loaded, dict):
                 p.error(f"--config {ns.config} expected a JSON object of config values, got {type(loaded).__name__}")
@@ -183,6 +184,11 @@ class TrainConfig:
             p.error(f"--attn_heads expected >= 1 (supervised heads per decoder layer), got {cfg.attn_heads}")
         if not cfg.data:
             p.error("--data is required (a directory of shards written by python -m data.render)")
+        trained = {os.path.realpath(r) for r in cfg.data.split(",") if r}
+        both = [r for r in cfg.eval_data.split(",") if r and os.path.realpath(r) in trained]
+        if both:  # its held-out metrics would be measured on pairs the run trains on
+            p.error(f"--eval_data expected held-out shards (never trained on), got {', '.join(both)}, which --data "
+                    "trains on")
         return cfg
 
     def to_dict(self) -> dict:

@@ -140,8 +140,12 @@ def confidence_order(conf: torch.Tensor, pred_z: torch.Tensor, gt_z: torch.Tenso
     """(share of the valid pixels whose confidence is ``floor`` or more, the AbsRel of the more confident half of
     the valid pixels divided by the AbsRel of all of them): the first says whether the confidence has left its
     floor of 1 (``pointmap.align.edges.AUTO_SPREAD_CONF``), the second whether it orders the errors (below 1:
-    the confident half is the more accurate; 1 for a flat confidence, whose "half" is every pixel). One median
-    scale alignment over all valid pixels (``depth_rel_errors``, as ``abs_rel``)."""
+    the confident half is the more accurate; 1 for a flat confidence). The half is the pixels at or above the
+    median confidence (the lower middle value for an even count: n - (n - 1) // 2 pixels); pixels tied at the
+    half's lowest confidence count at the share of them the half needs (the mean over the ways to break the tie),
+    so a confidence left at its floor on just over half the pixels still ranks the rest (taking every tied pixel
+    made such a "half" every pixel, and the ratio 1). One median scale alignment over all valid pixels
+    (``depth_rel_errors``, as ``abs_rel``)."""
     c = conf[valid].double()
     if c.numel() == 0:
         return float("nan"), float("nan")
@@ -149,7 +153,11 @@ def confidence_order(conf: torch.Tensor, pred_z: torch.Tensor, gt_z: torch.Tenso
     err = depth_rel_errors(pred_z, gt_z, valid)
     if err is None:
         return spread, float("nan")
-    return spread, float(err[c >= c.median()].mean() / err.mean().clamp_min(1e-12))
+    m = c.numel() - (c.numel() - 1) // 2  # how many c >= c.median() selects when no two confidences are equal
+    t = torch.sort(c, descending=True).values[m - 1]
+    above, tied = c > t, c == t
+    top = (err[above].sum() + (m - int(above.sum())) * err[tied].mean()) / m
+    return spread, float(top / err.mean().clamp_min(1e-12))
 
 
 def baseline_ratio(t_pred: torch.Tensor, pred_z: torch.Tensor, t_gt: torch.Tensor, gt_z: torch.Tensor,
@@ -316,6 +324,14 @@ def score_auc(scores, labels) -> float:
     return float((ranks[y == 1].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
 
 
+def weights_device(model) -> torch.device:
+    """The device a torch model's weights are on (a DDP wrapper's or a compiled model's too); the CPU for a model
+    without parameters (an ONNX session's wrapper)."""
+    params = getattr(model, "parameters", None)
+    p = next(params(), None) if callable(params) else None
+    return p.device if p is not None else torch.device("cpu")
+
+
 @torch.inference_mode()
 def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_pair: list | None = None) -> dict:
     """Metrics over the first ``n_pairs`` items of a held-out PairDataset (both orders inferred).
@@ -353,6 +369,7 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
     focal_errs = []  # each view's focal from its own-frame pointmap (forward pass: view 1, reverse: view 2)
     focal_est, focal_true = [], []  # the same focals and the true ones (focal_slope)
     n = min(n_pairs, len(dataset))
+    dev = weights_device(model)
     for s in range(0, n, batch_size):
         groups: dict = {}
         for k in range(s, min(s + batch_size, n)):  # batch items of equal shapes together
@@ -364,8 +381,9 @@ def evaluate_pairs(model, dataset, n_pairs: int = 64, batch_size: int = 8, per_p
             its = [it for _, it in group]
             v1 = {k: torch.stack([it[0][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid", "corr")}
             v2 = {k: torch.stack([it[1][k] for it in its]) for k in ("img", "K", "cam2world", "depth_z", "valid")}
-            pred = model(v1["img"], v2["img"])
-            pred_rev = model(v2["img"], v1["img"])
+            # the model where its weights are (a GPU run's evaluation), the metrics on the CPU beside the truth
+            pred = model(v1["img"].to(dev), v2["img"].to(dev)).to("cpu")
+            pred_rev = model(v2["img"].to(dev), v1["img"].to(dev)).to("cpu")
             cam2world_pred = relative_pose(pred, pred_reverse=pred_rev)
             cam2world_gt = invert_rigid(v1["cam2world"].double()) @ v2["cam2world"].double()
             ok = torch.isfinite(cam2world_pred).all(-1).all(-1)

@@ -52,6 +52,7 @@ def read_log(path: str | Path) -> dict[int, dict[str, str]]:
                     step = int(row["step"])
                 except (TypeError, ValueError):
                     raise ValueError(f"{path}:{line}: expected an integer step, got {row['step']!r}") from None
+                row.pop(None, None)  # values beyond the header (a row longer than it) have no column to count in
                 rows[step] = row  # a resumed run's row replaces the discarded one
     except (OSError, UnicodeDecodeError, csv.Error) as e:  # unreadable, binary, not a CSV
         raise ValueError(f"{path}: cannot read a training log (a text CSV): {e}") from None

@@ -237,6 +237,12 @@ def main(argv=None) -> int:
     if bad:
         print("error: " + "; ".join(bad), file=sys.stderr)
         return 2
+    resolved = [str(Path(s).resolve()) for s in args.scenes]
+    twice = sorted({s for s, r in zip(args.scenes, resolved) if resolved.count(r) > 1})
+    if twice:  # (a shell glob and a name of the same folder): its pairs would be stored, and trained on, twice
+        print(f"error: the scenes name the same folder more than once ({', '.join(twice)}): its pairs would count "
+              "twice", file=sys.stderr)
+        return 2
     out = Path(args.out)
     if args.pairs_per_view < 0:
         print(f"error: --pairs-per-view expected >= 0 (0: all), got {args.pairs_per_view}", file=sys.stderr)
@@ -244,7 +250,7 @@ def main(argv=None) -> int:
     config = {"kind": "pairs", "source": "training.prepare", "seed": args.seed, "max_side": args.max_side,
               "pairs_per_view": args.pairs_per_view,
               "png_depth_scale": args.depth_png_scale, "overlap": [lo, hi], "depth_tol": args.depth_tol,
-              "shard_size": args.shard_size, "scenes": [str(Path(s).resolve()) for s in args.scenes]}
+              "shard_size": args.shard_size, "scenes": resolved}
     if (out / "config.json").is_file() and load_json(out / "config.json") != config:
         print(f"error: {out} holds a dataset of other scenes or settings: use a new --out", file=sys.stderr)
         return 2

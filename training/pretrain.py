@@ -13,6 +13,7 @@ from pointmap.errors import PointmapError
 from pointmap.model import PRESETS
 from pointmap.model.pretrain import CrossViewCompletion
 from training.config import TrainConfig
+from training.evaluate import weights_device
 from training.loop import TERMINATED_EXIT, error_line, fit, step_generator
 from training.losses import completion_loss
 from training.mix import open_pairs
@@ -40,13 +41,14 @@ def completion_eval(model, dataset, n: int = 32) -> dict:
     """Held-out completion loss with fixed masks."""
     g = torch.Generator().manual_seed(0)
     losses = []
+    dev = weights_device(model)
     for k in range(min(n, len(dataset))):
         v1, v2 = dataset[k]
         img1, img2 = v1["img"][None], v2["img"][None]
         N = (img1.shape[-2] // model.cfg.patch_size) * (img1.shape[-1] // model.cfg.patch_size)
         mask = model.random_mask(1, N, generator=g)
-        pred, mask = model(img1, img2, mask)
-        losses.append(float(completion_loss(pred, img1, mask, model.cfg.patch_size)))
+        pred, mask = model(img1.to(dev), img2.to(dev), mask.to(dev))  # where the weights are (a GPU run)
+        losses.append(float(completion_loss(pred.cpu(), img1, mask.cpu(), model.cfg.patch_size)))
     return {"completion_loss": sum(losses) / max(len(losses), 1)}
 
 

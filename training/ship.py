@@ -88,7 +88,7 @@ def average_checkpoints(paths, weights=None) -> dict:
     uniform by default, and cast back; any other tensor must be equal in all) and ``averaged_steps`` set to the
     training checkpoints' steps. ``paths`` may include model files (``.safetensors``); ``averaged`` lists every
     input with its share, ``licence`` every licence the inputs with a share record (None: none records one).
-    CheckpointError when there is no training checkpoint, when they are not 'train' checkpoints or model files of
+    CheckpointError when no training checkpoint has a share, when they are not 'train' checkpoints or model files of
     one architecture with the same tensors, or for weights that are not one non-negative number per input with a
     positive sum."""
     paths = [Path(p) for p in paths]
@@ -124,7 +124,11 @@ def average_checkpoints(paths, weights=None) -> dict:
                               f"shipped file records; got only model files: {[str(p) for p in paths]}")
     # the run the file records: the latest training state with a share (not the last argument: a shell sorts
     # decay_10000.pt before decay_9000.pt)
-    base = cks[max((i for i in trained if weights[i] > 0), default=trained[-1], key=lambda i: int(cks[i]["step"]))]
+    shared = [i for i in trained if weights[i] > 0]
+    if not shared:  # the weights would be the model files' alone, recorded as a run's step (its config, its size)
+        raise CheckpointError("expected a training checkpoint (.pt) with a share > 0, whose run the shipped file "
+                              f"records; the training checkpoints {[str(paths[i]) for i in trained]} have share 0")
+    base = cks[max(shared, key=lambda i: int(cks[i]["step"]))]
     total = sum(weights)
     shares = [w / total for w in weights]
     avg = {}

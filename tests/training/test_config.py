@@ -21,3 +21,25 @@ def test_every_training_flag_is_explained_in_help_by_its_config_comment_and_defa
     assert "--compile BOOL torch.compile the training forward/backward (1.24x on 2 CPU threads;" in out
     for f in fields(TrainConfig):
         assert f"--{f.name} " in out
+
+
+def test_a_binary_file_given_as_the_config_file_is_refused_in_one_line(tmp_path, capsys):
+    # e.g. a checkpoint passed as --config: its bytes are not UTF-8 (a raw UnicodeDecodeError traceback before)
+    (tmp_path / "last.pt").write_bytes(b"PK\x03\x04\xff\xfe\x00\x81binary")
+    with pytest.raises(SystemExit) as stop:
+        TrainConfig.from_args(["--data", "x", "--config", str(tmp_path / "last.pt")])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "not a readable JSON file" in err and "Traceback" not in err
+
+
+def test_a_held_out_set_that_is_also_a_training_set_is_refused_in_one_line(tmp_path, capsys):
+    # before, --eval_data train_b with --data train_a,train_b reported held-out metrics on pairs the run trained on
+    a, b = str(tmp_path / "train_a"), str(tmp_path / "train_b")
+    for data, held_out in [(a, a), (f"{a},{b}", str(tmp_path / "x" / ".." / "train_b"))]:
+        with pytest.raises(SystemExit) as stop:
+            TrainConfig.from_args(["--data", data, "--eval_data", held_out])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert "--eval_data expected held-out shards (never trained on)" in err and "Traceback" not in err
+    assert TrainConfig.from_args(["--data", a, "--eval_data", str(tmp_path / "eval")]).eval_data == str(tmp_path / "eval")

@@ -334,6 +334,24 @@ def test_confidence_order_tells_a_flat_confidence_from_one_that_ranks_the_errors
     assert all(math.isnan(v) for v in confidence_order(good, pred, gt, torch.zeros_like(valid)))
 
 
+def test_confidence_order_ranks_a_confidence_left_at_its_floor_on_just_over_half_the_pixels():
+    from training.evaluate import confidence_order
+
+    # 510 of 1000 pixels at the floor (1.0) and 30% off, the other 490 confident (5.0) and exact: the confident
+    # half is the 490 and 11 of the tied floor pixels. Taking every pixel tied at the median made the "half" all
+    # of them and the ratio 1.0 (a flat confidence), while 490 at the floor gave 0.0
+    gt = torch.full((1000,), 2.0)
+    valid = torch.ones(1000, dtype=torch.bool)
+    for at_floor in (490, 510):
+        conf = torch.ones(1000)
+        conf[at_floor:] = 5.0
+        pred = gt.clone()
+        pred[:at_floor] *= torch.where(torch.arange(at_floor) % 2 == 0, 1.3, 0.7)
+        top = max(0, 501 - (1000 - at_floor)) * 0.3 / 501  # the half: n - (n - 1) // 2 = 501 pixels
+        assert confidence_order(conf, pred, gt, valid)[1] == pytest.approx(top / (at_floor * 0.3 / 1000))
+    assert confidence_order(conf, pred, gt, valid)[1] == pytest.approx(0.0431, abs=1e-3)
+
+
 def test_focal_error_is_zero_for_a_true_pointmap_and_the_relative_error_for_a_wrong_focal():
     from pointmap.geometry import depth_to_points_cam
     from training.evaluate import focal_error
@@ -477,3 +495,53 @@ def test_a_score_that_only_tells_easy_pairs_from_hard_ones_ranks_nothing_within_
     assert within == pytest.approx((0.75 + 2 / 3) / 2)  # each pair's own ranking, counted by hand
     one_kind = (torch.tensor([0.5, 0.4]), torch.tensor([1.0, 1.0]))  # no wrong match: no AUC of its own
     assert within_pair_auc([easy[0], one_kind[0]], [easy[1], one_kind[1]]) == pytest.approx(0.75)
+
+
+class _OnDevice(torch.nn.Module):
+    """A model whose weights say they are on another device (meta: shapes without data, as a GPU is to a CPU-only
+    machine): it records the device of the inputs it is given and runs the real model on the CPU, on stand-ins of
+    the same shapes (meta tensors hold no values: the metrics are of no use, that they are computed is)."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner = inner
+        self.marker = torch.nn.Parameter(torch.empty(1, device="meta"))
+        self.seen = []
+
+    def parameters(self, recurse=True):
+        yield self.marker
+
+    def __getattr__(self, name):
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            return getattr(self.inner, name)
+
+    def forward(self, *args):
+        self.seen += [a.device.type for a in args]
+        def stand_in(a):
+            if not a.is_meta:
+                return a
+            if a.dtype == torch.bool:  # the completion mask
+                return self.inner.random_mask(*a.shape)
+            return torch.rand(a.shape, generator=torch.Generator().manual_seed(0))  # an image in [0, 1]
+
+        return self.inner(*(stand_in(a) for a in args))
+
+
+def test_held_out_evaluation_feeds_the_model_on_the_device_of_its_weights():
+    """A GPU run evaluates its model where it trains (cuda): the images must go there, the metrics stay on the CPU."""
+    torch.manual_seed(0)
+    model = _OnDevice(PointmapNet(PRESETS["test"]).eval())
+    ev = evaluate_pairs(model, PlanePairs(2), n_pairs=2, batch_size=2)
+    assert ev["pairs"] == 2 and model.seen and set(model.seen) == {"meta"}
+
+
+def test_held_out_completion_feeds_the_model_on_the_device_of_its_weights():
+    from pointmap.model.pretrain import CrossViewCompletion
+    from training.pretrain import completion_eval
+
+    torch.manual_seed(0)
+    model = _OnDevice(CrossViewCompletion(PRESETS["test"], mask_ratio=0.5).eval())
+    ev = completion_eval(model, PlanePairs(2), n=2)
+    assert math.isfinite(ev["completion_loss"]) and set(model.seen) == {"meta"}

@@ -139,3 +139,14 @@ def test_without_columns_the_default_ones_every_log_has_are_reported(tmp_path, c
     bare = _write(tmp_path / "b" / "train.csv", ["step", "loss"], [(0, 2.0)])
     assert main([str(bare)]) == 2
     assert "none of the default columns" in capsys.readouterr().err
+
+
+def test_a_row_longer_than_the_header_does_not_end_the_cli_in_a_traceback(tmp_path, capsys):
+    # (a log appended to by a writer with more columns than its header: csv files the extras under the key None,
+    # which sorting the log's columns for the message compared with strings: a TypeError traceback before)
+    log = _write(tmp_path / "train.csv", ["step", "time", "loss"], [(10, 1, 0.5), (20, 2, 0.4, 0.9)])
+    assert main([str(log), "--columns", "coarse_acc"]) == 2
+    err = capsys.readouterr().err
+    assert "expected columns ['coarse_acc']" in err and "['loss']" in err and "Traceback" not in err
+    assert main([str(log), "--columns", "loss"]) == 0
+    assert "| 0-99 | 2 | 0.450 (0.050) |" in capsys.readouterr().out

@@ -281,3 +281,13 @@ def test_resized_depth_is_the_depth_under_each_stored_pixel_centre(tmp_path):
         o = cams[k][:3, 3]
         truth = (PLANE_Z + SLOPE * o[0] - o[2]) / (d[..., 2] - SLOPE * d[..., 0])
         assert np.median(np.abs(stored / truth - 1)) < 1e-4  # a factor of 3: the centre pixel exactly
+
+
+def test_a_scene_named_twice_is_refused_in_one_line_rather_than_stored_twice(tmp_path, capsys):
+    make_scene(tmp_path / "s")
+    # one folder reached by two spellings (a glob and a name): before, 2 scenes and every pair twice were written
+    assert main([str(tmp_path / "s"), str(tmp_path / "s") + "/", "--out", str(tmp_path / "out"),
+                 "--max-side", "64"]) == 2
+    err = capsys.readouterr().err
+    assert "the same folder more than once" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

@@ -267,3 +267,15 @@ def test_an_averages_metrics_are_recorded_as_one_inputs_and_zero_share_inputs_ar
     none = pm.load_model(tmp_path / "none.safetensors").provenance
     assert not none.get("heldout_metrics") and "heldout_metrics_of_input" not in none
     assert average_checkpoints(paths, [1, 0])["averaged_steps"] == [100]
+
+
+def test_a_model_file_shipped_with_every_training_checkpoint_at_share_zero_is_refused_in_one_line(tmp_path, capsys):
+    # before: the weights were the model file's alone and the file recorded b.pt's run (step 500, its config)
+    _checkpoint(tmp_path / "a.pt", seed=0, step=1)
+    assert main(["--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "m.safetensors")]) == 0
+    _checkpoint(tmp_path / "b.pt", seed=1, step=500)
+    assert main(["--ckpt", str(tmp_path / "m.safetensors"), str(tmp_path / "b.pt"), "--weights", "1", "0",
+                 "--out", str(tmp_path / "x.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert "expected a training checkpoint (.pt) with a share > 0" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.safetensors").exists()
