@@ -219,6 +219,15 @@ def refuse_shared_keys(images: list[str], keys: list[str], matched, flag: str, b
                                 f"{keys[k]!r}: they would get one entry; rename one, or give them in separate runs")
 
 
+COLMAP_FILES = tuple(f"{n}{s}" for n in ("cameras", "images", "points3D", "rigs", "frames") for s in (".bin", ".txt"))
+
+
+def is_colmap_path(path: str) -> bool:
+    """Whether ``--cameras`` names a COLMAP model (a folder, or one of the model's files) rather than a
+    transforms.json."""
+    return Path(path).is_dir() or Path(path).name in COLMAP_FILES
+
+
 def cameras_from_file(path: str, images: list[str], poses: bool):
     """``--cameras``: ({image index: K}, with ``poses`` {image index: cam2world} else None, {image index: lens
     Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``)
@@ -228,8 +237,7 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
     from pointmap.io.colmap import read_colmap
     from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
 
-    colmap = Path(path).is_dir() or Path(path).name in ("cameras.bin", "cameras.txt")
-    cams = read_colmap(path) if colmap else read_transforms(path)
+    cams = read_colmap(path) if is_colmap_path(path) else read_transforms(path)
     names = [Path(p).name for p in images]
     # by file name; NeRF-synthetic files name frames without a suffix ("./train/r_0" for r_0.png)
     matched = {k: cams[nm] if nm in cams else cams[Path(nm).stem] for k, nm in enumerate(names)
@@ -253,8 +261,9 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
 
 def masks_from_folder(folder: str, images: list[str]) -> list:
     """``--masks``: one mask per image from ``folder``, the file with the image's stem and an image suffix
-    (``IMAGE_SUFFIXES``), nonzero = keep, at the image's original size (EXIF orientation applied) or the network's;
-    an image without a mask file keeps every pixel. PointmapError for a folder that is missing or holds no mask of
+    (``IMAGE_SUFFIXES``), nonzero = keep (a mask with transparency, e.g. a background remover's cut-out: its
+    pixels of alpha > 0, whatever their colour), at the image's original size (EXIF orientation applied) or the
+    network's; an image without a mask file keeps every pixel. PointmapError for a folder that is missing or holds no mask of
     any of the images."""
     import numpy as np
 
@@ -278,7 +287,13 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
 
         try:
             with Image.open(f) as im:
-                masks.append(np.asarray(ImageOps.exif_transpose(im).convert("L")) > 0)
+                im = ImageOps.exif_transpose(im)
+                alpha = np.asarray(im.convert("RGBA"))[..., 3] if im.mode in ("RGBA", "LA", "PA") or \
+                    "transparency" in im.info else None
+                if alpha is not None and (alpha < 255).any():  # a cut-out: its visible pixels, dark ones too
+                    masks.append(alpha > 0)
+                else:
+                    masks.append(np.asarray(im.convert("L")) > 0)
         except (OSError, SyntaxError) as e:  # PIL's UnidentifiedImageError is an OSError
             raise ImageError(f"--masks: {f} is not a readable image ({e.__class__.__name__})") from None
     return masks
@@ -411,7 +426,7 @@ def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
     index pairs into ``images`` (``pm.reconstruct`` checks that they connect every image); PointmapError naming
     the line otherwise."""
     try:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
+        lines = Path(path).read_text(encoding="utf-8-sig").splitlines()  # -sig: a Windows editor's byte-order mark
     except (OSError, UnicodeDecodeError) as e:
         raise PointmapError(f"--pairs expected a text file of image name pairs, got {path!r} ({e})") from None
     exact: dict[str, int] = {}  # a photograph's own path, as given and resolved, names it first
@@ -508,6 +523,18 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
         K = K_from_focals(images, focal)
+    if args.shared_focal:  # one camera: one image size (said with the flag, and before the model loads)
+        from pointmap.images import image_sizes
+
+        by_size: dict = {}
+        for img, (w, h) in zip(images, image_sizes(images)):
+            by_size.setdefault(f"{w}x{h}", []).append(Path(img).name)
+        if len(by_size) > 1:
+            raise PointmapError("--shared-focal expected the images of one camera, all of one size (EXIF orientation "
+                                "applied), got " + "; ".join(f"{size}: {', '.join(names[:3])}"
+                                                             f"{', ...' if len(names) > 3 else ''}"
+                                                             for size, names in by_size.items()))
+    refuse_overwriting_inputs(args.cameras, images, distortions, out, parse_export(args.export))
     masks = masks_from_folder(args.masks, images) if args.masks is not None else None
     depths = depths_from_folder(args.metric_depth, images, args.depth_png_scale) \
         if args.metric_depth is not None else None
@@ -523,6 +550,34 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
                   f"{out / 'undistorted'}", file=sys.stderr)
     return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out,
             "depths": depths, "timestamps": timestamps}
+
+
+def refuse_overwriting_inputs(cameras: str | None, images: list[str], distortions: dict, out: Path,
+                              formats) -> None:
+    """PointmapError, before the model loads, when the exports into ``out`` would replace the inputs: the
+    ``--cameras`` COLMAP model (the colmap / colmap_txt exports write ``out/sparse/0``) or transforms.json (the
+    nerfstudio export), or a photograph with lens distortion whose undistorted copy the COLMAP and nerfstudio
+    exports would write over it in ``out/images`` (``-o`` the scene folder the photographs came from)."""
+    def same(a: Path, b: Path) -> bool:
+        return a.exists() and b.exists() and a.resolve() == b.resolve()
+
+    replaced = []
+    if cameras is not None:
+        from pointmap.io.colmap import colmap_model_folder
+
+        model = colmap_model_folder(cameras) if is_colmap_path(cameras) else None
+        if model is not None and {"colmap", "colmap_txt"} & set(formats) and same(model, out / "sparse" / "0"):
+            replaced.append(f"the --cameras model {model}")
+        if model is None and "nerfstudio" in formats and same(Path(cameras), out / "transforms.json"):
+            replaced.append(f"the --cameras file {cameras}")
+    if {"colmap", "colmap_txt", "nerfstudio"} & set(formats):
+        originals = [images[k] for k in sorted(distortions) if same(Path(images[k]), out / "images" / Path(images[k]).name)]
+        if originals:
+            replaced.append(f"the photograph(s) {', '.join(originals[:3])}{', ...' if len(originals) > 3 else ''} "
+                            "(their undistorted copies would be written over them)")
+    if replaced:
+        raise PointmapError(f"-o {out} would overwrite the inputs: {'; '.join(replaced)}; give another output folder, "
+                            f"or --export without {', '.join(f for f in ('colmap', 'colmap_txt', 'nerfstudio') if f in formats)}")
 
 
 def prediction_cache(args, model):
@@ -570,11 +625,19 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
     if args.splat:
         from pointmap.splat import run as run_splat
 
-        run_splat(recon, out / "splat", quiet=args.quiet, time_budget=args.splat_budget or None)
+        written = {**(written or {}), **quiet_splat_path(run_splat(recon, out / "splat", quiet=args.quiet,
+                                                                   time_budget=args.splat_budget or None), args)}
     for fmt, paths in (written or {}).items():
         for path in paths if isinstance(paths, (list, tuple)) else [paths]:
             print(f"{fmt}: {path}")
     return 0
+
+
+def quiet_splat_path(result, args) -> dict:
+    """{"splat": the splat PLY} to print under ``--quiet``, which silences the fit's own summary line (it names
+    the file) but not where the output went; {} otherwise."""
+    ply = ((result or {}).get("paths") or {}).get("ply")
+    return {"splat": ply} if args.quiet and ply else {}
 
 
 def reconstruction_npz(recon: str) -> Path:
@@ -612,6 +675,8 @@ def cmd_splat(args) -> int:
                                   f"single-graph ONNX export ({args.model}) does not give: export with --split, or "
                                   f"use the PyTorch weights")
     result = run_splat(recon, out, quiet=args.quiet, time_budget=args.splat_budget or None)
+    for fmt, path in quiet_splat_path(result, args).items():
+        print(f"{fmt}: {path}")
     if args.test:  # held-out views: localized against the refined cameras the splats were fit to, then scored
         import torch
 
@@ -827,7 +892,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep pixels at or above this percentile of confidence over all images' unmasked pixels "
                    "(0 <= P < 100; 50 keeps the most confident half of the scene)")
     r.add_argument("--masks", default=None, metavar="DIR",
-                   help="a folder of masks named like the images (any image suffix; nonzero = keep): masked pixels "
+                   help="a folder of masks named like the images (any image suffix; nonzero = keep, or in a cut-out "
+                        "with transparency the pixels of alpha > 0): masked pixels "
                         "are left out of the alignment, the matches and the exports (sky, people, a turntable)")
     r.add_argument("--align-init", dest="align_init", default="averaging", choices=["averaging", "mst"],
                    help="the alignment's start: averaging (default: rotations, scales and centres averaged over every "
@@ -910,6 +976,12 @@ def main(argv=None) -> int:
     except PointmapError as e:
         print(f"pointmap: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader went away (pointmap info --json | head): quiet, as other tools are
+        try:  # stdout onto /dev/null, so that the interpreter's flush at exit does not fail again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # no real file descriptor (a test's captured stdout)
+            pass
+        return 141  # 128 + SIGPIPE, what a shell reports for a writer whose reader closed the pipe
     except OSError as e:  # the file system's refusal (no such folder, no space, no permission): one line, not a trace
         if args.verbose:
             raise

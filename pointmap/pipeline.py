@@ -152,8 +152,10 @@ def masks_to_maps(masks, views) -> list:
             out.append(m)
             continue
         if tuple(m.shape) != (H, W):
-            raise ShapeError(f"mask {k} expected the original size ({H}, {W}) or the map size ({h}, {w}), "
-                             f"got {tuple(m.shape)}")
+            got = f"{m.shape[1]}x{m.shape[0]}" if m.ndim == 2 else f"an array of shape {list(m.shape)} (one channel " \
+                "[H, W] expected)"
+            raise ShapeError(f"mask {k} (of image {v.name}) expected the image's original size {W}x{H} or the "
+                             f"network's map size {w}x{h} (width x height), got {got}")
         sx, sy, left, top = v.map_from_original
         u = ((torch.arange(w) + 0.5 + left) / sx - 0.5).round().long().clamp(0, W - 1)
         vv = ((torch.arange(h) + 0.5 + top) / sy - 0.5).round().long().clamp(0, H - 1)

@@ -82,6 +82,16 @@ def test_bad_options_are_refused_before_the_model_is_even_loaded(tiny, tmp_path,
     assert message in capsys.readouterr().err
 
 
+def test_shared_focal_over_images_of_several_sizes_is_refused_by_flag_and_size_before_the_model_loads(
+        tiny, tmp_path, capsys):
+    _, folder = tiny
+    cv2.imwrite(str(folder / "d.jpg"), np.zeros((80, 60, 3), np.uint8))  # a portrait among landscapes
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", "no_such_model",
+                 "--shared-focal"]) == 2
+    assert "--shared-focal expected the images of one camera, all of one size (EXIF orientation applied), got " \
+           "80x60: a.jpg, b.PNG, c.png; 60x80: d.jpg" in capsys.readouterr().err
+
+
 def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     # the model named does not exist: the folder's own error shows the inputs were read before the model
@@ -89,7 +99,8 @@ def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
     assert f"folder {tmp_path / 'empty'} holds no images" in capsys.readouterr().err
 
 
-def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
+def test_splat_given_the_npz_file_writes_beside_it_and_says_where_even_when_quiet(tiny, tmp_path, monkeypatch,
+                                                                                  capsys):
     import pointmap.splat
 
     weights, folder = tiny
@@ -97,9 +108,20 @@ def test_splat_given_the_npz_file_writes_beside_it(tiny, tmp_path, monkeypatch):
     assert main(["--quiet", "reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
                  "--export", "npz"]) == 0
     seen = {}
-    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: seen.update(out=out_dir, n=len(recon)))
+
+    def run(recon, out_dir, **kw):
+        seen.update(out=out_dir, n=len(recon))
+        return {"paths": {"ply": out_dir / "splat.ply"}}
+
+    monkeypatch.setattr(pointmap.splat, "run", run)
+    capsys.readouterr()
     assert main(["splat", str(out / "reconstruction.npz"), "--quiet"]) == 0
     assert seen == {"out": out / "splat", "n": 3}
+    assert capsys.readouterr().out == f"splat: {out / 'splat' / 'splat.ply'}\n"  # quiet: no progress, still the path
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "again"), "--model", str(weights),
+                 "--size", "64", "--export", "npz", "--splat"]) == 0
+    assert capsys.readouterr().out.splitlines() == [f"npz: {tmp_path / 'again' / 'reconstruction.npz'}",
+                                                    f"splat: {tmp_path / 'again' / 'splat' / 'splat.ply'}"]
 
 
 def test_splat_test_views_are_localized_then_scored_and_unposed_ones_reported(tiny, tmp_path, monkeypatch, capsys):
@@ -214,9 +236,28 @@ def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_inferenc
 
     monkeypatch.setattr(pointmap.inference, "predict_pairs", no_inference)
     assert main([*base, "--model", str(weights), "--masks", str(masks)]) == 2
-    assert "mask 1 expected the original size (60, 80)" in capsys.readouterr().err
+    assert "mask 1 (of image b.PNG) expected the image's original size 80x60 or the network's map size 64x48 " \
+           "(width x height), got 5x5" in capsys.readouterr().err
     assert main([*base, "--model", "no_such_model", "--masks", str(tmp_path / "nowhere")]) == 2
     assert "--masks expected a folder of mask images" in capsys.readouterr().err
+
+
+def test_a_cut_out_with_transparency_as_mask_keeps_its_visible_pixels_dark_ones_too(tmp_path):
+    from PIL import Image
+
+    from pointmap.cli import masks_from_folder
+
+    cv2.imwrite(str(tmp_path / "a.jpg"), np.zeros((6, 8, 3), np.uint8))
+    (tmp_path / "m").mkdir()
+    cut = np.zeros((6, 8, 4), np.uint8)  # a background remover's output: a dark object on a transparent ground
+    cut[:, 4:, :3], cut[:, 4:, 3] = 10, 255
+    cut[0, 5, :3] = 0  # a black pixel of the object: kept
+    Image.fromarray(cut).save(tmp_path / "m" / "a.png")
+    keep = masks_from_folder(str(tmp_path / "m"), [str(tmp_path / "a.jpg")])[0]
+    assert keep[:, 4:].all() and not keep[:, :4].any()
+    Image.fromarray(np.dstack([cut[..., 0], np.full((6, 8), 255, np.uint8)]), "LA").save(tmp_path / "m" / "a.png")
+    keep = masks_from_folder(str(tmp_path / "m"), [str(tmp_path / "a.jpg")])[0]  # opaque: the grey levels
+    assert keep[:, 4:].sum() == 23 and not keep[:, :4].any()
 
 
 def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_and_the_images_width(tiny, tmp_path):
@@ -283,6 +324,54 @@ def test_a_colmap_models_cameras_and_lens_serve_as_known_cameras_like_a_transfor
                        atol=1e-4)
     assert np.allclose(recon.K[2].double().numpy(), [[65.0, 0, 39.5], [0, 65.0, 29.5], [0, 0, 1]], atol=1e-4)
     assert sorted(p.name for p in (out / "undistorted").iterdir()) == ["b.PNG"]
+
+
+def test_cameras_naming_any_file_of_a_colmap_model_reads_the_model_not_a_transforms_json(tiny, tmp_path):
+    from pointmap.cli import cameras_from_file
+
+    _, folder = tiny
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 SIMPLE_PINHOLE 80 60 65 40 30\n")
+    (model / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.jpg\n\n")
+    (model / "points3D.txt").write_text("# no points\n")
+    images = [str(folder / "a.jpg"), str(folder / "b.PNG")]
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        K, _, _ = cameras_from_file(str(model / name), images, poses=False)
+        assert np.allclose(K[0], [[65.0, 0, 39.5], [0, 65.0, 29.5], [0, 0, 1]]), name
+
+
+def test_an_output_folder_that_would_overwrite_the_input_cameras_or_photographs_is_refused_before_the_model(
+        tiny, tmp_path, capsys):
+    import shutil
+
+    _, folder = tiny
+    scene = tmp_path / "scene"  # a COLMAP scene: images/ and sparse/0 with a distorting lens
+    shutil.copytree(folder, scene / "images")
+    model = scene / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 OPENCV 80 60 70 70 40 30 -0.2 0.05 0 0\n")
+    (model / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.jpg\n\n2 1 0 0 0 0.1 0 0 1 b.PNG\n\n")
+    before = {p: p.read_bytes() for p in scene.rglob("*") if p.is_file()}
+    for cameras in (model, scene, model / "cameras.txt"):  # the model "no_such_model": refused before it loads
+        assert main(["--quiet", "reconstruct", str(scene), "-o", str(scene), "--cameras", str(cameras),
+                     "--model", "no_such_model"]) == 2
+        err = capsys.readouterr().err
+        assert not (scene / "undistorted").exists()  # refused before the undistortion too
+        assert f"-o {scene} would overwrite the inputs: the --cameras model {model}; the photograph(s) " \
+               f"{scene / 'images' / 'a.jpg'}, {scene / 'images' / 'b.PNG'} (their undistorted copies" in err
+    assert main(["--quiet", "reconstruct", str(scene), "-o", str(scene), "--cameras", str(model), "--model",
+                 "no_such_model", "--export", "ply,npz"]) == 2  # nothing of the inputs exported: the model's error
+    assert "no such file or shipped model" in capsys.readouterr().err
+    transforms = scene / "transforms.json"  # a nerfstudio scene's cameras, and -o its folder
+    transforms.write_text('{"frames": [{"file_path": "images/a.jpg", "fl_x": 70, "w": 80, "h": 60, '
+                          '"transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}')
+    before[transforms] = transforms.read_bytes()
+    assert main(["--quiet", "reconstruct", str(scene), "-o", str(scene), "--cameras", str(transforms),
+                 "--model", "no_such_model", "--export", "nerfstudio"]) == 2
+    assert f"the --cameras file {transforms}; give another output folder, or --export without nerfstudio" in \
+        capsys.readouterr().err
+    assert {p: p.read_bytes() for p in before} == before
 
 
 def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_trajectory(tiny, tmp_path, capsys,
@@ -697,6 +786,26 @@ def test_a_file_name_two_photographs_share_is_refused_as_ambiguous(tmp_path):
         pairs_from_file(str(tmp_path / "missing.txt"), ["a.jpg"])
 
 
+def test_a_pairs_file_saved_by_a_windows_editor_with_a_byte_order_mark_and_crlf_reads_as_any_other(tmp_path):
+    from pointmap.cli import pairs_from_file
+
+    (tmp_path / "p.txt").write_bytes("a.jpg b.jpg\r\nc.jpg a.jpg\r\n".encode("utf-8-sig"))
+    assert pairs_from_file(str(tmp_path / "p.txt"), ["s/a.jpg", "s/b.jpg", "s/c.jpg"]) == [(0, 1), (2, 0)]
+
+
+def test_cameras_files_saved_with_a_byte_order_mark_read_as_any_other(tmp_path):
+    from pointmap.io.colmap import read_colmap
+    from pointmap.io.nerfstudio import read_transforms
+
+    (tmp_path / "cameras.txt").write_bytes("# cameras\r\n1 SIMPLE_PINHOLE 80 60 65 40 30\r\n".encode("utf-8-sig"))
+    (tmp_path / "images.txt").write_bytes("1 1 0 0 0 0 0 0 1 a.jpg\r\n\r\n".encode("utf-8-sig"))
+    assert np.allclose(read_colmap(tmp_path)["a.jpg"]["K"], [[65.0, 0, 39.5], [0, 65.0, 29.5], [0, 0, 1]])
+    (tmp_path / "transforms.json").write_bytes(
+        '{"fl_x": 65, "w": 80, "h": 60, "frames": [{"file_path": "images/a.jpg", "transform_matrix": '
+        '[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}'.encode("utf-8-sig"))
+    assert read_transforms(tmp_path / "transforms.json")["a.jpg"]["size"] == (80, 60)
+
+
 def test_reconstruct_with_cache_reads_the_pairs_back_on_a_second_run(tiny, tmp_path, capsys):
     from pointmap.io import load_npz
 
@@ -843,6 +952,17 @@ def test_a_file_system_refusal_during_a_command_is_one_line_and_exit_2_with_the_
     assert "Traceback" not in err and "run with -v" in err
     with pytest.raises(FileNotFoundError):
         main(["-v", *argv])
+
+
+def test_output_piped_into_a_reader_that_closes_early_ends_quietly_not_as_an_error(monkeypatch, capsys):
+    import pointmap.cli
+
+    def closed_pipe(args):  # what printing into `| head -1` raises once head has exited
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(pointmap.cli, "cmd_info", closed_pipe)
+    assert main(["info", "--json"]) == 141
+    assert capsys.readouterr().err == ""
 
 
 def test_a_warning_during_a_command_is_one_line_and_the_library_formatting_is_restored_after(monkeypatch):

@@ -22,6 +22,7 @@ from pointmap.io.atomic import atomic_open, atomic_path
 from pointmap.io.points import PointSet
 
 PINHOLE = 1
+RIG_FILES = ("rigs", "frames")  # the model files COLMAP 3.12+ writes beside cameras, images and points3D
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
@@ -96,7 +97,8 @@ def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary
     out_dir = Path(out_dir)
     cams, images, tracks = _model(recon, points, shared_camera)
     other = [s for s, w in ((".bin", binary), (".txt", text)) if not w]
-    stale = [out_dir / f"{n}{s}" for s in other for n in ("cameras", "images", "points3D") if (out_dir / f"{n}{s}").exists()]
+    stale = [out_dir / f"{n}{s}" for s in other for n in ("cameras", "images", "points3D", *RIG_FILES)
+             if (out_dir / f"{n}{s}").exists()]
     if stale:
         warnings.warn(f"{out_dir} still holds {', '.join(p.name for p in stale)} of an earlier run, which readers may take "
                       f"for this model (COLMAP reads .bin first): remove them, or write into an empty folder",
@@ -128,6 +130,15 @@ def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary
         written += [out_dir / "cameras.bin", out_dir / "images.bin", out_dir / "points3D.bin"]
     if text:
         written += _write_text(out_dir, cams, images, tracks, points)
+    # COLMAP 3.12+ models also hold rigs and frames, which refer to their own images: left beside this model, a
+    # reader (COLMAP, pycolmap) would join them to it and fail, or mismatch the cameras. This model has none.
+    rigs = [out_dir / f"{n}{s}" for s, w in ((".bin", binary), (".txt", text)) if w for n in RIG_FILES
+            if (out_dir / f"{n}{s}").exists()]
+    for path in rigs:
+        path.unlink()
+    if rigs:
+        warnings.warn(f"{out_dir}: removed {', '.join(p.name for p in rigs)} of an earlier COLMAP model, which "
+                      f"described its images, not these (readers would join them to this model)", stacklevel=3)
     return written
 
 
@@ -191,6 +202,13 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
             continue
         with Image.open(src) as im:  # byte for byte only when the file's pixels are the ones the model read:
             as_read = im.getexif().get(0x0112, 1) in (None, 1) and im.mode in ("RGB", "L")  # upright 8-bit
+        if dst.exists() and dst.resolve() == src.resolve():  # the output is the scene folder the photographs
+            if not as_read:  # came from (its images/): the user's own file is never replaced by a re-encoded copy
+                warnings.warn(f"write_colmap_images: {dst} is the source photograph itself and is left as it is "
+                              "(not replaced by the upright 8-bit RGB copy the model read: its orientation, bit "
+                              "depth or transparency may decode differently in a trainer)", stacklevel=2)
+            written.append(dst)
+            continue
         with atomic_path(dst) as tmp:  # (16-bit, alpha or palette files decode otherwise in a trainer's loader)
             if as_read and src.suffix.lower() == dst.suffix.lower():
                 shutil.copyfile(src, tmp)
@@ -266,12 +284,12 @@ def _read_binary(folder: Path):
 
 def _read_text(folder: Path):
     cams, images = {}, []
-    for line in (folder / "cameras.txt").read_text(encoding="utf-8").splitlines():
+    for line in (folder / "cameras.txt").read_text(encoding="utf-8-sig").splitlines():
         line = line.strip()
         if line and not line.startswith("#"):
             tok = line.split()
             cams[int(tok[0])] = (tok[1], int(tok[2]), int(tok[3]), tuple(float(v) for v in tok[4:]))
-    lines = (folder / "images.txt").read_text(encoding="utf-8").splitlines()
+    lines = (folder / "images.txt").read_text(encoding="utf-8-sig").splitlines()
     i = 0
     while i < len(lines):  # as COLMAP reads it: an image line, then always its 2D points' line (possibly empty)
         line = lines[i].strip()
@@ -284,6 +302,18 @@ def _read_text(folder: Path):
     return cams, images
 
 
+def colmap_model_folder(path) -> Path | None:
+    """The folder of the COLMAP sparse model ``read_colmap`` reads at ``path`` (the model folder, a scene folder
+    holding ``sparse/0`` or ``0``, or one of the model's files), or None when there is none."""
+    path = Path(path)
+    folder = path.parent if path.is_file() else path
+    for candidate in (folder, folder / "sparse" / "0", folder / "0"):
+        if all((candidate / f"{n}.bin").is_file() for n in ("cameras", "images")) or \
+                all((candidate / f"{n}.txt").is_file() for n in ("cameras", "images")):
+            return candidate
+    return None
+
+
 def read_colmap(path) -> dict:
     """Cameras of a COLMAP sparse model (``cameras`` + ``images``, .bin or .txt; ``path`` is the model folder,
     e.g. ``sparse/0``, a scene folder holding ``sparse/0``, or its cameras file), in ``read_transforms``'s
@@ -292,16 +322,9 @@ def read_colmap(path) -> dict:
     or None}}. Every camera model with a radial / tangential or fisheye lens OpenCV models is read (SIMPLE_RADIAL,
     RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE); others are refused, as are
     files that are not such a model and two images with one base name."""
-    from pointmap.errors import PointmapError
-
     path = Path(path)
-    folder = path.parent if path.is_file() else path
-    for candidate in (folder, folder / "sparse" / "0", folder / "0"):
-        if all((candidate / f"{n}.bin").is_file() for n in ("cameras", "images")) or \
-                all((candidate / f"{n}.txt").is_file() for n in ("cameras", "images")):
-            folder = candidate
-            break
-    else:
+    folder = colmap_model_folder(path)
+    if folder is None:
         raise PointmapError(f"{path}: expected a COLMAP sparse model folder with cameras.bin and images.bin (or "
                             "cameras.txt and images.txt)")
     binary = (folder / "cameras.bin").is_file() and (folder / "images.bin").is_file() and \

@@ -66,7 +66,7 @@ def read_transforms(path) -> dict:
 
     path = Path(path)
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
+        meta = json.loads(path.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is not JSON
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise PointmapError(f"{path}: not a readable transforms.json ({e.__class__.__name__}: {e})") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:

@@ -874,6 +874,25 @@ def test_photographs_that_need_re_encoding_are_written_as_the_loader_reads_them(
     assert out[1].read_bytes() == (tmp_path / "plain.png").read_bytes()  # an 8-bit RGB file: copied as it is
 
 
+def test_photographs_already_in_the_output_images_folder_are_never_overwritten(tmp_path):
+    # `pointmap reconstruct scene/ -o scene/` on a COLMAP-layout scene: the sources are scene/images/* themselves
+    from PIL import Image
+
+    from pointmap.io.colmap import write_colmap_images
+
+    images = tmp_path / "scene" / "images"
+    images.mkdir(parents=True)
+    rgba = np.zeros((16, 24, 4), np.uint8)
+    rgba[..., 1], rgba[:, :12, 3] = 150, 255  # half transparent: the loader's copy would be flattened on white
+    Image.fromarray(rgba).save(images / "cut.png")
+    Image.fromarray(np.full((16, 24, 3), 90, np.uint8)).save(images / "plain.png")
+    before = {p.name: p.read_bytes() for p in images.iterdir()}
+    with pytest.warns(UserWarning, match="cut.png is the source photograph itself and is left as it is"):
+        out = write_colmap_images([images / "cut.png", images / "plain.png"], ["cut.png", "plain.png"], images)
+    assert out == [images / "cut.png", images / "plain.png"]
+    assert {p.name: p.read_bytes() for p in images.iterdir()} == before  # the user's files, byte for byte
+
+
 def test_a_colmap_model_written_over_another_formats_files_names_them_in_a_warning(tmp_path):
     recon = make_recon(n=2)
     save_reconstruction(recon, tmp_path, formats=("colmap",))
@@ -882,6 +901,21 @@ def test_a_colmap_model_written_over_another_formats_files_names_them_in_a_warni
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         save_reconstruction(recon, tmp_path / "fresh", formats=("colmap_txt",))
+
+
+def test_a_colmap_model_written_over_a_newer_colmaps_model_leaves_no_rigs_or_frames_that_break_readers(tmp_path):
+    from dataclasses import replace
+
+    model = tmp_path / "sparse" / "0"
+    save_reconstruction(replace(make_recon(n=3), names=["x.jpg", "y.jpg", "z.jpg"]), tmp_path, formats=("colmap",))
+    pycolmap.Reconstruction(str(model)).write(str(model))  # as COLMAP 3.12+ writes it: with rigs and frames
+    (model / "rigs.txt").write_text("# rigs of a text model\n")
+    (model / "frames.txt").write_text("# frames of a text model\n")
+    with pytest.warns(UserWarning, match="removed rigs.bin, frames.bin, rigs.txt, frames.txt of an earlier COLMAP model"):
+        save_reconstruction(make_recon(n=2), tmp_path, formats=("colmap", "colmap_txt"))
+    assert not any((model / f"{n}{s}").exists() for n in ("rigs", "frames") for s in (".bin", ".txt"))
+    assert sorted(i.name for i in pycolmap.Reconstruction(str(model)).images.values()) == ["IMG_0000.JPG",
+                                                                                          "IMG_0001.JPG"]
 
 
 def test_a_name_that_is_not_utf8_or_a_flag_that_is_not_a_bool_is_refused_before_any_file_is_written(tmp_path):
