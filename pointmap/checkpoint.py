@@ -161,6 +161,7 @@ def official_to_ours(state: dict, *, allow_missing_heads: bool = False) -> dict:
     pretraining) are dropped; a missing ``dec_blocks2`` (CroCo) is copied from ``dec_blocks``.
     """
     out = {}
+    plain = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state.items()}  # DDP-saved
     for k, v in state.items():
         if k.startswith("module."):
             k = k[len("module."):]
@@ -173,7 +174,7 @@ def official_to_ours(state: dict, *, allow_missing_heads: bool = False) -> dict:
                                       f"'<head>.scratch.layer_rn.<int>.<name>' (a corrupt or foreign checkpoint?)")
             head, idx, tail = parsed.groups()
             alias = f"{head}.scratch.layer{int(idx) + 1}_rn.{tail}"
-            if alias in state and not torch.equal(state[alias], v):
+            if alias in plain and not torch.equal(plain[alias], v):  # (a "module." prefix hid it from this check)
                 raise CheckpointError(f"{k} and its alias {alias} hold different values")
             out.setdefault(alias, v)
             continue
@@ -309,6 +310,11 @@ def load_official(path: Path, *, allow_missing_heads: bool = False) -> PointmapN
     if not isinstance(ctor, str):
         raise CheckpointError(f"{path} has no architecture string (args.model)")
     cfg = config_from_ctor(ctor)
+    if "CroCoNet" not in ctor and not any(k.startswith(("dec_blocks2.", "module.dec_blocks2.")) for k in ckpt["model"]):
+        # official_to_ours copies the first decoder into the second only for CroCo, which has one: a DUSt3R / MASt3R
+        # state without its second decoder is corrupt or foreign, and would run with view 2 decoded as view 1
+        raise CheckpointError(f"{path} has no second decoder (dec_blocks2.*), which {parse_ctor(ctor)[0]} has: a "
+                              "corrupt or foreign checkpoint")
     if "CroCoNet" in ctor and not allow_missing_heads:
         raise HeadlessCheckpointError(f"{path} is a CroCo pretraining checkpoint (encoder and decoder, no prediction heads): "
                               "loaded as a model its heads would be random. Start training from it (python -m "

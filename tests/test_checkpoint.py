@@ -473,3 +473,25 @@ def test_a_config_of_impossible_size_is_refused_before_the_network_is_allocated(
     save_file(load_file(str(good)), str(tmp_path / "huge.safetensors"), metadata=meta)
     with pytest.raises(pm.CheckpointError, match="does not match the architecture: .*shape mismatches"):
         pm.load_model(tmp_path / "huge.safetensors")  # 50 GB asked of the allocator before
+
+
+def test_disagreeing_layer_rn_aliases_are_refused_also_in_a_state_dict_saved_with_a_module_prefix():
+    from pointmap.checkpoint import official_to_ours
+
+    w = torch.zeros(2)
+    state = {"module.downstream_head1.dpt.scratch.layer1_rn.weight": w,
+             "module.downstream_head1.dpt.scratch.layer_rn.0.weight": w + 1}
+    with pytest.raises(pm.CheckpointError, match="hold different values"):
+        official_to_ours(state)
+    same = official_to_ours({k: w for k in state})
+    assert list(same) == ["downstream_head1.dpt.scratch.layer1_rn.weight"]
+
+
+def test_an_official_checkpoint_without_its_second_decoder_is_refused_not_given_a_copy_of_the_first(tmp_path):
+    _, path = tiny_official(tmp_path)
+    with torch.serialization.safe_globals([argparse.Namespace]):
+        ck = torch.load(path, weights_only=True)
+    ck["model"] = {k: v for k, v in ck["model"].items() if not k.startswith("dec_blocks2.")}
+    torch.save(ck, tmp_path / "no_dec2.pth")
+    with pytest.raises(pm.CheckpointError, match=r"no second decoder \(dec_blocks2"):
+        pm.load_model(tmp_path / "no_dec2.pth")

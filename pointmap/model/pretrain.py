@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from pointmap.errors import ShapeError
 from pointmap.model.blocks import (
     Block,
     DecoderBlock,
@@ -18,6 +19,19 @@ from pointmap.model.blocks import (
 )
 from pointmap.model.config import ModelConfig
 from pointmap.model.net import PatchEmbed
+
+
+def check_mask(mask, B: int, N: int) -> None:
+    """ShapeError unless ``mask`` is a bool [B, N] (True = masked) hiding as many tokens in every row (the visible
+    tokens of the batch are gathered into one [B, Nv] tensor)."""
+    if not (isinstance(mask, torch.Tensor) and mask.dtype == torch.bool and tuple(mask.shape) == (B, N)):
+        got = f"{mask.dtype} {list(mask.shape)}" if isinstance(mask, torch.Tensor) else type(mask).__name__
+        raise ShapeError(f"mask expected a bool tensor [{B}, {N}] (batch, patches of img1; True = masked), got {got}")
+    if mask.is_meta or torch.compiler.is_compiling():  # no values to count
+        return
+    counts = mask.sum(1)
+    if B and bool((counts != counts[0]).any()):
+        raise ShapeError(f"mask expected the same number of masked patches in every row, got {counts.tolist()}")
 
 
 class CrossViewCompletion(nn.Module):
@@ -72,6 +86,7 @@ class CrossViewCompletion(nn.Module):
         N = (img1.shape[-2] // p) * (img1.shape[-1] // p)
         if mask is None:
             mask = self.random_mask(B, N, device=img1.device)
+        check_mask(mask, B, N)
         keep_idx = (~mask).nonzero()[:, 1].reshape(B, -1)
         vis, grid1 = self._encode(img1, keep_idx)
         f2, grid2 = self._encode(img2)
