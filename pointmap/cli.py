@@ -138,8 +138,10 @@ def pair_summary(npz: Path) -> str:
     f1, f2 = float(z["focal1"]), float(z["focal2"])
     if "focal_units" not in z:
         f1, f2 = f1 / z["map_from_original1"][0], f2 / z["map_from_original2"][0]
-    return (f"view 2 relative to view 1: rotation {angle:.1f} deg, camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, "
-            f"{t[2]:+.2f}) in camera 1's frame (x right, y down, z forward"
+    same = "img1" in z and "img2" in z and z["img1"].shape == z["img2"].shape and np.array_equal(z["img1"], z["img2"])
+    where = ("no translation direction (the same image twice: no baseline" if same else  # write_pair_outputs warned
+             f"camera 2 towards ({t[0]:+.2f}, {t[1]:+.2f}, {t[2]:+.2f}) in camera 1's frame (x right, y down, z forward")
+    return (f"view 2 relative to view 1: rotation {angle:.1f} deg, {where}"
             f"{'; refined on the matches' if 'refined_on_matches' in z and bool(z['refined_on_matches']) else ''}"
             f"); focal {f1:.0f} / {f2:.0f} px "
             f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''})")

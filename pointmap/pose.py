@@ -29,9 +29,14 @@ def _pnp(pts_cam1: np.ndarray, uv: np.ndarray, K: np.ndarray, iters: int, reproj
 
     if len(pts_cam1) < 6:
         return None, 0
+    # the pose does not depend on the points' units, but OpenCV's solvers have absolute tolerances (SQPnP found
+    # nothing for a scene 1e-6 across): solved in units of the points' median distance, the translation scaled back
+    unit = float(np.median(np.linalg.norm(pts_cam1, axis=1)))
+    if not (np.isfinite(unit) and unit > 0):
+        unit = 1.0
     try:
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            pts_cam1.astype(np.float64), uv.astype(np.float64), K.astype(np.float64), None,
+            pts_cam1.astype(np.float64) / unit, uv.astype(np.float64), K.astype(np.float64), None,
             iterationsCount=iters, reprojectionError=reproj, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:  # SQPnP asserts on degenerate samples (e.g. every pixel the same): no pose, as below
         return None, 0
@@ -39,7 +44,7 @@ def _pnp(pts_cam1: np.ndarray, uv: np.ndarray, K: np.ndarray, iters: int, reproj
         return None, 0
     R, _ = cv2.Rodrigues(rvec)
     world2cam = np.eye(4)
-    world2cam[:3, :3], world2cam[:3, 3] = R, tvec[:, 0]
+    world2cam[:3, :3], world2cam[:3, 3] = R, tvec[:, 0] * unit
     return np.linalg.inv(world2cam), len(inliers)
 
 

@@ -27,7 +27,7 @@ def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(t
     assert np.isfinite(z["pts1_cam1"]).all() and z["cam2world_2_in_1"].shape == (4, 4)
 
 
-def test_the_pair_command_given_one_image_twice_warns_that_the_pose_has_no_baseline(tmp_path):
+def test_the_pair_command_given_one_image_twice_warns_that_the_pose_has_no_baseline(tmp_path, capsys):
     torch.manual_seed(0)
     weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
     import cv2
@@ -36,6 +36,8 @@ def test_the_pair_command_given_one_image_twice_warns_that_the_pose_has_no_basel
     with pytest.warns(UserWarning, match="im0.png and im0.png are the same image: no baseline"):
         assert main(["--quiet", "pair", str(tmp_path / "im0.png"), str(tmp_path / "im0.png"), "-o",
                      str(tmp_path / "out"), "--model", str(weights), "--size", "64"]) == 0
+    printed = capsys.readouterr().out
+    assert "towards" not in printed and "no translation direction (the same image twice: no baseline" in printed
 
 
 def test_the_pair_command_refuses_a_missing_image_with_exit_code_2(tmp_path, capsys):

@@ -55,6 +55,15 @@ def test_pnp_with_known_focal_recovers_the_relative_pose():
     assert torch.allclose(est[:3, 3].double(), gt[:3, 3], atol=1e-3)  # exact scale: points are metric here
 
 
+@pytest.mark.parametrize("unit", [1e-6, 1e6])
+def test_pnp_finds_the_same_pose_whatever_the_units_of_the_pointmap(unit):
+    p1, p2, _, _, gt = two_views()
+    est = pm.relative_pose(as_pred(p1 * unit, p2 * unit), K2=K)[0]
+    r, t = pose_errors(est, gt)
+    assert r < 0.05 and t < 0.2
+    assert torch.allclose(est[:3, 3].double() / unit, gt[:3, 3], atol=1e-3)
+
+
 def test_pnp_with_unknown_focal_sweeps_focals_and_stays_close():
     p1, p2, _, _, gt = two_views()
     r, t = pose_errors(pm.relative_pose(as_pred(p1, p2))[0], gt)

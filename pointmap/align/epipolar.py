@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, replace
 from functools import partial
 
@@ -628,7 +629,9 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
               "fit_seconds": time.perf_counter() - t0}  # matching and the pose fit, before the depth re-fit
     if cfg.refit_depth:
         acfg = align or AlignConfig(**{**rep.get("config", {}), "quiet": True})
-        out = global_align(views, preds, K=K, cam2world=new.float(), config=acfg)
+        with warnings.catch_warnings():  # the views' warnings were given by the first alignment: not twice
+            warnings.filterwarnings("ignore", message="(identical images|duplicate image names) ")
+            out = global_align(views, preds, K=K, cam2world=new.float(), config=acfg)
         report["seconds"] = time.perf_counter() - t0
         return replace(out, info={**recon.info, "align_refit": out.info["align"], "epipolar": report})
     report["seconds"] = time.perf_counter() - t0

@@ -630,3 +630,25 @@ def test_the_stages_own_focals_leave_out_masked_pixels_as_the_alignment_does():
     assert refined.info["epipolar"]["applied"]
     err = (refined.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1)
     assert np.abs(err).max() < 1e-3, err  # was -36.6% with the masked pixels in the Weiszfeld focal
+
+
+def test_the_depth_refit_does_not_repeat_the_warnings_about_the_views_the_alignment_gave():
+    """pm.reconstruct aligns, then the epipolar stage re-fits the depths with global_align over the same views: the
+    views' own warnings (identical images, repeated names) were given once by the first alignment, not again."""
+    import warnings
+
+    sc = make_scene(4, 64, 96, seed=61, focal_range=(76.0, 104.0))
+    for key in ("cam2world", "K", "depth", "pts_world", "images"):
+        sc[key][3] = sc[key][0]
+    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+    views = views_of(sc)
+    views[1].name = views[2].name = "a.png"
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        recon = global_align(views, preds, config=AlignConfig(quiet=True))
+        first = [str(w.message)[:20] for w in caught]
+        out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    again = [str(w.message)[:20] for w in caught[len(first):]]
+    assert "identical images [(0" in first and "duplicate image name" in first
+    assert "align_refit" in out.info and not [m for m in again if m.startswith(("identical", "duplicate"))], again

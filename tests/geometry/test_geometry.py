@@ -242,3 +242,18 @@ def test_head_translation_takes_the_head_direction_and_the_points_length():
     assert torch.equal(head_translation(torch.zeros(3), torch.ones(3)), torch.zeros(3))  # no direction: zero, not NaN
     with pytest.raises(ShapeError, match=r"\[2, 3\] and \[3\]"):  # one length for every edge: refused
         head_translation(t_head, t_points[0])
+
+
+@pytest.mark.parametrize("unit", [1e-5, 1e-7])
+def test_procrustes_recovers_the_scale_and_translation_whatever_the_units_of_points_and_weights(unit):
+    g = torch.Generator().manual_seed(3)
+    src = (torch.randn(100, 3, generator=g) + 5) * unit  # float32, tiny scene: variance far below 1e-9
+    R = random_rotation(g).float()
+    dst = 2.57 * src @ R.T + unit
+    s, R_est, t = weighted_procrustes(src, dst)
+    assert abs(float(s) - 2.57) < 1e-3 and torch.allclose(R_est, R, atol=1e-3)
+    assert torch.allclose(t, torch.full((3,), unit), atol=1e-3 * unit)
+    s, _, t = weighted_procrustes(src / unit, dst / unit, torch.full((100,), 1e-13))  # tiny weights
+    assert abs(float(s) - 2.57) < 1e-3 and torch.allclose(t, torch.ones(3), atol=1e-3)
+    s, _, _ = weighted_procrustes(torch.zeros(10, 3), torch.randn(10, 3, generator=g))  # no spread: s = 0
+    assert float(s) == 0.0
