@@ -221,13 +221,12 @@ def refuse_shared_keys(images: list[str], keys: list[str], matched, flag: str, b
                                 f"{keys[k]!r}: they would get one entry; rename one, or give them in separate runs")
 
 
-COLMAP_FILES = tuple(f"{n}{s}" for n in ("cameras", "images", "points3D", "rigs", "frames") for s in (".bin", ".txt"))
-
-
 def is_colmap_path(path: str) -> bool:
     """Whether ``--cameras`` names a COLMAP model (a folder, or one of the model's files) rather than a
     transforms.json."""
-    return Path(path).is_dir() or Path(path).name in COLMAP_FILES
+    from pointmap.io.colmap import MODEL_FILES
+
+    return Path(path).is_dir() or Path(path).name in {f"{n}{s}" for n in MODEL_FILES for s in (".bin", ".txt")}
 
 
 def cameras_from_file(path: str, images: list[str], poses: bool):

@@ -23,6 +23,7 @@ from pointmap.io.points import PointSet
 
 PINHOLE = 1
 RIG_FILES = ("rigs", "frames")  # the model files COLMAP 3.12+ writes beside cameras, images and points3D
+MODEL_FILES = ("cameras", "images", "points3D", *RIG_FILES)  # a sparse model's files, each .bin or .txt
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
@@ -97,7 +98,7 @@ def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary
     out_dir = Path(out_dir)
     cams, images, tracks = _model(recon, points, shared_camera)
     other = [s for s, w in ((".bin", binary), (".txt", text)) if not w]
-    stale = [out_dir / f"{n}{s}" for s in other for n in ("cameras", "images", "points3D", *RIG_FILES)
+    stale = [out_dir / f"{n}{s}" for s in other for n in MODEL_FILES
              if (out_dir / f"{n}{s}").exists()]
     if stale:
         warnings.warn(f"{out_dir} still holds {', '.join(p.name for p in stale)} of an earlier run, which readers may take "
