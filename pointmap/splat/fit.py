@@ -29,7 +29,7 @@ from pointmap.geometry.cameras import K_LAYOUT, invert_rigid, is_pinhole_K, is_r
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import Reconstruction
 from pointmap.splat.gaussians import Gaussians
-from pointmap.splat.rasterize import rasterize
+from pointmap.splat.rasterize import quat_to_rotmat, rasterize
 
 # ----------------------------------------------------------------------------------------------------
 # budget
@@ -92,10 +92,13 @@ def _size_for(width: int, height: int, max_side: int) -> tuple[int, int]:
 
 def _ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Mean SSIM of two [H, W, 3] images (kornia, 11x11 Gaussian window); with ``mask`` [H, W] bool, the mean of
-    the SSIM map over the kept pixels (their windows may reach into the rest)."""
+    the SSIM map over the kept pixels (their windows may reach into the rest). An image with a side below 6 pixels
+    (an align_view level of a strip, a coarse level of a panorama) gets the widest odd window its reflect padding
+    allows, 2 side - 1 (kornia's 11 failed there with a padding RuntimeError)."""
     import kornia
 
-    m = kornia.metrics.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11)
+    window = min(11, 2 * min(a.shape[0], a.shape[1]) - 1)
+    m = kornia.metrics.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], window)
     return m.mean() if mask is None else m[0][:, mask].mean()
 
 
@@ -140,8 +143,8 @@ def _resize_mask(mask: torch.Tensor, width: int, height: int) -> torch.Tensor:
 
 def _check_image(image, name="image") -> torch.Tensor:
     img = torch.as_tensor(np.asarray(image) if not isinstance(image, torch.Tensor) else image)
-    if img.ndim != 3 or img.shape[-1] != 3:
-        raise ShapeError(f"{name} expected [H, W, 3], got {list(img.shape)}")
+    if img.ndim != 3 or img.shape[-1] != 3 or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ShapeError(f"{name} expected [H, W, 3] with H, W >= 1, got {list(img.shape)}")
     if img.dtype == torch.uint8:
         img = img.float() / 255.0
     img = img.float()
@@ -548,9 +551,12 @@ def _densify_prune(base, mult, params, grad_acc, grad_cnt, grad_thresh, extent, 
         new_base = means[idx].clone()
         n_clone = int((clone & keep).sum())
         if n_clone:
-            # move the copy by a sample of its own Gaussian, so the pair can separate
+            # move the copy by a sample of its own Gaussian, so the pair can separate: R diag(s) z, z ~ N(0, I) (the
+            # scales are along the Gaussian's own axes; without R an elongated one's copy landed off it)
             sc = params["scales"][idx[-n_clone:]].exp()
-            new_base[-n_clone:] += torch.randn(n_clone, 3, generator=gen) * sc
+            rot = quat_to_rotmat(params["quats"][idx[-n_clone:]])
+            local = torch.randn(n_clone, 3, generator=gen) * sc
+            new_base[-n_clone:] += (rot @ local[:, :, None])[:, :, 0]
         out = {k: v.detach()[idx].clone().requires_grad_(True) for k, v in params.items()}
         out["offset"] = torch.zeros_like(new_base).requires_grad_(True)
         return new_base, mult[idx].clone(), out, torch.zeros(len(idx)), torch.zeros(len(idx))

@@ -413,8 +413,8 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     if not (is_int(width) and is_int(height) and width > 0 and height > 0):
         raise ShapeError(f"width and height expected positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)
-    if means.ndim != 2 or means.shape[1] != 3:
-        raise ShapeError(f"means expected [N, 3], got {list(means.shape)}")
+    if means.ndim != 2 or means.shape[1] != 3 or not means.is_floating_point():
+        raise ShapeError(f"means expected floating-point [N, 3], got {list(means.shape)} {means.dtype}")
     n = means.shape[0]
     for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
                            ("opacities", opacities, (n,)),
@@ -436,6 +436,12 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
         raise ShapeError(f"tile and chunk must be >= 1, got {tile}, {chunk}")
     if backend not in ("torch", "gsplat", "auto"):
         raise ShapeError(f"backend must be 'torch', 'gsplat' or 'auto', got {backend!r}")
+    dtype = means.dtype  # every input computed in the means' dtype (float64 colours with float32 means failed deep inside)
+    quats, scales, opacities, colors = (t.to(dtype) for t in (quats, scales, opacities, colors))
+    world2cam = world2cam.to(dtype)
+    K = K.to(dtype)
+    if background is not None:
+        background = background.to(dtype)
     if backend in ("gsplat", "auto"):
         if _gsplat_available(means.device):
             return _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, width, height,
@@ -444,10 +450,5 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
             warnings.warn(f"gsplat backend unavailable ({_GSPLAT_STATE.get('err', 'tensors not on CUDA')}); "
                           "using the torch rasterizer", RuntimeWarning, stacklevel=2)
             _GSPLAT_STATE["warned"] = True
-    dtype = means.dtype
-    world2cam = world2cam.to(dtype)
-    K = K.to(dtype)
-    if background is not None:
-        background = background.to(colors.dtype)
     return _rasterize_torch(means, quats, scales, opacities, colors, world2cam, K, width, height, background,
                             near, eps2d, tile, chunk)

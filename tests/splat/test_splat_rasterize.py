@@ -246,3 +246,18 @@ def test_the_jacobian_is_clamped_at_1_3_times_the_frustum_through_the_outer_pixe
     ref, _, _ = reference_render(means, q, big, op, cols, torch.eye(4, dtype=torch.float64), K, W, H)
     out = rasterize(means, q, big, op, cols, torch.eye(4, dtype=torch.float64), K, W, H)
     assert float(ref.max()) > 0.1 and (out.image - ref).abs().max() < 1e-12
+
+
+def test_gaussians_of_mixed_float_dtypes_render_in_the_means_dtype_with_gradients_for_every_input():
+    W, H = 20, 16
+    a = [t.float() for t in _scene(30, W, H)]
+    ref = rasterize(*a, W, H, torch.tensor([0.1, 0.2, 0.3]))
+    for k in range(1, 5):  # float64 quats, scales, opacities or colours with float32 means: a RuntimeError deep inside
+        mixed = [t.clone() for t in a]
+        mixed[k] = mixed[k].double().requires_grad_(True)
+        out = rasterize(*mixed, W, H, torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
+        assert out.image.dtype == torch.float32 and (out.image - ref.image).abs().max() < 1e-6
+        out.image.sum().backward()
+        assert mixed[k].grad is not None and mixed[k].grad.dtype == torch.float64
+    with pytest.raises(ShapeError, match=r"means expected floating-point \[N, 3\], got \[30, 3\] torch.int64"):
+        rasterize(a[0].long(), *a[1:], W, H)
