@@ -138,6 +138,9 @@ class Gaussians:
         path = Path(path)
         g = self.detach().to(torch.float32)
         n = len(g)
+        if n == 0:
+            raise ShapeError(f"save_ply expected at least one Gaussian, got 0: {path} not written (load_ply refuses "
+                             "such a file)")
         deg = g.sh_degree if sh_degree is None else max(int(sh_degree), g.sh_degree)
         k = (deg + 1) ** 2 - 1
         rest = torch.zeros(n, k, 3)

@@ -120,6 +120,9 @@ def test_nan_confidences_are_refused_and_save_ply_refuses_gaussians_load_ply_wou
     with pytest.raises(ShapeError, match=r"save_ply expected finite Gaussians, got 1 of 4 with NaN or inf values"):
         bad.save_ply(tmp_path / "bad.ply")
     assert not (tmp_path / "bad.ply").exists()
+    with pytest.raises(ShapeError, match=r"save_ply expected at least one Gaussian, got 0: .*none.ply not written"):
+        _g(0).save_ply(tmp_path / "none.ply")
+    assert not (tmp_path / "none.ply").exists()
 
 
 def _ply(path, props, n=4, before="", data=None):
