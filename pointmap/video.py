@@ -4,7 +4,10 @@ rest of the pipeline reads like photographs."""
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -147,8 +150,31 @@ def _open(video):
     """An opened ``cv2.VideoCapture`` (the caller releases it); ImageError when OpenCV cannot open the file."""
     import cv2
 
-    cap = cv2.VideoCapture(str(video))
+    with _ffmpeg_silenced():  # its complaint ("moov atom not found") would come before our one line
+        cap = cv2.VideoCapture(str(video))
     if not cap.isOpened():
         cap.release()
         raise ImageError(f"not a readable video: {video} (OpenCV could not open it)")
     return cap
+
+
+@contextlib.contextmanager
+def _ffmpeg_silenced():
+    """File descriptor 2 onto /dev/null for the duration: FFmpeg, inside OpenCV, writes its own messages about a
+    file it cannot parse straight to it, past Python's sys.stderr. Left as it is where it cannot be redirected."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, 2)
+        finally:
+            os.close(null)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)

@@ -1,6 +1,7 @@
 """Frames from a video: the window stride, the sharpest frame of each window, refusals; and the command line."""
 
 import math
+import sys
 
 import cv2
 import numpy as np
@@ -52,6 +53,23 @@ def test_missing_and_undecodable_videos_and_bad_strides_are_refused(tmp_path):
         with pytest.raises(ImageError, match="max_frames expected an integer >= 1"):
             extract_frames(video, tmp_path / "f", max_frames=bad)
     assert len(extract_frames(video, tmp_path / "one", max_frames=1)) == 1  # one frame is enough to localize
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".mkv"])
+def test_an_unreadable_video_is_refused_in_one_line_without_ffmpegs_own_complaint(tmp_path, capfd, suffix):
+    from pointmap.cli import main
+
+    junk = tmp_path / f"junk{suffix}"
+    junk.write_bytes(b"not a video at all")
+    capfd.readouterr()
+    with pytest.raises(ImageError, match="not a readable video"):
+        extract_frames(junk, tmp_path / "f")
+    assert capfd.readouterr().err == ""  # FFmpeg wrote "moov atom not found" / "EBML header parsing failed" to fd 2
+    assert main(["reconstruct", str(junk), "-o", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("pointmap: error: not a readable video:"), err
+    print("still writable", file=sys.stderr)  # file descriptor 2 is back
+    assert "still writable" in capfd.readouterr().err
 
 
 def test_splat_takes_a_video_of_test_views_and_localize_refuses_a_bad_max_frames_by_its_flag(tmp_path, monkeypatch,
