@@ -540,23 +540,29 @@ def fit(recon: Reconstruction, gaussians: Gaussians, steps: int | None = None, o
                     K=K_map, size=(w, h), history=history, seconds=time.perf_counter() - t_start, config=cfg)
 
 
-def _densify_prune(base, mult, params, grad_acc, grad_cnt, grad_thresh, extent, gen):
-    """Clone Gaussians with a large mean screen-space gradient, prune nearly transparent ones."""
+def _densify_prune(base, mult, params, grad_acc, grad_cnt, grad_thresh, extent, gen, percent_dense=0.01, split_n=2):
+    """3DGS's densification: Gaussians with a large mean screen-space gradient grow, nearly transparent ones
+    (opacity < 0.005) go. A small one (largest scale at most ``percent_dense`` x ``extent``) is cloned, a large one
+    split into ``split_n`` Gaussians at its scales / (0.8 split_n) that replace it. Every new Gaussian stands at
+    a sample of its parent, R diag(s) z with z ~ N(0, I), so that the copies can separate."""
     with torch.no_grad():
         means = base + mult[:, None] * params["offset"]
         avg = grad_acc / grad_cnt.clamp_min(1)
-        clone = avg > grad_thresh
         keep = torch.sigmoid(params["opacity"]) > 0.005
-        idx = torch.cat([torch.nonzero(keep).squeeze(1), torch.nonzero(clone & keep).squeeze(1)])
+        grow = (avg > grad_thresh) & keep
+        split = grow & (params["scales"].exp().amax(dim=1) > percent_dense * extent)
+        clone = grow & ~split
+        born = torch.cat([torch.nonzero(clone).squeeze(1)] + [torch.nonzero(split).squeeze(1)] * split_n)
+        idx = torch.cat([torch.nonzero(keep & ~split).squeeze(1), born])
+        n_born = len(born)
+        out = {k: v.detach()[idx].clone() for k, v in params.items()}
         new_base = means[idx].clone()
-        n_clone = int((clone & keep).sum())
-        if n_clone:
-            # move the copy by a sample of its own Gaussian, so the pair can separate: R diag(s) z, z ~ N(0, I) (the
-            # scales are along the Gaussian's own axes; without R an elongated one's copy landed off it)
-            sc = params["scales"][idx[-n_clone:]].exp()
-            rot = quat_to_rotmat(params["quats"][idx[-n_clone:]])
-            local = torch.randn(n_clone, 3, generator=gen) * sc
-            new_base[-n_clone:] += (rot @ local[:, :, None])[:, :, 0]
-        out = {k: v.detach()[idx].clone().requires_grad_(True) for k, v in params.items()}
-        out["offset"] = torch.zeros_like(new_base).requires_grad_(True)
+        if n_born:
+            sc = params["scales"][born].exp()
+            rot = quat_to_rotmat(params["quats"][born])
+            local = torch.randn(n_born, 3, generator=gen) * sc
+            new_base[-n_born:] += (rot @ local[:, :, None])[:, :, 0]
+            out["scales"][len(idx) - n_born:] -= split[born][:, None] * math.log(0.8 * split_n)
+        out["offset"] = torch.zeros_like(new_base)
+        out = {k: v.requires_grad_(True) for k, v in out.items()}
         return new_base, mult[idx].clone(), out, torch.zeros(len(idx)), torch.zeros(len(idx))

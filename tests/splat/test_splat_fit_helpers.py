@@ -49,3 +49,23 @@ def test_densify_places_each_copy_by_a_sample_of_its_own_rotated_gaussian():
     assert len(base) == 2 * n and len(mult) == 2 * n and out["quats"].shape == (2 * n, 4)
     spread = base[n:].std(0)  # the copies lay along the world's x, off the Gaussian, before
     assert 0.9 < float(spread[1]) < 1.1 and float(spread[0]) < 0.01 and float(spread[2]) < 0.01
+
+
+def test_densify_clones_small_gaussians_and_splits_large_ones_into_two_at_scales_over_one_point_six():
+    # four Gaussians, extent 1: 0 small and steep, 1 large and steep, 2 large and flat, 3 steep but transparent
+    scales = torch.log(torch.tensor([[0.005] * 3, [0.5, 0.02, 0.02], [0.5] * 3, [0.005] * 3]))
+    params = {"offset": torch.zeros(4, 3), "sh_dc": torch.arange(4.0)[:, None].repeat(1, 3),
+              "opacity": torch.tensor([0.0, 0.0, 0.0, -9.0]), "scales": scales,
+              "quats": torch.tensor([1.0, 0, 0, 0]).repeat(4, 1)}
+    grads = torch.tensor([1.0, 1.0, 0.0, 1.0])
+    base, mult, out, acc, cnt = _densify_prune(torch.arange(12.0).view(4, 3), torch.ones(4), params, grads,
+                                               torch.ones(4), 0.5, 1.0, torch.Generator().manual_seed(0))
+    ids = out["sh_dc"][:, 0].tolist()  # which parent each Gaussian comes from
+    assert ids == [0, 2, 0, 1, 1]  # kept (0, 2; 1 replaced, 3 pruned), then 0's clone, then 1's two halves
+    assert torch.equal(out["scales"][:3], scales[[0, 2, 0]])  # a clone keeps its parent's size
+    assert torch.allclose(out["scales"][3:], scales[[1, 1]] - math.log(1.6))
+    assert torch.equal(base[:2], torch.arange(12.0).view(4, 3)[[0, 2]])  # the kept ones stay where they were
+    halves = base[3:] - torch.tensor([3.0, 4.0, 5.0])  # a sample of the parent: along its long axis, x
+    assert bool((halves[:, 1:].abs() < 0.1).all()) and bool((halves[:, 0].abs() > 1e-4).all())
+    assert len(mult) == len(acc) == len(cnt) == 5 and all(v.requires_grad for v in out.values())
+    assert not bool(out["offset"].any())
