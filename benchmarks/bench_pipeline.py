@@ -117,8 +117,7 @@ def main(argv=None) -> int:
 
     for g in a.graphs:
         try:
-            if g != "auto":
-                parse_graph(g)
+            parse_graph(g, auto=True)
         except pm.GraphError as e:
             p.error(f"--graphs: {e}")
     try:

@@ -31,14 +31,12 @@ def check_size_graph_budget(args) -> None:
     size = getattr(args, "size", None)
     if size is not None and not is_input_size(size):
         raise PointmapError(f"--size expected {INPUT_SIZE_RULE}, got {size}")
-    graph = getattr(args, "graph", "auto")
-    if graph != "auto":
-        from pointmap.pairs import parse_graph
+    from pointmap.pairs import parse_graph
 
-        try:  # the name's syntax (how many images it suits is checked with the images)
-            parse_graph(graph)
-        except PointmapError as e:
-            raise PointmapError(f"--graph: {e}") from None
+    try:  # the name's syntax (how many images it suits is checked with the images)
+        parse_graph(getattr(args, "graph", "auto"), auto=True)
+    except PointmapError as e:
+        raise PointmapError(f"--graph: {e}") from None
     budget = getattr(args, "splat_budget", None)
     if budget is not None and not (math.isfinite(budget) and budget >= 0):
         raise PointmapError(f"--splat-budget expected seconds >= 0 (0: no limit), got {budget}")

@@ -10,16 +10,22 @@ from pointmap.errors import GraphError, is_int
 GRAPHS = "complete, swin-K, logwin-K, oneref-I, retrieval-K (swin/logwin take a '-noncyclic' suffix)"
 
 
-def parse_graph(graph: str) -> tuple[str, int | None, bool]:
+def parse_graph(graph: str, *, auto: bool = False) -> tuple[str, int | None, bool]:
     """(kind, K, cyclic) of a graph name (``GRAPHS``: ``complete`` has no K); GraphError for a name that is none of
-    them. Whether it suits a number of images (``oneref-I``'s reference index) is ``make_pairs``' check."""
+    them. Whether it suits a number of images (``oneref-I``'s reference index) is ``make_pairs``' check.
+
+    auto: also take ``"auto"`` (``("auto", None, True)``), the pipeline's choice by image count
+    (``pointmap.pipeline.auto_graph``), and name it among the expected ones when refusing."""
+    expected = f"auto, {GRAPHS}" if auto else GRAPHS
+    if auto and graph == "auto":
+        return "auto", None, True
     if not isinstance(graph, str):
-        raise GraphError(f"graph expected a name (one of: {GRAPHS}), got {type(graph).__name__} {graph!r}")
+        raise GraphError(f"graph expected a name (one of: {expected}), got {type(graph).__name__} {graph!r}")
     parts = graph.split("-")
     kind = parts[0]
     cyclic = not (len(parts) == 3 and parts[2] == "noncyclic")
     if (len(parts) == 3 and parts[2] != "noncyclic") or len(parts) > 3:
-        raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+        raise GraphError(f"unknown graph {graph!r}; expected one of: {expected}")
     if kind == "complete" and len(parts) == 1:
         return kind, None, cyclic
     if kind in ("retrieval", "oneref") and len(parts) == 3:
@@ -32,7 +38,7 @@ def parse_graph(graph: str) -> tuple[str, int | None, bool]:
         if kind != "oneref" and k < 1:
             raise GraphError(f"{kind}-{k}: {'neighbours' if kind == 'retrieval' else 'window'} must be >= 1")
         return kind, k, cyclic
-    raise GraphError(f"unknown graph {graph!r}; expected one of: {GRAPHS}")
+    raise GraphError(f"unknown graph {graph!r}; expected one of: {expected}")
 
 
 def make_pairs(n: int, graph: str = "complete") -> list[tuple[int, int]]:

@@ -222,8 +222,10 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     from pointmap.errors import ShapeError, check_model_device, is_int
     from pointmap.images import load_images
     from pointmap.inference import predict_pairs
-    from pointmap.pairs import make_pairs
+    from pointmap.pairs import make_pairs, parse_graph
 
+    if isinstance(graph, str):  # a name refused before any image is read (a pair list is checked against N)
+        parse_graph(graph, auto=True)
     if align is not None and not isinstance(align, AlignConfig):
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     check_stages(epipolar, refine)
@@ -268,9 +270,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         pairs, graph = pairs_from_list(n, graph), "given"
     elif retrieval:  # pairs by the images' similarity (an unordered photo collection)
         from pointmap.inference import encode_views, image_similarity
-        from pointmap.pairs import pairs_from_similarity, parse_graph
+        from pointmap.pairs import pairs_from_similarity
 
-        k = parse_graph(graph)[1]  # the name checked before the encoder runs
+        k = parse_graph(graph)[1]
         # each image encoded once: the similarity's tokens are the ones predict_pairs decodes
         encodings = encode_views(model, [v.img for v in views], batch_size, device)
         pairs = pairs_from_similarity(image_similarity(model, views, encodings=encodings), k)

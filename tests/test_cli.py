@@ -596,7 +596,7 @@ def test_an_output_path_that_is_a_file_is_refused_before_the_model_is_even_loade
     (["--size", "17"], "--size expected 224 or a multiple of 16"),
     (["--size", "5120"], "--size expected 224 or a multiple of 16 from 32 to 2048 (e.g. 512), got 5120"),
     (["--graph", "swin-0"], "--graph: swin-0: window must be >= 1"),
-    (["--graph", "bogus"], "--graph: unknown graph 'bogus'"),
+    (["--graph", "bogus"], "--graph: unknown graph 'bogus'; expected one of: auto, complete, swin-K"),
     (["--splat", "--splat-budget", "-5"], "--splat-budget expected seconds >= 0"),
 ])
 def test_size_graph_and_splat_budget_are_refused_before_the_model_even_for_each_folder(tiny, tmp_path, capsys, extra,

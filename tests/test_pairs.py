@@ -30,6 +30,16 @@ def test_unknown_or_malformed_graphs_are_refused(graph):
         pm.make_pairs(5, graph)
 
 
+def test_auto_is_a_graph_name_only_where_the_caller_takes_it_and_is_then_named_among_the_expected():
+    from pointmap.pairs import parse_graph
+
+    assert parse_graph("auto", auto=True) == ("auto", None, True)
+    with pytest.raises(pm.GraphError, match="unknown graph 'auto'; expected one of: complete,"):
+        parse_graph("auto")
+    with pytest.raises(pm.GraphError, match="unknown graph 'bogus'; expected one of: auto, complete,"):
+        parse_graph("bogus", auto=True)
+
+
 def test_a_single_image_has_no_pairs():
     with pytest.raises(pm.GraphError, match="at least 2"):
         pm.make_pairs(1)

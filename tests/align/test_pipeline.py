@@ -431,6 +431,11 @@ def test_reconstruct_refuses_a_batch_size_before_anything_runs(fake_stack, bad):
     assert "pairs" not in calls
 
 
+def test_an_unknown_graph_name_is_refused_before_any_image_is_read_and_auto_is_among_the_names_offered(tmp_path):
+    with pytest.raises(PointmapError, match="unknown graph 'bogus'; expected one of: auto, complete"):
+        reconstruct(STAND_IN, [tmp_path / "missing_a.png", tmp_path / "missing_b.png"], graph="bogus", quiet=True)
+
+
 def test_stage_arguments_and_masks_are_refused_before_the_retrieval_runs_the_encoder(fake_stack, monkeypatch):
     _, images, calls = fake_stack
     for name in ("encode_views", "image_similarity"):  # the stand-in module's
