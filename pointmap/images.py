@@ -108,6 +108,11 @@ def _read(src, index: int):
     except Image.DecompressionBombError as e:
         raise ImageError(f"{path} is too large to read safely ({e}); downscale it first") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        from pointmap.video import is_video
+
+        if is_video(path):  # e.g. `pointmap pair clip.mp4 a.jpg`: a video is frames, not one image
+            raise ImageError(f"expected an image file, got a video: {path} (reconstruct and localize take videos and "
+                             f"read their frames; pointmap.video.extract_frames writes them as images)") from None
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
     try:
         return _to_rgb(ImageOps.exif_transpose(im)), path.name

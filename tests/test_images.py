@@ -88,6 +88,10 @@ def test_bad_images_raise_image_errors_naming_the_file(tmp_path):
         pm.load_images([tmp_path / "x.jpg"])
     with pytest.raises(pm.ImageError, match="not found"):
         pm.load_images([tmp_path / "missing.png"])
+    (tmp_path / "clip.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")  # a video where an image was expected
+    with pytest.raises(pm.ImageError, match="expected an image file, got a video: .*clip.mp4 \\(reconstruct and "
+                                            "localize take videos"):
+        pm.load_images([tmp_path / "clip.mp4"])
     with pytest.raises(pm.ImageError, match="smaller than one"):
         pm.load_images([np.zeros((8, 8, 3), np.uint8)])
     with pytest.raises(pm.ImageError, match=r"image image_000.png: 2000x16 is too elongated: resized for size 32 it "

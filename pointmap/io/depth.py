@@ -19,9 +19,19 @@ def read_depth(path, png_scale: float = 1e-3) -> np.ndarray:
 
     path = Path(path)
     if path.suffix.lower() == ".npy":
+        with open(path, "rb") as fh:
+            magic = fh.read(6)
+        if magic != b"\x93NUMPY":  # numpy would call any other file "pickled data" and offer allow_pickle
+            raise PointmapError(f"{path}: not a .npy file (NumPy's files begin with \\x93NUMPY, this one with "
+                                f"{magic!r}); a depth map expected a 2-D float array saved by numpy.save")
         try:
             d = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
+        except ValueError as e:  # an array of Python objects: numpy refuses it without allow_pickle
+            if "allow_pickle" not in str(e):
+                raise PointmapError(f"{path}: not a readable .npy depth map ({e})") from None
+            raise PointmapError(f"{path}: holds Python objects, not numbers; a depth map expected a 2-D float "
+                                f"array (never unpickled: a pickle can run code)") from None
+        except OSError as e:
             raise PointmapError(f"{path}: not a readable .npy depth map ({e})") from None
         if d.ndim == 3 and d.shape[-1] == 1:
             d = d[..., 0]
