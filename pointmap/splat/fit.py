@@ -272,7 +272,9 @@ class SplatFit:
     def align_view(self, image, cam2world_init, K, steps: int = 100, *, max_side: int | None = None,
                    lr_rot: float = 2e-3, lr_trans: float | None = None, progress: bool = False):
         """Test-time pose alignment: optimise the pose of ``image`` (Gaussians frozen) starting from
-        ``cam2world_init``; ``K`` refers to ``image``'s pixels. Returns the refined cam2world [4, 4]."""
+        ``cam2world_init``; ``K`` refers to ``image``'s pixels. Returns the refined cam2world [4, 4]: of the poses
+        the optimisation visits, the start and the last among them, the one whose render at full resolution
+        matches ``image`` best (``photometric_loss``), so never one worse than the start."""
         img = _check_image(image)
         c2w0 = _check_pose(cam2world_init, "cam2world_init")
         K = _check_K(K)
@@ -296,8 +298,16 @@ class SplatFit:
         phi = torch.zeros(3, requires_grad=True)
         opt = torch.optim.Adam([{"params": [rho], "lr": lr_trans}, {"params": [phi], "lr": lr_rot}])
         w2c0 = invert_rigid(c2w0)
-        best, best_loss = w2c0.clone(), float("inf")
         targets = {lv: (_resize_image(img, *lv), scale_intrinsics(K, lv[0] / W, lv[1] / H)) for lv in levels}
+        fine = levels[-1]
+
+        def fine_loss(w2c) -> float:  # NaN (an empty render) counts as no match at all
+            with torch.no_grad():
+                loss = float(photometric_loss(rasterize(*params, w2c, targets[fine][1], *fine).image,
+                                              targets[fine][0]))
+            return loss if math.isfinite(loss) else float("inf")
+
+        best, best_loss = w2c0.clone(), fine_loss(w2c0)
         for it in range(steps):
             frac = it / max(steps, 1)
             lv = levels[0] if (len(levels) > 1 and frac < 0.5) else levels[-1]
@@ -307,13 +317,15 @@ class SplatFit:
             w2c = se3_exp(torch.cat([rho, phi])) @ w2c0
             out = rasterize(*params, w2c, Ks, lv[0], lv[1])
             loss = photometric_loss(out.image, target)
-            if lv == levels[-1] and float(loss.detach()) < best_loss:
+            if it > 0 and lv == fine and float(loss.detach()) < best_loss:  # it 0: the start, scored above
                 best_loss, best = float(loss.detach()), w2c.detach().clone()
             opt.zero_grad()
             loss.backward()
             opt.step()
-        if steps == 0 or best_loss == float("inf"):
-            best = (se3_exp(torch.cat([rho, phi])) @ w2c0).detach()
+        if steps > 0:  # the last update's pose, not yet scored
+            last = (se3_exp(torch.cat([rho, phi])) @ w2c0).detach()
+            if fine_loss(last) < best_loss:
+                best = last
         return invert_rigid(best)
 
     def to_reconstruction(self, recon: Reconstruction) -> Reconstruction:

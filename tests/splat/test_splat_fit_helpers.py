@@ -32,6 +32,22 @@ def test_align_view_aligns_a_strip_whose_coarse_level_is_thinner_than_the_ssim_w
     assert c2w.shape == (4, 4) and bool(torch.isfinite(c2w).all())
 
 
+def test_align_view_never_returns_a_pose_that_matches_the_photograph_worse_than_its_start():
+    res, K = _strip_fit(width=32, height=32)
+    img = res.render(torch.eye(4), K, 32, 32)
+
+    def loss(c2w):
+        return float(photometric_loss(res.render(c2w, K, 32, 32), img))
+
+    # from the true pose, with rates that throw it far off: the start is the best pose it ever visits
+    c2w = res.align_view(img, torch.eye(4), K, steps=6, lr_rot=0.5, lr_trans=0.5)
+    assert torch.allclose(c2w, torch.eye(4), atol=1e-5)
+    off = torch.eye(4)
+    off[:3, 3] = torch.tensor([0.05, -0.03, 0.0])
+    c2w = res.align_view(img, off, K, steps=6, lr_rot=0.5, lr_trans=0.5)
+    assert loss(c2w) <= loss(off) + 1e-6
+
+
 def test_a_photograph_with_no_pixel_is_refused_by_name():
     res, K = _strip_fit()
     for shape in ((0, 64, 3), (10, 0, 3)):  # min() of an empty tensor: a RuntimeError before
