@@ -729,6 +729,8 @@ def cmd_localize(args) -> int:
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
     times = video_timestamps(args.images, images, frame_times)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
+    if args.cameras is not None:
+        images, K = query_cameras(args.cameras, images, args.focal, out)
     recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
                    quiet=args.quiet, device=args.device)
@@ -747,6 +749,30 @@ def cmd_localize(args) -> int:
                                     if row["reference"] else "not posed"))
     print(f"localization: {out / 'localization.json'}\ntum: {out / 'trajectory.txt'}")
     return 0
+
+
+def query_cameras(path: str, images: list[str], focal: str | None, out: Path):
+    """``localize --cameras``: (the queries, lens distortion undone into ``out/undistorted``; their [M, 3, 3] K)
+    from a transforms.json or COLMAP model (``cameras_from_file``) that must name every query and give its
+    intrinsics. PointmapError, before the model loads, for a file that leaves a query without them, or with
+    ``--focal`` (two sources of the same intrinsics)."""
+    import torch
+
+    if focal is not None:
+        raise PointmapError(f"--cameras and --focal both give the queries' intrinsics ({path}; {focal}): use one")
+    if not Path(path).exists():
+        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {path!r}")
+    K, _, distortions = cameras_from_file(path, images, poses=False)
+    missing = [Path(images[k]).name for k in range(len(images)) if K is None or k not in K]
+    if missing:
+        raise PointmapError(f"--cameras {path} gives no intrinsics for {len(missing)} of the {len(images)} "
+                            f"photographs ({', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''}): localize "
+                            "takes every query's camera from it; give --focal instead, or localize those apart")
+    if distortions:  # the network and the pose take pinhole cameras, as in reconstruct
+        from pointmap.undistort import undistort_photos
+
+        images, K, _ = undistort_photos(images, K, distortions, out / "undistorted")
+    return images, torch.stack([torch.as_tensor(K[k], dtype=torch.float64) for k in range(len(images))])
 
 
 def model_summary(model, source: str) -> dict:
@@ -935,6 +961,10 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--focal", default=None, metavar="F[,F...]",
                      help="known focal length(s) in original pixels (principal point at the centre); default: "
                           "estimated from each pair")
+    loc.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
+                     help="the queries' known intrinsics (and lens, undone first into OUT/undistorted) from a "
+                          "nerfstudio transforms.json or a COLMAP sparse model that names every query by file name; "
+                          "instead of --focal")
     loc.add_argument("--n-refs", dest="n_refs", type=int, default=2,
                      help="reconstruction views each photograph is paired with, the most similar by their encoder "
                           "tokens; the most similar pair that gives a pose is kept, the others are fallbacks (default 2)")

@@ -2,9 +2,10 @@
 its keyframes, a photograph taken later, a test view to evaluate novel-view synthesis on.
 
 Each query is paired with reference views of the reconstruction (given, or the most similar by their encoder
-tokens); for each pair the network's pointmaps give the query's pose in the reference camera's frame (PnP with
-a known K, else both passes' pose (the pose head's transforms, or Procrustes for models without one) and the focal
-from the query's own pointmap), and the reference's depth
+tokens); for each pair the network's pointmaps give the query's pose in the reference camera's frame
+(``pair_pose``: both passes' pose, the pose head's transforms or Procrustes for models without one, refined on the
+model's matches with the reference's K and the query's, known or the focal from its own pointmap), and the
+reference's depth
 in the reconstruction gives the scale: the pair's view-1 depth is matched to it (median ratio), so the pose
 lands in the reconstruction's world and units. The references are tried in order (the most similar first) and
 the first that gives a pose is kept: the others are fallbacks. (Confidences are not comparable across pairs:
@@ -103,15 +104,14 @@ def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None
     the query seen as view 2 of ``pred`` (reference ``ref`` as view 1) and view 1 of ``pred_reverse``. A pose
     that cannot be found is NaN."""
     from pointmap.geometry.cameras import intrinsics
-    from pointmap.pose import focal_from_prediction, pair_pose, relative_pose
+    from pointmap.pose import focal_from_prediction, pair_pose
 
     s = depth_scale(recon, ref, pred)
     h, w = pred.pts2_cam1.shape[1:3]
-    if K_map is None:  # the pair's pose as `pointmap pair` gives it, with the reference's known intrinsics
-        rel = pair_pose(pred, pred_reverse, recon.K_map[ref].double(), None, patch=patch)[0].double()
+    # the pair's pose as `pointmap pair` gives it, with the reference's intrinsics and the query's when known
+    rel = pair_pose(pred, pred_reverse, recon.K_map[ref].double(), K_map, patch=patch)[0].double()
+    if K_map is None:
         K_map = intrinsics(float(focal_from_prediction(pred_reverse)[0]), (w - 1) / 2, (h - 1) / 2, dtype=torch.float64)
-    else:
-        rel = relative_pose(pred, K2=K_map)[0].double()
     rel[:3, 3] *= s
     return recon.cam2world[ref].double() @ rel, K_map.double(), s
 
@@ -180,7 +180,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     for start in tqdm(chunks, desc="localize", unit=f"{QUERY_CHUNK} queries", disable=quiet or len(chunks) == 1 or None):
         chunk = range(start, min(m, start + QUERY_CHUNK))
         pairs = sorted({(r, n + k) for k in chunk for r in refs[k]})
-        preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=K is None,
+        preds = predict_pairs(model, views, pairs, batch_size, device=device, keep_desc=True,
                               quiet=quiet or m > QUERY_CHUNK)
         for k in chunk:
             mfo = torch.tensor([queries[k].map_from_original], dtype=torch.float64)

@@ -417,6 +417,53 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
     assert "the reconstruction's own folder" in capsys.readouterr().err
 
 
+def test_localize_takes_the_queries_cameras_from_a_transforms_json_undoing_a_lens_first(tiny, tmp_path, capsys,
+                                                                                         monkeypatch):
+    import json
+
+    import pointmap.localization
+    from pointmap.images import read_rgb
+    from pointmap.undistort import Distortion, pinhole_for, undistort
+
+    weights, folder = tiny
+    rec = tmp_path / "rec"
+    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "--model", str(weights),
+                 "--size", "64", "-o", str(rec), "--export", "npz"]) == 0
+    frames = [{"file_path": f"images/{name}", "transform_matrix": np.eye(4).tolist(), "fl_x": 70.0, "fl_y": 72.0,
+               "cx": 40.0, "cy": 30.0, "w": 80, "h": 60, **({"k1": -0.2, "k2": 0.05} if name == "c.png" else {})}
+              for name in ("a.jpg", "c.png")]
+    cams = tmp_path / "transforms.json"
+    cams.write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    seen = {}
+
+    def localize(model, recon, images, K=None, **kw):  # what the command hands the library
+        seen.update(images=list(images), K=K)
+        m = len(seen["images"])
+        return pointmap.localization.Localization(torch.eye(4, dtype=torch.float64).repeat(m, 1, 1), K, [0] * m,
+                                                  [1.0] * m, [1.0] * m, [Path(i).name for i in seen["images"]])
+
+    monkeypatch.setattr(pointmap.localization, "localize", localize)
+    out = tmp_path / "loc"
+    assert main(["--quiet", "localize", str(rec), str(folder / "c.png"), str(folder / "a.jpg"), "--model",
+                 str(weights), "-o", str(out), "--cameras", str(cams)]) == 0
+    K_in = np.array([[70.0, 0, 39.5], [0, 72.0, 29.5], [0, 0, 1]])  # cx - 0.5: the file's pixel-corner convention
+    lens = Distortion("OPENCV", (-0.2, 0.05))
+    K_pin = pinhole_for(K_in, lens, (80, 60))
+    assert np.allclose(seen["K"][0].numpy(), K_pin, atol=1e-4) and np.allclose(seen["K"][1].numpy(), K_in, atol=1e-4)
+    assert seen["images"][0] == str(out / "undistorted" / "c.png") and seen["images"][1] == str(folder / "a.jpg")
+    assert np.array_equal(read_rgb(out / "undistorted" / "c.png"), undistort(read_rgb(folder / "c.png"), K_in, lens,
+                                                                             K_pin))
+    rows = json.loads((out / "localization.json").read_text())["queries"]
+    assert [r["name"] for r in rows] == ["c.png", "a.jpg"] and np.allclose(rows[1]["K"], K_in)
+    # a query the file does not name, and two sources of the same intrinsics: refused before the model loads
+    for extra, message in ((["--cameras", str(cams)], "gives no intrinsics for 1 of the 2 photographs (b.PNG)"),
+                           (["--cameras", str(cams), "--focal", "70"], "--cameras and --focal both give"),
+                           (["--cameras", str(tmp_path / "none.json")], "--cameras expected a transforms.json")):
+        assert main(["localize", str(rec), str(folder / "c.png"), str(folder / "b.PNG"), "--model", "no_such_model",
+                     "-o", str(out), *extra]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_each_folder_reconstructs_every_scene_with_one_model_and_skips_a_bad_one(tiny, tmp_path, capsys, monkeypatch):
     import shutil
 

@@ -92,13 +92,33 @@ def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
         localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)
 
 
-def test_a_known_focal_is_used_as_given_and_poses_by_pnp(scene):
+def test_a_known_focal_is_used_as_given_and_reported_with_the_true_pose(scene):
     sc, recon, queries, world_scale, _ = scene
     K = torch.from_numpy(sc["K"][4:6])
     loc = localize(STAND_IN, recon, queries, refs=[[3], [0]], K=K, quiet=True)
     assert torch.equal(loc.K, K.double())
     for k, q in enumerate((4, 5)):
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
+
+
+def test_a_known_K_reaches_the_pair_pose_beside_the_references_own(scene, monkeypatch):
+    import pointmap.pose
+
+    sc, recon, queries, _, _ = scene
+    seen, pair_pose = [], pointmap.pose.pair_pose
+
+    def spy(pred, rev, K1=None, K2=None, **kw):
+        seen.append((K1, K2))
+        return pair_pose(pred, rev, K1, K2, **kw)
+
+    monkeypatch.setattr(pointmap.pose, "pair_pose", spy)
+    K = torch.from_numpy(sc["K"][4:6])
+    localize(STAND_IN, recon, queries, refs=[[3], [0]], K=K, quiet=True)  # queries at the maps' size: K as given
+    assert [(torch.equal(K1, recon.K_map[r].double()), torch.allclose(K2, K[k].double()))
+            for k, (r, (K1, K2)) in enumerate(zip((3, 0), seen))] == [(True, True)] * 2
+    seen.clear()
+    localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)
+    assert [K2 for _, K2 in seen] == [None, None]  # unknown: pair_pose takes the focal from the query's pointmap
 
 
 def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene):
@@ -112,7 +132,7 @@ def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene)
     loc = localize(STAND_IN, recon, big, refs=[[3], [0]], quiet=True)
     assert torch.allclose(loc.K[:, 0, 0], K_big[:, 0, 0], rtol=0.03)  # estimated on the maps, reported here
     assert torch.allclose(loc.K[:, :2, 2], K_big[:, :2, 2], atol=1e-6)
-    known = localize(STAND_IN, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for PnP
+    known = localize(STAND_IN, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # mapped onto the maps for pair_pose
     for k, q in enumerate((4, 5)):
         assert_at_true_pose(known.cam2world[k], sc, q, world_scale)
 
