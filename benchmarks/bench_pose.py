@@ -8,7 +8,9 @@ view 1's own pointmap, PnP-RANSAC with view 2's true K (as the SIFT baseline get
 matches (known K)" takes the model's pose as a prior and refines its rotation and translation direction on the same
 matches (pm.refine_pose_with_matches: robust least squares on the epipolar constraint). "model + own matches (no K)"
 is what the pipeline reports (pm.pair_pose): the same refinement with each view's focal from its own pointmap, the
-rotation held within a few degrees of the pointmaps'. A last row, "no rotation",
+rotation held within a few degrees of the pointmaps'; "model + own matches (known K)" is pm.pair_pose given both true
+K (what `pointmap pair --focal` and `pointmap localize --focal / --cameras` report: a 1-degree rotation prior, where
+the refinement row above has refine_pose_with_matches' 10). A last row, "no rotation",
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
 anything about rotation.
 
@@ -126,17 +128,20 @@ def main(argv=None) -> int:
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
-        cm = hybrid = own = None
+        cm = hybrid = own = own_k = None
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
             m = pm.match_coarse(pred, model.cfg.patch_size)
             cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[m])[0].numpy()
             hybrid = pm.refine_pose_with_matches(torch.from_numpy(ours), m, v1["K"].double(), v2["K"].double()).numpy()
             own = pm.pair_pose(pred, rev, patch=model.cfg.patch_size, pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
+            own_k = pm.pair_pose(pred, rev, v1["K"].double(), v2["K"].double(), patch=model.cfg.patch_size,
+                                 pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
         per_pair.append(PairResult(idx, *errors(ours, gt), true_rot,
                                    *(errors(own, gt) if own is not None else (float("nan"),) * 2)))
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
-        rows = [("model", ours), ("model + own matches (no K)", own), ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),
+        rows = [("model", ours), ("model + own matches (no K)", own), ("model + own matches (known K)", own_k),
+                ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),
                 ("sift+E (known K)", base), ("no rotation", None)]
         for name, est in rows:
             if name.startswith("model ") and est is None:  # a model without descriptors has no matches

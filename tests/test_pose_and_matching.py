@@ -597,7 +597,9 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
     assert torch.equal(reused, est) and torch.equal(plain, pm.relative_pose(fwd, pred_reverse=rev)[0])  # not modified
     known = pm.pair_pose(fwd, rev, K, K, patch=8, rotation_prior_deg=3.0)[0]  # exact pointmaps: the same focals
     assert torch.allclose(known, est, atol=1e-3)
-    assert max(pose_errors(pm.pair_pose(fwd, rev, K, K, patch=8)[0], gt)) < 3.0  # known K: a 10-degree prior
+    known = pm.pair_pose(fwd, rev, K, K, patch=8)[0]  # both K known: a 1-degree prior (3 with a focal estimated)
+    assert torch.allclose(known, pm.pair_pose(fwd, rev, K, K, patch=8, rotation_prior_deg=1.0)[0])
+    assert max(pose_errors(known, gt)) < 3.0
     # pointmaps that put camera 2 on the wrong side: the matches give the line, the pointmaps its sign
     back = gt[:3, 3] * 2
     fwd_b, rev_b = _described(p1, p2 - back, p2_own, p1_in2 + gt[:3, :3].T @ back, gt)
