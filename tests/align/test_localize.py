@@ -117,6 +117,15 @@ def test_a_known_K_reaches_the_pair_pose_beside_the_references_own(scene, monkey
     assert [(torch.equal(K1, recon.K_map[r].double()), torch.allclose(K2, K[k].double()))
             for k, (r, (K1, K2)) in enumerate(zip((3, 0), seen))] == [(True, True)] * 2
     seen.clear()
+    import cv2
+
+    big = [cv2.resize(q, (96, 64), interpolation=cv2.INTER_NEAREST) for q in queries]  # twice the maps' size
+    K_big = K.clone()
+    K_big[:, :2, :2] *= 2
+    K_big[:, :2, 2] = (K_big[:, :2, 2] + 0.5) * 2 - 0.5  # pixel centres at integers: u_big = (u + 0.5) * 2 - 0.5
+    localize(STAND_IN, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # K of the photographs: mapped to the maps'
+    assert all(torch.allclose(K2, K[k].double(), atol=1e-9) for k, (_, K2) in enumerate(seen))
+    seen.clear()
     localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)
     assert [K2 for _, K2 in seen] == [None, None]  # unknown: pair_pose takes the focal from the query's pointmap
 
