@@ -25,7 +25,8 @@ Two sets:
   depth on the same images through the true calibration. Skipped with a note when the files are not found.
 
 Pose rows as in ``bench_pose.py``: the model from its own pointmaps (no intrinsics), the same refined on its own
-matches with its own focals (``pm.pair_pose``, what the pipeline reports), the model's coarse matches +
+matches with its own focals (``pm.pair_pose``, what the pipeline reports), the same with the true K (what
+``pointmap pair --focal`` reports), the model's coarse matches +
 PnP with the true K, the model's pose refined on those matches with the
 true K (``pm.refine_pose_with_matches``), SIFT + essential matrix with the true K, and "no rotation". On the rig, the model's focal
 (``pointmap.pose.focal_from_prediction``, no intrinsics given) is compared with the calibrated one.
@@ -126,7 +127,9 @@ def pose_rows(model, im1: np.ndarray, im2: np.ndarray, gt: np.ndarray, size: int
     focal_err = float("nan")
     if K1 is not None:
         k1, k2 = _k_on_map(K1, v1), _k_on_map(K2, v2)
-        if m is not None:
+        if m is not None:  # what `pointmap pair --focal` reports: pm.pair_pose with both K
+            own_k = pm.pair_pose(pred, rev, k1, k2, patch=model.cfg.patch_size, pose=ours[None], matches=[m])[0]
+            rows.append(("model + own matches (known K)", errors(own_k.numpy(), gt)))
             rows.append(("model matches+PnP (known K)",
                          errors(pm.relative_pose(pred, K2=torch.from_numpy(k2), matches=[m])[0].numpy(), gt)))
             rows.append(("model refined on matches (known K)",
