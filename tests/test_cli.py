@@ -374,16 +374,23 @@ def test_an_output_folder_that_would_overwrite_the_input_cameras_or_photographs_
     assert {p: p.read_bytes() for p in before} == before
 
 
-def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_trajectory(tiny, tmp_path, capsys,
-                                                                                          monkeypatch):
-    import json
-
-    import pointmap.localization
-
+@pytest.fixture
+def tiny_recon(tiny, tmp_path):
+    """The tiny model, its photographs, and a reconstruction (npz) of a.jpg and b.PNG to localize the others in."""
     weights, folder = tiny
     rec = tmp_path / "rec"
     assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "--model", str(weights),
                  "--size", "64", "-o", str(rec), "--export", "npz"]) == 0
+    return weights, folder, rec
+
+
+def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_trajectory(tiny_recon, tmp_path,
+                                                                                          capsys, monkeypatch):
+    import json
+
+    import pointmap.localization
+
+    weights, folder, rec = tiny_recon
     T = torch.eye(4, dtype=torch.float64)
     T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
     calls = []
@@ -417,18 +424,15 @@ def test_localize_writes_each_querys_pose_to_json_and_the_posed_ones_to_a_tum_tr
     assert "the reconstruction's own folder" in capsys.readouterr().err
 
 
-def test_localize_takes_the_queries_cameras_from_a_transforms_json_undoing_a_lens_first(tiny, tmp_path, capsys,
-                                                                                         monkeypatch):
+def test_localize_takes_the_queries_cameras_from_a_transforms_json_undoing_a_lens_first(tiny_recon, tmp_path,
+                                                                                         capsys, monkeypatch):
     import json
 
     import pointmap.localization
     from pointmap.images import read_rgb
     from pointmap.undistort import Distortion, pinhole_for, undistort
 
-    weights, folder = tiny
-    rec = tmp_path / "rec"
-    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "--model", str(weights),
-                 "--size", "64", "-o", str(rec), "--export", "npz"]) == 0
+    weights, folder, rec = tiny_recon
     frames = [{"file_path": f"images/{name}", "transform_matrix": np.eye(4).tolist(), "fl_x": 70.0, "fl_y": 72.0,
                "cx": 40.0, "cy": 30.0, "w": 80, "h": 60, **({"k1": -0.2, "k2": 0.05} if name == "c.png" else {})}
               for name in ("a.jpg", "c.png")]
