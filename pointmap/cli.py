@@ -477,6 +477,12 @@ def video_timestamps(inputs: list[str], images: list[str], times: dict) -> list[
     return [times[i] for i in images]
 
 
+def check_cameras_path(path: str | None) -> None:
+    """``--cameras``: PointmapError when it is given and names nothing on disk (said before frames are read)."""
+    if path is not None and not Path(path).exists():
+        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {path!r}")
+
+
 def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     """A scene's inputs (files, folders, a video) read and checked without the model: the image paths, the pair
     graph, known K / poses (``--cameras``, ``--focal``) and masks, for ``reconstruct_scene``."""
@@ -484,8 +490,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     from pointmap.video import is_video
 
     writable_dir(out)
-    if args.cameras is not None and not Path(args.cameras).exists():
-        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {args.cameras!r}")
+    check_cameras_path(args.cameras)
     if args.masks is not None and not Path(args.masks).is_dir():
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
@@ -714,6 +719,10 @@ def cmd_localize(args) -> int:
     npz = reconstruction_npz(args.recon)
     if args.n_refs < 1:
         raise PointmapError(f"--n-refs expected >= 1, got {args.n_refs}")
+    if args.cameras is not None and args.focal is not None:
+        raise PointmapError(f"--cameras and --focal both give the queries' intrinsics ({args.cameras}; {args.focal}): "
+                            "use one")
+    check_cameras_path(args.cameras)
     video = any(is_video(i) for i in args.images)
     refuse_ignored(args, [("stride", "--stride", video, "to a video among IMG"),
                           ("max_frames", "--max-frames", video and args.stride is None,
@@ -730,7 +739,7 @@ def cmd_localize(args) -> int:
     times = video_timestamps(args.images, images, frame_times)
     K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
     if args.cameras is not None:
-        images, K = query_cameras(args.cameras, images, args.focal, out)
+        images, K = query_cameras(args.cameras, images, out)
     recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
                    quiet=args.quiet, device=args.device)
@@ -751,17 +760,12 @@ def cmd_localize(args) -> int:
     return 0
 
 
-def query_cameras(path: str, images: list[str], focal: str | None, out: Path):
-    """``localize --cameras``: (the queries, lens distortion undone into ``out/undistorted``; their [M, 3, 3] K)
-    from a transforms.json or COLMAP model (``cameras_from_file``) that must name every query and give its
-    intrinsics. PointmapError, before the model loads, for a file that leaves a query without them, or with
-    ``--focal`` (two sources of the same intrinsics)."""
+def query_cameras(path: str, images: list[str], out: Path):
+    """``localize --cameras``: (the queries, lens distortion undone into ``out/undistorted``; their [M, 3, 3] K in
+    original pixels) from a transforms.json or COLMAP model (``cameras_from_file``) that must name every query and
+    give its intrinsics. PointmapError, before the model loads, for a file that leaves a query without them."""
     import torch
 
-    if focal is not None:
-        raise PointmapError(f"--cameras and --focal both give the queries' intrinsics ({path}; {focal}): use one")
-    if not Path(path).exists():
-        raise PointmapError(f"--cameras expected a transforms.json file or a COLMAP model folder, got {path!r}")
     K, _, distortions = cameras_from_file(path, images, poses=False)
     missing = [Path(images[k]).name for k in range(len(images)) if K is None or k not in K]
     if missing:

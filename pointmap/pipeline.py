@@ -224,8 +224,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     from pointmap.inference import predict_pairs
     from pointmap.pairs import make_pairs, parse_graph
 
-    if isinstance(graph, str):  # a name refused before any image is read (a pair list is checked against N)
-        parse_graph(graph, auto=True)
+    # a name refused before any image is read (a pair list is checked against N once the images are counted)
+    kind, graph_k, _ = parse_graph(graph, auto=True) if isinstance(graph, str) else (None, None, None)
     if align is not None and not isinstance(align, AlignConfig):
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     check_stages(epipolar, refine)
@@ -262,7 +262,7 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         seconds[stage] = round(now - clock, 3)
         clock = now
 
-    retrieval = isinstance(graph, str) and graph.startswith("retrieval")
+    retrieval = kind == "retrieval"
     encodings = None  # the retrieval's, reused by predict_pairs
     if not isinstance(graph, str):  # the caller's own pairs (e.g. an external retrieval's)
         from pointmap.pairs import pairs_from_list
@@ -272,10 +272,9 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         from pointmap.inference import encode_views, image_similarity
         from pointmap.pairs import pairs_from_similarity
 
-        k = parse_graph(graph)[1]
         # each image encoded once: the similarity's tokens are the ones predict_pairs decodes
         encodings = encode_views(model, [v.img for v in views], batch_size, device)
-        pairs = pairs_from_similarity(image_similarity(model, views, encodings=encodings), k)
+        pairs = pairs_from_similarity(image_similarity(model, views, encodings=encodings), graph_k)
         lap("retrieval")
     else:
         graph = auto_graph(n) if graph == "auto" else graph
