@@ -20,6 +20,7 @@ anything about rotation.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -90,6 +91,9 @@ def main(argv=None) -> int:
     p.add_argument("--pairs", type=int, default=200)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--size", type=int, default=None, help="input size (default: the model's training size)")
+    p.add_argument("--known-k-priors", default="", metavar="DEG[,DEG...]",
+                   help="also rows of pm.pair_pose given both true K at these rotation priors (degrees >= 0), e.g. "
+                        "0,1,3,10: the sweep that chose its default (docs/models.md)")
     p.add_argument("--per-pair", type=Path, default=None, metavar="CSV",
                    help="also save the model's per-pair errors (set: the --data folder's name) for benchmarks/paired.py")
     a = p.parse_args(argv)
@@ -102,6 +106,12 @@ def main(argv=None) -> int:
             check_per_pair(a.per_pair, Path(a.data).resolve().name)
         except (OSError, ValueError) as e:
             p.error(str(e))
+    try:
+        priors = [float(x) for x in a.known_k_priors.split(",") if x.strip()]
+    except ValueError:
+        priors = [-1.0]
+    if not all(math.isfinite(x) and x >= 0 for x in priors):
+        p.error(f"--known-k-priors expected degrees >= 0 separated by commas, got {a.known_k_priors!r}")
     torch.set_num_threads(a.threads)
     try:  # the model and the data, checked before the long run
         model, size = model_at_size(a.model, a.size)
@@ -140,7 +150,11 @@ def main(argv=None) -> int:
                                    *(errors(own, gt) if own is not None else (float("nan"),) * 2)))
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         base = sift_pose(to_u8(v1), to_u8(v2), v1["K"].double().numpy(), v2["K"].double().numpy())
-        rows = [("model", ours), ("model + own matches (no K)", own), ("model + own matches (known K)", own_k),
+        swept = [(f"model + own matches (known K, prior {x:g})",
+                  pm.pair_pose(pred, rev, v1["K"].double(), v2["K"].double(), patch=model.cfg.patch_size,
+                               pose=torch.from_numpy(ours)[None], matches=[m], rotation_prior_deg=x)[0].numpy())
+                 for x in priors] if pred.has_desc else []
+        rows = [("model", ours), ("model + own matches (no K)", own), ("model + own matches (known K)", own_k), *swept,
                 ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),
                 ("sift+E (known K)", base), ("no rotation", None)]
         for name, est in rows:

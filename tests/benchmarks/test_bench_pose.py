@@ -13,7 +13,7 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
     data, model_path = scenes_and_model
     csv = data.parent / "bench_pose_pairs.csv"
     assert main(["--data", str(data), "--model", str(model_path), "--pairs", "1", "--size", "64", "--threads", "1",
-                 "--per-pair", str(csv)]) == 0
+                 "--per-pair", str(csv), "--known-k-priors", "1,10"]) == 0
     rows = {}
     for line in capsys.readouterr().out.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
@@ -27,6 +27,9 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
         pred, rev = model(v1["img"][None], v2["img"][None]), model(v2["img"][None], v1["img"][None])
     gt = (torch.linalg.inv(v1["cam2world"].double()) @ v2["cam2world"].double()).numpy()
     Ks = (v1["K"].double(), v2["K"].double())
+    # the swept priors' rows: the pipeline's default with both K (1 degree) is the row of "known K"
+    assert rows["model + own matches (known K, prior 1)"][3:] == rows["model + own matches (known K)"][3:]
+    assert "model + own matches (known K, prior 10)" in rows
     for name, est in (("model", pm.relative_pose(pred, pred_reverse=rev)[0]),
                       ("model + own matches (no K)", pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0]),
                       ("model + own matches (known K)", pm.pair_pose(pred, rev, *Ks, patch=model.cfg.patch_size)[0])):
@@ -44,7 +47,9 @@ def test_the_pose_benchmark_refuses_missing_data_an_impossible_size_and_no_pairs
     data, model_path = scenes_and_model
     for flags, message in [(["--data", str(tmp_path / "nowhere")], "error:"),
                            (["--data", str(data), "--size", "100"], "--size expected 224 or a multiple of 16"),
-                           (["--data", str(data), "--pairs", "0"], "--pairs expected >= 1, got 0")]:
+                           (["--data", str(data), "--pairs", "0"], "--pairs expected >= 1, got 0"),
+                           (["--data", str(data), "--known-k-priors", "1,x"], "--known-k-priors expected degrees >= 0"),
+                           (["--data", str(data), "--known-k-priors", "-1"], "--known-k-priors expected degrees >= 0")]:
         with pytest.raises(SystemExit) as e:
             main(["--model", str(model_path), *flags])
         err = capsys.readouterr().err
