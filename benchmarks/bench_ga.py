@@ -15,7 +15,8 @@ true intrinsics (the rendered sets' K is in the images' own pixels, which the 22
 one focal shared by a scene's views (``AlignConfig.shared_focal``: right for one-camera sets like eval_cam_s464646),
 '+S' for the sparse refinement on matches (``refine_matches``), '+E' for the epipolar pose refinement on the
 model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by default; '+E-' for that stage without its
-cheirality residuals, as before session 33), '+T' for DUSt3R's
+cheirality residuals, as before session 33; '+E@<deg>' with that width of its rotation prior,
+``EpipolarConfig.rotation_prior_deg``), '+T' for DUSt3R's
 spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one
 and '+P' for the averaging start from the Procrustes of the pointmaps even when the model has a pose head
 (``AlignConfig(pose_head=False)``, as before session 49), '+H<weight>' or '+H<weight>@<rot>,<dir>' for the pose
@@ -62,13 +63,23 @@ def per_pair_path(prefix: str, method: str) -> Path:
 
 
 def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | None]:
-    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E-', 'auto+E1', 'auto+T', 'auto+P' ... -> (AlignConfig
+    """'log', 'id:lbfgs', 'auto:none', 'auto+K', 'auto+F', 'auto+S', 'auto+E', 'auto+E@1', 'auto+E-', 'auto+E1', 'auto+T', 'auto+P' ... -> (AlignConfig
     (quiet), whether the true intrinsics are given, whether the sparse refinement on matches follows, the epipolar
     pose refinement's config or None)."""
     body, *flags = s.split("+")
     stages = {"E", "E-", "E1"}
     prior = [f for f in flags if f.startswith("H")]
     flags = [f for f in flags if not f.startswith("H")]
+    stage_prior = {}  # 'E@<deg>', 'E-@<deg>', 'E1@<deg>': the stage's rotation prior width in degrees
+    for k, f in enumerate(flags):
+        stage, at, deg = f.partition("@")
+        if at and stage in stages:
+            try:
+                stage_prior = {"rotation_prior_deg": float(deg)}
+                EpipolarConfig(**stage_prior)  # the width checked by EpipolarConfig itself
+            except (ValueError, PointmapError):
+                stage = f  # refused below, with the other unknown flags
+            flags[k] = stage
     prior_cfg = {}
     try:  # 'H<weight>' or 'H<weight>@<rotation deg>,<direction deg>'
         if prior:
@@ -85,7 +96,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
                                          "on matches, as reconstruct), '+E-' (the same without its cheirality "
-                                         "residuals) or '+E1' (with them, one descent: session 33's stage), '+T' "
+                                         "residuals) or '+E1' (with them, one descent: session 33's stage), each "
+                                         "with an optional '@<deg>' (its rotation prior's width, e.g. +E@1), '+T' "
                                          "(spanning-tree start), '+P' (the averaging start from the "
                                          "pointmaps' Procrustes, not the pose head) and/or '+H<weight>[@<rot>,<dir>]' (the "
                                          "pose heads' prior at that weight and widths in degrees, e.g. +H0.1, "
@@ -98,8 +110,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
                       init="mst" if "T" in flags else "averaging", pose_head="P" not in flags, quiet=True,
                       **prior_cfg)
-    epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags) if stages & set(flags) \
-        else None
+    epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags, **stage_prior) \
+        if stages & set(flags) else None
     return cfg, "K" in flags, "S" in flags, epipolar
 
 

@@ -88,6 +88,7 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
     import argparse
 
     from benchmarks.bench_ga import parse_setting
+    from pointmap.align.epipolar import EpipolarConfig
 
     cfg, known_K, sparse, epipolar = parse_setting("id:lbfgs+F+K")
     assert (cfg.conf_transform, cfg.optimizer, cfg.shared_focal, known_K, sparse, epipolar) == \
@@ -100,9 +101,13 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
     assert parse_setting("auto+E-")[3].cheirality is False  # the stage without its cheirality residuals
     assert parse_setting("auto+E")[3].second_descent and not parse_setting("auto+E1")[3].second_descent
     assert parse_setting("auto+E1")[3].cheirality  # with them, in one descent (session 33's stage)
+    assert parse_setting("auto+E")[3].rotation_prior_deg == EpipolarConfig().rotation_prior_deg  # the library's
+    assert parse_setting("auto+K+E@1")[3].rotation_prior_deg == 1.0 and parse_setting("auto+K+E@1")[1]
+    assert parse_setting("auto+E-@0.5")[3].rotation_prior_deg == 0.5 and not parse_setting("auto+E-@0.5")[3].cheirality
     assert cfg.init == "averaging" and parse_setting("auto+T+E")[0].init == "mst"  # the library's start, or the tree's
     assert cfg.pose_head and not parse_setting("auto+P+E")[0].pose_head  # the heads' motions, or the maps'
-    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "auto+P+P", "rank", "log:sgd"):
+    for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "auto+P+P", "rank", "log:sgd",
+                "auto+E@0", "auto+E@x", "auto+E@", "auto+K@1", "auto+E@1+E@3"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
 
