@@ -101,6 +101,15 @@ def test_a_known_focal_is_used_as_given_and_reported_with_the_true_pose(scene):
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
 
 
+def doubled(K: torch.Tensor) -> torch.Tensor:
+    """K of the images resized to twice their size, written out by hand (pixel centres at integers:
+    u_big = (u + 0.5) * 2 - 0.5)."""
+    K = K.clone()
+    K[:, :2, :2] *= 2
+    K[:, :2, 2] = (K[:, :2, 2] + 0.5) * 2 - 0.5
+    return K
+
+
 def test_a_known_K_reaches_the_pair_pose_beside_the_references_own(scene, monkeypatch):
     import pointmap.pose
 
@@ -120,9 +129,7 @@ def test_a_known_K_reaches_the_pair_pose_beside_the_references_own(scene, monkey
     import cv2
 
     big = [cv2.resize(q, (96, 64), interpolation=cv2.INTER_NEAREST) for q in queries]  # twice the maps' size
-    K_big = K.clone()
-    K_big[:, :2, :2] *= 2
-    K_big[:, :2, 2] = (K_big[:, :2, 2] + 0.5) * 2 - 0.5  # pixel centres at integers: u_big = (u + 0.5) * 2 - 0.5
+    K_big = doubled(K)
     localize(STAND_IN, recon, big, refs=[[3], [0]], K=K_big, quiet=True)  # K of the photographs: mapped to the maps'
     assert all(torch.allclose(K2, K[k].double(), atol=1e-9) for k, (_, K2) in enumerate(seen))
     seen.clear()
@@ -135,9 +142,7 @@ def test_photographs_larger_than_the_maps_get_their_K_in_their_own_pixels(scene)
 
     sc, recon, queries, world_scale, _ = scene
     big = [cv2.resize(q, (96, 64), interpolation=cv2.INTER_NEAREST) for q in queries]  # twice the maps' size
-    K_big = torch.from_numpy(sc["K"][4:6]).clone()
-    K_big[:, :2, :2] *= 2
-    K_big[:, :2, 2] = (K_big[:, :2, 2] + 0.5) * 2 - 0.5  # pixel centres at integers: u_big = (u + 0.5) * 2 - 0.5
+    K_big = doubled(torch.from_numpy(sc["K"][4:6]))
     loc = localize(STAND_IN, recon, big, refs=[[3], [0]], quiet=True)
     assert torch.allclose(loc.K[:, 0, 0], K_big[:, 0, 0], rtol=0.03)  # estimated on the maps, reported here
     assert torch.allclose(loc.K[:, :2, 2], K_big[:, :2, 2], atol=1e-6)
