@@ -81,14 +81,29 @@ def refuse_head_prior_without_pose_head(args, model) -> None:
                            "to a model with a pose head")])
 
 
-def parse_focals(text: str, n: int) -> list[float]:
-    """``--focal``: one focal for all ``n`` images or one per image, comma-separated, positive, in pixels."""
+def parse_focals(text: str, images: list) -> list[float]:
+    """``--focal``: one focal for all the images or one per image, comma-separated, positive, in pixels; or
+    ``exif``: each image's from its EXIF 35 mm-equivalent focal length (``pointmap.images.exif_focals``), every
+    image carrying one."""
+    n = len(images)
+    if text.strip().lower() == "exif":
+        from pointmap.images import exif_focals
+
+        focal = exif_focals(images)
+        missing = [Path(str(img)).name for img, f in zip(images, focal) if f is None]
+        if missing:
+            raise PointmapError(f"--focal exif expected every image to carry an EXIF 35 mm-equivalent focal length "
+                                f"(FocalLengthIn35mmFilm); {len(missing)} of {n} have none: "
+                                f"{', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}. Give --focal F "
+                                f"(pixels) or leave --focal out to estimate the focals")
+        return focal
     try:
         focal = [float(f) for f in text.split(",")]
     except ValueError:
         focal = []
     if len(focal) not in (1, n) or not all(math.isfinite(f) and f > 0 for f in focal):
-        raise PointmapError(f"--focal expected F or {n} comma-separated values (positive, in pixels), got {text!r}")
+        raise PointmapError(f"--focal expected F, {n} comma-separated values (positive, in pixels) or exif (each "
+                            f"image's EXIF 35 mm-equivalent focal), got {text!r}")
     return focal * n if len(focal) == 1 else focal
 
 
@@ -109,7 +124,7 @@ def cmd_pair(args) -> int:
 
     writable_dir(Path(args.out))
     check_size_graph_budget(args)
-    focal = None if args.focal is None else parse_focals(args.focal, 2)
+    focal = None if args.focal is None else parse_focals(args.focal, args.images)
     model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal, device=args.device)
@@ -522,7 +537,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
-        focal = parse_focals(args.focal, len(images))
+        focal = parse_focals(args.focal, images)
         if args.shared_focal and len(set(focal)) > 1:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
@@ -737,7 +752,7 @@ def cmd_localize(args) -> int:
     frame_times: dict = {}
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
     times = video_timestamps(args.images, images, frame_times)
-    K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, len(images)))
+    K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, images))
     if args.cameras is not None:
         images, K = query_cameras(args.cameras, images, out)
     recon = load_npz(npz)
@@ -850,8 +865,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--model", default=DEFAULT_MODEL, help="shipped model name, .safetensors, official .pth or ONNX")
     a.add_argument("--size", type=int, default=None,
                    help="network input size: 224, or a multiple of 16 up to 2048 (e.g. 512); default: the model's")
-    a.add_argument("--focal", default=None, metavar="F[,F2]",
-                   help="known focal length(s) in original pixels (principal point at the centre): stored instead "
+    a.add_argument("--focal", default=None, metavar="F[,F2]|exif",
+                   help="known focal length(s) in original pixels, or exif: each photograph's from its EXIF 35 mm-"
+                        "equivalent focal length (principal point at the centre): stored instead "
                         "of the estimate, and the pose is refined on the model's matches with them (without it: "
                         "with the focals estimated from the pointmaps)")
     a.set_defaults(fn=cmd_pair)
@@ -896,8 +912,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--colmap-points", dest="colmap_points", type=int, default=None,
                    help="cap on COLMAP's points3D and nerfstudio's sparse_pc.ply, the 3DGS initial cloud "
                         f"(default {COLMAP_POINTS}; 0: all)")
-    r.add_argument("--focal", default=None, metavar="F[,F2,...]",
-                   help="known focal length in pixels of the images as given (one for all, or one per image); the "
+    r.add_argument("--focal", default=None, metavar="F[,F2,...]|exif",
+                   help="known focal length in pixels of the images as given (one for all, or one per image; exif: "
+                        "each photograph's from its EXIF 35 mm-equivalent focal length, as phones write it); the "
                         "principal point is taken at each image's centre. Alignment keeps them fixed, which steadies "
                         "the camera translations (docs/alignment.md)")
     r.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
@@ -962,8 +979,9 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--model", default=DEFAULT_MODEL,
                      help="shipped model name, .safetensors, official .pth or ONNX (exported with --split: ranking "
                           "the references needs the encoder's tokens)")
-    loc.add_argument("--focal", default=None, metavar="F[,F...]",
-                     help="known focal length(s) in original pixels (principal point at the centre); default: "
+    loc.add_argument("--focal", default=None, metavar="F[,F...]|exif",
+                     help="known focal length(s) in original pixels, or exif: each photograph's from its EXIF "
+                          "35 mm-equivalent focal length (principal point at the centre); default: "
                           "estimated from each pair")
     loc.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
                      help="the queries' known intrinsics (and lens, undone first into OUT/undistorted) from a "

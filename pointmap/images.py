@@ -6,6 +6,8 @@ reported in original pixels (docs/conventions.md).
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -153,6 +155,43 @@ def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
     """(width, height) of each image as ``load_images`` reads it (EXIF orientation applied): the "original
     pixels" that known intrinsics refer to."""
     return [_read(src, i)[0].size for i, src in enumerate(_as_list(paths_or_arrays, "image_sizes"))]
+
+
+# An EXIF 35 mm-equivalent focal length scales the 36x24 mm frame's diagonal onto the image's diagonal, as phone and
+# compact-camera makers compute it (their crop factor is the sensor's diagonal against this one)
+FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+EXIF_IFD, FOCAL_35MM = 0x8769, 0xA405  # the Exif sub-IFD and its FocalLengthIn35mmFilm tag
+FOCAL_35MM_RANGE = (4, 5000)  # fisheye to the longest telephoto; 0 means unknown, and other values are junk
+
+
+def exif_focals(paths_or_arrays) -> list[float | None]:
+    """Each image's focal length in its own pixels (any orientation: the diagonal is the same), from its EXIF
+    35 mm-equivalent focal length (FocalLengthIn35mmFilm): ``f35 * hypot(w, h) / 43.27``; None for an image without
+    one (arrays, most PNGs, video frames, or a value of 0: unknown). Exact for a photograph of the sensor's
+    own shape; an in-camera crop to another shape (16:9 from a 3:2 sensor) keeps the sensor's f35, so the focal
+    comes out a few percent short. FocalLength in millimetres is not used: it needs the sensor's size, and the
+    FocalPlaneXResolution that would give it is left stale by editors that resize (docs/alignment.md).
+    ImageError for an image the loader cannot read."""
+    from PIL import Image
+
+    out = []
+    for i, src in enumerate(_as_list(paths_or_arrays, "exif_focals")):
+        if not isinstance(src, (str, os.PathLike, Image.Image)):
+            _read(src, i)  # an array carries no EXIF; a bad one is refused as the loader refuses it
+            out.append(None)
+            continue
+        try:
+            if isinstance(src, Image.Image):
+                f35, (w, h) = src.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), src.size
+            else:
+                with Image.open(src) as im:
+                    f35, (w, h) = im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), im.size
+        except (OSError, ValueError, SyntaxError, TypeError):  # unreadable: the loader's own message
+            _read(src, i)
+            f35 = None  # a readable image whose EXIF block is broken carries no focal
+        ok = isinstance(f35, numbers.Real) and FOCAL_35MM_RANGE[0] <= f35 <= FOCAL_35MM_RANGE[1]
+        out.append(float(f35) * math.hypot(w, h) / FULL_FRAME_DIAGONAL_MM if ok else None)
+    return out
 
 
 def prepare(im, size: int, *, square_ok: bool = False, whole: bool = False):

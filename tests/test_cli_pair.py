@@ -118,7 +118,38 @@ def test_the_reconstruct_command_holds_given_focals_fixed_with_the_principal_poi
     for bad in ("70,75", "0", "inf"):
         assert main([*args, "--focal", bad]) == 2
         err = capsys.readouterr().err
-        assert "--focal expected F or 3 comma-separated values" in err and bad in err
+        assert "--focal expected F, 3 comma-separated values" in err and bad in err
+
+
+def test_focal_exif_holds_each_photographs_EXIF_35mm_equivalent_focal_and_names_those_without_one(tmp_path, capsys):
+    from PIL import Image
+
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    rng = np.random.default_rng(3)
+    ims = []
+    for k, f35 in enumerate((24, 36, 50)):  # 3:2 photographs: f = f35 / 36 x the width of 90 px
+        im = Image.fromarray(rng.integers(0, 255, (60, 90, 3), dtype=np.uint8))
+        exif = im.getexif()
+        exif.get_ifd(0x8769)[0xA405] = f35
+        ims.append(str(tmp_path / f"im{k}.jpg"))
+        im.save(ims[-1], exif=exif)
+    out = tmp_path / "out"
+    args = ["--quiet", "reconstruct", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--export", "npz"]
+    assert main([*args, "--focal", "exif"]) == 0
+    K = load_npz(out / "reconstruction.npz").K.double()
+    assert torch.allclose(K[:, 0, 0], torch.tensor([60.0, 90.0, 125.0], dtype=torch.float64), rtol=1e-3)
+    assert main(["pair", *ims[:2], "-o", str(tmp_path / "pair"), "--model", str(weights), "--size", "64",
+                 "--focal", "EXIF"]) == 0
+    assert "focal 60 / 90 px (original pixels, given)" in capsys.readouterr().out
+    Image.fromarray(rng.integers(0, 255, (60, 90, 3), dtype=np.uint8)).save(tmp_path / "plain.jpg")
+    assert main(["--quiet", "reconstruct", *ims, str(tmp_path / "plain.jpg"), *args[len(ims) + 2:],
+                 "--focal", "exif"]) == 2
+    err = capsys.readouterr().err
+    assert "--focal exif expected every image to carry an EXIF 35 mm-equivalent focal" in err
+    assert "1 of 4 have none: plain.jpg" in err
 
 
 def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):

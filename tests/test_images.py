@@ -6,6 +6,7 @@ import torch
 from PIL import Image
 
 import pointmap as pm
+from pointmap.errors import ImageError
 from pointmap.reconstruction import K_to_map, K_to_original
 
 
@@ -58,6 +59,37 @@ def test_exif_orientation_is_applied(tmp_path):
     exif[0x0112] = 6  # rotate 90 degrees
     im.save(tmp_path / "r.jpg", exif=exif)
     assert pm.load_images([tmp_path / "r.jpg"], size=512)[0].original_size == (100, 200)
+
+
+def save_with_focal_35mm(path, wh, f35, orientation=1):
+    """A JPEG of size wh whose EXIF says f35 (FocalLengthIn35mmFilm, in the Exif sub-IFD) and orientation."""
+    im = Image.fromarray(np.full((wh[1], wh[0], 3), 128, np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = orientation
+    exif.get_ifd(0x8769)[0xA405] = f35
+    im.save(path, exif=exif)
+    return path
+
+
+def test_exif_focals_put_the_35mm_equivalent_focal_on_each_photographs_diagonal(tmp_path):
+    from pointmap.images import exif_focals
+
+    # a 3:2 photograph taken at 36 mm equivalent sees exactly what 36 mm of film width sees: f = its width in pixels
+    wide = save_with_focal_35mm(tmp_path / "wide.jpg", (300, 200), 36)
+    turned = save_with_focal_35mm(tmp_path / "turned.jpg", (300, 200), 36, orientation=6)  # read as 200x300
+    phone = save_with_focal_35mm(tmp_path / "phone.jpg", (400, 300), 26)  # 4:3, the diagonal's 500 px at 26 mm
+    unknown = save_with_focal_35mm(tmp_path / "unknown.jpg", (300, 200), 0)  # 0: the camera did not know
+    Image.fromarray(np.zeros((20, 30, 3), np.uint8)).save(tmp_path / "plain.png")
+    f = exif_focals([wide, turned, phone, unknown, tmp_path / "plain.png", np.zeros((20, 30, 3), np.uint8),
+                     Image.open(wide)])
+    assert f[0] == pytest.approx(300, rel=1e-3) and f[1] == pytest.approx(300, rel=1e-3)
+    assert f[2] == pytest.approx(26 * 500 / np.hypot(36, 24), rel=1e-9)
+    assert f[3:6] == [None, None, None] and f[6] == pytest.approx(300, rel=1e-3)
+    (tmp_path / "bad.jpg").write_bytes(b"not an image")
+    with pytest.raises(ImageError, match="not a readable image"):
+        exif_focals([wide, tmp_path / "bad.jpg"])
+    with pytest.raises(ImageError, match="image not found"):
+        exif_focals(tmp_path / "missing.jpg")
 
 
 def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):
