@@ -107,6 +107,16 @@ def parse_focals(text: str, images: list) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
+def hint_exif_focals(images: list) -> None:
+    """A note on stderr when every photograph carries an EXIF focal that no flag uses (the focals would otherwise
+    be estimated, and a known focal steadies the camera translations: docs/alignment.md)."""
+    from pointmap.images import exif_focals
+
+    if images and all(f is not None for f in exif_focals(images)):
+        print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
+              "estimating the focals (docs/alignment.md)", file=sys.stderr)
+
+
 def K_from_focals(images: list, focal: list[float]):
     """[N, 3, 3] float64 K of each image: the given focal, the principal point at the centre of the image as read
     (EXIF orientation applied): ((w - 1) / 2, (h - 1) / 2) in pointmap's pixel convention."""
@@ -536,6 +546,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
+    if args.focal is None and args.cameras is None and not args.quiet:
+        hint_exif_focals(images)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         focal = parse_focals(args.focal, images)
         if args.shared_focal and len(set(focal)) > 1:

@@ -140,6 +140,9 @@ def test_focal_exif_holds_each_photographs_EXIF_35mm_equivalent_focal_and_names_
     args = ["--quiet", "reconstruct", *ims, "-o", str(out), "--model", str(weights), "--size", "64", "--export", "npz"]
     assert main([*args, "--focal", "exif"]) == 0
     K = load_npz(out / "reconstruction.npz").K.double()
+    capsys.readouterr()
+    assert main(args[1:]) == 0  # without --quiet and without the flag: a note names it
+    assert "the photographs carry EXIF focal lengths; --focal exif would" in capsys.readouterr().err
     assert torch.allclose(K[:, 0, 0], torch.tensor([60.0, 90.0, 125.0], dtype=torch.float64), rtol=1e-3)
     assert main(["pair", *ims[:2], "-o", str(tmp_path / "pair"), "--model", str(weights), "--size", "64",
                  "--focal", "EXIF"]) == 0
@@ -150,6 +153,8 @@ def test_focal_exif_holds_each_photographs_EXIF_35mm_equivalent_focal_and_names_
     err = capsys.readouterr().err
     assert "--focal exif expected every image to carry an EXIF 35 mm-equivalent focal" in err
     assert "1 of 4 have none: plain.jpg" in err
+    assert main(["reconstruct", *ims, str(tmp_path / "plain.jpg"), *args[len(ims) + 2:]]) == 0
+    assert "EXIF focal" not in capsys.readouterr().err  # not every photograph carries one: no note
 
 
 def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):
