@@ -548,13 +548,16 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
     if args.focal is None and args.cameras is None and not args.quiet:
         hint_exif_focals(images)
+    # one camera: said by --shared-focal, or a video's frames with no focal given (--no-shared-focal: per frame)
+    shared = args.shared_focal if args.shared_focal is not None else \
+        video and args.focal is None and args.cameras is None
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         focal = parse_focals(args.focal, images)
-        if args.shared_focal and len(set(focal)) > 1:
+        if shared and len(set(focal)) > 1:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
         K = K_from_focals(images, focal)
-    if args.shared_focal:  # one camera: one image size (said with the flag, and before the model loads)
+    if shared:  # one camera: one image size (said with the flag, and before the model loads)
         from pointmap.images import image_sizes
 
         by_size: dict = {}
@@ -580,7 +583,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             print(f"pointmap: {len(distortions)} photograph(s) with lens distortion resampled onto pinhole cameras in "
                   f"{out / 'undistorted'}", file=sys.stderr)
     return {"images": images, "graph": graph, "K": K, "cam2world": cam2world, "masks": masks, "out": out,
-            "depths": depths, "timestamps": timestamps}
+            "depths": depths, "timestamps": timestamps, "shared_focal": shared}
 
 
 def refuse_overwriting_inputs(cameras: str | None, images: list[str], distortions: dict, out: Path,
@@ -627,7 +630,7 @@ def reconstruct_scene(model, size: int, args, scene: dict, formats, cache=None) 
     from pointmap.align import AlignConfig
     from pointmap.pipeline import reconstruct
 
-    align = AlignConfig(shared_focal=args.shared_focal, init=args.align_init, quiet=args.quiet,
+    align = AlignConfig(shared_focal=scene["shared_focal"], init=args.align_init, quiet=args.quiet,
                         **({} if args.head_prior is None else {"head_prior": args.head_prior}))
     recon = reconstruct(model, scene["images"], graph=scene["graph"], size=size, K=scene["K"],
                         cam2world=scene["cam2world"], masks=scene["masks"], min_conf=args.min_conf,
@@ -942,8 +945,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "scaled to their units (median ratio, pm.scale_to_depth)")
     r.add_argument("--depth-png-scale", dest="depth_png_scale", type=float, default=None,
                    help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
-    r.add_argument("--shared-focal", dest="shared_focal", action="store_true",
-                   help="the images come from one camera (same size, same zoom): estimate one focal for all")
+    r.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
+                   help="the images come from one camera (same size, same zoom): estimate one focal for all. On by "
+                        "default for a video's frames when no focal is given (--no-shared-focal: one per frame)")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,

@@ -120,7 +120,13 @@ def test_the_reconstruct_command_takes_a_video_and_pairs_its_frames_in_time_orde
     err = capsys.readouterr().err
     assert "14 images, graph logwin-3-noncyclic" in err  # no pair of the last frame with the first
     assert len(list((out / "frames").glob("clip_*.png"))) == 14
-    assert load_npz(out / "reconstruction.npz").names[:2] == ["clip_000000.png", "clip_000001.png"]
+    rec = load_npz(out / "reconstruction.npz")
+    assert rec.names[:2] == ["clip_000000.png", "clip_000001.png"]
+    assert float(rec.K[:, 0, 0].max() - rec.K[:, 0, 0].min()) == 0.0  # a video is one camera: one focal
+    assert main(["--quiet", "reconstruct", str(video), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--stride", "3", "--export", "npz", "--no-shared-focal"]) == 0
+    f = load_npz(out / "reconstruction.npz").K[:, 0, 0]
+    assert len(f) == 5 and len(set(f.tolist())) == 5  # one focal per frame, as asked
 
 
 def test_a_video_that_states_no_frame_count_is_counted_frame_by_frame(tmp_path, monkeypatch):
