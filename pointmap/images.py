@@ -6,6 +6,7 @@ reported in original pixels (docs/conventions.md).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import os
@@ -180,12 +181,9 @@ def exif_focals(paths_or_arrays) -> list[float | None]:
             _read(src, i)  # an array carries no EXIF; a bad one is refused as the loader refuses it
             out.append(None)
             continue
-        try:
-            if isinstance(src, Image.Image):
-                f35, (w, h) = src.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), src.size
-            else:
-                with Image.open(src) as im:
-                    f35, (w, h) = im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), im.size
+        try:  # a file's header only (not decoded); the caller's own PIL image is left open
+            with contextlib.nullcontext(src) if isinstance(src, Image.Image) else Image.open(src) as im:
+                f35, (w, h) = im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), im.size
         except (OSError, ValueError, SyntaxError, TypeError):  # unreadable: the loader's own message
             _read(src, i)
             f35 = None  # a readable image whose EXIF block is broken carries no focal
