@@ -107,14 +107,26 @@ def parse_focals(text: str, images: list) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
-def hint_exif_focals(images: list) -> None:
-    """A note on stderr when every photograph carries an EXIF focal that no flag uses (the focals would otherwise
-    be estimated, and a known focal steadies the camera translations: docs/alignment.md)."""
-    from pointmap.images import exif_focals
+def exif_one_camera(images: list, quiet: bool):
+    """The one camera that took every photograph by their EXIF (``pointmap.images.one_exif_camera``: one make,
+    model, lens, focal length and zoom, one size), or None; read when neither ``--focal`` nor ``--cameras`` is given.
+    Unless ``quiet``, a note when every photograph carries an EXIF focal that ``--focal exif`` would hold fixed
+    instead of estimating it (a known focal steadies the camera translations: docs/alignment.md)."""
+    from pointmap.images import exif_cameras, one_exif_camera
 
-    if images and all(f is not None for f in exif_focals(images)):
+    cameras = exif_cameras(images)
+    if not quiet and images and all(c is not None and c.focal_35mm is not None for c in cameras):
         print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
               "estimating the focals (docs/alignment.md)", file=sys.stderr)
+    return one_exif_camera(cameras)
+
+
+def describe_exif_camera(cam) -> str:
+    """An ``ExifCamera`` in words: make, model, lens, focal length, digital zoom and size."""
+    make, model, lens, focal_mm, zoom = cam.body
+    name = model if model.lower().startswith(make.lower()) else f"{make} {model}"  # "Canon" "Canon EOS 80D"
+    return (f"{name}{f', {lens}' if lens else ''}, {focal_mm:g} mm"
+            f"{f', digital zoom {zoom:g}' if zoom != 1 else ''}, {cam.size[0]}x{cam.size[1]}")
 
 
 def K_from_focals(images: list, focal: list[float]):
@@ -546,11 +558,15 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
-    if args.focal is None and args.cameras is None and not args.quiet:
-        hint_exif_focals(images)
-    # one camera: said by --shared-focal, or a video's frames with no focal given (--no-shared-focal: per frame)
-    shared = args.shared_focal if args.shared_focal is not None else \
-        video and args.focal is None and args.cameras is None
+    # one camera: said by --shared-focal; with no focal given, a video's frames or photographs of one camera by
+    # their EXIF (--no-shared-focal: one focal per image)
+    estimated = args.focal is None and args.cameras is None
+    one_camera = exif_one_camera(images, args.quiet) if estimated and not video else None
+    shared = args.shared_focal if args.shared_focal is not None else estimated and (video or one_camera is not None)
+    if one_camera is not None and args.shared_focal is None and not args.quiet:
+        print(f"pointmap: the {len(images)} photographs are of one camera by their EXIF "
+              f"({describe_exif_camera(one_camera)}): one focal is estimated for all of them (--no-shared-focal: one "
+              "per photograph)", file=sys.stderr)
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         focal = parse_focals(args.focal, images)
         if shared and len(set(focal)) > 1:
@@ -947,7 +963,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
                    help="the images come from one camera (same size, same zoom): estimate one focal for all. On by "
-                        "default for a video's frames when no focal is given (--no-shared-focal: one per frame)")
+                        "default, when no focal is given, for a video's frames and for photographs whose EXIF says one camera "
+                        "(make, model, lens, focal length and zoom) and one size (--no-shared-focal: one per image)")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,

@@ -161,35 +161,93 @@ def image_sizes(paths_or_arrays) -> list[tuple[int, int]]:
 # An EXIF 35 mm-equivalent focal length scales the 36x24 mm frame's diagonal onto the image's diagonal, as phone and
 # compact-camera makers compute it (their crop factor is the sensor's diagonal against this one)
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
-EXIF_IFD, FOCAL_35MM = 0x8769, 0xA405  # the Exif sub-IFD and its FocalLengthIn35mmFilm tag
+EXIF_IFD, ORIENTATION, MAKE, MODEL = 0x8769, 0x0112, 0x010F, 0x0110  # the Exif sub-IFD; tags of the first IFD
+FOCAL_MM, DIGITAL_ZOOM, FOCAL_35MM, LENS_MODEL = 0x920A, 0xA404, 0xA405, 0xA434  # tags of the Exif sub-IFD
 FOCAL_35MM_RANGE = (4, 5000)  # fisheye to the longest telephoto; 0 means unknown, and other values are junk
 
 
-def exif_focals(paths_or_arrays) -> list[float | None]:
-    """Each image's focal length in its own pixels (any orientation: the diagonal is the same), from its EXIF
-    35 mm-equivalent focal length (FocalLengthIn35mmFilm): ``f35 * hypot(w, h) / 43.27``; None for an image without
-    one (arrays, most PNGs, video frames, or a value of 0: unknown). Exact for a photograph of the sensor's
-    own shape; an in-camera crop to another shape (16:9 from a 3:2 sensor) keeps the sensor's f35, so the focal
-    comes out a few percent short. FocalLength in millimetres is not used: it needs the sensor's size, and the
-    FocalPlaneXResolution that would give it is left stale by editors that resize (docs/alignment.md).
-    ImageError for an image the loader cannot read."""
+@dataclass(frozen=True)
+class ExifCamera:
+    """What a photograph's EXIF says of the camera that took it.
+
+    size: (width, height) as the loader reads it (EXIF orientation applied)
+    focal_35mm: FocalLengthIn35mmFilm in mm, None when absent, 0 (unknown) or out of ``FOCAL_35MM_RANGE``
+    body: (make, model, lens model, focal length in mm, digital zoom), or None unless make, model and focal length
+        are all there. Photographs of one ``body`` and one ``size`` were taken by one camera at one zoom: they share
+        one focal length in pixels (the lens model tells a phone's cameras apart, the zoom its digital crops).
+    """
+
+    size: tuple[int, int]
+    focal_35mm: float | None
+    body: tuple | None
+
+    @property
+    def focal_px(self) -> float | None:
+        """The focal length in the image's own pixels from ``focal_35mm`` (any orientation: the diagonal is the
+        same): ``f35 * hypot(w, h) / 43.27``; None without one."""
+        return None if self.focal_35mm is None else self.focal_35mm * math.hypot(*self.size) / FULL_FRAME_DIAGONAL_MM
+
+
+def _exif_number(value) -> float | None:
+    """An EXIF number (an integer or a rational) as a float; None when absent, not a number or not finite."""
+    try:
+        out = float(value) if isinstance(value, numbers.Real) else None
+    except ZeroDivisionError:  # a rational 0/0
+        return None
+    return out if out is not None and math.isfinite(out) else None
+
+
+def _exif_text(value) -> str | None:
+    """An EXIF string without its padding (NULs, spaces); None when absent or empty."""
+    out = value.strip(" \x00") if isinstance(value, str) else None
+    return out or None
+
+
+def exif_cameras(paths_or_arrays) -> list[ExifCamera | None]:
+    """Each image's ``ExifCamera``, read from the file's header (not decoded); None for an image that carries no EXIF
+    (arrays, and a readable file whose EXIF block is broken reads as an empty one). ImageError for an image the
+    loader cannot read."""
     from PIL import Image
 
     out = []
-    for i, src in enumerate(_as_list(paths_or_arrays, "exif_focals")):
+    for i, src in enumerate(_as_list(paths_or_arrays, "exif_cameras")):
         if not isinstance(src, (str, os.PathLike, Image.Image)):
             _read(src, i)  # an array carries no EXIF; a bad one is refused as the loader refuses it
             out.append(None)
             continue
-        try:  # a file's header only (not decoded); the caller's own PIL image is left open
+        try:  # the caller's own PIL image is left open
             with contextlib.nullcontext(src) if isinstance(src, Image.Image) else Image.open(src) as im:
-                f35, (w, h) = im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM), im.size
+                (w, h), exif = im.size, im.getexif()
+                sub = exif.get_ifd(EXIF_IFD)
         except (OSError, ValueError, SyntaxError, TypeError):  # unreadable: the loader's own message
             _read(src, i)
-            f35 = None  # a readable image whose EXIF block is broken carries no focal
-        ok = isinstance(f35, numbers.Real) and FOCAL_35MM_RANGE[0] <= f35 <= FOCAL_35MM_RANGE[1]
-        out.append(float(f35) * math.hypot(w, h) / FULL_FRAME_DIAGONAL_MM if ok else None)
+            exif, sub = {}, {}
+        f35 = _exif_number(sub.get(FOCAL_35MM))
+        zoom = _exif_number(sub.get(DIGITAL_ZOOM))
+        body = (_exif_text(exif.get(MAKE)), _exif_text(exif.get(MODEL)), _exif_text(sub.get(LENS_MODEL)),
+                _exif_number(sub.get(FOCAL_MM)), 1.0 if not zoom else zoom)  # a zoom of 0: none used
+        out.append(ExifCamera(size=(h, w) if exif.get(ORIENTATION) in (5, 6, 7, 8) else (w, h),
+                              focal_35mm=f35 if f35 and FOCAL_35MM_RANGE[0] <= f35 <= FOCAL_35MM_RANGE[1] else None,
+                              body=body if None not in (body[0], body[1]) and body[3] else None))
     return out
+
+
+def exif_focals(paths_or_arrays) -> list[float | None]:
+    """Each image's focal length in its own pixels from its EXIF 35 mm-equivalent focal length
+    (``ExifCamera.focal_px``); None for an image without one (arrays, most PNGs, video frames, or a value of 0:
+    unknown). Exact for a photograph of the sensor's own shape; an in-camera crop to another shape (16:9 from a 3:2
+    sensor) keeps the sensor's f35, so the focal comes out a few percent short. FocalLength in millimetres is not
+    used: it needs the sensor's size, and the FocalPlaneXResolution that would give it is left stale by editors that
+    resize (docs/alignment.md). ImageError for an image the loader cannot read."""
+    return [None if cam is None else cam.focal_px for cam in exif_cameras(paths_or_arrays)]
+
+
+def one_exif_camera(cameras: list[ExifCamera | None]) -> ExifCamera | None:
+    """The one camera that took every photograph by their EXIF (one ``body``, one ``size``), or None when there
+    are fewer than two, one carries no body, or two differ."""
+    if len(cameras) < 2 or any(c is None or c.body is None for c in cameras):
+        return None
+    return cameras[0] if len({(c.body, c.size) for c in cameras}) == 1 else None
 
 
 def prepare(im, size: int, *, square_ok: bool = False, whole: bool = False):

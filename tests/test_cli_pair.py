@@ -157,6 +157,39 @@ def test_focal_exif_holds_each_photographs_EXIF_35mm_equivalent_focal_and_names_
     assert "EXIF focal" not in capsys.readouterr().err  # not every photograph carries one: no note
 
 
+def test_photographs_whose_EXIF_says_one_camera_get_one_estimated_focal_unless_told_otherwise(tmp_path, capsys):
+    from PIL import Image
+
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    rng = np.random.default_rng(4)
+
+    def photo(name, focal_mm):
+        im = Image.fromarray(rng.integers(0, 255, (60, 90, 3), dtype=np.uint8))
+        exif = im.getexif()
+        exif[0x010F], exif[0x0110] = "Canon", "Canon EOS 80D"
+        exif.get_ifd(0x8769)[0x920A] = focal_mm
+        im.save(tmp_path / name, exif=exif)
+        return str(tmp_path / name)
+
+    ims = [photo(f"im{k}.jpg", 35) for k in range(3)]
+    out = tmp_path / "out"
+    args = ["-o", str(out), "--model", str(weights), "--size", "64", "--export", "npz"]
+    assert main(["reconstruct", *ims, *args]) == 0
+    assert "the 3 photographs are of one camera by their EXIF (Canon EOS 80D, 35 mm, 90x60): one focal is " \
+           "estimated for all of them" in capsys.readouterr().err
+    f = load_npz(out / "reconstruction.npz").K[:, 0, 0]
+    assert len(set(f.tolist())) == 1
+    assert main(["reconstruct", *ims, *args, "--no-shared-focal"]) == 0
+    assert "one camera" not in capsys.readouterr().err
+    assert len(set(load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist())) == 3  # one per photograph, as asked
+    assert main(["reconstruct", *ims[:2], photo("zoomed.jpg", 50), *args]) == 0  # the zoom lens turned: two cameras
+    assert "one camera" not in capsys.readouterr().err
+    assert len(set(load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist())) == 3
+
+
 def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):
     import cv2
 

@@ -92,6 +92,52 @@ def test_exif_focals_put_the_35mm_equivalent_focal_on_each_photographs_diagonal(
         exif_focals(tmp_path / "missing.jpg")
 
 
+def save_with_camera(path, wh, make="Apple", model="iPhone 13", lens="iPhone 13 back camera 5.1mm f/1.6",
+                     focal_mm=5.1, zoom=None, orientation=1):
+    """A JPEG of size wh whose EXIF names its camera: make and model (NUL-padded, as cameras write them), lens model,
+    focal length in mm and digital zoom (each left out when None)."""
+    from PIL.TiffImagePlugin import IFDRational
+
+    im = Image.fromarray(np.full((wh[1], wh[0], 3), 128, np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = orientation
+    for tag, value in ((0x010F, make and make + "\x00"), (0x0110, model)):
+        if value is not None:
+            exif[tag] = value
+    sub = exif.get_ifd(0x8769)
+    for tag, value in ((0xA434, lens), (0x920A, focal_mm), (0xA404, zoom)):
+        if value is not None:
+            sub[tag] = value if isinstance(value, str) else IFDRational(round(value * 100), 100)
+    im.save(path, exif=exif)
+    return path
+
+
+def test_exif_cameras_name_each_photographs_camera_and_one_camera_needs_one_body_and_one_size(tmp_path):
+    from pointmap.images import exif_cameras, one_exif_camera
+
+    a, b = (save_with_camera(tmp_path / f"{n}.jpg", (40, 30)) for n in "ab")
+    cams = exif_cameras([a, b, np.zeros((30, 40, 3), np.uint8)])
+    assert cams[0].body == ("Apple", "iPhone 13", "iPhone 13 back camera 5.1mm f/1.6", 5.1, 1.0)  # NUL stripped
+    assert cams[0].size == (40, 30) and cams[0].focal_35mm is None and cams[0].focal_px is None and cams[2] is None
+    assert one_exif_camera(cams[:2]) == cams[0]
+    assert one_exif_camera(cams[:1]) is None  # one photograph is no evidence of a shared camera
+    others = {  # each differs from a in one thing that changes the focal in pixels, or says nothing of it
+        "ultrawide": dict(lens="iPhone 13 back camera 1.54mm f/2.4", focal_mm=1.54),
+        "zoomed": dict(zoom=2.0),
+        "tele": dict(lens=None, focal_mm=7.0),
+        "turned": dict(orientation=6),  # read as 30x40
+        "no_focal": dict(focal_mm=None),
+        "no_make": dict(make=None),
+    }
+    for name, kw in others.items():
+        cam = exif_cameras(save_with_camera(tmp_path / f"{name}.jpg", (40, 30), **kw))[0]
+        assert one_exif_camera([cams[0], cam]) is None, name
+    assert exif_cameras(tmp_path / "turned.jpg")[0].size == (30, 40)
+    assert exif_cameras(tmp_path / "no_focal.jpg")[0].body is None
+    unzoomed = exif_cameras(save_with_camera(tmp_path / "z0.jpg", (40, 30), zoom=0.0))[0]  # 0: no digital zoom
+    assert one_exif_camera([cams[0], unzoomed]) == cams[0]
+
+
 def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):
     Image.fromarray(np.full((64, 64), 128, np.uint8)).save(tmp_path / "g.png")
     Image.fromarray(np.zeros((64, 64, 4), np.uint8)).save(tmp_path / "a.png")  # transparent -> white
