@@ -783,10 +783,13 @@ def cmd_localize(args) -> int:
     frame_times: dict = {}
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
     times = video_timestamps(args.images, images, frame_times)
-    K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, images))
+    recon = load_npz(npz)
+    if args.focal is not None and args.focal.strip().lower() == "recon":
+        K = reconstruction_camera(recon, images)
+    else:
+        K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, images))
     if args.cameras is not None:
         images, K = query_cameras(args.cameras, images, out)
-    recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
                    quiet=args.quiet, device=args.device)
     rows = [{"name": name, "reference": None, "cam2world": None, "K": None, "confidence": None, "scale": None}
@@ -804,6 +807,31 @@ def cmd_localize(args) -> int:
                                     if row["reference"] else "not posed"))
     print(f"localization: {out / 'localization.json'}\ntum: {out / 'trajectory.txt'}")
     return 0
+
+
+def reconstruction_camera(recon, images: list[str]):
+    """``localize --focal recon``: the queries were taken by the reconstruction's one camera (a video's keyframes, one
+    camera's photographs): [M, 3, 3] K in original pixels, its K for every query. PointmapError when the
+    reconstruction's views are not of one camera (one size, one K: as ``--shared-focal`` or one ``--focal`` makes
+    them) or a query is of another size."""
+    import torch
+
+    from pointmap.images import image_sizes
+
+    K = recon.K.double()
+    sizes = sorted({tuple(s) for s in recon.original_sizes})
+    if len(sizes) > 1 or not torch.allclose(K, K[0].expand_as(K), rtol=1e-6, atol=0):
+        focals = sorted({round(float(f), 1) for f in K[:, 0, 0]})
+        raise PointmapError(f"--focal recon expected a reconstruction of one camera (one image size, one K: "
+                            f"reconstruct --shared-focal or one --focal), got sizes {sizes[:3]} and focals "
+                            f"{focals[:4]}{' ...' if len(focals) > 4 else ''} px; give --focal F instead")
+    other = [f"{Path(str(img)).name} ({w}x{h})" for img, (w, h) in zip(images, image_sizes(images))
+             if (w, h) != sizes[0]]
+    if other:
+        raise PointmapError(f"--focal recon expected photographs of the reconstruction's camera, of its size "
+                            f"{sizes[0][0]}x{sizes[0][1]}; {len(other)} of {len(images)} are not: "
+                            f"{', '.join(other[:4])}{', ...' if len(other) > 4 else ''}")
+    return K[0].expand(len(images), 3, 3).clone()
 
 
 def query_cameras(path: str, images: list[str], out: Path):
@@ -1012,10 +1040,11 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--model", default=DEFAULT_MODEL,
                      help="shipped model name, .safetensors, official .pth or ONNX (exported with --split: ranking "
                           "the references needs the encoder's tokens)")
-    loc.add_argument("--focal", default=None, metavar="F[,F...]|exif",
+    loc.add_argument("--focal", default=None, metavar="F[,F...]|exif|recon",
                      help="known focal length(s) in original pixels, or exif: each photograph's from its EXIF "
-                          "35 mm-equivalent focal length (principal point at the centre); default: "
-                          "estimated from each pair")
+                          "35 mm-equivalent focal length (principal point at the centre), or recon: the "
+                          "reconstruction's camera (one focal: a video's keyframes, --shared-focal) for queries it "
+                          "took, of its size; default: estimated from each pair")
     loc.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
                      help="the queries' known intrinsics (and lens, undone first into OUT/undistorted) from a "
                           "nerfstudio transforms.json or a COLMAP sparse model that names every query by file name; "

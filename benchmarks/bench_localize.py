@@ -1,0 +1,137 @@
+"""Localization on held-out multi-view scenes: what the query's intrinsics are worth to ``pm.localize``.
+
+For each scene of the given held-out sets (the card's have 4 views each) and each of its views in turn as the query,
+the other views are reconstructed as ``pointmap reconstruct`` does (``pm.reconstruct``: the complete graph, the
+global alignment with ``--shared-focal`` when asked and the epipolar stage), and the query is posed in that
+reconstruction by ``pm.localize`` three ways:
+
+- "estimated": its focal from its own pointmap (``pointmap localize`` without ``--focal``);
+- "recon focal": the reconstruction's K (``pointmap localize --focal recon``: right when one camera took the
+  reconstruction's views and the query, as on one-camera sets like eval_cam_s464646, with ``--shared-focal``);
+- "true K": the scene's true intrinsics (``--focal F`` with the right F).
+
+Each posed query is scored against every reconstruction view i: the relative pose inv(c2w_i) @ c2w_query against
+the true one (rotation error and translation direction error; scale-free), so the reconstruction's own errors
+weigh the same on every method. The table gives RRA@15 / RTA@15 and median errors per set and overall; a query no
+method can pose counts 180 degrees. ``--per-pair PREFIX`` writes one CSV per method for benchmarks/paired.py.
+
+    python benchmarks/bench_localize.py --model small --data DIR [DIR ...] [--scenes 24] [--shared-focal]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pointmap as pm  # noqa: E402
+from pointmap.align import AlignConfig  # noqa: E402
+from pointmap.errors import PointmapError  # noqa: E402
+from pointmap.geometry.rotations import rotation_angle  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_ga import per_pair_path  # noqa: E402
+from bench_pose import errors, model_at_size  # noqa: E402
+
+from pointmap.images import INPUT_SIZE_RULE, is_input_size  # noqa: E402
+from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
+
+METHODS = ("estimated", "recon focal", "true K")
+
+
+def scene_errors(model, size: int, scene: dict, shared_focal: bool) -> tuple[dict, list]:
+    """{method: [(rot err, dir err, true rotation), ...]} over (query, reconstruction view) for every view of the
+    scene as the query, and the failures (query, method, message)."""
+    imgs = [(x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for x in scene["img"]]
+    gt = scene["cam2world"].double()
+    K_true = scene["K"].double()
+    out, failed = defaultdict(list), []
+    for q in range(len(imgs)):
+        others = [k for k in range(len(imgs)) if k != q]
+        rel_gt = [(torch.linalg.inv(gt[i]) @ gt[q]).numpy() for i in others]
+        true_rot = [float(torch.rad2deg(rotation_angle(torch.from_numpy(T[:3, :3])))) for T in rel_gt]
+        recon = pm.reconstruct(model, [imgs[k] for k in others], graph="complete", size=size, quiet=True,
+                               align=AlignConfig(shared_focal=shared_focal, quiet=True))
+        for method, K in zip(METHODS, (None, recon.K[0].double(), K_true[q])):
+            try:
+                loc = pm.localize(model, recon, [imgs[q]], K=K, quiet=True)
+            except PointmapError as e:  # not posed: its pairs count 180 degrees
+                failed.append((q, method, str(e)))
+                out[method] += [(180.0, 180.0, r) for r in true_rot]
+                continue
+            c2w = recon.cam2world.double()
+            for k, (T, r) in enumerate(zip(rel_gt, true_rot)):
+                est = (torch.linalg.inv(c2w[k]) @ loc.cam2world[0].double()).numpy()
+                out[method].append((*errors(est, T), r))
+    return out, failed
+
+
+def main(argv=None) -> int:
+    from data.datasets import MultiViewDataset
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
+    ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
+    ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
+    ap.add_argument("--shared-focal", dest="shared_focal", action="store_true",
+                    help="reconstruct with one focal for all views (one-camera sets)")
+    ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
+                    help="write PREFIX-<method>.csv per method (benchmarks/paired.py reads them)")
+    args = ap.parse_args(argv)
+    if args.scenes is not None and args.scenes < 1:
+        ap.error(f"--scenes expected a positive count, got {args.scenes}")
+    if args.size is not None and not is_input_size(args.size):
+        ap.error(f"--size expected {INPUT_SIZE_RULE}, got {args.size}")
+    set_names = [Path(d).resolve().name for d in args.data]
+    if len(set(set_names)) < len(set_names):
+        ap.error(f"--data: a set name given twice in {set_names} (a set is named by its folder)")
+    if args.per_pair:
+        for m in METHODS:
+            for nm in set_names:
+                try:
+                    check_per_pair(per_pair_path(args.per_pair, m), nm)
+                except (ValueError, OSError) as e:
+                    ap.error(f"--per-pair: {e}")
+    torch.set_num_threads(args.threads)
+    try:  # the model and every set, opened before the long run
+        model, size = model_at_size(args.model, args.size)
+        datasets = [MultiViewDataset(d) for d in args.data]
+    except (PointmapError, OSError, ValueError) as e:
+        ap.error(str(e))
+    res, failures = defaultdict(list), []
+    for ds, set_name in zip(datasets, set_names):
+        count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
+        for k in tqdm(range(count), desc=set_name, leave=False):
+            out, failed = scene_errors(model, size, ds[k], args.shared_focal)
+            failures += [f"{set_name} scene {k} query {q} ({m}): {e}" for q, m, e in failed]
+            for m, v in out.items():
+                res[(set_name, m)] += v
+                res[("overall", m)] += v
+        if args.per_pair:
+            for m in METHODS:
+                write_per_pair(per_pair_path(args.per_pair, m), set_name,
+                               [PairResult(k, r, t, a) for k, (r, t, a) in enumerate(res[(set_name, m)])])
+    print(f"model {args.model} at {size}px; each view localized in the reconstruction of its scene's others "
+          f"({'one shared focal' if args.shared_focal else 'a focal per view'}); rows: (query, reconstruction view)")
+    for f in failures:
+        print(f"not posed (its rows count 180 degrees): {f}")
+    print("| set | rows | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
+        v = np.array(vals)
+        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {100 * np.mean(v[:, 1] < 15):.1f}% | "
+              f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
