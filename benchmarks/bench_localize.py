@@ -2,12 +2,12 @@
 
 For each scene of the given held-out sets (the card's have 4 views each) and each of its views in turn as the query,
 the other views are reconstructed as ``pointmap reconstruct`` does (``pm.reconstruct``: the complete graph, the
-global alignment with ``--shared-focal`` when asked and the epipolar stage), and the query is posed in that
-reconstruction by ``pm.localize`` three ways:
+global alignment with ``--shared-focal`` when asked, or with the views' true K given with ``--recon-K``, and the
+epipolar stage), and the query is posed in that reconstruction by ``pm.localize`` three ways:
 
 - "estimated": its focal from its own pointmap (``pointmap localize`` without ``--focal``);
-- "recon focal": the reconstruction's K (``pointmap localize --focal recon``: right when one camera took the
-  reconstruction's views and the query, as on one-camera sets like eval_cam_s464646, with ``--shared-focal``);
+- "recon focal": the K of the reconstruction's first view (right when one camera took the reconstruction's views and
+  the query, as on one-camera sets like eval_cam_s464646, with ``--shared-focal``);
 - "true K": the scene's true intrinsics (``--focal F`` with the right F).
 
 Each posed query is scored against every reconstruction view i: the relative pose inv(c2w_i) @ c2w_query against
@@ -15,7 +15,7 @@ the true one (rotation error and translation direction error; scale-free), so th
 weigh the same on every method. The table gives RRA@15 / RTA@15 and median errors per set and overall; a query no
 method can pose counts 180 degrees. ``--per-pair PREFIX`` writes one CSV per method for benchmarks/paired.py.
 
-    python benchmarks/bench_localize.py --model small --data DIR [DIR ...] [--scenes 24] [--shared-focal]
+    python benchmarks/bench_localize.py --model small --data DIR [DIR ...] [--scenes 24] [--shared-focal | --recon-K]
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa
 METHODS = ("estimated", "recon focal", "true K")
 
 
-def scene_errors(model, size: int, scene: dict, shared_focal: bool) -> tuple[dict, list]:
+def scene_errors(model, size: int, scene: dict, shared_focal: bool, recon_K: bool = False) -> tuple[dict, list]:
     """{method: [(rot err, dir err, true rotation), ...]} over (query, reconstruction view) for every view of the
     scene as the query, and the failures (query, method, message)."""
     imgs = [(x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for x in scene["img"]]
@@ -58,7 +58,8 @@ def scene_errors(model, size: int, scene: dict, shared_focal: bool) -> tuple[dic
         rel_gt = [(torch.linalg.inv(gt[i]) @ gt[q]).numpy() for i in others]
         true_rot = [float(torch.rad2deg(rotation_angle(torch.from_numpy(T[:3, :3])))) for T in rel_gt]
         recon = pm.reconstruct(model, [imgs[k] for k in others], graph="complete", size=size, quiet=True,
-                               align=AlignConfig(shared_focal=shared_focal, quiet=True))
+                               align=AlignConfig(shared_focal=shared_focal, quiet=True),
+                               K=K_true[others] if recon_K else None)
         for method, K in zip(METHODS, (None, recon.K[0].double(), K_true[q])):
             try:
                 loc = pm.localize(model, recon, [imgs[q]], K=K, quiet=True)
@@ -82,6 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
     ap.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                     help="reconstruct with one focal for all views (one-camera sets)")
+    ap.add_argument("--recon-K", dest="recon_K", action="store_true",
+                    help="reconstruct with the views' true intrinsics given (pointmap reconstruct --focal F)")
     ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
@@ -89,6 +92,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes expected a positive count, got {args.scenes}")
+    if args.shared_focal and args.recon_K:
+        ap.error("--shared-focal and --recon-K: a known K is not estimated, shared or not; give one")
     if args.size is not None and not is_input_size(args.size):
         ap.error(f"--size expected {INPUT_SIZE_RULE}, got {args.size}")
     set_names = [Path(d).resolve().name for d in args.data]
@@ -111,7 +116,7 @@ def main(argv=None) -> int:
     for ds, set_name in zip(datasets, set_names):
         count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
         for k in tqdm(range(count), desc=set_name, leave=False):
-            out, failed = scene_errors(model, size, ds[k], args.shared_focal)
+            out, failed = scene_errors(model, size, ds[k], args.shared_focal, args.recon_K)
             failures += [f"{set_name} scene {k} query {q} ({m}): {e}" for q, m, e in failed]
             for m, v in out.items():
                 res[(set_name, m)] += v
@@ -121,7 +126,8 @@ def main(argv=None) -> int:
                 write_per_pair(per_pair_path(args.per_pair, m), set_name,
                                [PairResult(k, r, t, a) for k, (r, t, a) in enumerate(res[(set_name, m)])])
     print(f"model {args.model} at {size}px; each view localized in the reconstruction of its scene's others "
-          f"({'one shared focal' if args.shared_focal else 'a focal per view'}); rows: (query, reconstruction view)")
+          f"({'true K' if args.recon_K else 'one shared focal' if args.shared_focal else 'a focal per view'}); rows: "
+          "(query, reconstruction view)")
     for f in failures:
         print(f"not posed (its rows count 180 degrees): {f}")
     print("| set | rows | method | RRA@15 | RTA@15 | median rot err | median dir err |")

@@ -107,22 +107,37 @@ def parse_focals(text: str, images: list) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
-def exif_one_camera(images: list, quiet: bool):
-    """The one camera that took every photograph by their EXIF (``pointmap.images.one_exif_camera``: one make,
-    model, lens, focal length and zoom, one size), or None; read when neither ``--focal`` nor ``--cameras`` is given.
-    Unless ``quiet``, a note when every photograph carries an EXIF focal that ``--focal exif`` would hold fixed
-    instead of estimating it (a known focal steadies the camera translations: docs/alignment.md)."""
-    from pointmap.images import exif_cameras, one_exif_camera
+def exif_camera_labels(images: list, note_focal: bool, note_cameras: bool):
+    """The photographs' cameras by their EXIF (``pointmap.images.exif_camera_labels``: one make, model, lens, focal
+    length and zoom, one size) as ``AlignConfig.shared_focal`` takes them: True for one camera, a label per image for
+    several, False when no two share one; read when neither ``--focal`` nor ``--cameras`` is given. Notes on stderr:
+    ``note_cameras``, the cameras that share a focal; ``note_focal``, that every photograph carries an EXIF focal
+    that ``--focal exif`` would hold fixed instead of estimating it (a known focal steadies the camera translations:
+    docs/alignment.md)."""
+    from pointmap.images import exif_camera_labels as labels_of
+    from pointmap.images import exif_cameras
 
     cameras = exif_cameras(images)
-    if not quiet and images and all(c is not None and c.focal_35mm is not None for c in cameras):
+    labels = labels_of(cameras)
+    if note_focal and images and all(c is not None and c.focal_35mm is not None for c in cameras):
         print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
               "estimating the focals (docs/alignment.md)", file=sys.stderr)
-    return one_exif_camera(cameras)
+    counts = {c: labels.count(c) for c in dict.fromkeys(labels)}
+    if max(counts.values(), default=0) < 2:
+        return False
+    if note_cameras:
+        shared = [f"{describe_exif_camera(cameras[labels.index(c)])}: {m}" for c, m in counts.items() if m > 1]
+        alone = sum(m == 1 for m in counts.values())
+        print(f"pointmap: by their EXIF, {sum(m for m in counts.values() if m > 1)} of the {len(images)} photographs "
+              f"are of {'one camera' if len(shared) == 1 else f'{len(shared)} cameras'} ({'; '.join(shared)}), "
+              f"{'each' if len(shared) > 1 else 'that'} with one estimated focal"
+              f"{f', and {alone} of their own' if alone else ''} (--no-shared-focal: one per photograph)",
+              file=sys.stderr)
+    return True if len(counts) == 1 else tuple(labels)
 
 
 def describe_exif_camera(cam) -> str:
-    """An ``ExifCamera`` in words: make, model, lens, focal length, digital zoom and size."""
+    """An ``ExifCamera`` in words: make and model, lens, focal length, digital zoom and size."""
     make, model, lens, focal_mm, zoom = cam.body
     name = model if model.lower().startswith(make.lower()) else f"{make} {model}"  # "Canon" "Canon EOS 80D"
     return (f"{name}{f', {lens}' if lens else ''}, {focal_mm:g} mm"
@@ -558,22 +573,24 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
-    # one camera: said by --shared-focal; with no focal given, a video's frames or photographs of one camera by
-    # their EXIF (--no-shared-focal: one focal per image)
+    # one focal per camera: for all the images with --shared-focal; with no focal given, for a video's frames, or
+    # for the photographs of each camera by their EXIF (--no-shared-focal: one focal per image)
     estimated = args.focal is None and args.cameras is None
-    one_camera = exif_one_camera(images, args.quiet) if estimated and not video else None
-    shared = args.shared_focal if args.shared_focal is not None else estimated and (video or one_camera is not None)
-    if one_camera is not None and args.shared_focal is None and not args.quiet:
-        print(f"pointmap: the {len(images)} photographs are of one camera by their EXIF "
-              f"({describe_exif_camera(one_camera)}): one focal is estimated for all of them (--no-shared-focal: one "
-              "per photograph)", file=sys.stderr)
+    if args.shared_focal is not None:
+        shared = args.shared_focal
+        if estimated and not video:  # for the note on EXIF focals only
+            exif_camera_labels(images, note_focal=not args.quiet, note_cameras=False)
+    elif estimated:
+        shared = True if video else exif_camera_labels(images, note_focal=not args.quiet, note_cameras=not args.quiet)
+    else:
+        shared = False
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         focal = parse_focals(args.focal, images)
         if shared and len(set(focal)) > 1:
             raise PointmapError(f"--shared-focal says one camera, but --focal gives {len(set(focal))} different "
                                 f"focals ({args.focal}); give one value or drop --shared-focal")
         K = K_from_focals(images, focal)
-    if shared:  # one camera: one image size (said with the flag, and before the model loads)
+    if shared is True:  # one camera: one image size (said with the flag, and before the model loads)
         from pointmap.images import image_sizes
 
         by_size: dict = {}
@@ -783,13 +800,10 @@ def cmd_localize(args) -> int:
     frame_times: dict = {}
     images = expand_images(args.images, out / "frames", args.stride, args.max_frames, frame_times)
     times = video_timestamps(args.images, images, frame_times)
-    recon = load_npz(npz)
-    if args.focal is not None and args.focal.strip().lower() == "recon":
-        K = reconstruction_camera(recon, images)
-    else:
-        K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, images))
+    K = None if args.focal is None else K_from_focals(images, parse_focals(args.focal, images))
     if args.cameras is not None:
         images, K = query_cameras(args.cameras, images, out)
+    recon = load_npz(npz)
     loc = localize(load_model(args.model, device=args.device), recon, images, K=K, n_refs=args.n_refs,
                    quiet=args.quiet, device=args.device)
     rows = [{"name": name, "reference": None, "cam2world": None, "K": None, "confidence": None, "scale": None}
@@ -807,31 +821,6 @@ def cmd_localize(args) -> int:
                                     if row["reference"] else "not posed"))
     print(f"localization: {out / 'localization.json'}\ntum: {out / 'trajectory.txt'}")
     return 0
-
-
-def reconstruction_camera(recon, images: list[str]):
-    """``localize --focal recon``: the queries were taken by the reconstruction's one camera (a video's keyframes, one
-    camera's photographs): [M, 3, 3] K in original pixels, its K for every query. PointmapError when the
-    reconstruction's views are not of one camera (one size, one K: as ``--shared-focal`` or one ``--focal`` makes
-    them) or a query is of another size."""
-    import torch
-
-    from pointmap.images import image_sizes
-
-    K = recon.K.double()
-    sizes = sorted({tuple(s) for s in recon.original_sizes})
-    if len(sizes) > 1 or not torch.allclose(K, K[0].expand_as(K), rtol=1e-6, atol=0):
-        focals = sorted({round(float(f), 1) for f in K[:, 0, 0]})
-        raise PointmapError(f"--focal recon expected a reconstruction of one camera (one image size, one K: "
-                            f"reconstruct --shared-focal or one --focal), got sizes {sizes[:3]} and focals "
-                            f"{focals[:4]}{' ...' if len(focals) > 4 else ''} px; give --focal F instead")
-    other = [f"{Path(str(img)).name} ({w}x{h})" for img, (w, h) in zip(images, image_sizes(images))
-             if (w, h) != sizes[0]]
-    if other:
-        raise PointmapError(f"--focal recon expected photographs of the reconstruction's camera, of its size "
-                            f"{sizes[0][0]}x{sizes[0][1]}; {len(other)} of {len(images)} are not: "
-                            f"{', '.join(other[:4])}{', ...' if len(other) > 4 else ''}")
-    return K[0].expand(len(images), 3, 3).clone()
 
 
 def query_cameras(path: str, images: list[str], out: Path):
@@ -991,8 +980,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
                    help="the images come from one camera (same size, same zoom): estimate one focal for all. On by "
-                        "default, when no focal is given, for a video's frames and for photographs whose EXIF says one camera "
-                        "(make, model, lens, focal length and zoom) and one size (--no-shared-focal: one per image)")
+                        "default, when no focal is given, for a video's frames, and for the photographs of each camera by their "
+                        "EXIF (make, model, lens, focal length and zoom, and size: one focal per camera); "
+                        "--no-shared-focal: one per image")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")
     r.add_argument("--conf-percentile", dest="conf_percentile", type=float, default=None,
@@ -1040,11 +1030,10 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument("--model", default=DEFAULT_MODEL,
                      help="shipped model name, .safetensors, official .pth or ONNX (exported with --split: ranking "
                           "the references needs the encoder's tokens)")
-    loc.add_argument("--focal", default=None, metavar="F[,F...]|exif|recon",
+    loc.add_argument("--focal", default=None, metavar="F[,F...]|exif",
                      help="known focal length(s) in original pixels, or exif: each photograph's from its EXIF "
-                          "35 mm-equivalent focal length (principal point at the centre), or recon: the "
-                          "reconstruction's camera (one focal: a video's keyframes, --shared-focal) for queries it "
-                          "took, of its size; default: estimated from each pair")
+                          "35 mm-equivalent focal length (principal point at the centre); default: "
+                          "estimated from each pair")
     loc.add_argument("--cameras", default=None, metavar="FILE_OR_MODEL",
                      help="the queries' known intrinsics (and lens, undone first into OUT/undistorted) from a "
                           "nerfstudio transforms.json or a COLMAP sparse model that names every query by file name; "

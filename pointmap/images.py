@@ -242,12 +242,12 @@ def exif_focals(paths_or_arrays) -> list[float | None]:
     return [None if cam is None else cam.focal_px for cam in exif_cameras(paths_or_arrays)]
 
 
-def one_exif_camera(cameras: list[ExifCamera | None]) -> ExifCamera | None:
-    """The one camera that took every photograph by their EXIF (one ``body``, one ``size``), or None when there
-    are fewer than two, one carries no body, or two differ."""
-    if len(cameras) < 2 or any(c is None or c.body is None for c in cameras):
-        return None
-    return cameras[0] if len({(c.body, c.size) for c in cameras}) == 1 else None
+def exif_camera_labels(cameras: list[ExifCamera | None]) -> list[int]:
+    """A camera label per photograph (0, 1, ... in order of first appearance): those of one ``body`` and one ``size``
+    by their EXIF share one (one camera at one zoom: one focal in pixels); one without a body has its own."""
+    first: dict = {}
+    return [first.setdefault((c.body, c.size) if c is not None and c.body is not None else ("alone", k), len(first))
+            for k, c in enumerate(cameras)]
 
 
 def prepare(im, size: int, *, square_ok: bool = False, whole: bool = False):

@@ -116,6 +116,28 @@ def pose_against(recon: Reconstruction, ref: int, pred, pred_reverse, K_map=None
     return recon.cam2world[ref].double() @ rel, K_map.double(), s
 
 
+def warn_mixed_intrinsics(recon: Reconstruction, query_K_given: bool) -> None:
+    """A warning when the queries' intrinsics are of another kind than the reconstruction's (as its alignment
+    records them: ``info["align"]["known_K_indices"]``): given for the queries while the reconstruction's focals were
+    estimated, or estimated while all of the reconstruction's were given. A query posed with intrinsics of the other
+    kind came out worse on held-out scenes (docs/alignment.md, relocalisation: benchmarks/bench_localize.py)."""
+    import warnings
+
+    align = recon.info.get("align") if isinstance(recon.info, dict) else None
+    known = align.get("known_K_indices") if isinstance(align, dict) else None
+    if not isinstance(known, list):  # a hand-made reconstruction: nothing recorded
+        return
+    if query_K_given and not known:
+        warnings.warn("localize: the queries' intrinsics are given but the reconstruction's focals were estimated; "
+                      "its world is shaped by their error, and known query intrinsics posed worse in it than the "
+                      "queries' own estimates (docs/alignment.md): leave them out, or give the reconstruction its "
+                      "intrinsics too", stacklevel=3)
+    elif not query_K_given and len(known) == len(recon):
+        warnings.warn("localize: the reconstruction was given its intrinsics but the queries' are estimated; give "
+                      "theirs too (K; pointmap localize --focal / --cameras): queries posed with estimated focals in "
+                      "a reconstruction of known ones came out worse (docs/alignment.md)", stacklevel=3)
+
+
 def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs: int = 2, device="cpu",
              batch_size: int = 8, quiet: bool = False) -> Localization:
     """Pose the photographs ``images`` (paths or HxWx3 uint8 arrays, or the Views ``query_views`` made of them) in
@@ -157,6 +179,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         if tuple(K.shape) != (m, 3, 3) or not bool(is_pinhole_K(K).all()):
             raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, "
                              f"finite with positive focals, got {K.tolist() if K.numel() <= 9 else list(K.shape)}")
+    warn_mixed_intrinsics(recon, K is not None)
     refs_views = reference_views(recon)
     if refs is None:
         if not (is_int(n_refs) and n_refs >= 1):

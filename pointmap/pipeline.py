@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pointmap.align.optimize import AlignConfig, check_one_camera, global_align
+from pointmap.align.optimize import AlignConfig, check_cameras, global_align
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.io.points import check_conf_filter, confidence_mask
 from pointmap.reconstruction import to_canvas
@@ -167,20 +167,19 @@ def masks_to_maps(masks, views) -> list:
     return out
 
 
-def check_known_inputs(views, K, cam2world, pose_mask, shared_focal: bool) -> None:
+def check_known_inputs(views, K, cam2world, pose_mask, shared_focal) -> None:
     """What ``global_align`` would refuse about the known intrinsics and poses, and ``shared_focal``'s
     preconditions, checked on the prepared views before any pair is inferred."""
     import warnings
 
-    from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
+    from pointmap.align.inputs import camera_index, parse_known_K, parse_known_poses, parse_views
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # duplicate names or images: global_align warns once, later
         info = parse_views(views)
     _, K_known, fx, *_ = parse_known_K(K, len(views), info)
     parse_known_poses(cam2world, len(views), pose_mask)
-    if shared_focal:
-        check_one_camera(info.original_sizes, info.map_from_original, K_known, fx)
+    check_cameras(camera_index(shared_focal, len(views)), info.original_sizes, info.map_from_original, K_known, fx)
 
 
 def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None, batch_size: int = 8,

@@ -157,7 +157,7 @@ def test_focal_exif_holds_each_photographs_EXIF_35mm_equivalent_focal_and_names_
     assert "EXIF focal" not in capsys.readouterr().err  # not every photograph carries one: no note
 
 
-def test_photographs_whose_EXIF_says_one_camera_get_one_estimated_focal_unless_told_otherwise(tmp_path, capsys):
+def test_photographs_of_one_camera_by_their_EXIF_share_one_estimated_focal_unless_told_otherwise(tmp_path, capsys):
     from PIL import Image
 
     from pointmap.io import load_npz
@@ -166,28 +166,39 @@ def test_photographs_whose_EXIF_says_one_camera_get_one_estimated_focal_unless_t
     weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
     rng = np.random.default_rng(4)
 
-    def photo(name, focal_mm):
+    def photo(name, model, focal_mm):
         im = Image.fromarray(rng.integers(0, 255, (60, 90, 3), dtype=np.uint8))
         exif = im.getexif()
-        exif[0x010F], exif[0x0110] = "Canon", "Canon EOS 80D"
-        exif.get_ifd(0x8769)[0x920A] = focal_mm
+        if model is not None:
+            exif[0x010F], exif[0x0110] = model.split()[0], model
+            exif.get_ifd(0x8769)[0x920A] = focal_mm
         im.save(tmp_path / name, exif=exif)
         return str(tmp_path / name)
 
-    ims = [photo(f"im{k}.jpg", 35) for k in range(3)]
+    ims = [photo(f"im{k}.jpg", "Canon EOS 80D", 35) for k in range(3)]
     out = tmp_path / "out"
     args = ["-o", str(out), "--model", str(weights), "--size", "64", "--export", "npz"]
+
+    def focals():
+        return load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist()
+
     assert main(["reconstruct", *ims, *args]) == 0
-    assert "the 3 photographs are of one camera by their EXIF (Canon EOS 80D, 35 mm, 90x60): one focal is " \
-           "estimated for all of them" in capsys.readouterr().err
-    f = load_npz(out / "reconstruction.npz").K[:, 0, 0]
-    assert len(set(f.tolist())) == 1
+    assert "by their EXIF, 3 of the 3 photographs are of one camera (Canon EOS 80D, 35 mm, 90x60: 3), that with one " \
+           "estimated focal (--no-shared-focal: one per photograph)" in capsys.readouterr().err
+    assert len(set(focals())) == 1
     assert main(["reconstruct", *ims, *args, "--no-shared-focal"]) == 0
-    assert "one camera" not in capsys.readouterr().err
-    assert len(set(load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist())) == 3  # one per photograph, as asked
-    assert main(["reconstruct", *ims[:2], photo("zoomed.jpg", 50), *args]) == 0  # the zoom lens turned: two cameras
-    assert "one camera" not in capsys.readouterr().err
-    assert len(set(load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist())) == 3
+    assert "by their EXIF" not in capsys.readouterr().err
+    assert len(set(focals())) == 3  # one per photograph, as asked
+    # two cameras (the zoom lens turned to 50 mm for two of them) and a photograph without EXIF: three focals
+    mixed = [ims[0], photo("z0.jpg", "Canon EOS 80D", 50), ims[1], photo("plain.jpg", None, None),
+             photo("z1.jpg", "Canon EOS 80D", 50)]
+    assert main(["reconstruct", *mixed, *args]) == 0
+    assert "by their EXIF, 4 of the 5 photographs are of 2 cameras (Canon EOS 80D, 35 mm, 90x60: 2; Canon EOS 80D, " \
+           "50 mm, 90x60: 2), each with one estimated focal, and 1 of their own" in capsys.readouterr().err
+    f = focals()
+    assert f[0] == f[2] and f[1] == f[4] and len(set(f)) == 3
+    assert main(["--quiet", "reconstruct", *ims[:2], photo("z2.jpg", "Canon EOS 80D", 50), *args]) == 0
+    assert len(set(focals())) == 2  # two of one camera, one of another: 2 focals
 
 
 def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):

@@ -113,14 +113,13 @@ def save_with_camera(path, wh, make="Apple", model="iPhone 13", lens="iPhone 13 
 
 
 def test_exif_cameras_name_each_photographs_camera_and_one_camera_needs_one_body_and_one_size(tmp_path):
-    from pointmap.images import exif_cameras, one_exif_camera
+    from pointmap.images import exif_camera_labels, exif_cameras
 
     a, b = (save_with_camera(tmp_path / f"{n}.jpg", (40, 30)) for n in "ab")
     cams = exif_cameras([a, b, np.zeros((30, 40, 3), np.uint8)])
     assert cams[0].body == ("Apple", "iPhone 13", "iPhone 13 back camera 5.1mm f/1.6", 5.1, 1.0)  # NUL stripped
     assert cams[0].size == (40, 30) and cams[0].focal_35mm is None and cams[0].focal_px is None and cams[2] is None
-    assert one_exif_camera(cams[:2]) == cams[0]
-    assert one_exif_camera(cams[:1]) is None  # one photograph is no evidence of a shared camera
+    assert exif_camera_labels(cams) == [0, 0, 1]  # an array carries no EXIF: a camera of its own
     others = {  # each differs from a in one thing that changes the focal in pixels, or says nothing of it
         "ultrawide": dict(lens="iPhone 13 back camera 1.54mm f/2.4", focal_mm=1.54),
         "zoomed": dict(zoom=2.0),
@@ -131,11 +130,11 @@ def test_exif_cameras_name_each_photographs_camera_and_one_camera_needs_one_body
     }
     for name, kw in others.items():
         cam = exif_cameras(save_with_camera(tmp_path / f"{name}.jpg", (40, 30), **kw))[0]
-        assert one_exif_camera([cams[0], cam]) is None, name
+        assert exif_camera_labels([cams[0], cam, cams[1]]) == [0, 1, 0], name
     assert exif_cameras(tmp_path / "turned.jpg")[0].size == (30, 40)
     assert exif_cameras(tmp_path / "no_focal.jpg")[0].body is None
     unzoomed = exif_cameras(save_with_camera(tmp_path / "z0.jpg", (40, 30), zoom=0.0))[0]  # 0: no digital zoom
-    assert one_exif_camera([cams[0], unzoomed]) == cams[0]
+    assert exif_camera_labels([cams[0], unzoomed]) == [0, 0]
 
 
 def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):

@@ -16,7 +16,7 @@ the world frame; the Jacobian is analytic (``_residual_jacobian``). Gauge: known
 without two known centres the mean distance of the free cameras from the first held one keeps its aligned value.
 Intrinsics: known ones as given; otherwise each image's focal is the median of the Weiszfeld focals of its
 own-frame pointmaps (one per pass in which it is the first view), with the principal point as aligned;
-``shared_focal``: the median over all images.
+``shared_focal``: the median over each camera's images.
 
 Cheirality (sessions 33-34): the residuals cannot tell a direction from its opposite, so a camera could slide
 through its neighbour at no cost to that pair. Each gated match also has two residuals that are zero while its pair's
@@ -554,6 +554,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
         return skipped("the model has no descriptor head (no matches)")
     if len(known_poses) == n:
         return skipped("every pose is known")
+    from pointmap.align.inputs import camera_index
     from pointmap.align.optimize import AlignConfig, global_align
     from pointmap.geometry.cameras import intrinsics
     from pointmap.matching import match_coarse
@@ -562,9 +563,11 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     K_map = recon.K_map.double().clone()
     if len(known_K) < n:
         f_own = own_focals(preds, n)
-        shared = bool(rep.get("config", {}).get("shared_focal", False))
-        if shared and np.isfinite(f_own).any():
-            f_own[:] = float(np.nanmedian(f_own))
+        camera = camera_index(rep.get("config", {}).get("shared_focal", False), n).numpy()
+        for c in np.unique(camera):  # one focal per camera: the median of its images' own
+            one = camera == c
+            if one.sum() > 1 and np.isfinite(f_own[one]).any():
+                f_own[one] = float(np.nanmedian(f_own[one]))
         for k in range(n):
             if k not in known_K and math.isfinite(f_own[k]):
                 K_map[k] = intrinsics(float(f_own[k]), float(K_map[k, 0, 2]), float(K_map[k, 1, 2]),

@@ -121,6 +121,19 @@ def _image_index(i, n: int, name: str) -> int:
     return int(i)
 
 
+def camera_index(shared_focal, n: int) -> torch.Tensor:
+    """[n] int64 camera of each image, numbered 0.. in order of first appearance, from ``AlignConfig.shared_focal``:
+    True: one camera; False: one per image; a sequence of n camera labels (ints): the images of one label share a
+    focal. ShapeError for a sequence of another length."""
+    if isinstance(shared_focal, bool):
+        return torch.zeros(n, dtype=torch.long) if shared_focal else torch.arange(n)
+    if len(shared_focal) != n:
+        raise ShapeError(f"AlignConfig.shared_focal expected True, False or a camera label per image ({n}), got "
+                         f"{len(shared_focal)} labels: {list(shared_focal)[:8]}")
+    first = {}
+    return torch.tensor([first.setdefault(c, len(first)) for c in shared_focal], dtype=torch.long)
+
+
 def parse_known_K(K, n: int, info: ViewInfo):
     """Known intrinsics in ORIGINAL pixels -> (K_orig [N,3,3] float64 or None rows, known mask [N],
     fx, fy, cx, cy [N] in map pixels (NaN where unknown)). K: None, [3, 3], [N, 3, 3] or {i: [3, 3]}."""

@@ -31,7 +31,7 @@ from pointmap.align.fuse import fuse_depth
 from pointmap.align.gauge import anchor_to_first, apply_similarity, similarity_to_known
 from pointmap.align.head_prior import head_prior
 from pointmap.align.init import init_mst, own_maps
-from pointmap.align.inputs import parse_known_K, parse_known_poses, parse_views
+from pointmap.align.inputs import camera_index, parse_known_K, parse_known_poses, parse_views
 from pointmap.align.loop import run
 from pointmap.align.objective import chunk_size_for
 from pointmap.align.params import AlignParams
@@ -59,8 +59,10 @@ class AlignConfig:
         over the last ``window`` iterations
     fuse_iters: reweighting passes of the full-resolution depth fusion (0 = weighted least squares)
     shared_focal: all images come from one camera: one focal for all of them (started at the median of the
-        per-image estimates), as MASt3R's ``shared_intrinsics``; needs images of one original size, resized and
-        cropped alike, and K given for all images (one focal) or none (``check_one_camera``)
+        per-image estimates), as MASt3R's ``shared_intrinsics``; or a camera label per image (e.g. [0, 0, 1, 1, 1]):
+        the images of one label share one focal (photographs from two phones). The images of one camera need one
+        original size, resized and cropped alike, and K given for all of them (one focal) or none
+        (``check_one_camera``)
     init: the start of the optimisation: 'averaging' (default: every edge at once, rotation, scale and centre
         averaging; pointmap.align.averaging) or 'mst' (DUSt3R's maximum spanning tree: one edge per image, chained)
     pose_head: the averaging start takes each edge's rotation and the direction of its centre from the pose head's
@@ -88,7 +90,7 @@ class AlignConfig:
     early_stop_tol: float = 1e-4
     early_stop_window: int = 20
     fuse_iters: int = 1
-    shared_focal: bool = False
+    shared_focal: bool | tuple = False
     init: str = "averaging"
     pose_head: bool = True
     head_prior: float = 0.1
@@ -130,9 +132,15 @@ class AlignConfig:
             raise ShapeError(f"AlignConfig.head_prior_deg expected two angles in [0.01, 180) degrees (rotation, "
                              f"direction), got {d!r}")
         object.__setattr__(self, "head_prior_deg", tuple(float(x) for x in d))  # hashable, as the rest
-        for name in ("shared_focal", "pose_head", "quiet"):
+        for name in ("pose_head", "quiet"):
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
+        cams = self.shared_focal
+        if not isinstance(cams, bool):  # a camera label per image: hashable, as the rest
+            if isinstance(cams, (str, bytes)) or not hasattr(cams, "__iter__") or not all(is_int(c) for c in cams):
+                raise ShapeError(f"AlignConfig.shared_focal expected True, False or a camera label (an int) per "
+                                 f"image, got {cams!r}")
+            object.__setattr__(self, "shared_focal", tuple(int(c) for c in cams))
 
 
 def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
@@ -181,8 +189,8 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     keys = check_preds(preds, n, info.shapes)
     check_connected(n, keys)
     K_given, K_known, fx, fy, cx, cy = parse_known_K(K, n, info)
-    if cfg.shared_focal:
-        check_one_camera(info.original_sizes, info.map_from_original, K_known, fx)
+    camera = camera_index(cfg.shared_focal, n)
+    check_cameras(camera, info.original_sizes, info.map_from_original, K_known, fx)
     known_poses = parse_known_poses(cam2world, n, pose_mask)
     stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
     conf_transform = resolve_conf_transform(cfg.conf_transform, preds, keys)
@@ -193,8 +201,11 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         except GraphError as err:
             raise GraphError(f"after dropping zero-confidence pairs: {err}") from None
     fx, fy, cx, cy = _initial_focals(preds, stack, info.shapes, fx, fy, cx, cy, K_known)
-    if cfg.shared_focal and not bool(K_known.any()):  # one focal for all: the median of the per-image estimates
-        fx = fy = torch.full_like(fx, float(fx.quantile(0.5)))
+    fx, fy = fx.clone(), fy.clone()
+    for c in range(int(camera.max()) + 1):  # a camera's focal: the median of its images' estimates (unless known)
+        one = camera == c
+        if int(one.sum()) > 1 and not bool(K_known[one].any()):
+            fx[one] = fy[one] = fx[one].quantile(0.5)
     t_init = time.perf_counter()
     init, init_used = None, cfg.init
     if cfg.init == "averaging":
@@ -231,7 +242,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
         c2w[i, :3, 3] /= unit
     pose_free = torch.tensor([i not in known_poses for i in range(n)])
     params = AlignParams(c2w, pose_free, depth / unit, fx, fy, cx, cy, ~K_known, pw_s / unit, pw_R,
-                         pw_t / unit, scale_free=not scale_fixed, shared_focal=cfg.shared_focal)
+                         pw_t / unit, scale_free=not scale_fixed, camera=camera)
     seconds_init = time.perf_counter() - t_init
     chunk = chunk_size_for(stack, cfg.max_chunk_pixels)
     prior = head_prior(stack, cfg.head_prior, *cfg.head_prior_deg, pose_free=pose_free,
@@ -265,6 +276,23 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
                           "known_pose_indices": sorted(known_poses),
                           "known_K_indices": [k for k in range(n) if K_known[k]],
                           "config": asdict(cfg)})
+
+
+def check_cameras(camera: torch.Tensor, original_sizes, map_from_original, K_known=None, fx=None) -> None:
+    """``check_one_camera`` for the images of each camera of ``camera`` (``camera_index``) that has several, the
+    camera named in the message when there are several."""
+    several = int(camera.max()) + 1 > 1
+    for c in range(int(camera.max()) + 1):
+        idx = torch.nonzero(camera == c).flatten().tolist()
+        if len(idx) < 2:
+            continue
+        try:
+            check_one_camera([original_sizes[k] for k in idx], torch.as_tensor(map_from_original)[idx],
+                             None if K_known is None else K_known[idx], None if fx is None else fx[idx])
+        except PointmapError as e:  # ShapeError is one
+            if not several:
+                raise
+            raise type(e)(f"camera {c} (images {idx[:8]}{' ...' if len(idx) > 8 else ''}): {e}") from None
 
 
 def check_one_camera(original_sizes, map_from_original, K_known=None, fx=None) -> None:

@@ -1,8 +1,8 @@
 """The variables of dense alignment, as increments on a fixed base (the initialisation).
 
 cam2world_n = base_n @ se3_exp(xi_n)          (xi frozen at 0 for known poses)
-f_n         = exp(log_f_n)                    (fx = fy; known intrinsics are constants; one log_f for
-                                              all free images with shared_focal)
+f_n         = exp(log_f_c(n))                 (fx = fy; known intrinsics are constants; one log_f per
+                                              camera c: per image, or shared as AlignConfig.shared_focal says)
 depth_n     = exp(log_depth_n)                [N, P] at the stack's pixels
 S_e         = s_e [R0_e exp(phi_e) | t0_e + dt_e],  log s_e = log s0_e + dls_e
               (mean of log s held at its initial value when the scale is free: fixes the gauge)
@@ -19,7 +19,7 @@ from pointmap.geometry.rotations import axis_angle_to_matrix, se3_exp
 
 class AlignParams(torch.nn.Module):
     def __init__(self, base_cam2world, pose_free, depth, fx, fy, cx, cy, focal_free, pw_s, pw_R, pw_t,
-                 scale_free: bool, dtype=torch.float32, shared_focal: bool = False):
+                 scale_free: bool, dtype=torch.float32, camera: torch.Tensor | None = None):
         super().__init__()
         n, E = base_cam2world.shape[0], pw_s.shape[0]
         self.register_buffer("base_cam2world", base_cam2world.to(dtype))
@@ -35,9 +35,13 @@ class AlignParams(torch.nn.Module):
         self.register_buffer("pw_ls_mean", pw_s.log().mean().to(dtype))
         self.scale_free = scale_free
         self.xi = torch.nn.Parameter(torch.zeros(n, 6, dtype=dtype))
-        # shared_focal: one log-focal for every image whose focal is free (one camera), started at the mean of
-        # their starting focals (global_align gives them all one value: the median of the per-image estimates)
-        self.log_f = torch.nn.Parameter((fx.log().mean(0, keepdim=True) if shared_focal else fx.log()).to(dtype))
+        # camera: [n] index of each image's camera (default: one per image); one log-focal per camera, started at
+        # the mean of its images' starting focals (global_align gives them one value: the median of their estimates)
+        camera = torch.arange(n) if camera is None else torch.as_tensor(camera, dtype=torch.long)
+        self.register_buffer("camera", camera)
+        n_cams = int(camera.max()) + 1
+        log_f = torch.zeros(n_cams, dtype=fx.dtype).index_add_(0, camera, fx.log()) / torch.bincount(camera, minlength=n_cams)
+        self.log_f = torch.nn.Parameter(log_f.to(dtype))
         self.log_depth = torch.nn.Parameter(depth.clamp_min(1e-8).log().to(dtype))
         self.pw_phi = torch.nn.Parameter(torch.zeros(E, 3, dtype=dtype))
         self.pw_dt = torch.nn.Parameter(torch.zeros(E, 3, dtype=dtype))
@@ -55,7 +59,7 @@ class AlignParams(torch.nn.Module):
         return self.base_cam2world @ se3_exp(self.xi * self.pose_free)
 
     def intrinsics(self):
-        f = torch.exp(self.log_f).expand_as(self.f_fixed_x)
+        f = torch.exp(self.log_f)[self.camera]
         fx = torch.where(self.focal_free, f, self.f_fixed_x)
         fy = torch.where(self.focal_free, f, self.f_fixed_y)
         return fx, fy, self.cx, self.cy

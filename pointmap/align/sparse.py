@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import torch
 
 from pointmap.align.gauge import anchor_to_first
+from pointmap.align.inputs import camera_index
 from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.geometry.rotations import se3_exp
 from pointmap.reconstruction import K_to_original, Reconstruction
@@ -118,7 +119,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
         alignment was given (``recon.info["align"]["known_pose_indices"]``). If none is held, the image with the
         most matches is held fixed to pin the frame, and the result then moved rigidly so that image 0's pose is
         the one given: the world stays where it was. fixed_intrinsics: indices (or True for all) with K kept as
-        is; None (default): the intrinsics the alignment was given, all of them for a shared focal.
+        is; None (default): the intrinsics the alignment was given, and those of every camera it shared a focal over.
     """
     cfg = config or SparseConfig()
     if not isinstance(recon, Reconstruction) or not isinstance(cfg, SparseConfig):
@@ -130,8 +131,9 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     if fixed_poses is None:
         fixed_poses = aligned.get("known_pose_indices", [])
     if fixed_intrinsics is None:
-        fixed_intrinsics = True if aligned.get("config", {}).get("shared_focal") else \
-            aligned.get("known_K_indices", [])
+        camera = camera_index(aligned.get("config", {}).get("shared_focal", False), n)  # shared focals stay
+        fixed_intrinsics = sorted(set(aligned.get("known_K_indices", [])) |
+                                  {k for k in range(n) if int((camera == camera[k]).sum()) > 1})
     if hasattr(fixed_poses, "tolist"):  # a numpy array or tensor of indices
         fixed_poses = fixed_poses.tolist()
     if hasattr(fixed_intrinsics, "tolist"):

@@ -31,7 +31,8 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     Points are the pixels with depth inside ``recon.masks`` that pass ``min_conf`` (absolute) and
     ``conf_percentile`` (relative; see ``confidence_mask``); ``max_points`` caps the PLY/GLB cloud and
     ``colmap_max_points`` the COLMAP points3D and nerfstudio's sparse_pc.ply (dense clouds slow 3DGS trainers
-    down; None = all).
+    down; None = all). ``shared_camera``: the COLMAP model's cameras, None (default) one per distinct intrinsics and
+    size (a shared focal's images share one), True one for all (refused when they differ), False one per image.
     """
     from pointmap.reconstruction import Reconstruction
 

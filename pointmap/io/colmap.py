@@ -1,8 +1,9 @@
 """COLMAP sparse model export (cameras, images, points3D; .bin, and .txt on request), and the reader of a
 model's cameras (``read_colmap``, for known cameras and lens distortion).
 
-One PINHOLE camera per image at its ORIGINAL size (or one shared camera when every image has the same
-intrinsics and size), image names as given (the input file names), world-to-camera poses as COLMAP
+One PINHOLE camera per distinct intrinsics and size, at the ORIGINAL size (images aligned with one focal per
+camera, ``AlignConfig.shared_focal``, share one; ``shared_camera`` True / False: one for all / one per image),
+image names as given (the input file names), world-to-camera poses as COLMAP
 expects. COLMAP puts the centre of the top-left pixel at (0.5, 0.5) while pointmap puts it at (0, 0):
 principal points and 2D observations are shifted by +0.5 on the way out.
 Each exported 3D point is observed once, at the original-resolution pixel it was unprojected from.
@@ -64,15 +65,17 @@ def _model(recon, points: PointSet, shared_camera: bool | None):
     n = len(recon)
     K = recon.K.double().numpy()
     sizes = [tuple(int(x) for x in s) for s in recon.original_sizes]
-    cams = []  # (camera_id, width, height, fx, fy, cx, cy)
     share = check_shared_camera(recon, shared_camera)
-    cam_of = []
-    for k in range(n):
-        if share and cams:
-            cam_of.append(1)
-            continue
-        cams.append((len(cams) + 1, sizes[k][0], sizes[k][1], K[k, 0, 0], K[k, 1, 1], K[k, 0, 2] + 0.5, K[k, 1, 2] + 0.5))
-        cam_of.append(len(cams))
+    firsts, cam_of = [], []  # the first image of each camera; each image's camera_id
+    for k in range(n):  # an image takes the first camera of its size and intrinsics (any one, when all share it)
+        c = next((c for c, r in enumerate(firsts) if share or (shared_camera is None and sizes[r] == sizes[k] and
+                                                               np.allclose(K[r], K[k], rtol=1e-6, atol=1e-6))), None)
+        if c is None:
+            firsts.append(k)
+            c = len(firsts) - 1
+        cam_of.append(c + 1)
+    cams = [(c + 1, sizes[r][0], sizes[r][1], K[r, 0, 0], K[r, 1, 1], K[r, 0, 2] + 0.5, K[r, 1, 2] + 0.5)
+            for c, r in enumerate(firsts)]  # (camera_id, width, height, fx, fy, cx, cy)
     # observations in original pixels (COLMAP convention)
     mfo = recon.map_from_original.double().numpy()[points.image]
     sx, sy, left, top = mfo.T

@@ -63,9 +63,11 @@ def texture(pts_world: np.ndarray) -> np.ndarray:
                                  np.sin(2.7 * pts_world[..., 2] + 0.5 * pts_world[..., 0])], -1)
 
 
-def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0), shapes=None):
-    """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal. ``shapes``: one
-    (h, w) per view (portrait among landscape); the per-view maps are then lists, not stacked arrays."""
+def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0), shapes=None,
+               focals=None):
+    """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal (drawn from
+    ``focal_range``, or ``focals``: one per view). ``shapes``: one (h, w) per view (portrait among landscape); the
+    per-view maps are then lists, not stacked arrays."""
     rng = np.random.default_rng(seed)
     shapes = shapes or [(h, w)] * n
     cams, Ks, depths = [], [], []
@@ -74,7 +76,7 @@ def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=
         centre = np.array([3.0 * math.cos(ang), rng.uniform(-0.8, 0.8), 3.0 * math.sin(ang)])
         target = rng.uniform(-0.5, 0.5, 3)
         T = look_at(centre, target)
-        f = rng.uniform(*focal_range)
+        f = rng.uniform(*focal_range) if focals is None else focals[k]
         K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
         cams.append(T)
         Ks.append(K)

@@ -203,6 +203,20 @@ def test_the_stage_fits_the_matches_better_and_refits_the_depths_to_its_poses(mi
     assert torch.isfinite(pts_refit).all()
 
 
+def test_the_stage_gives_each_camera_of_a_labelled_alignment_one_focal_and_refits_with_them():
+    sc = make_scene(5, 64, 96, seed=61, focals=[80.0, 100.0, 80.0, 100.0, 80.0])
+    pairs = [(i, j) for i in range(5) for j in range(i + 1, 5)]
+    views = views_of(sc)
+    preds = with_descriptors(gt_preds(sc, pairs, seed=2, pair_rot_deg=8.0, noise=0.02), sc)
+    recon = global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=(0, 1, 0, 1, 0)))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8))
+    assert out.info["epipolar"]["applied"]
+    f = out.K[:, 0, 0].double()
+    assert float(f[[0, 2, 4]].max() - f[[0, 2, 4]].min()) == 0 and float(f[1] - f[3]) == 0
+    assert abs(float(f[0]) / 80 - 1) < 0.03 and abs(float(f[1]) / 100 - 1) < 0.03, f
+    assert out.info["align_refit"]["config"]["shared_focal"] == (0, 1, 0, 1, 0)
+
+
 def test_the_stage_skips_models_without_descriptors_and_scenes_with_every_pose_known(scene):
     n = len(scene["cam2world"])
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]

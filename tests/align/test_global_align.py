@@ -200,6 +200,44 @@ def test_a_shared_focal_is_one_value_for_all_images_and_recovers_one_camera():
     assert rot < 0.5 and centre < 0.01, (rot, centre)
 
 
+def test_camera_labels_share_one_focal_within_each_camera_and_recover_two_cameras():
+    labels = (7, 3, 7, 3, 7)  # two phones: any ints, numbered in order of first appearance
+    sc = make_scene(5, 32, 48, seed=11, focals=[44.0, 58.0, 44.0, 58.0, 44.0])
+    preds = gt_preds(sc, complete_pairs(5), seed=12, noise=0.01, outliers=0.03, pair_rot_deg=0.5)
+    recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, shared_focal=list(labels)))
+    f = recon.K[:, 0, 0].double()
+    assert float(f[[0, 2, 4]].max() - f[[0, 2, 4]].min()) == 0.0 and float(f[1] - f[3]) == 0.0
+    assert abs(float(f[0]) / 44.0 - 1) < 0.02 and abs(float(f[1]) / 58.0 - 1) < 0.02, f
+    assert recon.info["align"]["config"]["shared_focal"] == labels  # kept as a tuple, hashable
+    rot, centre, _, _ = _errors(recon, sc)
+    assert rot < 0.5 and centre < 0.01, (rot, centre)
+    # the epipolar stage and the sparse refinement keep one focal per camera
+    from pointmap.align.sparse import refine_matches
+
+    matches = {k: (torch.rand(20, 2) * 40, torch.rand(20, 2) * 40, torch.ones(20)) for k in preds}
+    refined = refine_matches(recon, matches)
+    assert torch.equal(refined.K[:, 0, 0], recon.K[:, 0, 0])
+
+
+def test_camera_labels_of_another_length_or_not_ints_are_refused_and_a_camera_of_two_sizes_is_named():
+    from pointmap.errors import ShapeError
+
+    sc = make_scene(4, 32, 48, seed=3)
+    preds = gt_preds(sc, complete_pairs(4), seed=4)
+    with pytest.raises(ShapeError, match=r"expected True, False or a camera label per image \(4\), got 3 labels"):
+        global_align(views_of(sc), preds, config=AlignConfig(quiet=True, shared_focal=(0, 0, 1)))
+    for bad in ("0011", (0, 0.5, 1, 1), 3):
+        with pytest.raises(ShapeError, match="AlignConfig.shared_focal expected True, False or a camera label"):
+            AlignConfig(shared_focal=bad)
+    views = views_of(sc)
+    views[3].original_size = (96, 64)
+    views[3].map_from_original = (0.5, 0.5, 0.0, 0.0)
+    global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=(0, 0, 1, 2), niter=0))  # 3 alone: fine
+    with pytest.raises(ShapeError, match=r"camera 1 \(images \[2, 3\]\): shared_focal expects images of one camera, "
+                                         "all of one size"):
+        global_align(views, preds, config=AlignConfig(quiet=True, shared_focal=(0, 0, 1, 1)))
+
+
 def test_a_shared_focal_is_refused_for_images_of_two_sizes_or_for_k_known_for_some_images_only(scene):
     from pointmap.errors import PointmapError, ShapeError
 
@@ -229,10 +267,16 @@ def test_a_shared_focal_is_one_parameter_that_the_loss_moves():
     params = AlignParams(torch.eye(4, dtype=torch.float64).repeat(n, 1, 1), torch.ones(n, dtype=torch.bool),
                          torch.ones(n, P, dtype=torch.float64), f, f, f * 0, f * 0, torch.ones(n, dtype=torch.bool),
                          torch.ones(E, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(E, 1, 1),
-                         torch.zeros(E, 3, dtype=torch.float64), scale_free=True, shared_focal=True)
+                         torch.zeros(E, 3, dtype=torch.float64), scale_free=True, camera=torch.zeros(n, dtype=torch.long))
     assert params.log_f.shape == (1,)
     fx, fy, _, _ = params.intrinsics()
     assert torch.allclose(fx.double(), torch.full((3,), float(f.log().mean().exp()), dtype=torch.float64))
+    two = AlignParams(torch.eye(4, dtype=torch.float64).repeat(n, 1, 1), torch.ones(n, dtype=torch.bool),
+                      torch.ones(n, P, dtype=torch.float64), f, f, f * 0, f * 0, torch.ones(n, dtype=torch.bool),
+                      torch.ones(E, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(E, 1, 1),
+                      torch.zeros(E, 3, dtype=torch.float64), scale_free=True, camera=torch.tensor([0, 1, 0]))
+    fx2 = two.intrinsics()[0].double()
+    assert two.log_f.shape == (2,) and torch.allclose(fx2, torch.tensor([(40.0 * 48.0) ** 0.5, 44.0, (40.0 * 48.0) ** 0.5], dtype=torch.float64))
     uv = torch.rand(n, P, 2) * 10
     params.world_points(uv)[..., 0].sum().backward()
     assert params.log_f.grad is not None and float(params.log_f.grad.abs()) > 0

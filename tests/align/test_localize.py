@@ -101,6 +101,26 @@ def test_a_known_focal_is_used_as_given_and_reported_with_the_true_pose(scene):
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
 
 
+def test_intrinsics_of_another_kind_than_the_reconstructions_are_warned_about(scene):
+    import dataclasses
+    import warnings
+
+    sc, recon, queries, world_scale, _ = scene
+    K = torch.from_numpy(sc["K"][4:6])
+    estimated = dataclasses.replace(recon, info={"align": {"known_K_indices": []}})
+    known = dataclasses.replace(recon, info={"align": {"known_K_indices": list(range(N_REC))}})
+    with pytest.warns(UserWarning, match="the queries' intrinsics are given but the reconstruction's focals were "
+                                         "estimated"):
+        localize(STAND_IN, estimated, queries, refs=[[3], [0]], K=K, quiet=True)
+    with pytest.warns(UserWarning, match="the reconstruction was given its intrinsics but the queries' are estimated"):
+        localize(STAND_IN, known, queries, refs=[[3], [0]], quiet=True)
+    with warnings.catch_warnings():  # of one kind, or nothing recorded (a hand-made reconstruction): no warning
+        warnings.simplefilter("error")
+        localize(STAND_IN, known, queries, refs=[[3], [0]], K=K, quiet=True)
+        localize(STAND_IN, estimated, queries, refs=[[3], [0]], quiet=True)
+        localize(STAND_IN, recon, queries, refs=[[3], [0]], K=K, quiet=True)
+
+
 def doubled(K: torch.Tensor) -> torch.Tensor:
     """K of the images resized to twice their size, written out by hand (pixel centres at integers:
     u_big = (u + 0.5) * 2 - 0.5)."""

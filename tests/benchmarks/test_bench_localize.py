@@ -50,16 +50,23 @@ def test_the_localize_benchmark_poses_each_view_in_the_reconstruction_of_the_oth
         assert float((K_rec[:, 0, 0] - K_rec[0, 0, 0]).abs().max()) == 0  # --shared-focal: one camera
         want = [None, K_rec[0], scenes[s]["K"][q].double()][k % 3]
         assert (K is None) if want is None else torch.equal(K, want)
+    calls.clear()  # --recon-K: the reconstruction is given its views' true K (map px = original px here)
+    assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1", "--scenes", "1",
+                 "--recon-K"]) == 0
+    for s, q, _, K_rec in calls:
+        assert torch.allclose(K_rec, scenes[s]["K"][[k for k in range(3) if k != q]].double(), rtol=1e-5)
     gt = scenes[0]["cam2world"].double()
     true = (torch.linalg.inv(gt[1]) @ gt[0]).numpy()  # query 0 against view 1
     angle = np.degrees(np.arccos(np.clip((np.trace(true[:3, :3]) - 1) / 2, -1, 1)))
     assert float(rows["true_K"][0]["true_rot"]) == pytest.approx(angle, abs=1e-4)
 
 
-def test_the_localize_benchmark_refuses_a_set_given_twice_and_a_bad_scene_count(scenes_and_model, capsys):
+def test_the_localize_benchmark_refuses_a_set_given_twice_a_bad_scene_count_and_two_sources_of_focal(
+        scenes_and_model, capsys):
     data, model_path = scenes_and_model
     for extra, message in ((["--data", str(data), str(data)], "given twice"),
-                           (["--data", str(data), "--scenes", "0"], "--scenes expected a positive count")):
+                           (["--data", str(data), "--scenes", "0"], "--scenes expected a positive count"),
+                           (["--data", str(data), "--shared-focal", "--recon-K"], "give one")):
         with pytest.raises(SystemExit):
             main(["--model", str(model_path), *extra])
         assert message in capsys.readouterr().err

@@ -97,6 +97,19 @@ def test_colmap_shared_camera_and_empty_observations(tmp_path):
     assert len(lines) == 6 and lines[3] == "" and lines[5] == ""
 
 
+def test_colmap_writes_one_camera_per_distinct_intrinsics_and_size_unless_told_one_per_image(tmp_path):
+    recon = make_recon(n=4)
+    recon.K[2] = recon.K[0]  # images 0 and 2 of one camera, 1 and 3 of another
+    recon.K[1, 0, 0] = recon.K[1, 1, 1] = recon.K[0, 0, 0] * 1.3
+    recon.K[3] = recon.K[1]
+    save_reconstruction(recon, tmp_path / "a", formats=("colmap",))
+    rec = _check_colmap(tmp_path / "a" / "sparse" / "0", recon)
+    assert len(rec.cameras) == 2 and [rec.images[k + 1].camera_id for k in range(4)] == [1, 2, 1, 2]
+    assert rec.cameras[2].params[0] == pytest.approx(float(recon.K[1, 0, 0]), rel=1e-6)
+    save_reconstruction(recon, tmp_path / "b", formats=("colmap",), shared_camera=False)
+    assert len(_check_colmap(tmp_path / "b" / "sparse" / "0", recon).cameras) == 4
+
+
 def test_ply_roundtrip_and_trimesh(tmp_path):
     import trimesh
 
