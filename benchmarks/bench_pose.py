@@ -10,7 +10,9 @@ matches (pm.refine_pose_with_matches: robust least squares on the epipolar const
 is what the pipeline reports (pm.pair_pose): the same refinement with each view's focal from its own pointmap, the
 rotation held within a few degrees of the pointmaps'; "model + own matches (known K)" is pm.pair_pose given both true
 K (what `pointmap pair --focal` and `pointmap localize --focal / --cameras` report: a 1-degree rotation prior, where
-the refinement row above has refine_pose_with_matches' 10). A last row, "no rotation",
+the refinement row above has refine_pose_with_matches' 10); "model + own matches (one focal)" gives both views one
+focal, the geometric mean of their own estimates (right for two photographs of one camera, as in one-camera sets like
+eval_cam_s464646), with the estimated focal's 3-degree prior. A last row, "no rotation",
 is the trivial prior (identity rotation; no translation estimate): a model must beat it to have learnt
 anything about rotation.
 
@@ -34,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pointmap as pm  # noqa: E402
 from pointmap.geometry.rotations import relative_rotation_error_deg, translation_angle_deg  # noqa: E402
 from pointmap.images import INPUT_SIZE_RULE, is_input_size  # noqa: E402
-from pointmap.pose import pose_from_essential  # noqa: E402
+from pointmap.pose import focal_from_prediction, pose_from_essential  # noqa: E402
 from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
 
 
@@ -80,6 +82,20 @@ def print_pose_table(res: dict, first: str) -> None:
                         else (f"{100 * np.mean(v[:, 1] < 15):.1f}%", f"{np.median(v[:, 1]):.1f}"))
         print(f"| {group} | {len(v)} | {name} | {100 * np.mean(v[:, 0] < 15):.1f}% | {rta} | "
               f"{np.median(v[:, 0]):.1f} | {dir_med} |")
+
+
+def one_focal_K(pred, rev) -> torch.Tensor | None:
+    """[3, 3] K of both views of a pair as one camera's: the geometric mean of the two views' focals from their own
+    pointmaps (``focal_from_prediction`` of each pass), the principal point at the centre (one size); None when a
+    view has no focal (a degenerate pointmap), as ``write_pair_outputs(shared_focal=True)`` then keeps each view's."""
+    from pointmap.geometry.cameras import intrinsics
+
+    f = float(focal_from_prediction(pred)[0]) * float(focal_from_prediction(rev)[0])
+    if not (math.isfinite(f) and f > 0):
+        return None
+    f = math.sqrt(f)
+    H, W = pred.pts1_cam1.shape[1:3]
+    return intrinsics(f, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
 
 
 def main(argv=None) -> int:
@@ -138,7 +154,7 @@ def main(argv=None) -> int:
             pred = model(v1["img"][None], v2["img"][None])
             rev = model(v2["img"][None], v1["img"][None])
         ours = pm.relative_pose(pred, pred_reverse=rev)[0].numpy()
-        cm = hybrid = own = own_k = None
+        cm = hybrid = own = own_k = own_one = None
         if pred.has_desc:  # MASt3R-style: the model's own (patch-level) matches + view 1's pointmap, PnP with K
             m = pm.match_coarse(pred, model.cfg.patch_size)
             cm = pm.relative_pose(pred, K2=v2["K"].double(), matches=[m])[0].numpy()
@@ -146,6 +162,10 @@ def main(argv=None) -> int:
             own = pm.pair_pose(pred, rev, patch=model.cfg.patch_size, pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
             own_k = pm.pair_pose(pred, rev, v1["K"].double(), v2["K"].double(), patch=model.cfg.patch_size,
                                  pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
+            K_one = one_focal_K(pred, rev)  # one camera: one focal for both views, still estimated (prior 3)
+            own_one = own if K_one is None else pm.pair_pose(  # no focal to share: each view's, as `pointmap pair`
+                pred, rev, K_one, K_one, patch=model.cfg.patch_size, rotation_prior_deg=3.0,
+                pose=torch.from_numpy(ours)[None], matches=[m])[0].numpy()
         per_pair.append(PairResult(idx, *errors(ours, gt), true_rot,
                                    *(errors(own, gt) if own is not None else (float("nan"),) * 2)))
         to_u8 = lambda v: (v["img"].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
@@ -154,7 +174,8 @@ def main(argv=None) -> int:
                   pm.pair_pose(pred, rev, v1["K"].double(), v2["K"].double(), patch=model.cfg.patch_size,
                                pose=torch.from_numpy(ours)[None], matches=[m], rotation_prior_deg=x)[0].numpy())
                  for x in priors] if pred.has_desc else []
-        rows = [("model", ours), ("model + own matches (no K)", own), ("model + own matches (known K)", own_k), *swept,
+        rows = [("model", ours), ("model + own matches (no K)", own), ("model + own matches (one focal)", own_one),
+                ("model + own matches (known K)", own_k), *swept,
                 ("model matches+PnP (known K)", cm), ("model refined on matches (known K)", hybrid),
                 ("sift+E (known K)", base), ("no rotation", None)]
         for name, est in rows:

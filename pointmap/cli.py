@@ -161,10 +161,15 @@ def cmd_pair(args) -> int:
 
     writable_dir(Path(args.out))
     check_size_graph_budget(args)
+    refuse_ignored(args, [("shared_focal", "--shared-focal", args.focal is None, "without --focal (a given focal "
+                           "is not estimated, shared or not)")])
     focal = None if args.focal is None else parse_focals(args.focal, args.images)
+    shared = args.shared_focal
+    if shared is None and focal is None:  # two photographs of one camera by their EXIF: one focal
+        shared = exif_camera_labels(args.images, note_focal=not args.quiet, note_cameras=not args.quiet) is True
     model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
-                               focal=focal, device=args.device)
+                               focal=focal, shared_focal=bool(shared), device=args.device)
     for p in paths:
         print(p)
     print(pair_summary(Path(args.out) / "pair.npz"))
@@ -194,7 +199,8 @@ def pair_summary(npz: Path) -> str:
     return (f"view 2 relative to view 1: rotation {angle:.1f} deg, {where}"
             f"{'; refined on the matches' if 'refined_on_matches' in z and bool(z['refined_on_matches']) else ''}"
             f"); focal {f1:.0f} / {f2:.0f} px "
-            f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''})")
+            f"(original pixels{', given' if 'focal_given' in z and bool(z['focal_given']) else ''}"
+            f"{', one shared' if 'focal_shared' in z and bool(z['focal_shared']) else ''})")
 
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
@@ -918,6 +924,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "equivalent focal length (principal point at the centre): stored instead "
                         "of the estimate, and the pose is refined on the model's matches with them (without it: "
                         "with the focals estimated from the pointmaps)")
+    a.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
+                   help="the two photographs come from one camera (same size, same zoom): one estimated focal for "
+                        "both. On by default when their EXIF says so (make, model, lens, focal length, zoom and "
+                        "size); --no-shared-focal: one each")
     a.set_defaults(fn=cmd_pair)
 
     r = sub.add_parser("reconstruct", parents=[common], help="many images to poses, intrinsics and a dense cloud")

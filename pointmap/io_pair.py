@@ -63,14 +63,17 @@ def write_png(path: Path, rgb: np.ndarray) -> Path:
 
 
 def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512, quiet: bool = False,
-                       focal: tuple | None = None, device="cpu") -> list[Path]:
+                       focal: tuple | None = None, shared_focal: bool = False, device="cpu") -> list[Path]:
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
 
     The pose is ``pointmap.pose.pair_pose``: the pointmaps' pose refined on the model's own matches (rotation and
     translation direction; models with descriptors) with each view's focal from its own pointmap, or with
     ``focal``: the known focal lengths (f1, f2) in ORIGINAL pixels (principal points at the image centres), which
-    are then stored instead of the estimated ones. ``device``: where the model runs (it must already be there,
-    ``pm.load_model(..., device=)``); the outputs come back to the CPU."""
+    are then stored instead of the estimated ones; or with ``shared_focal`` (two photographs of one camera, of one
+    size): one estimated focal for both, the geometric mean of the two (on one-camera held-out pairs, 56 -> 63
+    translation directions within 15 degrees of 140, docs/models.md; each view's own when one has none).
+    ``device``: where the model runs (it must already be there, ``pm.load_model(..., device=)``); the outputs come
+    back to the CPU."""
     import trimesh
 
     from pointmap.errors import check_model_device
@@ -87,11 +90,18 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
             raise ShapeError(f"focal expected two positive focal lengths in pixels (f1, f2), got {given!r}") from None
         if len(focal) != 2 or not all(np.isfinite(f) and f > 0 for f in focal):
             raise ShapeError(f"focal expected two positive focal lengths in pixels (f1, f2), got {focal}")
+    if not isinstance(shared_focal, bool) or (shared_focal and focal is not None):
+        raise ShapeError(f"shared_focal expected True or False, and False with a focal given, got {shared_focal!r} "
+                         f"with focal {focal!r}")
     if not isinstance(out, (str, Path)):
         raise ShapeError(f"out expected a folder path, got {type(out).__name__}")
     out = Path(out)
     device = check_model_device(model, device, "write_pair_outputs")
     views = load_images([path1, path2], size=size)
+    if shared_focal and (views[0].original_size, views[0].map_from_original) != (views[1].original_size,
+                                                                                   views[1].map_from_original):
+        raise ShapeError(f"shared_focal expected two photographs of one camera, of one size; got "
+                         f"{views[0].original_size} and {views[1].original_size} (w, h)")
     if views[0].img.shape == views[1].img.shape and torch.equal(views[0].img, views[1].img):
         import warnings
 
@@ -109,6 +119,12 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
         focal1 = focal_from_prediction(pred)[0]
         focal2 = focal_from_prediction(pred_rev)[0]
         K = None
+        if shared_focal and bool(torch.isfinite(focal1 * focal2)) and float(focal1 * focal2) > 0:
+            from pointmap.geometry.cameras import intrinsics
+
+            focal1 = focal2 = (focal1 * focal2).sqrt()
+            H, W = pred.pts1_cam1.shape[1:3]
+            K = [intrinsics(float(focal1), (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)] * 2
     else:
         K = []
         for f, v in zip(focal, views):
@@ -117,7 +133,8 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
             K.append(K_to_map(K_orig, torch.tensor(v.map_from_original, dtype=torch.float64)))
         focal1, focal2 = K[0][0, 0].float(), K[1][0, 0].float()
     pointmap_pose = relative_pose(pred, pred_reverse=pred_rev)[0]
-    cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch, pose=pointmap_pose[None])[0]
+    cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch, pose=pointmap_pose[None],
+                            rotation_prior_deg=None if focal is not None else 3.0)[0]  # 3: an estimated focal's
     refined_on_matches = not torch.equal(cam2world_2, pointmap_pose)
     out.mkdir(parents=True, exist_ok=True)
     rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
@@ -130,7 +147,8 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
                   # times map_from_original[0] they are the maps' (the pointmaps' pixel grid)
                   focal1=(focal1 / views[0].map_from_original[0]).numpy(),
                   focal2=(focal2 / views[1].map_from_original[0]).numpy(), focal_units=np.array("original"),
-                  focal_given=np.array(focal is not None), refined_on_matches=np.array(refined_on_matches),
+                  focal_given=np.array(focal is not None), focal_shared=np.array(K is not None and focal is None),
+                  refined_on_matches=np.array(refined_on_matches),
                   map_from_original1=np.array(views[0].map_from_original),
                   map_from_original2=np.array(views[1].map_from_original))
     with atomic_path(out / "pair.npz") as tmp:

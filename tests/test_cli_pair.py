@@ -6,6 +6,7 @@ import torch
 
 import pointmap as pm
 from pointmap.cli import main
+from pointmap.io_pair import write_pair_outputs
 
 
 def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(tmp_path, capsys):
@@ -199,6 +200,60 @@ def test_photographs_of_one_camera_by_their_EXIF_share_one_estimated_focal_unles
     assert f[0] == f[2] and f[1] == f[4] and len(set(f)) == 3
     assert main(["--quiet", "reconstruct", *ims[:2], photo("z2.jpg", "Canon EOS 80D", 50), *args]) == 0
     assert len(set(focals())) == 2  # two of one camera, one of another: 2 focals
+
+
+def test_the_pair_command_gives_two_photographs_of_one_camera_one_focal_by_their_EXIF_or_when_told(tmp_path, capsys,
+                                                                                                    monkeypatch):
+    from PIL import Image
+
+    import pointmap.pose
+
+    own = iter([])  # each pass's own focal (map pixels): 50 for the forward pass, 72 for the reverse one
+
+    def focal_from_prediction(pred):  # the random test model's pointmaps give none
+        return torch.tensor([next(own)])
+
+    monkeypatch.setattr(pointmap.pose, "focal_from_prediction", focal_from_prediction)
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    rng = np.random.default_rng(5)
+
+    def photo(name, shape=(60, 90), camera=True):
+        im = Image.fromarray(rng.integers(0, 255, (*shape, 3), dtype=np.uint8))
+        exif = im.getexif()
+        if camera:
+            exif[0x010F], exif[0x0110] = "Apple", "iPhone 13"
+            exif.get_ifd(0x8769)[0x920A] = 5
+        im.save(tmp_path / name, exif=exif)
+        return str(tmp_path / name)
+
+    a, b = photo("a.jpg"), photo("b.jpg")
+    out = tmp_path / "out"
+    own = iter([50.0, 72.0] * 20)
+    assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--size", "64"]) == 0
+    captured = capsys.readouterr()
+    assert "by their EXIF, 2 of the 2 photographs are of one camera (Apple iPhone 13, 5 mm, 90x60: 2)" in captured.err
+    assert "(original pixels, one shared)" in captured.out
+    z = np.load(out / "pair.npz")
+    assert float(z["focal1"]) == float(z["focal2"]) and bool(z["focal_shared"])
+    sx = pm.load_images([a], size=64)[0].map_from_original[0]  # the geometric mean 60, in original pixels
+    assert float(z["focal1"]) == pytest.approx(60.0 / sx, rel=1e-6)
+    model = pm.load_model(weights)
+    assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--size", "64", "--no-shared-focal"]) == 0
+    assert "one shared" not in capsys.readouterr().out and not bool(np.load(out / "pair.npz")["focal_shared"])
+    c = photo("c.jpg", camera=False)  # no EXIF camera: one focal each unless told
+    assert main(["pair", a, c, "-o", str(out), "--model", str(weights), "--size", "64"]) == 0
+    assert "one shared" not in capsys.readouterr().out
+    assert main(["pair", a, c, "-o", str(out), "--model", str(weights), "--size", "64", "--shared-focal"]) == 0
+    assert "(original pixels, one shared)" in capsys.readouterr().out
+    assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--focal", "70", "--shared-focal"]) == 2
+    assert "--shared-focal applies only without --focal" in capsys.readouterr().err
+    tall = photo("tall.jpg", shape=(90, 60))
+    assert main(["pair", a, tall, "-o", str(out), "--model", str(weights), "--size", "64", "--shared-focal"]) == 2
+    assert "shared_focal expected two photographs of one camera, of one size; got (90, 60) and (60, 90)" in \
+        capsys.readouterr().err
+    with pytest.raises(pm.PointmapError, match="shared_focal expected True or False, and False with a focal given"):
+        write_pair_outputs(model, a, b, tmp_path / "lib", size=64, focal=(70, 70), shared_focal=True)
 
 
 def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_its_own_shape(tmp_path, capsys):

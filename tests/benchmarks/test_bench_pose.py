@@ -2,7 +2,7 @@ import pytest
 import torch
 
 import pointmap as pm
-from benchmarks.bench_pose import errors, main
+from benchmarks.bench_pose import errors, main, one_focal_K
 from benchmarks.paired import read_per_pair
 
 
@@ -30,13 +30,17 @@ def test_the_pose_benchmark_scores_the_pointmaps_pose_and_the_pipelines_pose_on_
     # the swept priors' rows: the pipeline's default with both K (1 degree) is the row of "known K"
     assert rows["model + own matches (known K, prior 1)"][3:] == rows["model + own matches (known K)"][3:]
     assert "model + own matches (known K, prior 10)" in rows
+    K_one = one_focal_K(pred, rev)  # both views' one focal (None without one: each view's, as `pointmap pair`)
+    one = pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0] if K_one is None else \
+        pm.pair_pose(pred, rev, K_one, K_one, patch=model.cfg.patch_size, rotation_prior_deg=3.0)[0]
     for name, est in (("model", pm.relative_pose(pred, pred_reverse=rev)[0]),
                       ("model + own matches (no K)", pm.pair_pose(pred, rev, patch=model.cfg.patch_size)[0]),
+                      ("model + own matches (one focal)", one),
                       ("model + own matches (known K)", pm.pair_pose(pred, rev, *Ks, patch=model.cfg.patch_size)[0])):
         rot, direction = errors(est.numpy(), gt)
         assert float(rows[name][5]) == pytest.approx(rot, abs=0.051)
         assert float(rows[name][6]) == pytest.approx(direction, abs=0.051)
-        if name != "model + own matches (known K)":
+        if name in ("model", "model + own matches (no K)"):
             # the per-pair file holds both poses' errors: the pointmaps' in columns 0-1, the pipeline's in 3-4
             col = 0 if name == "model" else 3
             assert read_per_pair(csv)[(data.name, 0)][col:col + 2] == pytest.approx((rot, direction), abs=1e-6)
