@@ -107,18 +107,17 @@ def parse_focals(text: str, images: list) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
-def exif_camera_labels(images: list, note_focal: bool, note_cameras: bool):
+def exif_shared_focal(images: list, note_focal: bool, note_cameras: bool):
     """The photographs' cameras by their EXIF (``pointmap.images.exif_camera_labels``: one make, model, lens, focal
     length and zoom, one size) as ``AlignConfig.shared_focal`` takes them: True for one camera, a label per image for
     several, False when no two share one; read when neither ``--focal`` nor ``--cameras`` is given. Notes on stderr:
     ``note_cameras``, the cameras that share a focal; ``note_focal``, that every photograph carries an EXIF focal
     that ``--focal exif`` would hold fixed instead of estimating it (a known focal steadies the camera translations:
     docs/alignment.md)."""
-    from pointmap.images import exif_camera_labels as labels_of
-    from pointmap.images import exif_cameras
+    from pointmap.images import exif_camera_labels, exif_cameras
 
     cameras = exif_cameras(images)
-    labels = labels_of(cameras)
+    labels = exif_camera_labels(cameras)
     if note_focal and images and all(c is not None and c.focal_35mm is not None for c in cameras):
         print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
               "estimating the focals (docs/alignment.md)", file=sys.stderr)
@@ -166,7 +165,7 @@ def cmd_pair(args) -> int:
     focal = None if args.focal is None else parse_focals(args.focal, args.images)
     shared = args.shared_focal
     if shared is None and focal is None:  # two photographs of one camera by their EXIF: one focal
-        shared = exif_camera_labels(args.images, note_focal=not args.quiet, note_cameras=not args.quiet) is True
+        shared = exif_shared_focal(args.images, note_focal=not args.quiet, note_cameras=not args.quiet) is True
     model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal, shared_focal=bool(shared), device=args.device)
@@ -585,9 +584,9 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     if args.shared_focal is not None:
         shared = args.shared_focal
         if estimated and not video:  # for the note on EXIF focals only
-            exif_camera_labels(images, note_focal=not args.quiet, note_cameras=False)
+            exif_shared_focal(images, note_focal=not args.quiet, note_cameras=False)
     elif estimated:
-        shared = True if video else exif_camera_labels(images, note_focal=not args.quiet, note_cameras=not args.quiet)
+        shared = True if video else exif_shared_focal(images, note_focal=not args.quiet, note_cameras=not args.quiet)
     else:
         shared = False
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
@@ -989,9 +988,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--depth-png-scale", dest="depth_png_scale", type=float, default=None,
                    help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
-                   help="the images come from one camera (same size, same zoom): estimate one focal for all. On by "
-                        "default, when no focal is given, for a video's frames, and for the photographs of each camera by their "
-                        "EXIF (make, model, lens, focal length and zoom, and size: one focal per camera); "
+                   help="the images come from one camera (same size, same zoom): estimate one focal for all. By "
+                        "default, when no focal is given, one for a video's frames, and one per camera for "
+                        "photographs by their EXIF (make, model, lens, focal length, zoom and size); "
                         "--no-shared-focal: one per image")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,
                    help="keep pixels whose confidence is above this (absolute, >= 1 for network output)")

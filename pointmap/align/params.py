@@ -40,7 +40,8 @@ class AlignParams(torch.nn.Module):
         camera = torch.arange(n) if camera is None else torch.as_tensor(camera, dtype=torch.long)
         self.register_buffer("camera", camera)
         n_cams = int(camera.max()) + 1
-        log_f = torch.zeros(n_cams, dtype=fx.dtype).index_add_(0, camera, fx.log()) / torch.bincount(camera, minlength=n_cams)
+        log_f = torch.zeros(n_cams, dtype=fx.dtype).index_add_(0, camera, fx.log())
+        log_f = log_f / torch.bincount(camera, minlength=n_cams)
         self.log_f = torch.nn.Parameter(log_f.to(dtype))
         self.log_depth = torch.nn.Parameter(depth.clamp_min(1e-8).log().to(dtype))
         self.pw_phi = torch.nn.Parameter(torch.zeros(E, 3, dtype=dtype))
