@@ -167,32 +167,23 @@ def scene_errors(model, size: int, scene: dict, settings: dict) -> tuple:
     return out, focal, failed, kept
 
 
-def main(argv=None) -> int:
+def open_sets(ap, args, methods: list) -> tuple:
+    """(model, size, datasets, set names) of ``--model``, ``--size`` and the multi-view sets ``--data``, checked
+    before the long run (``ap.error`` otherwise): ``--scenes`` positive, ``--size`` an input size, each set named
+    once (by its folder), ``--per-pair``'s files PREFIX-<method>.csv writable for every method and set, the model
+    and the sets opened; ``--threads`` set."""
     from data.datasets import MultiViewDataset
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
-    ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
-    ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
-    ap.add_argument("--settings", nargs="+", type=setting_name, default=None,
-                    help="alignment settings to compare (default: auto log id)")
-    ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
-                    help="write PREFIX-<method>.csv per method (benchmarks/paired.py reads them)")
-    args = ap.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes expected a positive count, got {args.scenes}")
     if args.size is not None and not is_input_size(args.size):
         ap.error(f"--size expected {INPUT_SIZE_RULE}, got {args.size}")
-    names = list(dict.fromkeys(args.settings or ["auto", "log", "id"]))
-    settings = {nm: parse_setting(nm) for nm in names}
     set_names = [Path(d).resolve().name for d in args.data]
     twice = sorted({nm for nm in set_names if set_names.count(nm) > 1})
     if twice:
         ap.error(f"--data: set name(s) {twice} given twice (a set is named by its folder)")
     if args.per_pair:
-        for m in ["pairwise", "pairwise + matches"] + [f"GA {nm}" for nm in names]:
+        for m in methods:
             for nm in set_names:
                 try:
                     check_per_pair(per_pair_path(args.per_pair, m), nm)
@@ -204,6 +195,45 @@ def main(argv=None) -> int:
         datasets = [MultiViewDataset(d) for d in args.data]
     except (PointmapError, OSError, ValueError) as e:
         ap.error(str(e))
+    return model, size, datasets, set_names
+
+
+def sets_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments of a benchmark over multi-view held-out sets (``open_sets`` checks them): --model, --data,
+    --scenes, --size, --threads, --per-pair."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
+    ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
+    ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
+    ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
+                    help="write PREFIX-<method>.csv per method (benchmarks/paired.py reads them)")
+    return ap
+
+
+def print_sets_table(res: dict, unit: str) -> None:
+    """The markdown table of {(set or "overall", method): [(rot err, dir err, true rotation), ...]}: RRA@15,
+    RTA@15 and the median errors, the sets first, "overall" last."""
+    print(f"| set | {unit} | method | RRA@15 | RTA@15 | median rot err | median dir err |")
+    print("|---|---|---|---|---|---|---|")
+    for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
+        v = np.array(vals)
+        d = v[:, 1][~np.isnan(v[:, 1])]  # NaN only from files of other tools (a zero baseline scores 90 here)
+        rta, dir_med = (f"{100 * np.mean(d < 15):.1f}%", f"{np.median(d):.1f}") if len(d) else ("-", "-")
+        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {rta} | "
+              f"{np.median(v[:, 0]):.1f} | {dir_med} |")
+
+
+def main(argv=None) -> int:
+    ap = sets_parser(__doc__)
+    ap.add_argument("--settings", nargs="+", type=setting_name, default=None,
+                    help="alignment settings to compare (default: auto log id)")
+    args = ap.parse_args(argv)
+    names = list(dict.fromkeys(args.settings or ["auto", "log", "id"]))
+    settings = {nm: parse_setting(nm) for nm in names}
+    model, size, datasets, set_names = open_sets(ap, args, ["pairwise", "pairwise + matches"] +
+                                                 [f"GA {nm}" for nm in names])
     res = defaultdict(list)
     foc = defaultdict(list)
     failures, kept_all, view_counts = [], [], set()
@@ -231,14 +261,7 @@ def main(argv=None) -> int:
         print(f"alignment failed (its pairs count 180 degrees): {f}")
     for f in kept_all:
         print(f"epipolar stage not applied (the aligned poses kept): {f}")
-    print("| set | camera pairs | method | RRA@15 | RTA@15 | median rot err | median dir err |")
-    print("|---|---|---|---|---|---|---|")
-    for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
-        v = np.array(vals)
-        d = v[:, 1][~np.isnan(v[:, 1])]  # NaN only from files of other tools (a zero baseline scores 90 here)
-        rta, dir_med = (f"{100 * np.mean(d < 15):.1f}%", f"{np.median(d):.1f}") if len(d) else ("-", "-")
-        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {rta} | "
-              f"{np.median(v[:, 0]):.1f} | {dir_med} |")
+    print_sets_table(res, "camera pairs")
     print()
     print("| method | views | median focal err | focal err < 10% |")
     print("|---|---|---|---|")

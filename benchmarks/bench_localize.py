@@ -20,7 +20,6 @@ method can pose counts 180 degrees. ``--per-pair PREFIX`` writes one CSV per met
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -37,11 +36,10 @@ from pointmap.errors import PointmapError  # noqa: E402
 from pointmap.geometry.rotations import rotation_angle  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_ga import per_pair_path  # noqa: E402
-from bench_pose import errors, model_at_size  # noqa: E402
+from bench_ga import open_sets, per_pair_path, print_sets_table, sets_parser  # noqa: E402
+from bench_pose import errors  # noqa: E402
 
-from pointmap.images import INPUT_SIZE_RULE, is_input_size  # noqa: E402
-from training.evaluate import PairResult, check_per_pair, write_per_pair  # noqa: E402
+from training.evaluate import PairResult, write_per_pair  # noqa: E402
 
 METHODS = ("estimated", "recon focal", "true K")
 
@@ -75,43 +73,15 @@ def scene_errors(model, size: int, scene: dict, shared_focal: bool, recon_K: boo
 
 
 def main(argv=None) -> int:
-    from data.datasets import MultiViewDataset
-
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--model", default="small", help="a shipped name or a .safetensors file")
-    ap.add_argument("--data", nargs="+", required=True, help="held-out shard folders (multi-view scenes)")
-    ap.add_argument("--scenes", type=int, default=None, help="at most this many scenes per set (default all)")
+    ap = sets_parser(__doc__)
     ap.add_argument("--shared-focal", dest="shared_focal", action="store_true",
                     help="reconstruct with one focal for all views (one-camera sets)")
     ap.add_argument("--recon-K", dest="recon_K", action="store_true",
                     help="reconstruct with the views' true intrinsics given (pointmap reconstruct --focal F)")
-    ap.add_argument("--size", type=int, default=None, help="network input size (default: the model's)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--per-pair", dest="per_pair", default=None, metavar="PREFIX",
-                    help="write PREFIX-<method>.csv per method (benchmarks/paired.py reads them)")
     args = ap.parse_args(argv)
-    if args.scenes is not None and args.scenes < 1:
-        ap.error(f"--scenes expected a positive count, got {args.scenes}")
     if args.shared_focal and args.recon_K:
         ap.error("--shared-focal and --recon-K: a known K is not estimated, shared or not; give one")
-    if args.size is not None and not is_input_size(args.size):
-        ap.error(f"--size expected {INPUT_SIZE_RULE}, got {args.size}")
-    set_names = [Path(d).resolve().name for d in args.data]
-    if len(set(set_names)) < len(set_names):
-        ap.error(f"--data: a set name given twice in {set_names} (a set is named by its folder)")
-    if args.per_pair:
-        for m in METHODS:
-            for nm in set_names:
-                try:
-                    check_per_pair(per_pair_path(args.per_pair, m), nm)
-                except (ValueError, OSError) as e:
-                    ap.error(f"--per-pair: {e}")
-    torch.set_num_threads(args.threads)
-    try:  # the model and every set, opened before the long run
-        model, size = model_at_size(args.model, args.size)
-        datasets = [MultiViewDataset(d) for d in args.data]
-    except (PointmapError, OSError, ValueError) as e:
-        ap.error(str(e))
+    model, size, datasets, set_names = open_sets(ap, args, list(METHODS))
     res, failures = defaultdict(list), []
     for ds, set_name in zip(datasets, set_names):
         count = len(ds) if args.scenes is None else min(len(ds), args.scenes)
@@ -130,12 +100,7 @@ def main(argv=None) -> int:
           "(query, reconstruction view)")
     for f in failures:
         print(f"not posed (its rows count 180 degrees): {f}")
-    print("| set | rows | method | RRA@15 | RTA@15 | median rot err | median dir err |")
-    print("|---|---|---|---|---|---|---|")
-    for (group, m), vals in sorted(res.items(), key=lambda kv: (kv[0][0] == "overall", kv[0][0])):
-        v = np.array(vals)
-        print(f"| {group} | {len(v)} | {m} | {100 * np.mean(v[:, 0] < 15):.1f}% | {100 * np.mean(v[:, 1] < 15):.1f}% | "
-              f"{np.median(v[:, 0]):.1f} | {np.median(v[:, 1]):.1f} |")
+    print_sets_table(res, "rows")
     return 0
 
 
