@@ -202,7 +202,40 @@ def pair_summary(npz: Path) -> str:
             f"{', one shared' if 'focal_shared' in z and bool(z['focal_shared']) else ''})")
 
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif")
+
+
+def convert_heif(images: list[str], folder: Path, quiet: bool) -> list[str]:
+    """``reconstruct``'s HEIC / HEIF photographs (an iPhone's) as JPEGs in ``folder`` (quality 95, upright, the EXIF
+    kept with its orientation reset), the other images as given: the exports copy the photographs beside the model,
+    and 3DGS trainers cannot read HEIC. Each keeps its stem (``--masks`` and ``--cameras`` match by it).
+    PointmapError when a converted name would be another input's; ImageError for an unreadable file, or without
+    pillow-heif."""
+    from PIL import Image
+
+    from pointmap.atomic import atomic_path
+    from pointmap.images import HEIF_SUFFIXES, read_rgb
+
+    heif = [k for k, img in enumerate(images) if Path(img).suffix.lower() in HEIF_SUFFIXES]
+    names = [Path(img).name.lower() for img in images]
+    out = list(images)
+    for k in heif:
+        name = Path(images[k]).stem + ".jpg"
+        if name.lower() in names:
+            raise PointmapError(f"{images[k]} is converted to {name} (3DGS trainers cannot read HEIC), the name of "
+                                f"another input; rename one of them")
+        names.append(name.lower())
+        upright = Image.fromarray(read_rgb(images[k]))  # EXIF orientation applied, as the loader reads it
+        with Image.open(images[k]) as im:
+            exif = im.getexif()
+        exif[0x0112] = 1  # the pixels are upright now
+        with atomic_path(folder / name) as tmp:
+            upright.save(tmp, format="JPEG", quality=95, exif=exif)
+        out[k] = str(folder / name)
+    if heif and not quiet:
+        print(f"pointmap: {len(heif)} HEIC / HEIF photograph(s) converted to JPEG in {folder} (3DGS trainers cannot "
+              "read HEIC)", file=sys.stderr)
+    return out
 
 
 def _image_files(folder: Path) -> list[str]:
@@ -552,7 +585,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
     times: dict = {}
-    images = expand_images(inputs, out / "frames", args.stride, args.max_frames, times)
+    images = convert_heif(expand_images(inputs, out / "frames", args.stride, args.max_frames, times),
+                          out / "converted", args.quiet)
     if len(images) < 2:  # said now, before the model loads, and for a video in its own terms
         how = ("" if not video else f"; the video gave {len(images)} frame(s) at --stride {args.stride}: a smaller "
                "--stride keeps more" if args.stride is not None else f"; the video holds {len(images)} frame(s)")

@@ -68,6 +68,23 @@ def _as_list(paths_or_arrays, caller: str):
     return paths_or_arrays
 
 
+HEIF_SUFFIXES = (".heic", ".heif")  # an iPhone's photographs: read through the optional pillow-heif
+
+
+def open_heif_ready(path) -> None:
+    """Before PIL opens ``path``: for a HEIC / HEIF photograph, pillow-heif's opener registered with PIL (it applies
+    the file's rotation and mirroring as it decodes); ImageError naming the optional dependency when it is not
+    installed. Nothing for other files."""
+    if Path(path).suffix.lower() not in HEIF_SUFFIXES:
+        return
+    try:
+        import pillow_heif
+    except ImportError:
+        raise ImageError(f"{path} is a HEIC / HEIF photograph: reading it needs pillow-heif (pip install "
+                         "'pointmap[heic]', or pillow-heif)") from None
+    pillow_heif.register_heif_opener()
+
+
 def _read(src, index: int):
     from PIL import Image, ImageOps, UnidentifiedImageError
 
@@ -105,6 +122,7 @@ def _read(src, index: int):
         raise ImageError(f"image not found: {path}")
     if path.is_dir():
         raise ImageError(f"expected an image file, got a directory: {path}")
+    open_heif_ready(path)
     try:
         im = Image.open(path)
         im.load()
@@ -215,6 +233,8 @@ def exif_cameras(paths_or_arrays) -> list[ExifCamera | None]:
             _read(src, i)  # an array carries no EXIF; a bad one is refused as the loader refuses it
             out.append(None)
             continue
+        if not isinstance(src, Image.Image):
+            open_heif_ready(src)
         try:  # the caller's own PIL image is left open
             with contextlib.nullcontext(src) if isinstance(src, Image.Image) else Image.open(src) as im:
                 (w, h), exif = im.size, im.getexif()

@@ -92,6 +92,32 @@ def test_shared_focal_over_images_of_several_sizes_is_refused_by_flag_and_size_b
            "80x60: a.jpg, b.PNG, c.png; 60x80: d.jpg" in capsys.readouterr().err
 
 
+def test_heic_photographs_are_reconstructed_from_jpeg_copies_that_the_exports_hold(tiny, tmp_path, capsys):
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from PIL import Image
+
+    from pointmap.io import load_npz
+
+    pillow_heif.register_heif_opener()
+    weights, folder = tiny
+    rng = np.random.default_rng(8)
+    for name in ("IMG_0001.HEIC", "IMG_0002.heif"):
+        Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(folder / name, quality=95)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(folder), "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--export", "colmap,npz"]) == 0
+    assert f"2 HEIC / HEIF photograph(s) converted to JPEG in {out / 'converted'}" in capsys.readouterr().err
+    names = load_npz(out / "reconstruction.npz").names
+    assert names == ["IMG_0001.jpg", "IMG_0002.jpg", "a.jpg", "b.PNG", "c.png"]
+    assert sorted(p.name for p in (out / "images").iterdir()) == sorted(names)  # what 3DGS trainers read
+    with Image.open(out / "images" / "IMG_0001.jpg") as im:
+        assert im.format == "JPEG" and im.size == (80, 60)
+    (folder / "IMG_0001.jpg").write_bytes((folder / "a.jpg").read_bytes())  # the converted name is taken
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "o2"), "--model", str(weights)]) == 2
+    assert "IMG_0001.HEIC is converted to IMG_0001.jpg (3DGS trainers cannot read HEIC), the name of another " \
+           "input" in capsys.readouterr().err
+
+
 def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     # the model named does not exist: the folder's own error shows the inputs were read before the model

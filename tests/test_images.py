@@ -137,6 +137,29 @@ def test_exif_cameras_name_each_photographs_camera_and_one_camera_needs_one_body
     assert exif_camera_labels([cams[0], unzoomed]) == [0, 0]
 
 
+def test_heic_photographs_are_read_through_pillow_heif_and_refused_by_name_without_it(tmp_path, monkeypatch):
+    import sys
+
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from pointmap.images import exif_cameras
+
+    pillow_heif.register_heif_opener()
+    im = Image.fromarray(np.zeros((48, 64, 3), np.uint8))
+    im.paste((255, 255, 255), (0, 0, 16, 16))  # a white corner: top left as read
+    exif = im.getexif()
+    exif[0x010F], exif[0x0110] = "Apple", "iPhone 13"
+    exif.get_ifd(0x8769)[0x920A] = 5.1
+    im.save(tmp_path / "IMG_0001.HEIC", quality=95, exif=exif)
+    view = pm.load_images([tmp_path / "IMG_0001.HEIC"], size=64, whole=True)[0]
+    assert view.original_size == (64, 48) and view.name == "IMG_0001.HEIC"
+    assert float(view.img[:, :8, :8].mean()) > 0.9 and float(view.img[:, -8:, -8:].mean()) < 0.1
+    assert exif_cameras(tmp_path / "IMG_0001.HEIC")[0].body[:2] == ("Apple", "iPhone 13")
+    monkeypatch.setitem(sys.modules, "pillow_heif", None)  # not installed: the import fails
+    with pytest.raises(ImageError, match=r"IMG_0001.HEIC is a HEIC / HEIF photograph: reading it needs pillow-heif "
+                                         r"\(pip install 'pointmap\[heic\]', or pillow-heif\)"):
+        pm.load_images([tmp_path / "IMG_0001.HEIC"], size=64)
+
+
 def test_gray_rgba_and_16_bit_images_become_rgb(tmp_path):
     Image.fromarray(np.full((64, 64), 128, np.uint8)).save(tmp_path / "g.png")
     Image.fromarray(np.zeros((64, 64, 4), np.uint8)).save(tmp_path / "a.png")  # transparent -> white
