@@ -107,17 +107,21 @@ def parse_focals(text: str, images: list) -> list[float]:
     return focal * n if len(focal) == 1 else focal
 
 
-def exif_shared_focal(images: list, note_focal: bool, note_cameras: bool):
-    """The photographs' cameras by their EXIF (``pointmap.images.exif_camera_labels``: one make, model, lens, focal
-    length and zoom, one size) as ``AlignConfig.shared_focal`` takes them: True for one camera, a label per image for
-    several, False when no two share one; read when neither ``--focal`` nor ``--cameras`` is given. Notes on stderr:
-    ``note_cameras``, the cameras that share a focal; ``note_focal``, that every photograph carries an EXIF focal
-    that ``--focal exif`` would hold fixed instead of estimating it (a known focal steadies the camera translations:
-    docs/alignment.md)."""
+def shared_focals(images: list, videos: dict, note_focal: bool, note_cameras: bool):
+    """Which images share one focal when no focal is given, as ``AlignConfig.shared_focal`` takes it (True: all,
+    a label per image: several cameras, False: none): the frames of one video (``videos``: frame path -> video), and
+    the photographs of one camera by their EXIF (``pointmap.images.exif_camera_labels``: one make, model, lens, focal
+    length and zoom, one size). Notes on stderr: ``note_cameras``, the cameras that share a focal; ``note_focal``,
+    that every photograph carries an EXIF focal that ``--focal exif`` would hold fixed instead of estimating it (a
+    known focal steadies the camera translations: docs/alignment.md)."""
     from pointmap.images import exif_camera_labels, exif_cameras
 
     cameras = exif_cameras(images)
+    first: dict = {}  # a video's frames take the label of its first frame
     labels = exif_camera_labels(cameras)
+    labels = [labels[first.setdefault(videos[img], k)] if img in videos else labels[k] for k, img in enumerate(images)]
+    order: dict = {}
+    labels = [order.setdefault(c, len(order)) for c in labels]  # 0, 1, ... in order of first appearance
     if note_focal and images and all(c is not None and c.focal_35mm is not None for c in cameras):
         print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
               "estimating the focals (docs/alignment.md)", file=sys.stderr)
@@ -125,12 +129,12 @@ def exif_shared_focal(images: list, note_focal: bool, note_cameras: bool):
     if max(counts.values(), default=0) < 2:
         return False
     if note_cameras:
-        shared = [f"{describe_exif_camera(cameras[labels.index(c)])}: {m}" for c, m in counts.items() if m > 1]
+        groups = [f"the {m} frames of {Path(videos[images[k]]).name}" if images[k] in videos else
+                  f"{m} photographs of one camera by their EXIF ({describe_exif_camera(cameras[k])})"
+                  for c, m in counts.items() if m > 1 for k in [labels.index(c)]]
         alone = sum(m == 1 for m in counts.values())
-        print(f"pointmap: by their EXIF, {sum(m for m in counts.values() if m > 1)} of the {len(images)} photographs "
-              f"are of {'one camera' if len(shared) == 1 else f'{len(shared)} cameras'} ({'; '.join(shared)}), "
-              f"{'each' if len(shared) > 1 else 'that'} with one estimated focal"
-              f"{f', and {alone} of their own' if alone else ''} (--no-shared-focal: one per photograph)",
+        print(f"pointmap: one estimated focal per camera: {'; '.join(groups)}"
+              f"{f'; the other {alone} image(s) each its own' if alone else ''} (--no-shared-focal: one per image)",
               file=sys.stderr)
     return True if len(counts) == 1 else tuple(labels)
 
@@ -165,7 +169,7 @@ def cmd_pair(args) -> int:
     focal = None if args.focal is None else parse_focals(args.focal, args.images)
     shared = args.shared_focal
     if shared is None and focal is None:  # two photographs of one camera by their EXIF: one focal
-        shared = exif_shared_focal(args.images, note_focal=not args.quiet, note_cameras=not args.quiet) is True
+        shared = shared_focals(args.images, {}, note_focal=not args.quiet, note_cameras=not args.quiet) is True
     model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal, shared_focal=bool(shared), device=args.device)
@@ -245,13 +249,14 @@ def _image_files(folder: Path) -> list[str]:
 
 
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
-                  max_frames: int = 30, times: dict | None = None) -> list[str]:
+                  max_frames: int = 30, times: dict | None = None, videos: dict | None = None) -> list[str]:
     """Image paths from the command line: a folder stands for its image files (sorted by name, suffixes in
     ``IMAGE_SUFFIXES``, any case), or when it has none for those of its ``images/`` folder (the layout of a
     COLMAP or nerfstudio scene); a video (``pointmap.video.VIDEO_SUFFIXES``) for frames extracted into
     ``frames_dir`` (``pointmap.video.extract_frames``: one per ``stride`` frames, the sharpest of each window,
     at most ``max_frames`` when no stride is given); files are kept as given. ``times``, a dict, receives each
-    extracted frame's time in seconds (``extract_frames(with_times=True)``) under its path. PointmapError for a
+    extracted frame's time in seconds (``extract_frames(with_times=True)``) under its path, ``videos`` its video.
+    PointmapError for a
     folder without images, or a path that does not exist."""
     from pointmap.video import extract_frames, is_video
 
@@ -270,6 +275,8 @@ def expand_images(items: list[str], frames_dir: Path | None = None, stride: int 
             out += [str(f) for f, _ in frames]
             if times is not None:
                 times.update((str(f), t) for f, t in frames)
+            if videos is not None:
+                videos.update((str(f), str(p)) for f, _ in frames)
         elif p.is_dir():
             found = _image_files(p)
             if not found and (p / "images").is_dir():  # a COLMAP / nerfstudio scene: its photographs in images/
@@ -585,7 +592,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         raise PointmapError(f"--masks expected a folder of mask images, got {args.masks!r}")
     video = any(is_video(i) for i in inputs)
     times: dict = {}
-    images = convert_heif(expand_images(inputs, out / "frames", args.stride, args.max_frames, times),
+    videos: dict = {}
+    images = convert_heif(expand_images(inputs, out / "frames", args.stride, args.max_frames, times, videos),
                           out / "converted", args.quiet)
     if len(images) < 2:  # said now, before the model loads, and for a video in its own terms
         how = ("" if not video else f"; the video gave {len(images)} frame(s) at --stride {args.stride}: a smaller "
@@ -612,17 +620,13 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
-    # one focal per camera: for all the images with --shared-focal; with no focal given, for a video's frames, or
+    # one focal per camera: for all the images with --shared-focal; with no focal given, for each video's frames and
     # for the photographs of each camera by their EXIF (--no-shared-focal: one focal per image)
     estimated = args.focal is None and args.cameras is None
+    shared = False if not estimated else shared_focals(images, videos, note_focal=not args.quiet,
+                                                       note_cameras=not args.quiet and args.shared_focal is None)
     if args.shared_focal is not None:
         shared = args.shared_focal
-        if estimated and not video:  # for the note on EXIF focals only
-            exif_shared_focal(images, note_focal=not args.quiet, note_cameras=False)
-    elif estimated:
-        shared = True if video else exif_shared_focal(images, note_focal=not args.quiet, note_cameras=not args.quiet)
-    else:
-        shared = False
     if args.focal is not None:  # known focal(s), principal point at each image's centre (original pixels)
         focal = parse_focals(args.focal, images)
         if shared and len(set(focal)) > 1:
@@ -1023,7 +1027,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"units per step of a 16-bit depth PNG (default {DEPTH_PNG_SCALE}: millimetres to metres)")
     r.add_argument("--shared-focal", dest="shared_focal", action=argparse.BooleanOptionalAction, default=None,
                    help="the images come from one camera (same size, same zoom): estimate one focal for all. By "
-                        "default, when no focal is given, one for a video's frames, and one per camera for "
+                        "default, when no focal is given, one for each video's frames, and one per camera for "
                         "photographs by their EXIF (make, model, lens, focal length, zoom and size); "
                         "--no-shared-focal: one per image")
     r.add_argument("--min-conf", dest="min_conf", type=float, default=None,

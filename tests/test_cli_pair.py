@@ -184,18 +184,19 @@ def test_photographs_of_one_camera_by_their_EXIF_share_one_estimated_focal_unles
         return load_npz(out / "reconstruction.npz").K[:, 0, 0].tolist()
 
     assert main(["reconstruct", *ims, *args]) == 0
-    assert "by their EXIF, 3 of the 3 photographs are of one camera (Canon EOS 80D, 35 mm, 90x60: 3), that with one " \
-           "estimated focal (--no-shared-focal: one per photograph)" in capsys.readouterr().err
+    assert "one estimated focal per camera: 3 photographs of one camera by their EXIF (Canon EOS 80D, 35 mm, 90x60) " \
+           "(--no-shared-focal: one per image)" in capsys.readouterr().err
     assert len(set(focals())) == 1
     assert main(["reconstruct", *ims, *args, "--no-shared-focal"]) == 0
-    assert "by their EXIF" not in capsys.readouterr().err
+    assert "one estimated focal per camera" not in capsys.readouterr().err
     assert len(set(focals())) == 3  # one per photograph, as asked
     # two cameras (the zoom lens turned to 50 mm for two of them) and a photograph without EXIF: three focals
     mixed = [ims[0], photo("z0.jpg", "Canon EOS 80D", 50), ims[1], photo("plain.jpg", None, None),
              photo("z1.jpg", "Canon EOS 80D", 50)]
     assert main(["reconstruct", *mixed, *args]) == 0
-    assert "by their EXIF, 4 of the 5 photographs are of 2 cameras (Canon EOS 80D, 35 mm, 90x60: 2; Canon EOS 80D, " \
-           "50 mm, 90x60: 2), each with one estimated focal, and 1 of their own" in capsys.readouterr().err
+    assert "one estimated focal per camera: 2 photographs of one camera by their EXIF (Canon EOS 80D, 35 mm, 90x60); " \
+           "2 photographs of one camera by their EXIF (Canon EOS 80D, 50 mm, 90x60); the other 1 image(s) each its " \
+           "own" in capsys.readouterr().err
     f = focals()
     assert f[0] == f[2] and f[1] == f[4] and len(set(f)) == 3
     assert main(["--quiet", "reconstruct", *ims[:2], photo("z2.jpg", "Canon EOS 80D", 50), *args]) == 0
@@ -232,7 +233,8 @@ def test_the_pair_command_gives_two_photographs_of_one_camera_one_focal_by_their
     own = iter([50.0, 72.0] * 20)
     assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--size", "64"]) == 0
     captured = capsys.readouterr()
-    assert "by their EXIF, 2 of the 2 photographs are of one camera (Apple iPhone 13, 5 mm, 90x60: 2)" in captured.err
+    assert "one estimated focal per camera: 2 photographs of one camera by their EXIF (Apple iPhone 13, 5 mm, " \
+           "90x60)" in captured.err
     assert "(original pixels, one shared)" in captured.out
     z = np.load(out / "pair.npz")
     assert float(z["focal1"]) == float(z["focal2"]) and bool(z["focal_shared"])

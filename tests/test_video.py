@@ -129,6 +129,31 @@ def test_the_reconstruct_command_takes_a_video_and_pairs_its_frames_in_time_orde
     assert len(f) == 5 and len(set(f.tolist())) == 5  # one focal per frame, as asked
 
 
+def test_a_videos_frames_share_one_focal_beside_photographs_of_another_size_that_keep_their_own(tmp_path, capsys):
+    import torch
+
+    import pointmap as pm
+    from pointmap.cli import main
+    from pointmap.io import load_npz
+
+    torch.manual_seed(0)
+    weights = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "tiny.safetensors")
+    video = _video(tmp_path / "clip.avi", n=6)
+    rng = np.random.default_rng(2)
+    photos = [str(tmp_path / f"p{k}.png") for k in range(2)]
+    for p in photos:
+        cv2.imwrite(p, rng.integers(0, 255, (90, 120, 3), dtype=np.uint8))
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(video), *photos, "-o", str(out), "--model", str(weights), "--size", "64",
+                 "--stride", "2", "--export", "npz"]) == 0
+    assert "one estimated focal per camera: the 3 frames of clip.avi; the other 2 image(s) each its own" in \
+        capsys.readouterr().err
+    rec = load_npz(out / "reconstruction.npz")
+    f = rec.K[:, 0, 0].tolist()
+    assert rec.names[3:] == ["p0.png", "p1.png"] and f[0] == f[1] == f[2] and len(set(f)) == 3
+    assert rec.info["align"]["config"]["shared_focal"] == [0, 0, 0, 1, 2]  # (a tuple, saved as a list)
+
+
 def test_a_video_that_states_no_frame_count_is_counted_frame_by_frame(tmp_path, monkeypatch):
     from pointmap.video import count_frames
 
