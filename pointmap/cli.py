@@ -212,7 +212,8 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".h
 def convert_heif(images: list[str], folder: Path, quiet: bool) -> list[str]:
     """``reconstruct``'s HEIC / HEIF photographs (an iPhone's) as JPEGs in ``folder`` (quality 95, upright, the EXIF
     kept with its orientation reset), the other images as given: the exports copy the photographs beside the model,
-    and 3DGS trainers cannot read HEIC. Each keeps its stem (``--masks`` and ``--cameras`` match by it).
+    and 3DGS trainers cannot read HEIC. Each keeps its stem, which ``--masks`` match by (a ``--cameras`` file must
+    name the JPEG, or the stem alone).
     PointmapError when a converted name would be another input's; ImageError for an unreadable file, or without
     pillow-heif."""
     from PIL import Image
