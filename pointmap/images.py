@@ -222,9 +222,9 @@ def _exif_text(value) -> str | None:
 
 
 def exif_cameras(paths_or_arrays) -> list[ExifCamera | None]:
-    """Each image's ``ExifCamera``, read from the file's header (not decoded); None for an image that carries no EXIF
-    (arrays, and a readable file whose EXIF block is broken reads as an empty one). ImageError for an image the
-    loader cannot read."""
+    """Each image's ``ExifCamera``, read from the file's header (not decoded); None for an array (it carries no EXIF).
+    A file without EXIF, or whose EXIF block is broken, gives its size alone. ImageError for an image the loader
+    cannot read."""
     from PIL import Image
 
     out = []
@@ -240,8 +240,7 @@ def exif_cameras(paths_or_arrays) -> list[ExifCamera | None]:
                 (w, h), exif = im.size, im.getexif()
                 sub = exif.get_ifd(EXIF_IFD)
         except (OSError, ValueError, SyntaxError, TypeError):  # unreadable: the loader's own message
-            _read(src, i)
-            exif, sub = {}, {}
+            (w, h), exif, sub = _read(src, i)[0].size, {}, {}  # readable, its EXIF broken: the size as read
         f35 = _exif_number(sub.get(FOCAL_35MM))
         zoom = _exif_number(sub.get(DIGITAL_ZOOM))
         body = (_exif_text(exif.get(MAKE)), _exif_text(exif.get(MODEL)), _exif_text(sub.get(LENS_MODEL)),

@@ -137,6 +137,24 @@ def test_exif_cameras_name_each_photographs_camera_and_one_camera_needs_one_body
     assert exif_camera_labels([cams[0], unzoomed]) == [0, 0]
 
 
+def test_a_photograph_whose_exif_block_cannot_be_parsed_gives_its_size_as_read_and_no_camera(tmp_path, monkeypatch):
+    import sys
+
+    from pointmap.images import exif_cameras
+
+    path = save_with_camera(tmp_path / "t.jpg", (40, 30), orientation=6)
+    getexif = Image.Image.getexif
+
+    def broken_in_the_header_read(self):  # fails as on a mangled EXIF block; the loader's own read succeeds
+        if sys._getframe(1).f_code.co_name == "exif_cameras":
+            raise SyntaxError("not a TIFF file")
+        return getexif(self)
+
+    monkeypatch.setattr(Image.Image, "getexif", broken_in_the_header_read)
+    cam = exif_cameras(path)[0]
+    assert cam.size == (30, 40) and cam.body is None and cam.focal_35mm is None  # as the loader reads it: turned
+
+
 def test_heic_photographs_are_read_through_pillow_heif_and_refused_by_name_without_it(tmp_path, monkeypatch):
     import sys
 
