@@ -117,11 +117,9 @@ def shared_focals(images: list, videos: dict, note_focal: bool, note_cameras: bo
     from pointmap.images import exif_camera_labels, exif_cameras
 
     cameras = exif_cameras(images)
-    first: dict = {}  # a video's frames take the label of its first frame
-    labels = exif_camera_labels(cameras)
-    labels = [labels[first.setdefault(videos[img], k)] if img in videos else labels[k] for k, img in enumerate(images)]
-    order: dict = {}
-    labels = [order.setdefault(c, len(order)) for c in labels]  # 0, 1, ... in order of first appearance
+    order: dict = {}  # a video's frames one camera, the others by their EXIF; 0, 1, ... in order of first appearance
+    labels = [order.setdefault(("video", videos[img]) if img in videos else c, len(order))
+              for img, c in zip(images, exif_camera_labels(cameras))]
     if note_focal and images and all(c is not None and c.focal_35mm is not None for c in cameras):
         print("pointmap: the photographs carry EXIF focal lengths; --focal exif would hold them fixed instead of "
               "estimating the focals (docs/alignment.md)", file=sys.stderr)
