@@ -210,8 +210,8 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".h
 def convert_heif(images: list[str], folder: Path, quiet: bool) -> list[str]:
     """``reconstruct``'s HEIC / HEIF photographs (an iPhone's) as JPEGs in ``folder`` (quality 95, upright, the EXIF
     kept with its orientation reset), the other images as given: the exports copy the photographs beside the model,
-    and 3DGS trainers cannot read HEIC. Each keeps its stem, which ``--masks`` match by (a ``--cameras`` file must
-    name the JPEG, or the stem alone).
+    and 3DGS trainers cannot read HEIC. Each keeps its stem, which ``--masks`` match by (``--cameras`` and
+    ``--pairs`` files may name the original or the JPEG).
     PointmapError when a converted name would be another input's; ImageError for an unreadable file, or without
     pillow-heif."""
     from PIL import Image
@@ -323,11 +323,13 @@ def is_colmap_path(path: str) -> bool:
     return Path(path).is_dir() or Path(path).name in {f"{n}{s}" for n in MODEL_FILES for s in (".bin", ".txt")}
 
 
-def cameras_from_file(path: str, images: list[str], poses: bool):
+def cameras_from_file(path: str, images: list[str], poses: bool, given: list[str] | None = None):
     """``--cameras``: ({image index: K}, with ``poses`` {image index: cam2world} else None, {image index: lens
     Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``)
     or a COLMAP sparse model (a folder, or its cameras file: ``pointmap.io.colmap.read_colmap``), matched by file
-    name. PointmapError when no image is named there, or a stated image size is not the image's."""
+    name: the image's, then that of the file it was converted from (``given``, e.g. ``IMG_0001.HEIC`` for
+    ``converted/IMG_0001.jpg``), then the stem. PointmapError when no image is named there, or a stated image size
+    is not the image's."""
     from pointmap.images import image_sizes
     from pointmap.io.colmap import read_colmap
     from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
@@ -335,10 +337,10 @@ def cameras_from_file(path: str, images: list[str], poses: bool):
     cams = read_colmap(path) if is_colmap_path(path) else read_transforms(path)
     names = [Path(p).name for p in images]
     # by file name; NeRF-synthetic files name frames without a suffix ("./train/r_0" for r_0.png)
-    matched = {k: cams[nm] if nm in cams else cams[Path(nm).stem] for k, nm in enumerate(names)
-               if nm in cams or Path(nm).stem in cams}
-    refuse_shared_keys(images, [nm if nm in cams else Path(nm).stem for nm in names], matched, "--cameras",
-                       "file name")
+    keys = [next((key for key in (nm, Path(orig).name, Path(nm).stem) if key in cams), None)
+            for nm, orig in zip(names, given or images)]
+    matched = {k: cams[key] for k, key in enumerate(keys) if key is not None}
+    refuse_shared_keys(images, keys, matched, "--cameras", "file name")
     if not matched:
         raise PointmapError(f"--cameras {path} names none of the {len(names)} images (it has "
                             f"{', '.join(sorted(cams)[:4])}{', ...' if len(cams) > 4 else ''}; the images are "
@@ -514,19 +516,20 @@ def writable_dir(out: Path, flag: str = "-o") -> Path:
     return out
 
 
-def pairs_from_file(path: str, images: list[str]) -> list[tuple[int, int]]:
+def pairs_from_file(path: str, images: list[str], given: list[str] | None = None) -> list[tuple[int, int]]:
     """``--pairs FILE``: one pair of photographs per line, two names separated by white space (the pairs format of
     hloc and COLMAP's custom matching; blank lines and lines starting with # are skipped). A name is an image's path
-    as given or found, its path from the folder it was read from, or its file name when that is unique. Returns
-    index pairs into ``images`` (``pm.reconstruct`` checks that they connect every image); PointmapError naming
-    the line otherwise."""
+    as given or found, its path from the folder it was read from, or its file name when that is unique; the same of
+    the file it was converted from (``given``, e.g. ``IMG_0001.HEIC`` for ``converted/IMG_0001.jpg``) name it too.
+    Returns index pairs into ``images`` (``pm.reconstruct`` checks that they connect every image); PointmapError
+    naming the line otherwise."""
     try:
         lines = Path(path).read_text(encoding="utf-8-sig").splitlines()  # -sig: a Windows editor's byte-order mark
     except (OSError, UnicodeDecodeError) as e:
         raise PointmapError(f"--pairs expected a text file of image name pairs, got {path!r} ({e})") from None
     exact: dict[str, int] = {}  # a photograph's own path, as given and resolved, names it first
     found: dict[str, set] = {}  # then any tail of its path: "b.jpg", "photos/b.jpg", ...
-    for k, img in enumerate(images):
+    for k, img in [*enumerate(images), *enumerate(given or [])]:
         p = Path(os.path.normpath(img))
         for key in (p.as_posix(), p.resolve().as_posix()):
             exact.setdefault(key, k)
@@ -592,8 +595,8 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
     video = any(is_video(i) for i in inputs)
     times: dict = {}
     videos: dict = {}
-    images = convert_heif(expand_images(inputs, out / "frames", args.stride, args.max_frames, times, videos),
-                          out / "converted", args.quiet)
+    given = expand_images(inputs, out / "frames", args.stride, args.max_frames, times, videos)
+    images = convert_heif(given, out / "converted", args.quiet)  # a --cameras or --pairs file may name either
     if len(images) < 2:  # said now, before the model loads, and for a video in its own terms
         how = ("" if not video else f"; the video gave {len(images)} frame(s) at --stride {args.stride}: a smaller "
                "--stride keeps more" if args.stride is not None else f"; the video holds {len(images)} frame(s)")
@@ -606,7 +609,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         from pointmap.pairs import pairs_from_list
 
         try:
-            graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images]))
+            graph = pairs_from_list(len(images), pairs_from_file(args.pairs, [str(i) for i in images], given))
         except GraphError as e:  # e.g. pairs that leave a photograph out: said with the file's name
             raise PointmapError(f"--pairs {args.pairs}: {e}") from None
     elif isinstance(graph, str) and graph != "auto" and not graph.startswith("retrieval"):
@@ -618,7 +621,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
             raise PointmapError(f"--graph {graph}: {e}") from None
     K, cam2world, distortions = None, None, {}
     if args.cameras is not None:
-        K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses)
+        K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses, given)
     # one focal per camera: for all the images with --shared-focal; with no focal given, for each video's frames and
     # for the photographs of each camera by their EXIF (--no-shared-focal: one focal per image)
     estimated = args.focal is None and args.cameras is None

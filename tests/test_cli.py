@@ -118,6 +118,29 @@ def test_heic_photographs_are_reconstructed_from_jpeg_copies_that_the_exports_ho
            "input" in capsys.readouterr().err
 
 
+def test_cameras_and_pairs_files_may_name_heic_originals_that_were_converted_to_jpeg(tiny, tmp_path, monkeypatch):
+    import json
+
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from PIL import Image
+
+    pillow_heif.register_heif_opener()
+    folder = tiny[1]
+    rng = np.random.default_rng(9)
+    Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(folder / "IMG_0001.HEIC", quality=95)
+    # a phone app's or a retrieval's files, written for the originals: sorted, the images are IMG_0001.jpg, a, b, c
+    (tmp_path / "pairs.txt").write_text("IMG_0001.HEIC a.jpg\na.jpg b.PNG\nb.PNG c.png\n")
+    frames = [{"file_path": "images/IMG_0001.HEIC", "fl_x": 70.0, "fl_y": 70.0, "cx": 40.0, "cy": 30.0,
+               "w": 80, "h": 60, "transform_matrix": np.eye(4).tolist()}]
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": frames}))
+    seen, _ = _reconstruct_recording(tiny, tmp_path, monkeypatch, lambda k: (k["graph"], k["K"]), ([],), "--pairs",
+                                     str(tmp_path / "pairs.txt"), "--cameras", str(tmp_path / "transforms.json"))
+    (graph, K), = seen
+    assert sorted(graph) == [(0, 1), (1, 2), (2, 3)]
+    # the file's principal point in nerfstudio's pixel corners, ours in pixel centres
+    assert sorted(K) == [0] and np.allclose(K[0], [[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]])
+
+
 def test_a_folder_without_images_is_refused_by_name(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     # the model named does not exist: the folder's own error shows the inputs were read before the model
