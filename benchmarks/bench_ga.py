@@ -18,7 +18,8 @@ model's coarse matches (``refine_epipolar``, what ``reconstruct`` runs by defaul
 cheirality residuals, as before session 33; '+E@<deg>' with that width of its rotation prior,
 ``EpipolarConfig.rotation_prior_deg``), '+T' for DUSt3R's
 spanning-tree start (``AlignConfig(init='mst')``, the default before session 32) instead of the motion-averaging one
-and '+P' for the averaging start from the Procrustes of the pointmaps even when the model has a pose head
+and '+C' with an epipolar stage for its focals self-calibrated on the matches (``EpipolarConfig.self_calibrate``),
+'+P' for the averaging start from the Procrustes of the pointmaps even when the model has a pose head
 (``AlignConfig(pose_head=False)``, as before session 49), '+H<weight>' or '+H<weight>@<rot>,<dir>' for the pose
 heads' prior on the cameras at that weight and those Cauchy widths in degrees (``AlignConfig.head_prior``,
 ``head_prior_deg``; '+H0' turns it off). The table gives RRA@15 / RTA@15 / median
@@ -91,8 +92,9 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
         prior_ok = True
     except (ValueError, PointmapError):
         prior_ok = False
-    if any(f not in ("K", "F", "S", "T", "P", *stages) for f in flags) or len(set(flags)) < len(flags) \
-            or len(stages & set(flags)) > 1 or len(prior) > 1 or not prior_ok or (prior and "P" in flags):
+    if any(f not in ("K", "F", "S", "T", "P", "C", *stages) for f in flags) or len(set(flags)) < len(flags) \
+            or len(stages & set(flags)) > 1 or len(prior) > 1 or not prior_ok or (prior and "P" in flags) \
+            or ("C" in flags and not stages & set(flags)):
         raise argparse.ArgumentTypeError(f"setting {s!r}: expected '+K' (true intrinsics), '+F' (shared focal), "
                                          "'+S' (sparse refinement on matches), '+E' (epipolar pose refinement "
                                          "on matches, as reconstruct), '+E-' (the same without its cheirality "
@@ -101,7 +103,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
                                          "(spanning-tree start), '+P' (the averaging start from the "
                                          "pointmaps' Procrustes, not the pose head) and/or '+H<weight>[@<rot>,<dir>]' (the "
                                          "pose heads' prior at that weight and widths in degrees, e.g. +H0.1, "
-                                         "+H0.1@10,20; +H0: off; not with +P, which has no head)")
+                                         "+H0.1@10,20; +H0: off; not with +P, which has no head), '+C' (with an "
+                                         "epipolar stage: its focals self-calibrated on the matches)")
     transform, _, opt = body.partition(":")
     if transform not in CONF_TRANSFORMS + ("auto",):
         raise argparse.ArgumentTypeError(f"setting {s!r}: conf_transform expected 'auto' or one of {CONF_TRANSFORMS}")
@@ -110,7 +113,8 @@ def parse_setting(s: str) -> tuple[AlignConfig, bool, bool, EpipolarConfig | Non
     cfg = AlignConfig(conf_transform=transform, optimizer=opt or "adam", shared_focal="F" in flags,
                       init="mst" if "T" in flags else "averaging", pose_head="P" not in flags, quiet=True,
                       **prior_cfg)
-    epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags, **stage_prior) \
+    epipolar = EpipolarConfig(cheirality="E-" not in flags, second_descent="E" in flags, self_calibrate="C" in flags,
+                              **stage_prior) \
         if stages & set(flags) else None
     return cfg, "K" in flags, "S" in flags, epipolar
 

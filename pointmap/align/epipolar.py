@@ -48,12 +48,14 @@ from functools import partial
 import numpy as np
 import torch
 
+from pointmap.align.selfcal import calibrate_focals, fundamental_matrices
 from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.pose import _bearings
 from pointmap.reconstruction import K_to_original, Reconstruction
 
 # lsmr's default tolerances stop its steps early: hundreds of slow iterations, ending 1 degree off
 LSMR_TIGHT = {"atol": 1e-12, "btol": 1e-12, "regularize": False}
+SELFCAL_THRESHOLD = 1 / 224  # the fundamental matrices' RANSAC threshold over the map's longer side (1 px at 224)
 MIN_PARALLAX_DEG = 0.5  # in_front_share: rays closer to parallel than this do not count
 
 
@@ -67,7 +69,8 @@ class EpipolarConfig:
     cheirality: the fit also pays for matched points moved behind a camera (``solve_poses``; False: the epipolar
     residuals alone, the stage before session 33); second_descent: with cheirality, a second descent (uncharged,
     then charged) that can cross where the charge stops the first (``solve_poses``; False: one descent, session
-    33's stage)."""
+    33's stage); self_calibrate: unknown focals start from the matches' (``pointmap.align.selfcal``: each pair's
+    fundamental matrix, one focal per camera, held near the network's) instead of the network's own."""
 
     rotation_prior_deg: float = 3.0
     threshold_px: float | None = None
@@ -77,6 +80,7 @@ class EpipolarConfig:
     refit_depth: bool = True
     cheirality: bool = True
     second_descent: bool = True
+    self_calibrate: bool = False
 
     def __post_init__(self):
         ints = (self.rounds, self.max_evals, self.patch)
@@ -88,7 +92,7 @@ class EpipolarConfig:
                                                           and 0 < self.threshold_px < math.inf)):
             raise ShapeError(f"EpipolarConfig expected rotation_prior_deg > 0, threshold_px > 0 (finite) or None, rounds, "
                              f"max_evals and patch ints >= 1; got {self}")
-        for name in ("refit_depth", "cheirality", "second_descent"):
+        for name in ("refit_depth", "cheirality", "second_descent", "self_calibrate"):
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"EpipolarConfig.{name} expected True or False, got {getattr(self, name)!r}")
 
@@ -560,7 +564,14 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     from pointmap.matching import match_coarse
 
     h, w = recon.depth_z.shape[1:]
+    matches = {}
+    for i, j in _pair_list(preds):
+        m = match_coarse(preds[(i, j)], cfg.patch)
+        keep = (m.score > 0).numpy()  # cells of zero descriptor confidence (masked pixels) match nothing
+        if keep.any():
+            matches[(i, j)] = (m.xy1.double().numpy()[keep], m.xy2.double().numpy()[keep])
     K_map = recon.K_map.double().clone()
+    calibration = None
     if len(known_K) < n:
         f_own = own_focals(preds, n)
         camera = camera_index(rep.get("config", {}).get("shared_focal", False), n).numpy()
@@ -568,6 +579,11 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
             one = camera == c
             if one.sum() > 1 and np.isfinite(f_own[one]).any():
                 f_own[one] = float(np.nanmedian(f_own[one]))
+        if cfg.self_calibrate and np.isfinite(f_own).all():
+            Fs = fundamental_matrices(matches, SELFCAL_THRESHOLD * max(h, w))
+            f_cal = calibrate_focals(Fs, f_own, K_map[:, :2, 2].numpy(), camera, sorted(known_K))
+            calibration = {"pairs": len(Fs), "focals_own": f_own.tolist(), "focals": f_cal.tolist()}
+            f_own = f_cal
         for k in range(n):
             if k not in known_K and math.isfinite(f_own[k]):
                 K_map[k] = intrinsics(float(f_own[k]), float(K_map[k, 0, 2]), float(K_map[k, 1, 2]),
@@ -575,16 +591,12 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     thr = cfg.threshold_px if cfg.threshold_px is not None else max(h, w) / 56
     I, J, r1, r2, s = [], [], [], [], []
     Kn = K_map.numpy()
-    for i, j in _pair_list(preds):
-        m = match_coarse(preds[(i, j)], cfg.patch)
-        keep = (m.score > 0).numpy()  # cells of zero descriptor confidence (masked pixels) match nothing
-        if not keep.any():
-            continue
-        I.append(np.full(int(keep.sum()), i))
-        J.append(np.full(int(keep.sum()), j))
-        r1.append(_bearings(m.xy1.double().numpy()[keep], Kn[i]))
-        r2.append(_bearings(m.xy2.double().numpy()[keep], Kn[j]))
-        s.append(np.full(int(keep.sum()), thr / Kn[i, 0, 0]))
+    for (i, j), (xy1, xy2) in matches.items():
+        I.append(np.full(len(xy1), i))
+        J.append(np.full(len(xy1), j))
+        r1.append(_bearings(xy1, Kn[i]))
+        r2.append(_bearings(xy2, Kn[j]))
+        s.append(np.full(len(xy1), thr / Kn[i, 0, 0]))
     if sum(len(x) for x in I) < 5 * max(1, n - 1):
         return skipped(f"too few matches ({sum(len(x) for x in I)}) for {n} images")
     I, J, r1, r2, s = (np.concatenate(x) for x in (I, J, r1, r2, s))
@@ -628,7 +640,7 @@ def refine_epipolar(views, preds: dict, recon, *, config: EpipolarConfig | None 
     K = K_to_original(K_map, recon.map_from_original.double()).float()
     for k in known_K:
         K[k] = recon.K[k]
-    report = {"applied": True, **fit, "threshold_px": thr, "config": asdict(cfg),
+    report = {"applied": True, **fit, "threshold_px": thr, "config": asdict(cfg), "self_calibration": calibration,
               "fit_seconds": time.perf_counter() - t0}  # matching and the pose fit, before the depth re-fit
     if cfg.refit_depth:
         acfg = align or AlignConfig(**{**rep.get("config", {}), "quiet": True})

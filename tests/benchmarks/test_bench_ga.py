@@ -106,8 +106,10 @@ def test_a_setting_names_the_weighting_the_optimizer_the_known_intrinsics_shared
     assert parse_setting("auto+E-@0.5")[3].rotation_prior_deg == 0.5 and not parse_setting("auto+E-@0.5")[3].cheirality
     assert cfg.init == "averaging" and parse_setting("auto+T+E")[0].init == "mst"  # the library's start, or the tree's
     assert cfg.pose_head and not parse_setting("auto+P+E")[0].pose_head  # the heads' motions, or the maps'
+    # the stage's focals from the matches (off by default, as in the library)
+    assert parse_setting("auto+F+E+C")[3].self_calibrate and not parse_setting("auto+E")[3].self_calibrate
     for bad in ("auto+X", "auto+K+K", "auto+S+S", "auto+E+E", "auto+E+E-", "auto+E1+E", "auto+T+T", "auto+P+P", "rank", "log:sgd",
-                "auto+E@0", "auto+E@x", "auto+E@", "auto+K@1", "auto+E@1+E@3"):
+                "auto+E@0", "auto+E@x", "auto+E@", "auto+K@1", "auto+E@1+E@3", "auto+C", "auto+E+C+C"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_setting(bad)
 
