@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pointmap.errors import ShapeError, check_seed
-from pointmap.io.colmap import check_shared_camera, write_colmap, write_colmap_images
+from pointmap.io.colmap import check_shared_camera, exported_names, write_colmap, write_colmap_images
 from pointmap.io.glb import write_glb
 from pointmap.io.nerfstudio import write_transforms
 from pointmap.io.npz import load_npz, write_npz
@@ -59,6 +59,12 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
         tum_timestamps(recon)
     if "colmap" in formats or "colmap_txt" in formats:
         check_shared_camera(recon, shared_camera)
+    sources = recon.info.get("sources")
+    scene = recon  # what the COLMAP and nerfstudio exports name: HEIC photographs as the JPEGs copied beside them
+    if {"colmap", "colmap_txt", "nerfstudio"} & set(formats) and sources:
+        from dataclasses import replace
+
+        scene = replace(recon, names=exported_names(recon.names, sources))
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")
@@ -82,14 +88,13 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     if {"colmap", "colmap_txt", "nerfstudio"} & set(formats):
         pts = select_points(recon, min_conf, conf_percentile, colmap_max_points, seed)
         if "colmap" in formats or "colmap_txt" in formats:
-            written["colmap"] = write_colmap(recon, out / "sparse" / "0", pts, binary="colmap" in formats,
+            written["colmap"] = write_colmap(scene, out / "sparse" / "0", pts, binary="colmap" in formats,
                                              text=colmap_text or "colmap_txt" in formats,
                                              shared_camera=shared_camera)
         if "nerfstudio" in formats:
-            written["nerfstudio"] = write_transforms(recon, out, pts)
-        sources = recon.info.get("sources")
+            written["nerfstudio"] = write_transforms(scene, out, pts)
         if sources and any(s is not None for s in sources):
-            written["colmap_images"] = write_colmap_images(sources, recon.names, out / "images")
+            written["colmap_images"] = write_colmap_images(sources, scene.names, out / "images")
     if "tum" in formats:
         written["tum"] = write_tum(recon, out / "trajectory.txt")
     if "npz" in formats:

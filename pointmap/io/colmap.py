@@ -134,6 +134,13 @@ def write_colmap(recon, out_dir, points: PointSet, *, text: bool = False, binary
         written += [out_dir / "cameras.bin", out_dir / "images.bin", out_dir / "points3D.bin"]
     if text:
         written += _write_text(out_dir, cams, images, tracks, points)
+    # 3DGS trainers convert points3D to points3D.ply beside it on their first run, and read that file from then on:
+    # an earlier model's would start them from its cloud, not this one's
+    cache = out_dir / "points3D.ply"
+    if cache.exists():
+        cache.unlink()
+        warnings.warn(f"{out_dir}: removed points3D.ply, which a 3DGS trainer made from an earlier model's points "
+                      "(it reads that file instead of points3D once it exists)", stacklevel=3)
     # COLMAP 3.12+ models also hold rigs and frames, which refer to their own images: left beside this model, a
     # reader (COLMAP, pycolmap) would join them to it and fail, or mismatch the cameras. This model has none.
     rigs = [out_dir / f"{n}{s}" for s, w in ((".bin", binary), (".txt", text)) if w for n in RIG_FILES
@@ -177,11 +184,45 @@ def _write_text(out_dir: Path, cams, images, tracks, points) -> list[Path]:
     return [out_dir / "cameras.txt", out_dir / "images.txt", out_dir / "points3D.txt"]
 
 
+def _byte_copyable(src: Path) -> bool:
+    """Whether the file's own bytes hold the pixels the model read (``read_rgb``), in a format trainers read: an
+    upright 8-bit RGB or grey file. Not a HEIC / HEIF photograph (3DGS trainers cannot read it), a rotated one, nor a
+    16-bit one: PIL reads a 48-bit PNG or TIFF as 8-bit RGB, as the model did, where a loader that keeps the depth
+    (OpenCV's IMREAD_UNCHANGED) would not."""
+    from PIL import Image
+
+    from pointmap.images import HEIF_SUFFIXES
+
+    if src.suffix.lower() in HEIF_SUFFIXES:
+        return False
+    with Image.open(src) as im:
+        wide = any(";16" in str(t[3]) for t in im.tile)  # e.g. rawmode "RGB;16B"
+        return im.getexif().get(0x0112, 1) in (None, 1) and im.mode in ("RGB", "L") and not wide
+
+
+def exported_names(names: list, sources) -> list:
+    """The image names a COLMAP or nerfstudio export writes for ``names``: a HEIC / HEIF photograph's (``sources``,
+    file paths or None) as a JPEG beside the model (``write_colmap_images`` re-encodes it: 3DGS trainers cannot read
+    HEIC), the others as they are. ShapeError when a JPEG name would be another image's."""
+    from pointmap.errors import ShapeError
+    from pointmap.images import HEIF_SUFFIXES
+
+    out = [str(Path(n).with_suffix(".jpg")) if src is not None and Path(src).suffix.lower() in HEIF_SUFFIXES
+           and Path(n).suffix.lower() in HEIF_SUFFIXES else n for n, src in zip(names, sources or [None] * len(names))]
+    seen: dict = {}
+    for n, new in zip(names, out):
+        other = seen.setdefault(new.lower(), n)
+        if other != n:
+            raise ShapeError(f"{other} and {n} would both be exported as {new} (a HEIC photograph is exported as a "
+                             "JPEG: 3DGS trainers cannot read HEIC; names match whatever their case): rename one of them")
+    return out
+
+
 def write_colmap_images(sources, names, out_dir) -> list[Path]:
     """Copy the photographs a COLMAP model refers to into ``out_dir`` (COLMAP's ``images/``) under the model's
     image ``names``: an upright 8-bit RGB or grey file whose suffix is the name's is copied byte for byte; any
-    other (a rotated JPEG, a 16-bit, transparent or palette PNG, a renamed duplicate with another suffix) is
-    written as ``load_images`` reads
+    other (a rotated JPEG, a 16-bit, transparent or palette PNG, a HEIC photograph, a renamed duplicate with another
+    suffix) is written as ``load_images`` reads
     it (``read_rgb``: EXIF orientation applied, 16-bit scaled, alpha composited on white: the pixels the poses and
     intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file
     paths, or None for images given as arrays (skipped: they exist nowhere on disk); a source that no longer exists
@@ -204,8 +245,7 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
         if not src.is_file():  # e.g. a reconstruction.npz reloaded on another machine
             warnings.warn(f"write_colmap_images: {src} no longer exists; {dst} not written", stacklevel=2)
             continue
-        with Image.open(src) as im:  # byte for byte only when the file's pixels are the ones the model read:
-            as_read = im.getexif().get(0x0112, 1) in (None, 1) and im.mode in ("RGB", "L")  # upright 8-bit
+        as_read = _byte_copyable(src)
         if dst.exists() and dst.resolve() == src.resolve():  # the output is the scene folder the photographs
             if not as_read:  # came from (its images/): the user's own file is never replaced by a re-encoded copy
                 warnings.warn(f"write_colmap_images: {dst} is the source photograph itself and is left as it is "

@@ -887,6 +887,61 @@ def test_photographs_that_need_re_encoding_are_written_as_the_loader_reads_them(
     assert out[1].read_bytes() == (tmp_path / "plain.png").read_bytes()  # an 8-bit RGB file: copied as it is
 
 
+def test_a_16_bit_colour_png_is_re_encoded_at_8_bits_not_copied(tmp_path):
+    import cv2
+    from PIL import Image
+
+    from pointmap.images import read_rgb
+    from pointmap.io.colmap import write_colmap_images
+
+    wide = np.random.default_rng(0).integers(0, 65535, (16, 24, 3)).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "wide.png"), wide)  # 48-bit RGB: PIL reads it as 8-bit "RGB", as the model did
+    out = write_colmap_images([tmp_path / "wide.png"], ["wide.png"], tmp_path / "i")
+    kept = cv2.imread(str(out[0]), cv2.IMREAD_UNCHANGED)  # a loader that keeps the file's depth
+    assert kept.dtype == np.uint8 and np.array_equal(np.asarray(Image.open(out[0])), read_rgb(tmp_path / "wide.png"))
+
+
+def test_heic_photographs_are_exported_as_jpegs_named_so_in_the_model(tmp_path):
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from dataclasses import replace
+
+    from PIL import Image
+
+    from pointmap.errors import ShapeError
+
+    pillow_heif.register_heif_opener()
+    recon = make_recon(n=2)
+    sources = []
+    for k, name in enumerate(("IMG_0001.HEIC", "b.jpg")):
+        Image.fromarray(np.full((75, 100, 3), 60 + 80 * k, np.uint8)).save(tmp_path / name, quality=95)
+        sources.append(str(tmp_path / name))
+    recon = replace(recon, names=["IMG_0001.HEIC", "b.jpg"], info={**recon.info, "sources": sources})
+    save_reconstruction(recon, tmp_path / "out", formats=("colmap", "nerfstudio", "npz"))
+    assert sorted(p.name for p in (tmp_path / "out" / "images").iterdir()) == ["IMG_0001.jpg", "b.jpg"]
+    with Image.open(tmp_path / "out" / "images" / "IMG_0001.jpg") as im:
+        assert im.format == "JPEG" and im.size == (100, 75)  # what 3DGS trainers can read
+    model = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
+    assert sorted(im.name for im in model.images.values()) == ["IMG_0001.jpg", "b.jpg"]
+    import json
+
+    frames = json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]
+    assert sorted(f["file_path"] for f in frames) == ["images/IMG_0001.jpg", "images/b.jpg"]
+    assert load_npz(tmp_path / "out" / "reconstruction.npz").names == ["IMG_0001.HEIC", "b.jpg"]  # the recon's own
+    clash = replace(recon, names=["IMG_0001.HEIC", "img_0001.jpg"])
+    with pytest.raises(ShapeError, match="IMG_0001.HEIC and img_0001.jpg would both be exported as img_0001.jpg"):
+        save_reconstruction(clash, tmp_path / "clash", formats=("colmap",))
+    assert not (tmp_path / "clash").exists()  # refused before anything was written
+
+
+def test_a_points3d_ply_a_trainer_made_from_an_earlier_model_is_removed_with_a_warning(tmp_path):
+    model = tmp_path / "sparse" / "0"
+    save_reconstruction(make_recon(n=2), tmp_path, formats=("colmap",))
+    (model / "points3D.ply").write_text("ply of the earlier model's points\n")  # what 3DGS writes on its first run
+    with pytest.warns(UserWarning, match="removed points3D.ply, which a 3DGS trainer made from an earlier model"):
+        save_reconstruction(make_recon(n=3), tmp_path, formats=("colmap",))
+    assert not (model / "points3D.ply").exists()
+
+
 def test_photographs_already_in_the_output_images_folder_are_never_overwritten(tmp_path):
     # `pointmap reconstruct scene/ -o scene/` on a COLMAP-layout scene: the sources are scene/images/* themselves
     from PIL import Image
