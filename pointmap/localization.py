@@ -185,11 +185,13 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
         if not (is_int(n_refs) and n_refs >= 1):
             raise PointmapError(f"n_refs expected an int >= 1, got {n_refs!r}")
         refs = rank_references(model, refs_views, queries, n_refs, device=device)
+    refs = _plain(refs)
     if is_int(refs):  # one reference for one query, as one image is a list of one
         refs = [refs]
     if not isinstance(refs, (list, tuple)):
         raise GraphError(f"refs expected, for each of the {m} queries, a list of view indices, got {refs!r}")
-    refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r] if hasattr(r, "__iter__") else r
+    refs = [_plain(r) for r in refs]  # e.g. an argmax's 0-d tensors, or a row of a [M, k] array
+    refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r] if isinstance(r, (list, tuple)) else r
             for r in refs]
     if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
                                                                      for k in r) for r in refs):
@@ -220,4 +222,10 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     if all(u < 0 for u in used):
         raise PointmapError(f"none of the {m} queries could be posed: their pairs with the references share too "
                             "little (no valid depth or pose); give references that see the same scene")
+    K_orig[torch.tensor(used) < 0] = float("nan")  # an unposed query's K is NaN too, given or not
     return Localization(out, K_orig, used, confs, scales, [q.name for q in queries])
+
+
+def _plain(x):
+    """A tensor's or an array's contents as Python numbers and lists (``.tolist()``); anything else as it is."""
+    return x.tolist() if hasattr(x, "tolist") and hasattr(x, "ndim") else x

@@ -46,9 +46,13 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     container's times are missing or not increasing, else None (no rate stated either).
     ImageError when the file cannot be decoded or holds no frame; every image is written atomically as soon as
     its window closes."""
+    if not isinstance(video, (str, os.PathLike)) or not isinstance(out_dir, (str, os.PathLike)):
+        raise ImageError(f"extract_frames expected a video path and a folder path, got {video!r} and {out_dir!r}")
     video = Path(video)
     if not video.is_file():
         raise ImageError(f"video not found: {video}")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ImageError(f"extract_frames expected a folder for the frames, got {out_dir}, which is a file")
     if stride is not None and not (is_int(stride) and stride >= 1):
         raise ImageError(f"stride expected a positive integer, got {stride!r}")
     if not (is_int(max_frames) and max_frames >= 1):

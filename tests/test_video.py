@@ -53,6 +53,12 @@ def test_missing_and_undecodable_videos_and_bad_strides_are_refused(tmp_path):
         with pytest.raises(ImageError, match="max_frames expected an integer >= 1"):
             extract_frames(video, tmp_path / "f", max_frames=bad)
     assert len(extract_frames(video, tmp_path / "one", max_frames=1)) == 1  # one frame is enough to localize
+    (tmp_path / "taken").write_text("a file where the frames would go")
+    with pytest.raises(ImageError, match="expected a folder for the frames, got .*taken, which is a file"):
+        extract_frames(video, tmp_path / "taken")
+    for args in ((None, tmp_path / "f"), (video, None)):
+        with pytest.raises(ImageError, match="expected a video path and a folder path"):
+            extract_frames(*args)
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".mkv"])

@@ -87,6 +87,9 @@ def test_a_reference_whose_pair_gives_no_pose_falls_back_to_the_next(scene):
     assert_at_true_pose(loc.cam2world[0], sc, 4, world_scale)
     loc = localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)  # no fallback: that query is not posed
     assert loc.ref == [-1, 0] and torch.isnan(loc.cam2world[0]).all() and torch.isfinite(loc.cam2world[1]).all()
+    K = sc["K"][4].copy()
+    loc = localize(STAND_IN, recon, queries, refs=[[3], [0]], K=K, quiet=True)  # a given K: NaN where not posed
+    assert torch.isnan(loc.K[0]).all() and torch.allclose(loc.K[1], torch.from_numpy(K))
     calls["broken"] = [(3, 4), (0, 5)]
     with pytest.raises(PointmapError, match="none of the 2 queries could be posed"):
         localize(STAND_IN, recon, queries, refs=[[3], [0]], quiet=True)
@@ -223,6 +226,10 @@ def test_intrinsics_with_a_negative_fy_or_a_transposed_layout_are_refused_and_nu
             localize(STAND_IN, recon, queries, refs=[[1], [2]], K=bad, quiet=True)
     loc = localize(STAND_IN, recon, queries, refs=[np.int64(3), [np.int64(0)]], quiet=True)
     assert loc.ref == [3, 0]
+    # an argmax's output: 0-d tensors or arrays, a [M, k] tensor, a row of references per query
+    for refs in (list(torch.tensor([3, 0])), list(np.array([3, 0])), torch.tensor([[3], [0]]), [torch.tensor([3, 2]),
+                                                                                                 np.array([0])]):
+        assert localize(STAND_IN, recon, queries, refs=refs, quiet=True).ref == [3, 0]
 
 
 def test_a_reconstruction_of_several_image_sizes_pairs_each_reference_at_its_own_size(monkeypatch):
