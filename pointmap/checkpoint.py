@@ -191,8 +191,20 @@ def built_for(cfg: ModelConfig, state: dict, *, allow_missing_heads: bool = Fals
     """A PointmapNet of ``cfg`` holding ``state`` (``load_state_strict``), the state first checked against the
     architecture built on the meta device: a foreign or corrupt config (a huge size) is a CheckpointError naming
     the mismatch, not gigabytes allocated and then a raw allocator error."""
-    with torch.device("meta"):
-        _check_fits(PointmapNet(cfg).state_dict(), state, allow_missing_heads, source)
+    import re
+
+    for prefix, depth in (("enc_blocks", cfg.enc_depth), ("dec_blocks", cfg.dec_depth)):  # before building them
+        found = {m.group(1) for k in state if (m := re.match(rf"{prefix}\.(\d+)\.", k))}
+        if len(found) != depth:
+            raise CheckpointError(f"{source} does not match the architecture: its config says {depth} {prefix}, its "
+                                  f"weights hold {len(found)}")
+    try:
+        with torch.device("meta"):
+            own = PointmapNet(cfg).state_dict()
+    except (RuntimeError, TypeError, ValueError, OverflowError) as e:  # e.g. a size too large to index
+        raise CheckpointError(f"{source}: its config builds no model ({e.__class__.__name__}: {e}); a foreign or "
+                              "corrupt config") from None
+    _check_fits(own, state, allow_missing_heads, source)
     model = PointmapNet(cfg)
     model.load_state_dict(state, strict=not allow_missing_heads)  # checked above: the real model has its keys
     return model

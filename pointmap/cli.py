@@ -164,6 +164,13 @@ def cmd_pair(args) -> int:
     check_size_graph_budget(args)
     refuse_ignored(args, [("shared_focal", "--shared-focal", args.focal is None, "without --focal (a given focal "
                            "is not estimated, shared or not)")])
+    from pointmap.io_pair import PAIR_OUTPUTS
+
+    mine = {(Path(args.out) / name).resolve() for name in PAIR_OUTPUTS}
+    overwritten = [img for img in args.images if Path(img).resolve() in mine]
+    if overwritten:  # checked before the model loads, as reconstruct's exports are
+        raise PointmapError(f"-o {args.out} would overwrite the input(s) {', '.join(overwritten)} with pair's own "
+                            f"outputs ({', '.join(PAIR_OUTPUTS)}); give another output folder")
     focal = None if args.focal is None else parse_focals(args.focal, args.images)
     shared = args.shared_focal
     if shared is None and focal is None:  # two photographs of one camera by their EXIF: one focal

@@ -62,6 +62,9 @@ def write_png(path: Path, rgb: np.ndarray) -> Path:
     return path
 
 
+PAIR_OUTPUTS = ("pair.npz", "pair.ply", "depth1.png", "depth2.png", "conf1.png", "conf2.png", "matches.png")
+
+
 def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512, quiet: bool = False,
                        focal: tuple | None = None, shared_focal: bool = False, device="cpu") -> list[Path]:
     """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
@@ -135,7 +138,7 @@ def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512,
     pointmap_pose = relative_pose(pred, pred_reverse=pred_rev)[0]
     cam2world_2 = pair_pose(pred, pred_rev, *(K or (None, None)), patch=patch, pose=pointmap_pose[None],
                             rotation_prior_deg=None if focal is not None else 3.0)[0]  # 3: an estimated focal's
-    refined_on_matches = not torch.equal(cam2world_2, pointmap_pose)
+    refined_on_matches = bool(torch.isfinite(pointmap_pose).all()) and not torch.equal(cam2world_2, pointmap_pose)
     out.mkdir(parents=True, exist_ok=True)
     rgb1 = (views[0].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
     rgb2 = (views[1].img.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)

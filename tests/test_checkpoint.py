@@ -475,6 +475,26 @@ def test_a_config_of_impossible_size_is_refused_before_the_network_is_allocated(
         pm.load_model(tmp_path / "huge.safetensors")  # 50 GB asked of the allocator before
 
 
+@pytest.mark.parametrize("change,named", [
+    ({"enc_dim": 2**40}, "its config builds no model \\(RuntimeError"),  # too large to index, even on meta
+    ({"enc_dim": 10**30}, "its config builds no model \\((TypeError|OverflowError|RuntimeError)"),
+    ({"enc_depth": 10**6}, "its config says 1000000 enc_blocks, its weights hold"),  # not built block by block
+    ({"dec_depth": 20}, "its config says 20 dec_blocks, its weights hold"),
+])
+def test_a_config_too_large_to_build_or_with_other_block_counts_is_a_checkpoint_error(tmp_path, change, named):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    good = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "m.safetensors")
+    with safe_open(str(good), "pt") as f:
+        meta = f.metadata()
+    meta = {**meta, "config": json.dumps({**json.loads(meta["config"]), **change})}
+    meta.pop("sha256")
+    save_file(load_file(str(good)), str(tmp_path / "bad.safetensors"), metadata=meta)
+    with pytest.raises(pm.CheckpointError, match=named):
+        pm.load_model(tmp_path / "bad.safetensors")
+
+
 def test_disagreeing_layer_rn_aliases_are_refused_also_in_a_state_dict_saved_with_a_module_prefix():
     from pointmap.checkpoint import official_to_ours
 

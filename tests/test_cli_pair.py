@@ -23,6 +23,15 @@ def test_the_pair_command_writes_pointmaps_matches_and_previews_for_two_images(t
     assert "view 2 relative to view 1: rotation" in capsys.readouterr().out
     names = sorted(p.name for p in out.iterdir())
     assert names == ["conf1.png", "conf2.png", "depth1.png", "depth2.png", "matches.png", "pair.npz", "pair.ply"]
+    from pointmap.io_pair import PAIR_OUTPUTS
+
+    assert sorted(PAIR_OUTPUTS) == names  # the names the input check below guards
+    # -o the folder of an input named as an output: refused before the model loads, the photograph untouched
+    (out / "depth1.png").write_bytes((tmp_path / "im0.png").read_bytes())
+    before = (out / "depth1.png").read_bytes()
+    assert main(["pair", str(out / "depth1.png"), str(tmp_path / "im1.png"), "-o", str(out),
+                 "--model", "no_such_model"]) == 2
+    assert "would overwrite the input(s)" in capsys.readouterr().err and (out / "depth1.png").read_bytes() == before
     z = np.load(out / "pair.npz")
     assert z["pts1_cam1"].shape[-1] == 3 and z["pts1_cam1"].shape[:2] == z["conf1"].shape
     assert np.isfinite(z["pts1_cam1"]).all() and z["cam2world_2_in_1"].shape == (4, 4)
@@ -273,3 +282,19 @@ def test_the_pair_command_takes_a_portrait_and_a_landscape_photograph_each_at_it
     assert z["pts1_cam1"].shape == (48, 64, 3) and z["pts2_cam1"].shape == (64, 48, 3)
     assert z["img1"].shape == (48, 64, 3) and z["img2"].shape == (64, 48, 3)
     assert "focal" in capsys.readouterr().out
+
+
+def test_a_pair_whose_pose_is_not_found_is_not_recorded_as_refined_on_matches(tmp_path, monkeypatch):
+    import cv2
+
+    import pointmap.pose
+
+    monkeypatch.setattr(pointmap.pose, "relative_pose", lambda *a, **k: torch.full((1, 4, 4), float("nan")))
+    torch.manual_seed(0)
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    rng = np.random.default_rng(1)
+    for k in range(2):
+        cv2.imwrite(str(tmp_path / f"im{k}.png"), rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    write_pair_outputs(model, tmp_path / "im0.png", tmp_path / "im1.png", tmp_path / "out", size=64, quiet=True)
+    z = np.load(tmp_path / "out" / "pair.npz")
+    assert not np.isfinite(z["cam2world_2_in_1"]).any() and not bool(z["refined_on_matches"])

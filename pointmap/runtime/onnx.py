@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pointmap.checkpoint import warn_if_noncommercial
+from pointmap.checkpoint import provenance_ok, warn_if_noncommercial
 from pointmap.errors import CheckpointError, ShapeError
 from pointmap.model.config import ModelConfig
 from pointmap.model.net import Encoded, PointmapNet
@@ -219,6 +219,9 @@ class OnnxPointmapModel:
         self.split = bool(meta.get("split"))
         self.precision = meta.get("precision", "fp32")
         self.provenance = meta.get("provenance", {})
+        if not provenance_ok(self.provenance):
+            raise CheckpointError(f"{path}: export metadata's provenance expected a dict with a positive int "
+                                  f"image_size (or none), got {self.provenance!r}")
         self._out_names = output_names(self.cfg)
         provs = resolve_providers(providers)
         so = session_options(threads)

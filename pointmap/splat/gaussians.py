@@ -48,7 +48,10 @@ class Gaussians:
     conf: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        if not (isinstance(self.means, torch.Tensor) and self.means.ndim == 2 and self.means.shape[1] == 3):
+            got = list(self.means.shape) if isinstance(self.means, torch.Tensor) else type(self.means).__name__
+            raise ShapeError(f"Gaussians.means expected a tensor [N, 3], got {got}")
+        n = self.means.shape[0]
         want = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,),
                 "sh_dc": (n, 3)}
         for name, shape in want.items():
@@ -56,9 +59,12 @@ class Gaussians:
             if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape or n < 0:
                 got = list(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
                 raise ShapeError(f"Gaussians.{name} expected shape {list(shape)} (N = len(means)), got {got}")
-        if self.sh_rest is not None and (self.sh_rest.ndim != 3 or self.sh_rest.shape[0] != n
-                                         or self.sh_rest.shape[2] != 3):
-            raise ShapeError(f"Gaussians.sh_rest expected [N, K, 3], got {list(self.sh_rest.shape)}")
+        if self.sh_rest is not None and not (isinstance(self.sh_rest, torch.Tensor) and self.sh_rest.ndim == 3
+                                             and self.sh_rest.shape[0] == n and self.sh_rest.shape[2] == 3
+                                             and self.sh_rest.shape[1] in (3, 8, 15)):
+            got = list(self.sh_rest.shape) if isinstance(self.sh_rest, torch.Tensor) else type(self.sh_rest).__name__
+            raise ShapeError(f"Gaussians.sh_rest expected a tensor [N, K, 3] with K = (degree + 1)^2 - 1 (3, 8 or 15 "
+                             f"for degrees 1-3), or None; got {got} (N = {n})")
         if self.conf is not None and not (isinstance(self.conf, torch.Tensor) and tuple(self.conf.shape) == (n,)
                                           and bool(torch.isfinite(self.conf).all())):
             got = (type(self.conf).__name__ if not isinstance(self.conf, torch.Tensor) else list(self.conf.shape)

@@ -221,9 +221,14 @@ def evaluate_views(res, images, cam2world, K, out_dir=None, *, align_steps: int 
         raise ShapeError(f"evaluate_views: align_steps expected an int >= 0 (0: score the given poses), got "
                          f"{align_steps!r}")
     names = names or [f"test_{k:03d}" for k in range(m)]
+    if len(names) != m or not all(isinstance(nm, str) for nm in names):
+        raise ShapeError(f"evaluate_views: names expected {m} strings (one per test image), got {names!r}")
+    if not (callable(getattr(res, "render", None)) and callable(getattr(res, "align_view", None))):
+        raise ShapeError(f"evaluate_views expected a fit (pointmap.splat.fit's SplatFit), got {type(res).__name__}")
+    imgs = [_check_image(images[k], f"test image {k}") for k in range(m)]  # all of them before any is written
     rows = []
     for k in range(m):
-        img = _check_image(images[k], f"test image {k}")
+        img = imgs[k]
         h, w = img.shape[:2]
         before = res.render(cam2world[k], K[k], w, h)
         if align_steps > 0:

@@ -1,5 +1,6 @@
 """The onnxruntime runner: PointmapNet's call contract, identical input checks, predict_pairs, load errors."""
 
+import json
 import warnings
 
 import pytest
@@ -146,7 +147,10 @@ def test_load_errors(tmp_path, split_export):
     import onnx
 
     proto = onnx.load(str(sorted(split_export.glob("*.onnx"))[0]), load_external_data=False)
-    for value, message in [("{not json", "metadata is not valid JSON"), ("[1, 2]", "expected a JSON object, got list")]:
+    meta = json.loads(next(p.value for p in proto.metadata_props if p.key == "pointmap"))
+    for value, message in [("{not json", "metadata is not valid JSON"), ("[1, 2]", "expected a JSON object, got list"),
+                           (json.dumps({**meta, "provenance": "large"}), "provenance expected a dict"),
+                           (json.dumps({**meta, "provenance": {"image_size": "large"}}), "positive int image_size")]:
         for p in proto.metadata_props:
             if p.key == "pointmap":
                 p.value = value

@@ -340,6 +340,21 @@ def test_align_view_and_evaluate_views_refuse_a_photograph_with_nan_pixels(tiny)
         evaluate_views(res, [img], init[None], K[None], align_steps=0, quiet=True)  # scored NaN
 
 
+def test_evaluate_views_checks_every_image_and_name_before_it_aligns_or_writes_anything(tiny, tmp_path):
+    from pointmap.splat import evaluate_views
+
+    d, _, res = tiny
+    good, init, K = d["test_images"][0], d["test_c2w_init"][0], d["K"]
+    two = (torch.stack([init, init]), torch.stack([K, K]))
+    with pytest.raises(ShapeError, match="test image 1 values expected"):
+        evaluate_views(res, [good, good * 255], *two, tmp_path / "out", quiet=True)  # 0-255 floats
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    with pytest.raises(ShapeError, match=r"names expected 2 strings \(one per test image\), got \['a'\]"):
+        evaluate_views(res, [good, good], *two, names=["a"], quiet=True)
+    with pytest.raises(ShapeError, match="expected a fit .*got Gaussians"):
+        evaluate_views(res.gaussians, [good], init[None], K[None], quiet=True)
+
+
 def test_align_view_and_evaluate_views_refuse_step_counts_out_of_their_range(tiny):
     from pointmap.splat import evaluate_views
 

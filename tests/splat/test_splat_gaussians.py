@@ -57,6 +57,18 @@ def test_activations_and_validation(tmp_path):
         Gaussians.load_ply(tmp_path / "bad.ply")
 
 
+@pytest.mark.parametrize("means,sh_rest,message", [
+    ([[0.0, 0, 0]] * 3, None, r"means expected a tensor \[N, 3\], got list"),
+    (torch.zeros(10), None, r"means expected a tensor \[N, 3\], got \[10\]"),
+    (torch.zeros(3, 3), torch.zeros(3, 4, 3), r"sh_rest expected .*3, 8 or 15 .*got \[3, 4, 3\]"),
+    (torch.zeros(3, 3), torch.zeros(3, 16, 3), r"sh_rest expected .*got \[3, 16, 3\]"),
+    (torch.zeros(3, 3), np.zeros((3, 3, 3)), r"sh_rest expected a tensor .*got ndarray"),
+])
+def test_gaussians_of_the_wrong_kind_or_an_sh_size_of_no_degree_are_refused_when_made(means, sh_rest, message):
+    with pytest.raises(ShapeError, match=message):  # save_ply crashed on them inside torch, or wrote a bad file
+        Gaussians(means, torch.zeros(3, 4), torch.zeros(3, 3), torch.zeros(3), torch.zeros(3, 3), sh_rest=sh_rest)
+
+
 def test_orbit_and_png_writers_leave_only_finished_files(tmp_path):
 
     from pointmap.splat.outputs import save_orbit, save_png
