@@ -469,7 +469,8 @@ def _refine_rt(R0, t0, r1, r2, scale: float, prior: float, max_evals: int, round
 
 def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:
     """[B] focal of view ``view`` in pixels of its pointmap (principal point at the centre): the focal head's
-    (``pred.focal1`` / ``focal2``) for a model with one, else view 1's own-frame pointmap's (Weiszfeld) over its
+    (``pred.focal1`` / ``focal2``) for a model with one (view 1's where it gave none: NaN, zero or negative), else
+    view 1's own-frame pointmap's (Weiszfeld) over its
     pixels of positive confidence (a mask's zeroed pixels left out, as global alignment's start leaves them; the
     network's confidences are all positive); view 2 of a model without a focal head needs the reverse prediction."""
     check_prediction(pred)
@@ -477,10 +478,14 @@ def focal_from_prediction(pred: PairPrediction, view: int = 1) -> torch.Tensor:
         raise ShapeError(f"view expected 1 or 2, got {view!r}")
     head = pred.focal1 if view == 1 else pred.focal2
     if head is not None:
-        return head.detach().float()
+        head = head.detach().float()
+        if view == 2 or bool((torch.isfinite(head) & (head > 0)).all()):
+            return head
     if view != 1:
         raise ShapeError("only view 1's pointmap is in its own frame; run the reverse pair for view 2")
-    return focal_from_pointmap(pred.pts1_cam1.float(), valid=torch.nan_to_num(pred.conf1.float(), nan=0.0) > 0)
+    own = focal_from_pointmap(pred.pts1_cam1.float(), valid=torch.nan_to_num(pred.conf1.float(), nan=0.0) > 0)
+    # a head that gave no focal (NaN, zero or negative) is read off the pointmap instead, as the alignment's start
+    return own if head is None else torch.where(torch.isfinite(head) & (head > 0), head, own)
 
 
 def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=None, *, patch: int = 16,

@@ -119,6 +119,8 @@ class AlignConfig:
         number("niter", positive=False, integer=True)  # 0: no optimisation, the start is returned
         number("lr", positive=True)
         number("lr_min", positive=False)
+        if self.lr_min > self.lr:  # the cosine schedule would raise the rate, and the report still say converged
+            raise ShapeError(f"AlignConfig.lr_min expected <= lr ({self.lr}), got {self.lr_min}")
         number("lr_focal", positive=True, allow_none=True)
         number("max_opt_pixels", positive=True, allow_none=True, integer=True)
         number("stride", positive=True, allow_none=True, integer=True)
@@ -136,6 +138,8 @@ class AlignConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ShapeError(f"AlignConfig.{name} expected True or False, got {getattr(self, name)!r}")
         cams = self.shared_focal
+        if not isinstance(cams, (bool, str, bytes)) and hasattr(cams, "__iter__"):  # read once (a generator)
+            cams = tuple(cams)
         if not isinstance(cams, bool):  # a camera label per image: hashable, as the rest
             if isinstance(cams, (str, bytes)) or not hasattr(cams, "__iter__") or not all(is_int(c) for c in cams):
                 raise ShapeError(f"AlignConfig.shared_focal expected True, False or a camera label (an int) per "
@@ -151,10 +155,11 @@ def _initial_focals(preds, stack, shapes, fx, fy, cx, cy, known):
         if not known[n]:
             cx[n], cy[n] = (w - 1) / 2, (h - 1) / 2
             p = preds[stack.keys[own[n]]]
-            f = p.focal1.detach().double() if p.focal1 is not None else \
-                focal_from_pointmap(p.pts1_cam1.detach().double(),  # a NaN / inf confidence pixel weighs nothing
-                                    weights=torch.nan_to_num(p.conf1.detach().double(), nan=0.0, posinf=0.0).clamp_min(0))
-            f = float(f[0])
+            f = float(p.focal1.detach()[0]) if p.focal1 is not None else math.nan
+            if not (math.isfinite(f) and f > 0):  # no focal head, or one that gave none: the pointmap's
+                # a NaN / inf confidence pixel weighs nothing
+                f = float(focal_from_pointmap(p.pts1_cam1.detach().double(), weights=torch.nan_to_num(
+                    p.conf1.detach().double(), nan=0.0, posinf=0.0).clamp_min(0))[0])
             fx[n] = fy[n] = f if math.isfinite(f) and f > 0 else max(h, w)
     return fx, fy, cx, cy
 

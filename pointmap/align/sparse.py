@@ -60,17 +60,26 @@ class SparseConfig:
 MAX_FOCAL_CHANGE = 4.0  # a sparse fit that scales a focal beyond this either way is refused (degenerate)
 
 
-def _unpack(m):
-    if isinstance(m, (tuple, list)):
-        xy1, xy2 = m[0], m[1]
-        score = m[2] if len(m) > 2 else None
-    else:
+def _unpack(m, key=None):
+    """(xy1 [M, 2], xy2 [M, 2], score [M]) float64 of a pair's matches: a Matches or an (xy1, xy2[, score]) tuple.
+    ShapeError naming the pair ``key`` for anything else, e.g. xy given as [2, M] (a reshape would pair the wrong
+    coordinates)."""
+    expected = f"matches[{key!r}] expected a Matches or (xy1 [M, 2], xy2 [M, 2][, score [M]])"
+    if isinstance(m, (tuple, list)) and len(m) in (2, 3):
+        xy1, xy2, score = m[0], m[1], m[2] if len(m) > 2 else None
+    elif all(hasattr(m, a) for a in ("xy1", "xy2")):
         xy1, xy2, score = m.xy1, m.xy2, getattr(m, "score", None)
-    xy1 = torch.as_tensor(xy1, dtype=torch.float64).reshape(-1, 2)
-    xy2 = torch.as_tensor(xy2, dtype=torch.float64).reshape(-1, 2)
-    score = torch.ones(len(xy1), dtype=torch.float64) if score is None else torch.as_tensor(score, dtype=torch.float64).reshape(-1)
-    if not (len(xy1) == len(xy2) == len(score)):
-        raise ShapeError(f"matches expected xy1 [M, 2], xy2 [M, 2], score [M], got {len(xy1)}, {len(xy2)}, {len(score)}")
+    else:
+        raise ShapeError(f"{expected}, got {type(m).__name__}{f' of {len(m)}' if isinstance(m, (tuple, list)) else ''}")
+    try:
+        xy1, xy2 = (torch.as_tensor(x, dtype=torch.float64) for x in (xy1, xy2))
+        score = torch.ones(len(xy1), dtype=torch.float64) if score is None else \
+            torch.as_tensor(score, dtype=torch.float64).reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ShapeError(f"{expected} of numbers, got {e}") from None
+    if xy1.ndim != 2 or xy1.shape[1] != 2 or xy2.ndim != 2 or xy2.shape[1] != 2 \
+            or not (len(xy1) == len(xy2) == len(score)):
+        raise ShapeError(f"{expected}, got xy1 {list(xy1.shape)}, xy2 {list(xy2.shape)}, score {list(score.shape)}")
     return xy1, xy2, score
 
 
@@ -87,8 +96,8 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
     for (i, j), m in matches.items():
         if i == j:
             continue
-        xy1, xy2, score = _unpack(m)
-        keep = (score > cfg.min_score) & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
+        xy1, xy2, score = _unpack(m, (i, j))
+        keep = (score > cfg.min_score) & torch.isfinite(score) & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
         for xy, (w, h) in ((xy1, recon.map_sizes[i]), (xy2, recon.map_sizes[j])):  # inside each view's own map
             keep &= (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
         idx = keep.nonzero()[:, 0]

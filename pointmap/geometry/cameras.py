@@ -94,11 +94,14 @@ def head_translation(t_head: torch.Tensor, t_points: torch.Tensor) -> torch.Tens
     """Camera translations [..., 3] with the pose head's direction (``t_head`` [..., 3]) and the length of the
     pointmaps' own estimate (``t_points`` [..., 3], e.g. a Procrustes'): the rule of ``relative_pose`` and of
     the global alignment's start. The head's directions are the better ones, its baselines come out short (about
-    0.6 of the truth, session 49, docs/training-log.md). ShapeError unless both are [..., 3] of one shape."""
+    0.6 of the truth, session 49, docs/training-log.md). Where the head gives no direction (zero or not finite),
+    the pointmaps' translation as it is. ShapeError unless both are [..., 3] of one shape."""
     if t_head.shape != t_points.shape or t_head.shape[-1:] != (3,):
         raise ShapeError(f"head_translation expected two [..., 3] translations of one shape, got "
                          f"{list(t_head.shape)} and {list(t_points.shape)}")
-    return t_head / t_head.norm(dim=-1, keepdim=True).clamp_min(1e-12) * t_points.norm(dim=-1, keepdim=True)
+    length = t_head.norm(dim=-1, keepdim=True)
+    out = t_head / length.clamp_min(1e-12) * t_points.norm(dim=-1, keepdim=True)
+    return torch.where(torch.isfinite(length) & (length > 0), out, t_points)
 
 
 def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:

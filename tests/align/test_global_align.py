@@ -229,6 +229,9 @@ def test_camera_labels_of_another_length_or_not_ints_are_refused_and_a_camera_of
     for bad in ("0011", (0, 0.5, 1, 1), 3):
         with pytest.raises(ShapeError, match="AlignConfig.shared_focal expected True, False or a camera label"):
             AlignConfig(shared_focal=bad)
+    assert AlignConfig(shared_focal=(c for c in (0, 0, 1, 1))).shared_focal == (0, 0, 1, 1)  # a generator, read once
+    with pytest.raises(ShapeError, match=r"AlignConfig.lr_min expected <= lr \(0.01\), got 0.5"):
+        AlignConfig(lr=0.01, lr_min=0.5)  # the schedule would raise the rate, and the report say converged
     views = views_of(sc)
     views[3].original_size = (96, 64)
     views[3].map_from_original = (0.5, 0.5, 0.0, 0.0)
@@ -309,3 +312,17 @@ def test_a_pair_with_a_few_usable_points_does_not_lead_the_start_on_its_confiden
     recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, niter=30, init=init))
     rot, _, _ = pose_errors(recon.cam2world.numpy(), sc["cam2world"])
     assert rot < 0.1  # the spanning tree took that pair first: 71 degrees off
+
+
+@pytest.mark.parametrize("bad", [float("nan"), 0.0, -40.0])
+def test_a_focal_head_that_gives_no_focal_starts_the_image_from_its_pointmaps_focal_not_the_image_size(bad):
+    import dataclasses
+
+    sc = make_scene(4, 32, 48, seed=3)
+    preds = gt_preds(sc, complete_pairs(4), seed=4)
+    cfg = AlignConfig(quiet=True, niter=0)
+    plain = global_align(views_of(sc), preds, config=cfg)  # no focal head: each image's Weiszfeld focal
+    headless = {k: dataclasses.replace(p, focal1=torch.tensor([bad]), focal2=torch.tensor([bad]))
+                for k, p in preds.items()}
+    out = global_align(views_of(sc), headless, config=cfg)
+    assert torch.allclose(out.K, plain.K) and np.abs(plain.K[:, 0, 0].numpy() / sc["K"][:, 0, 0] - 1).max() < 0.01

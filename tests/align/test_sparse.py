@@ -102,6 +102,17 @@ def test_without_fixed_poses_image_0_keeps_the_pose_it_was_given(scene):
     assert not torch.allclose(out.cam2world[1:], start.cam2world[1:], atol=1e-4)  # the others did move
 
 
+def test_a_match_of_infinite_score_is_left_out_not_the_whole_refinement(scene):
+    start = perturbed_recon(scene, seed=3)
+    m = _matches(scene)
+    xy1, xy2, score = m[(0, 1)]
+    score = np.array(score, dtype=np.float64)
+    score[0] = np.inf  # its weight would have been inf / inf: every weight NaN, the fit "did not improve"
+    m[(0, 1)] = (xy1, xy2, score)
+    out = refine_matches(start, m, config=CFG)
+    assert out.info["sparse"]["applied"], out.info["sparse"]
+
+
 def test_match_objects_and_no_usable_matches(scene):
     start = perturbed_recon(scene, seed=3)
 
@@ -126,6 +137,13 @@ def test_matches_and_fixed_indices_outside_the_reconstruction_and_impossible_set
         refine_matches(recon, {(0, 5): m[(0, 1)]})
     with pytest.raises(ShapeError, match="matches expected a dict"):
         refine_matches(recon, list(m.values()))
+    xy1, xy2, score = m[(0, 1)]
+    for bad, message in [((xy1.T, xy2.T, score), r"matches\[\(0, 1\)\] expected .*got xy1 \[2, "),  # [2, M]: refused,
+                         # not paired up wrongly by a reshape
+                         ((xy1[:, [0, 1, 1]], xy2, score), r"got xy1 \[\d+, 3\]"), ("matches", "got str"),
+                         ((xy1,), "got tuple of 1"), ((np.array([["a", "b"]]), xy2, score), "of numbers")]:
+        with pytest.raises(ShapeError, match=message):
+            refine_matches(recon, {(0, 1): bad, (1, 2): m[(1, 2)]})
     with pytest.raises(ShapeError, match="fixed_poses expected image indices in 0..4, got \\[7\\]"):
         refine_matches(recon, m, fixed_poses=[7])
     with pytest.raises(ShapeError, match="fixed_intrinsics expected image indices in 0..4, got \\[7\\]"):

@@ -239,7 +239,9 @@ def test_head_translation_takes_the_head_direction_and_the_points_length():
     out = head_translation(t_head, t_points)
     assert torch.allclose(out, torch.tensor([[0.0, 0.0, 2.0], [3.0, 4.0, 0.0]], dtype=torch.float64))
     assert torch.allclose(head_translation(t_head[0], t_points[0]), out[0])  # unbatched [3]
-    assert torch.equal(head_translation(torch.zeros(3), torch.ones(3)), torch.zeros(3))  # no direction: zero, not NaN
+    # no direction from the head (zero, NaN): the pointmaps' translation, not a zero that puts two centres together
+    for none in (torch.zeros(3), torch.full((3,), float("nan"))):
+        assert torch.equal(head_translation(none, torch.ones(3)), torch.ones(3))
     with pytest.raises(ShapeError, match=r"\[2, 3\] and \[3\]"):  # one length for every edge: refused
         head_translation(t_head, t_points[0])
 
