@@ -86,13 +86,14 @@ def open_heif_ready(path) -> None:
 
 
 def _read(src, index: int):
-    from PIL import Image, ImageOps, UnidentifiedImageError
+    from PIL import Image, UnidentifiedImageError
 
     if isinstance(src, Image.Image):  # a PIL image: the file rule for its mode (16-bit grey, palette, alpha)
         try:
-            return _to_rgb(src), f"image_{index:03d}.png"
-        except ValueError as e:
-            raise ImageError(f"image {index}: {e}") from None
+            src.load()  # decoded now: a truncated or closed file is said here, not deep in the resize
+            return _to_rgb(_upright(src)), f"image_{index:03d}.png"  # turned by its EXIF, as its file would be
+        except (OSError, ValueError, SyntaxError) as e:
+            raise ImageError(f"image {index}: the PIL image cannot be read ({e.__class__.__name__}: {e})") from None
     if isinstance(src, np.ndarray):
         arr = src
         name = f"image_{index:03d}.png"
@@ -103,12 +104,16 @@ def _read(src, index: int):
                              f"{arr.shape}")
         if arr.shape[-1] == 1:
             arr = np.repeat(arr, 3, axis=-1)
+        if arr.dtype.byteorder not in ("=", "|"):  # e.g. big-endian 16-bit, as some FITS / TIFF readers give
+            arr = arr.astype(arr.dtype.newbyteorder("="))
         if arr.dtype == np.uint16:  # as a 16-bit file: 0-65535 onto 0-255
             arr = (arr / 257.0).round().astype(np.uint8)
         elif np.issubdtype(arr.dtype, np.floating):  # float16, float32, float64
             arr = arr.astype(np.float64)
             if not np.isfinite(arr).all() or arr.min() < 0 or arr.max() > 1:
-                raise ImageError(f"image {index}: float arrays must be finite and in [0, 1]")
+                got = "non-finite values" if not np.isfinite(arr).all() else \
+                    f"values in [{arr.min():.3g}, {arr.max():.3g}] (0-255 floats? divide by 255)"
+                raise ImageError(f"image {index}: float arrays must be finite and in [0, 1], got {got}")
             arr = (arr * 255).round().astype(np.uint8)
         elif arr.dtype != np.uint8:
             raise ImageError(f"image {index}: expected dtype uint8, uint16 or float in [0, 1], got {arr.dtype}")
@@ -136,9 +141,26 @@ def _read(src, index: int):
                              f"read their frames; pointmap.video.extract_frames writes them as images)") from None
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
     try:
-        return _to_rgb(ImageOps.exif_transpose(im)), path.name
+        return _to_rgb(_upright(im)), path.name
     except ValueError as e:
         raise ImageError(f"{path}: {e}") from None
+
+
+def _upright(im):
+    """``im`` turned by its EXIF orientation (``ImageOps.exif_transpose``), also when the rest of its EXIF is
+    malformed: Pillow rewrites the block as it turns the image and can fail on a tag of the wrong type (a
+    TypeError or struct.error), so the turn is then made from the orientation tag alone."""
+    import struct
+
+    from PIL import Image, ImageOps
+
+    try:
+        return ImageOps.exif_transpose(im)
+    except (TypeError, struct.error, KeyError, IndexError):
+        turn = {2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+                5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE,
+                8: Image.Transpose.ROTATE_90}.get(im.getexif().get(0x0112))
+        return im.transpose(turn) if turn is not None else im.copy()
 
 
 def _to_rgb(im):

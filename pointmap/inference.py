@@ -164,10 +164,9 @@ def predict_pairs(model, views, pairs, batch_size: int = 8, *, device="cpu", kee
     n = len(imgs)
     if n < 2:
         raise GraphError(f"predict_pairs needs at least two views (a pair), got {n}")
-    pairs = list(pairs)
+    pairs = checked_index_pairs(n, pairs if hasattr(pairs, "shape") else list(pairs))  # an [M, 2] array: its rows
     if not pairs:
         raise GraphError("predict_pairs needs at least one pair")
-    pairs = checked_index_pairs(n, pairs)
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
     if store_dtype is not None and not (isinstance(store_dtype, torch.dtype) and store_dtype.is_floating_point):

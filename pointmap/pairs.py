@@ -127,7 +127,12 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
 
 def checked_index_pairs(n: int, pairs) -> list[tuple[int, int]]:
     """``pairs`` as (i, j) tuples of ints, in their order and direction, each index in 0..n-1 and i != j;
-    GraphError naming the first bad pair otherwise (``predict_pairs`` and ``pairs_from_list`` check with this)."""
+    GraphError naming the first bad pair otherwise (``predict_pairs`` and ``pairs_from_list`` check with this).
+    An [M, 2] integer array or tensor is read as its rows."""
+    if hasattr(pairs, "tolist") and hasattr(pairs, "shape"):
+        if len(pairs.shape) != 2 or pairs.shape[1] != 2:
+            raise GraphError(f"pairs expected an [M, 2] array of image indices, got shape {list(pairs.shape)}")
+        pairs = pairs.tolist()
     out = []
     for p in pairs:
         if not (isinstance(p, (tuple, list)) and len(p) == 2 and all(is_int(k) for k in p)):
@@ -148,10 +153,6 @@ def pairs_from_list(n: int, pairs) -> list[tuple[int, int]]:
     n = int(n)
     if isinstance(pairs, (str, bytes)) or not hasattr(pairs, "__iter__"):
         raise GraphError(f"pairs expected a list of (i, j) image index pairs, got {type(pairs).__name__}")
-    if hasattr(pairs, "tolist") and hasattr(pairs, "shape"):  # an [M, 2] integer array or tensor (a retrieval's top-k)
-        if len(pairs.shape) != 2 or pairs.shape[1] != 2:
-            raise GraphError(f"pairs expected an [M, 2] array of image indices, got shape {list(pairs.shape)}")
-        pairs = pairs.tolist()
     out = {(min(i, j), max(i, j)) for i, j in checked_index_pairs(n, pairs)}
     if not out:
         raise GraphError("pairs expected at least one (i, j) pair, got none")

@@ -61,6 +61,56 @@ def test_exif_orientation_is_applied(tmp_path):
     assert pm.load_images([tmp_path / "r.jpg"], size=512)[0].original_size == (100, 200)
 
 
+def test_a_photograph_with_a_malformed_exif_block_still_loads_turned_by_its_orientation(tmp_path):
+    from PIL import ImageOps
+
+    im = Image.fromarray(np.arange(20 * 30 * 3, dtype=np.uint8).reshape(20, 30, 3))
+    exif = im.getexif()
+    exif[0x0112] = 6  # stored 30 x 20, upright 20 x 30
+    exif[0x0110] = "CAMERA"  # the model tag, ASCII text
+    im.save(tmp_path / "r.jpg", exif=exif)
+    data = bytearray((tmp_path / "r.jpg").read_bytes())
+    at = data.find(bytes([0x01, 0x10, 0x00, 0x02]))  # its entry: tag 0x0110, type ASCII (Pillow writes big endian)
+    assert at > 0
+    data[at + 1] = 0x1A  # now XResolution, a rational tag holding text: Pillow's rewrite fails on it
+    (tmp_path / "bad.jpg").write_bytes(bytes(data))
+    with Image.open(tmp_path / "bad.jpg") as probe:
+        with pytest.raises(TypeError):
+            ImageOps.exif_transpose(probe)
+    assert pm.load_images([tmp_path / "bad.jpg"], size=64)[0].original_size == (20, 30)
+    assert np.array_equal(pm.load_images([tmp_path / "bad.jpg"], size=64)[0].img,
+                          pm.load_images([tmp_path / "r.jpg"], size=64)[0].img)
+
+
+def test_a_pil_image_is_turned_by_its_exif_as_its_file_and_a_truncated_or_closed_one_is_refused(tmp_path):
+    im = Image.fromarray(np.random.default_rng(0).integers(0, 255, (60, 100, 3), dtype=np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = 6
+    im.save(tmp_path / "r.jpg", exif=exif)
+    from_file = pm.load_images([tmp_path / "r.jpg"], size=64)[0]
+    with Image.open(tmp_path / "r.jpg") as opened:
+        from_pil = pm.load_images([opened], size=64)[0]
+    assert from_pil.original_size == from_file.original_size == (60, 100)
+    data = (tmp_path / "r.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[:len(data) // 2])
+    with Image.open(tmp_path / "cut.jpg") as cut:
+        with pytest.raises(pm.ImageError, match="image 0: the PIL image cannot be read"):
+            pm.load_images([cut], size=64)
+    closed = Image.open(tmp_path / "r.jpg")
+    closed.close()
+    with pytest.raises(pm.ImageError, match="image 0: the PIL image cannot be read"):
+        pm.load_images([closed], size=64)
+
+
+def test_a_big_endian_16_bit_array_loads_as_its_native_twin_and_0_255_floats_are_named(tmp_path):
+    native = np.random.default_rng(0).integers(0, 65535, (32, 48, 3)).astype(np.uint16)
+    a = pm.load_images([native], size=32)[0].img
+    b = pm.load_images([native.astype(">u2")], size=32)[0].img
+    assert torch.equal(a, b)
+    with pytest.raises(pm.ImageError, match=r"got values in \[0, 255\] \(0-255 floats\? divide by 255\)"):
+        pm.load_images([np.linspace(0, 255, 32 * 48 * 3).reshape(32, 48, 3)], size=32)
+
+
 def save_with_focal_35mm(path, wh, f35, orientation=1):
     """A JPEG of size wh whose EXIF says f35 (FocalLengthIn35mmFilm, in the Exif sub-IFD) and orientation."""
     im = Image.fromarray(np.full((wh[1], wh[0], 3), 128, np.uint8))

@@ -65,6 +65,10 @@ def test_pairs_that_are_not_index_pairs_a_fractional_batch_size_and_a_non_model_
         with pytest.raises(pm.GraphError, match="pairs expected \\(i, j\\) pairs of image indices"):
             pm.predict_pairs(tiny_model, views(2), [bad], quiet=True)
     assert set(pm.predict_pairs(tiny_model, views(2), [(np.int64(0), np.int64(1))], quiet=True)) == {(0, 1), (1, 0)}
+    for rows in (np.array([[0, 1], [1, 0]]), torch.tensor([[0, 1], [1, 0]])):  # as pairs_from_list takes them
+        assert set(pm.predict_pairs(tiny_model, views(2), rows, quiet=True)) == {(0, 1), (1, 0)}
+    with pytest.raises(pm.GraphError, match=r"pairs expected an \[M, 2\] array of image indices, got shape \[3\]"):
+        pm.predict_pairs(tiny_model, views(2), np.array([0, 1, 1]), quiet=True)
     with pytest.raises(pm.ShapeError, match="batch_size expected an int >= 1, got 2.5"):
         pm.predict_pairs(tiny_model, views(2), [(0, 1)], batch_size=2.5, quiet=True)
     with pytest.raises(pm.CheckpointError, match="expected a model .*got NoneType"):
