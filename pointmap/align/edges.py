@@ -195,7 +195,8 @@ def drop_empty_edges(stack: EdgeStack, conf_transform: str = "log") -> EdgeStack
     if bool(alive.all()):
         return stack
     why = ("no finite points, or every confidence <= 1 under conf_transform='log' (conf_transform='id' weighs "
-           "them), or masked out" if conf_transform in ("log", "m1") else "confidence 0 (masked out) or no finite points")
+           "them), or masked out" if conf_transform in ("log", "m1") else
+           "confidence 0 (masked out) or not finite, or no finite points")
     if not bool(alive.any()):
         raise GraphError(f"every pair has zero weight in view 1 or view 2 ({why}); nothing to align")
     dead = [stack.keys[e] for e in range(stack.num_edges) if not alive[e]]
