@@ -191,8 +191,8 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     if not isinstance(refs, (list, tuple)):
         raise GraphError(f"refs expected, for each of the {m} queries, a list of view indices, got {refs!r}")
     refs = [_plain(r) for r in refs]  # e.g. an argmax's 0-d tensors, or a row of a [M, k] array
-    refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r] if isinstance(r, (list, tuple)) else r
-            for r in refs]
+    refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r]
+            if hasattr(r, "__iter__") and not isinstance(r, (str, bytes)) else r for r in refs]
     if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
                                                                      for k in r) for r in refs):
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
