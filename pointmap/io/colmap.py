@@ -225,8 +225,8 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
     suffix) is written as ``load_images`` reads
     it (``read_rgb``: EXIF orientation applied, 16-bit scaled, alpha composited on white: the pixels the poses and
     intrinsics refer to), in the format of the name's suffix (PNG when the suffix names none). ``sources``: file
-    paths, or None for images given as arrays (skipped: they exist nowhere on disk); a source that no longer exists
-    is skipped with a warning.
+    paths, or None for images given as arrays (skipped: they exist nowhere on disk); a source that no longer exists,
+    or can no longer be read, is skipped with a warning.
     Returns the paths written; every file is written atomically."""
     import shutil
 
@@ -245,7 +245,12 @@ def write_colmap_images(sources, names, out_dir) -> list[Path]:
         if not src.is_file():  # e.g. a reconstruction.npz reloaded on another machine
             warnings.warn(f"write_colmap_images: {src} no longer exists; {dst} not written", stacklevel=2)
             continue
-        as_read = _byte_copyable(src)
+        try:
+            as_read = _byte_copyable(src)
+        except (OSError, SyntaxError, ValueError) as e:  # replaced since the run by something unreadable
+            warnings.warn(f"write_colmap_images: {src} cannot be read ({e.__class__.__name__}); {dst} not written",
+                          stacklevel=2)
+            continue
         if dst.exists() and dst.resolve() == src.resolve():  # the output is the scene folder the photographs
             if not as_read:  # came from (its images/): the user's own file is never replaced by a re-encoded copy
                 warnings.warn(f"write_colmap_images: {dst} is the source photograph itself and is left as it is "

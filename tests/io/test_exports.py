@@ -567,6 +567,10 @@ def test_a_photograph_that_no_longer_exists_is_skipped_with_a_warning(tmp_path):
         written = save_reconstruction(recon, tmp_path / "out", formats=("colmap",))
     assert [p.name for p in written["colmap_images"]] == ["here.png"]
     assert (tmp_path / "out" / "sparse" / "0" / "images.bin").exists()
+    (tmp_path / "gone.png").write_bytes(b"replaced by something that is no image")
+    with pytest.warns(UserWarning, match="gone.png cannot be read .*gone.png not written"):
+        written = save_reconstruction(recon, tmp_path / "out2", formats=("colmap",))
+    assert [p.name for p in written["colmap_images"]] == ["here.png"]
 
 
 def test_tum_trajectory_lines_give_back_each_camera_to_world_pose(tmp_path):
