@@ -63,7 +63,11 @@ def essential_cost(F: np.ndarray, fi: np.ndarray, fj: np.ndarray, ci, cj) -> np.
     (principal points ``ci``, ``cj``): 0 when E is an essential matrix."""
     Ki = _intrinsics(np.asarray(fi, np.float64), np.asarray(ci, np.float64))
     Kj = _intrinsics(np.asarray(fj, np.float64), np.asarray(cj, np.float64))
-    E = np.einsum("bxi,xy,ayl->abil", Kj, F, Ki)  # [fi, fj, 3, 3]: Kj^T F Ki
+    return _gap(np.einsum("bxi,xy,ayl->abil", Kj, F, Ki))  # E [fi, fj, 3, 3] = Kj^T F Ki
+
+
+def _gap(E: np.ndarray) -> np.ndarray:
+    """[...] (s1 - s2) / (s1 + s2) of each [..., 3, 3] matrix, s1 >= s2 its two largest singular values."""
     s = np.linalg.svd(E, compute_uv=False)
     return (s[..., 0] - s[..., 1]) / np.maximum(s[..., 0] + s[..., 1], 1e-300)
 
@@ -109,40 +113,35 @@ def calibrate_focals(Fs: dict, f_start, centres, camera=None, fixed=(), *, prior
     return _polish(Fs, f, f0, cen, cams, free, prior, span)
 
 
-def _total_cost(Fs, f, f0, cen, cams, free, prior) -> float:
-    """The summed pair costs at focals ``f`` plus the prior of the ``free`` cameras (``essential_cost`` of every
-    pair at once)."""
-    I, J = (np.array([k[side] for k in Fs]) for side in (0, 1))
-    E = np.swapaxes(_intrinsics(f[J], cen[J]), 1, 2) @ np.stack(list(Fs.values())) @ _intrinsics(f[I], cen[I])
-    s = np.linalg.svd(E, compute_uv=False)
-    total = float(np.sum((s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)))
-    for c in free:
-        one = cams == c
-        used = int(np.sum(one[I] | one[J]))
-        total += prior * used * math.log(f[one][0] / f0[one][0]) ** 2
-    return total
-
-
 def _polish(Fs, f, f0, cen, cams, free, prior, span) -> np.ndarray:
     """The grid's focals refined jointly (Powell on log focals, within ``span`` of the start): a grid point can
     sit beside a valley that runs diagonally across the cameras (all focals a little short), which moving one
-    camera at a time cannot follow."""
+    camera at a time cannot follow. The cost is the grid's: every pair's ``_gap`` at once, plus each camera's prior
+    weighted by its pairs."""
     from scipy.optimize import minimize
 
-    touched = [c for c in free if any(cams[i] == c or cams[j] == c for i, j in Fs)]
+    I, J = (np.array([key[side] for key in Fs]) for side in (0, 1))
+    F = np.stack(list(Fs.values()))
+    ones = [cams == c for c in free]
+    used = np.array([np.sum(one[I] | one[J]) for one in ones])
+    touched = [k for k, n in enumerate(used) if n]  # cameras no pair touches keep their start
     if not touched:
         return f
-    start = np.array([math.log(f[cams == c][0]) for c in touched])
-    lo = [math.log(f0[cams == c][0] / span) for c in touched]
-    hi = [math.log(f0[cams == c][0] * span) for c in touched]
+    ones, used = [ones[k] for k in touched], used[touched]
+    log_f0 = np.array([math.log(f0[one][0]) for one in ones])
 
     def at(x):
         g = f.copy()
-        for c, v in zip(touched, x):
-            g[cams == c] = math.exp(v)
+        for one, v in zip(ones, x):
+            g[one] = math.exp(v)
         return g
 
-    res = minimize(lambda x: _total_cost(Fs, at(x), f0, cen, cams, touched, prior), start, method="Powell",
-                   bounds=list(zip(lo, hi)), options={"xtol": 1e-6, "ftol": 1e-12})
-    better = res.fun <= _total_cost(Fs, f, f0, cen, cams, touched, prior)
-    return at(res.x) if better and np.isfinite(res.x).all() else f
+    def cost(x):
+        g = at(x)
+        E = np.swapaxes(_intrinsics(g[J], cen[J]), 1, 2) @ F @ _intrinsics(g[I], cen[I])
+        return float(_gap(E).sum() + prior * np.sum(used * (x - log_f0) ** 2))
+
+    start = np.array([math.log(f[one][0]) for one in ones])
+    res = minimize(cost, start, method="Powell", bounds=list(zip(log_f0 - math.log(span), log_f0 + math.log(span))),
+                   options={"xtol": 1e-6, "ftol": 1e-12})
+    return at(res.x) if res.fun <= cost(start) and np.isfinite(res.x).all() else f
