@@ -387,11 +387,13 @@ def masks_from_folder(folder: str, images: list[str]) -> list:
         if f is None:
             masks.append(np.ones((h, w), bool))
             continue
-        from PIL import Image, ImageOps
+        from PIL import Image
+
+        from pointmap.images import upright
 
         try:
             with Image.open(f) as im:
-                im = ImageOps.exif_transpose(im)
+                im = upright(im)  # turned by its EXIF as the photographs are, a malformed block too
                 alpha = np.asarray(im.convert("RGBA"))[..., 3] if im.mode in ("RGBA", "LA", "PA") or \
                     "transparency" in im.info else None
                 if alpha is not None and (alpha < 255).any():  # a cut-out: its visible pixels, dark ones too

@@ -91,7 +91,7 @@ def _read(src, index: int):
     if isinstance(src, Image.Image):  # a PIL image: the file rule for its mode (16-bit grey, palette, alpha)
         try:
             src.load()  # decoded now: a truncated or closed file is said here, not deep in the resize
-            return _to_rgb(_upright(src)), f"image_{index:03d}.png"  # turned by its EXIF, as its file would be
+            return _to_rgb(upright(src)), f"image_{index:03d}.png"  # turned by its EXIF, as its file would be
         except (OSError, ValueError, SyntaxError) as e:
             raise ImageError(f"image {index}: the PIL image cannot be read ({e.__class__.__name__}: {e})") from None
     if isinstance(src, np.ndarray):
@@ -141,12 +141,12 @@ def _read(src, index: int):
                              f"read their frames; pointmap.video.extract_frames writes them as images)") from None
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
     try:
-        return _to_rgb(_upright(im)), path.name
+        return _to_rgb(upright(im)), path.name
     except ValueError as e:
         raise ImageError(f"{path}: {e}") from None
 
 
-def _upright(im):
+def upright(im):
     """``im`` turned by its EXIF orientation (``ImageOps.exif_transpose``), also when the rest of its EXIF is
     malformed: Pillow rewrites the block as it turns the image and can fail on a tag of the wrong type (a
     TypeError or struct.error), so the turn is then made from the orientation tag alone."""

@@ -309,6 +309,27 @@ def test_a_cut_out_with_transparency_as_mask_keeps_its_visible_pixels_dark_ones_
     assert keep[:, 4:].sum() == 23 and not keep[:, :4].any()
 
 
+def test_a_mask_with_a_malformed_exif_block_is_turned_by_its_orientation_as_the_photographs_are(tmp_path):
+    from PIL import Image
+
+    from pointmap.cli import masks_from_folder
+
+    cv2.imwrite(str(tmp_path / "a.jpg"), np.zeros((8, 6, 3), np.uint8))  # upright 6 x 8
+    (tmp_path / "m").mkdir()
+    stored = np.zeros((6, 8), np.uint8)
+    stored[:, :4] = 255  # the left half as stored: the top half once turned (orientation 6: 90 degrees clockwise)
+    im = Image.fromarray(stored)
+    exif = im.getexif()
+    exif[0x0112], exif[0x0110] = 6, "CAMERA"
+    im.save(tmp_path / "m" / "a.jpg", exif=exif, quality=100)
+    data = bytearray((tmp_path / "m" / "a.jpg").read_bytes())
+    at = data.find(bytes([0x01, 0x10, 0x00, 0x02]))  # the model tag, ASCII: turned into XResolution, a rational
+    data[at + 1] = 0x1A  # holding text, which Pillow's exif_transpose fails on
+    (tmp_path / "m" / "a.jpg").write_bytes(bytes(data))
+    keep = masks_from_folder(str(tmp_path / "m"), [str(tmp_path / "a.jpg")])[0]
+    assert keep.shape == (8, 6) and keep[:3].all() and not keep[5:].any()
+
+
 def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_and_the_images_width(tiny, tmp_path):
     import json
 
