@@ -1,8 +1,7 @@
 """Focals from the model's matches (self-calibration), for the epipolar stage's start.
 
 Why: the network's own focal hardly follows the image (log focal against log true focal has slope 0.1-0.2 on the
-held-out sets, docs/training-log.md sessions 55-56): on `eval_cam_s464646` it says 200-270 px where the true
-focals run from 112 to 282. The matches carry the focal the pointmaps lack: for a pair's fundamental matrix F
+held-out sets, docs/training-log.md sessions 55-56; v79a's model card: 0.10-0.16, median errors 21-28%). The matches carry the focal the pointmaps lack: for a pair's fundamental matrix F
 (image i to image j, x_j^T F x_i = 0) the essential matrix E = K_j^T F K_i of the right intrinsics has two equal
 singular values (Hartley and Zisserman, 9.6.1; Mendonca and Cipolla's self-calibration). Each pair's cost
 
