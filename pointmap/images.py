@@ -245,8 +245,9 @@ def _exif_text(value) -> str | None:
 
 def exif_cameras(paths_or_arrays) -> list[ExifCamera | None]:
     """Each image's ``ExifCamera``, read from the file's header (not decoded); None for an array (it carries no EXIF).
-    A file without EXIF, or whose EXIF block is broken, gives its size alone. ImageError for an image the loader
-    cannot read."""
+    A file without EXIF, or whose EXIF block is broken, gives its size alone. ImageError for a file that is not an
+    image; a file whose header reads but whose pixels are cut short (a truncated JPEG) still gives its camera here, and
+    the loader refuses it when it decodes the pixels."""
     from PIL import Image
 
     out = []

@@ -398,6 +398,19 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, world2cam, K, wid
 # public entry point
 
 
+def _as_tensor(name: str, t, like: torch.Tensor | None):
+    """An input as a tensor: numpy arrays and lists are taken (on ``like``'s device, in its dtype); a tensor is left
+    as given (its gradients kept); None stays None."""
+    if t is None or isinstance(t, torch.Tensor):
+        return t
+    try:  # made in the means' dtype directly: a list's 0.2 through float32 would not be float64's 0.2
+        out = torch.as_tensor(t) if like is None else torch.as_tensor(t, dtype=like.dtype, device=like.device)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ShapeError(f"{name} expected a tensor or an array of numbers, got {type(t).__name__} ({e})") from None
+    # the means set every input's dtype: integer means from a list become the default float
+    return out if like is not None or out.is_floating_point() else out.to(torch.get_default_dtype())
+
+
 def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, height, background=None, *,
               backend: str = "torch", near: float = 0.01, eps2d: float = 0.3, tile: int = 4,
               chunk: int = 32) -> RenderOutput:
@@ -413,6 +426,11 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     if not (is_int(width) and is_int(height) and width > 0 and height > 0):
         raise ShapeError(f"width and height expected positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)
+    means = _as_tensor("means", means, None)
+    quats, scales, opacities, colors, world2cam, K, background = (
+        _as_tensor(name, t, means) for name, t in (
+            ("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors),
+            ("world2cam", world2cam), ("K", K), ("background", background)))
     if means.ndim != 2 or means.shape[1] != 3 or not means.is_floating_point():
         raise ShapeError(f"means expected floating-point [N, 3], got {list(means.shape)} {means.dtype}")
     n = means.shape[0]

@@ -261,3 +261,15 @@ def test_gaussians_of_mixed_float_dtypes_render_in_the_means_dtype_with_gradient
         assert mixed[k].grad is not None and mixed[k].grad.dtype == torch.float64
     with pytest.raises(ShapeError, match=r"means expected floating-point \[N, 3\], got \[30, 3\] torch.int64"):
         rasterize(a[0].long(), *a[1:], W, H)
+
+
+def test_numpy_arrays_and_lists_render_as_the_same_tensors_would():
+    # a list background or numpy means raised an AttributeError (.shape / .ndim of a list, .is_floating_point of numpy)
+    W, H = 20, 16
+    a = _scene(6, W, H)
+    want = rasterize(*a, W, H, background=torch.tensor([0.2, 0.3, 0.4], dtype=torch.float64))
+    got = rasterize(*[t.numpy() for t in a], W, H, background=[0.2, 0.3, 0.4])
+    assert got.image.dtype == torch.float64
+    assert torch.equal(got.image, want.image) and torch.equal(got.depth, want.depth)
+    with pytest.raises(ShapeError, match="colors expected a tensor or an array of numbers, got list"):
+        rasterize(*a[:4], [["red"]] * 6, *a[5:], W, H)
