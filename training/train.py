@@ -321,6 +321,28 @@ def freeze_except(model: PointmapNet, train_only: str) -> int:
     return kept
 
 
+def idle_parameters(cfg: TrainConfig, model: PointmapNet) -> list[str]:
+    """Names of the parameters no loss of this run reaches: a focal head's at --focal_head_weight 0 (every other
+    module feeds the pointmap loss: descriptors at matching weights 0 still get gradients, through the confidence
+    and the pose head). They get no gradient: ``freeze_idle`` freezes them, so the optimizer leaves them out and
+    DDP, which waits for a gradient of every trainable parameter, does not stop the run at its second step (its search
+    for unused parameters does not find outputs that no loss reads)."""
+    return [n for n, _ in model.named_parameters() if n.startswith("focal_head.") and cfg.focal_head_weight <= 0]
+
+
+def freeze_idle(cfg: TrainConfig, model: PointmapNet) -> list[str]:
+    """Freeze ``idle_parameters`` (after ``freeze_except``: it only ever turns gradients off). Returns their names.
+    ValueError when nothing would be left to train."""
+    idle = set(idle_parameters(cfg, model))
+    for n, p in model.named_parameters():
+        if n in idle:
+            p.requires_grad_(False)
+    if not any(p.requires_grad for p in model.parameters()):
+        raise ValueError(f"nothing to train: every parameter {'--train_only ' + cfg.train_only + ' keeps' if cfg.train_only else ''}"
+                         " is one no loss reaches (a focal head needs --focal_head_weight > 0)")
+    return sorted(idle)
+
+
 def check_model_options(cfg: TrainConfig, model: PointmapNet) -> None:
     """Options that depend on the architecture, checked before any data is opened."""
     if cfg.attn_weight > 0 and cfg.attn_heads > model.cfg.dec_heads:
@@ -363,6 +385,7 @@ def main(argv=None) -> int:
         check_model_options(cfg, model)
         lr_scale = grown_lr_scale(cfg, model)
         trainable = freeze_except(model, cfg.train_only)
+        idle = freeze_idle(cfg, model)
         train_set = limit_rotation(open_pairs(cfg.data, size=cfg.size, augment=True, split="train",
                                               crop_link=cfg.crop_link, grey_p=cfg.grey_p, flip_p=cfg.flip_p,
                                               pad_p=cfg.pad_p),
@@ -379,6 +402,9 @@ def main(argv=None) -> int:
               f"{cfg.grown_from})", file=sys.stderr)
     if cfg.train_only:
         print(f"--train_only {cfg.train_only}: {trainable} parameter tensors train, the rest is frozen", file=sys.stderr)
+    if idle:
+        print(f"the focal head's {len(idle)} parameter tensors are frozen: no loss reaches them (--focal_head_weight "
+              "trains them)", file=sys.stderr)
     extra = lineage_extra(model)
     try:
         result = fit(cfg, model, train_set, collate, make_step(cfg), eval_fn, lr_scale=lr_scale, extra=extra)

@@ -10,7 +10,7 @@ import torch
 from pointmap.model import PRESETS, PointmapNet
 from training.config import TrainConfig
 from training.loop import fit
-from training.train import collate, make_step
+from training.train import collate, freeze_idle, make_step
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from synthetic import PlanePairs  # noqa: E402
@@ -18,11 +18,15 @@ from synthetic import PlanePairs  # noqa: E402
 out = sys.argv[1]
 signalled = len(sys.argv) > 2 and sys.argv[2] == "sigterm"
 # with a time limit and --decay_by_time every step broadcasts rank 0's end and stop decision
+# plain: a linear head with a focal head that no loss reaches (--focal_head_weight 0, the default) stopped DDP at its
+# second step; sigterm: the DPT head, whose last fusion block has an unused lateral unit
+preset = PRESETS["test"] if signalled else PRESETS["test"].replace(head="catmlp+linear", pose_head=True, focal_head=True)
 cfg = TrainConfig(data="synthetic", out=out, preset="test", batch_size=2, steps=40 if signalled else 3, warmup=1,
                   ckpt_every=100, eval_every=100, workers=0, quiet=True, n_corr=64, threads=1, schedule="wsd",
-                  decay_steps=1, max_minutes=60.0, decay_by_time=True)
+                  decay_steps=1, max_minutes=60.0, decay_by_time=True, pose_weight=0.0 if signalled else 1.0)
 torch.manual_seed(0)
-model = PointmapNet(PRESETS["test"])
+model = PointmapNet(preset)
+freeze_idle(cfg, model)  # as training.train does: the focal head, which no loss reaches, is frozen
 step = make_step(cfg)
 
 

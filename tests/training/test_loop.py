@@ -317,7 +317,7 @@ def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss
 @pytest.mark.skipif(shutil.which("torchrun") is None and not (Path(sys.executable).parent / "torchrun").exists(),
                     reason="torchrun not installed")
 @pytest.mark.parametrize("mode", ["plain", "sigterm"])
-def test_two_ddp_processes_on_cpu_end_with_identical_weights_and_a_sigterm_on_one_rank_stops_both(tmp_path, mode):
+def test_two_ddp_processes_on_cpu_end_with_identical_weights_even_with_a_head_no_loss_reaches_and_a_sigterm_stops_both(tmp_path, mode):
     torchrun = str(Path(sys.executable).parent / "torchrun")
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([torchrun, "--nproc_per_node=2", f"--master_port={29517 + (mode == 'sigterm')}",
@@ -327,7 +327,10 @@ def test_two_ddp_processes_on_cpu_end_with_identical_weights_and_a_sigterm_on_on
     w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
     w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
     assert int(w0.pop("__step")) == int(w1.pop("__step")) == (2 if mode == "sigterm" else 3)
-    initial = PointmapNet(PRESETS["test"]).state_dict()
+    torch.manual_seed(0)
+    initial = PointmapNet(PRESETS["test"] if mode == "sigterm" else PRESETS["test"].replace(
+        head="catmlp+linear", pose_head=True, focal_head=True)).state_dict()
+    assert w0.keys() == initial.keys()
     assert all(torch.equal(w0[k], w1[k]) for k in w0)
     assert any(not torch.equal(w0[k], initial[k]) for k in w0)
     if mode == "sigterm":
@@ -1078,6 +1081,29 @@ def test_train_only_trains_the_named_parameters_and_leaves_every_other_weight_bi
         freeze_except(model, "pose_head,pose_heads")
     with pytest.raises(ValueError, match="'' names no parameter"):
         freeze_except(model, "pose_head,")
+
+
+def test_heads_no_loss_reaches_are_exactly_the_parameters_without_a_gradient_and_are_frozen(tmp_path):
+    from training.train import freeze_except, freeze_idle, idle_parameters
+
+    preset = PRESETS["test"].replace(pose_head=True, focal_head=True)
+    for kw in (dict(), dict(match_weight=0.0, coarse_weight=0.0, desc_conf_weight=0.0), dict(focal_head_weight=1.0)):
+        model, batch = seeded_model_and_batch(preset)
+        cfg = dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, **kw)
+        loss, _ = make_step(cfg)(model, batch, 0)
+        loss.backward()
+        # the slow reference: which parameters one step's backward leaves without a gradient (less the DPT's unused
+        # lateral unit, which DDP's own search finds)
+        no_grad = {n for n, p in model.named_parameters() if p.grad is None and "refinenet4.resConfUnit1" not in n}
+        assert set(idle_parameters(cfg, model)) == no_grad
+        assert bool(no_grad) == (cfg.focal_head_weight == 0)
+        assert set(freeze_idle(cfg, model)) == no_grad
+        assert {n for n, p in model.named_parameters() if not p.requires_grad} == no_grad
+    model, _ = seeded_model_and_batch(preset)
+    freeze_except(model, "focal_head")
+    with pytest.raises(ValueError, match="nothing to train: every parameter --train_only focal_head keeps is one no "
+                                         "loss reaches"):
+        freeze_idle(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, train_only="focal_head"), model)
 
 
 def test_the_focal_head_loss_is_added_with_its_weight_and_trains_the_focal_head_alone(tmp_path):
