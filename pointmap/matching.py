@@ -31,13 +31,26 @@ class Matches:
         return int(self.xy1.shape[0])
 
 
-def nearest(query: torch.Tensor, db: torch.Tensor, metric: str, chunk: int = 4096) -> torch.Tensor:
-    """Index in ``db`` [N, D] of the nearest neighbour of each ``query`` [M, D] row, computed in chunks.
+# similarity entries computed at once (128 MB in float32): a block of query rows against the whole other view. A
+# fixed 4,096 rows took 3.2 GB against a 512 x 384 view and could not be allocated at size 1024
+BLOCK_ENTRIES = 2 ** 25
+
+
+def block_rows(n_db: int, chunk: int | None = None) -> int:
+    """Query rows per similarity block against ``n_db`` rows: ``chunk`` when given, else as many as keep a block
+    within ``BLOCK_ENTRIES`` (at least one)."""
+    return chunk if chunk is not None else max(1, BLOCK_ENTRIES // max(1, n_db))
+
+
+def nearest(query: torch.Tensor, db: torch.Tensor, metric: str, chunk: int | None = None) -> torch.Tensor:
+    """Index in ``db`` [N, D] of the nearest neighbour of each ``query`` [M, D] row, computed in blocks of
+    ``chunk`` rows (default: ``block_rows``).
 
     metric 'dot': largest dot product (unit descriptors); 'l2': smallest Euclidean distance.
     """
     out = torch.empty(query.shape[0], dtype=torch.long, device=query.device)
     db_sq = (db * db).sum(-1) if metric == "l2" else None
+    chunk = block_rows(db.shape[0], chunk)
     for s in range(0, query.shape[0], chunk):
         q = query[s: s + chunk]
         sim = q @ db.T
@@ -47,18 +60,19 @@ def nearest(query: torch.Tensor, db: torch.Tensor, metric: str, chunk: int = 409
     return out
 
 
-def reciprocal_nn_bruteforce(f1: torch.Tensor, f2: torch.Tensor, metric: str = "dot", chunk: int = 2048):
+def reciprocal_nn_bruteforce(f1: torch.Tensor, f2: torch.Tensor, metric: str = "dot", chunk: int | None = None):
     """All mutual nearest neighbours between f1 [N1, D] and f2 [N2, D]: (idx1 [M], idx2 [M]), sorted by idx1.
 
-    Exhaustive in float64 (row blocks only bound the memory).
+    Exhaustive in float64 (row blocks of ``chunk`` rows, default ``block_rows``, only bound the memory).
     """
     a, b = f1.double(), f2.double()
 
     def best(q, db):
         out = torch.empty(q.shape[0], dtype=torch.long, device=q.device)
-        for s in range(0, q.shape[0], chunk):
-            sim = q[s: s + chunk] @ db.T if metric == "dot" else -torch.cdist(q[s: s + chunk], db)
-            out[s: s + chunk] = sim.argmax(1)
+        rows = block_rows(db.shape[0], chunk)
+        for s in range(0, q.shape[0], rows):
+            sim = q[s: s + rows] @ db.T if metric == "dot" else -torch.cdist(q[s: s + rows], db)
+            out[s: s + rows] = sim.argmax(1)
         return out
 
     nn12, nn21 = best(a, b), best(b, a)
