@@ -98,8 +98,9 @@ def pairs_from_similarity(sim, k: int) -> list[tuple[int, int]]:
                          f"got {type(given).__name__}") from None
     if sim.ndim != 2 or sim.shape[0] != sim.shape[1] or sim.shape[0] < 2:
         raise GraphError(f"sim expected an [N, N] similarity of N >= 2 images, got shape {list(sim.shape)}")
-    if not bool(torch.isfinite(sim).all()):
-        raise GraphError("sim holds NaN or infinite scores")
+    off = ~torch.eye(sim.shape[0], dtype=torch.bool)  # the diagonal is ignored: -inf or NaN there leaves out self-pairs
+    if not bool(torch.isfinite(sim[off]).all()):
+        raise GraphError(f"sim holds {int((~torch.isfinite(sim[off])).sum())} NaN or infinite scores off its diagonal")
     if not (is_int(k) and k >= 1):
         raise GraphError(f"k expected an int >= 1 (neighbours per image), got {k!r}")
     n = sim.shape[0]

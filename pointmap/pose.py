@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, check_seed, is_int
+from pointmap.errors import ShapeError, check_seed, is_int, is_number
 from pointmap.geometry.cameras import K_LAYOUT, head_translation, invert_rigid, is_pinhole_K, transform_points
 from pointmap.geometry.focal import focal_from_pointmap
 from pointmap.geometry.procrustes import weighted_procrustes
@@ -165,7 +165,7 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
     if not 0 < keep <= 1:
         raise ShapeError(f"keep expected in (0, 1], got {keep}")
     out = torch.full((B, 4, 4), float("nan"), dtype=torch.float32)
-    rng = np.random.default_rng(check_seed(seed))
+    seed = check_seed(seed)
     for b in range(B):
         pts2 = pred.pts2_cam1[b].detach().float().cpu()
         conf2 = pred.conf2[b].detach().float().cpu()
@@ -200,7 +200,8 @@ def relative_pose(pred: PairPrediction, K1=None, K2=None, *, pred_reverse: PairP
             out[b, :3, :3] = R.float()
             out[b, :3, 3] = t.float()
         else:
-            pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, rng)
+            # a generator per pair: its subsample, so its pose, is the same alone and in any batch
+            pose = _pose_pnp(pts2, conf2, None if K2 is None else K2[b].numpy(), keep, np.random.default_rng(seed))
             if pose is not None:
                 out[b] = torch.from_numpy(pose).float()
     return out
@@ -518,8 +519,18 @@ def pair_pose(pred: PairPrediction, pred_reverse: PairPrediction, K1=None, K2=No
         raise ShapeError(f"pred_reverse expected the PairPrediction of (view 2, view 1), got "
                          f"{type(pred_reverse).__name__}")
     B = pred.batch_size
-    if pose is not None and tuple(pose.shape) != (B, 4, 4):
-        raise ShapeError(f"pose expected relative_pose's [{B}, 4, 4], got {list(pose.shape)}")
+    # the settings are checked whether or not a pair gets refined (one without a usable focal skips it)
+    if not (is_int(patch) and patch >= 1):
+        raise ShapeError(f"patch expected an int >= 1, got {patch!r}")
+    if not (is_number(threshold_px) and 0 < threshold_px < math.inf):
+        raise ShapeError(f"threshold_px expected a finite number > 0, got {threshold_px!r}")
+    if rotation_prior_deg is not None and not (is_number(rotation_prior_deg) and rotation_prior_deg >= 0):
+        raise ShapeError(f"rotation_prior_deg expected None or a number >= 0 (math.inf: no prior), got "
+                         f"{rotation_prior_deg!r}")
+    if pose is not None:
+        pose = torch.as_tensor(pose)
+        if tuple(pose.shape) != (B, 4, 4):
+            raise ShapeError(f"pose expected relative_pose's [{B}, 4, 4], got {list(pose.shape)}")
     if matches is not None and (not isinstance(matches, (list, tuple)) or len(matches) != B):
         raise ShapeError(f"matches expected a list of {B} Matches, got {type(matches).__name__}")
     given = {}

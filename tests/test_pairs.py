@@ -111,12 +111,15 @@ def test_two_groups_of_alike_images_are_paired_within_each_group_and_joined_once
     pairs = pairs_from_similarity(s, 2)
     assert pairs == [(0, 1), (0, 2), (1, 2), (2, 4), (3, 4), (3, 5), (4, 5)]
     pm.check_connected(6, pairs)
+    for diagonal in (-np.inf, np.nan):  # a common way to leave out self-pairs; the diagonal is ignored anyway
+        np.fill_diagonal(s, diagonal)
+        assert pairs_from_similarity(s, 2) == pairs
 
 
 @pytest.mark.parametrize("sim,k,message", [
     (np.ones((3, 2)), 1, r"an \[N, N\] similarity of N >= 2 images, got shape \[3, 2\]"),
     (np.ones((1, 1)), 1, "N >= 2"),
-    (np.array([[1.0, np.nan], [np.nan, 1.0]]), 1, "NaN or infinite"),
+    (np.array([[1.0, np.nan], [np.nan, 1.0]]), 1, "sim holds 2 NaN or infinite scores off its diagonal"),
     (np.eye(3), 0, "k expected an int >= 1"),
     (np.eye(3), 1.5, "k expected an int >= 1"),
     (None, 1, "numeric similarity .*got NoneType"),

@@ -1,6 +1,7 @@
 """Relative pose and matching on exact pointmaps of an analytic scene (a textured slanted plane)."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -62,6 +63,27 @@ def test_pnp_finds_the_same_pose_whatever_the_units_of_the_pointmap(unit):
     r, t = pose_errors(est, gt)
     assert r < 0.05 and t < 0.2
     assert torch.allclose(est[:3, 3].double() / unit, gt[:3, 3], atol=1e-3)
+
+
+def test_a_pairs_pnp_pose_is_the_same_alone_and_in_a_batch():
+    # one generator for the whole batch drew each pair's 4,000-pixel subsample after the pairs before it: the second
+    # pair's pose moved by degrees between the batch and alone
+    g = torch.Generator().manual_seed(0)
+    preds = []
+    for angle in (8.0, 15.0):
+        p1, p2, *_ = two_views(angle)
+        # twice the size (points and K scaled together), so that more than 4,000 pixels are left to subsample
+        big = [torch.nn.functional.interpolate(p.permute(2, 0, 1)[None], scale_factor=2, mode="bilinear")[0]
+               .permute(1, 2, 0) for p in (p1, p2)]
+        preds.append([p + 0.01 * torch.randn(p.shape, generator=g, dtype=p.dtype) for p in big])
+    batch = pm.PairPrediction(torch.stack([a for a, _ in preds]).float(), torch.stack([b for _, b in preds]).float(),
+                              torch.ones(2, 2 * H, 2 * W) * 2, torch.ones(2, 2 * H, 2 * W) * 2)
+    K_big = torch.diag(torch.tensor([2.0, 2.0, 1.0], dtype=K.dtype)) @ K
+    for K2 in (None, K_big[None].expand(2, 3, 3)):
+        together = pm.relative_pose(batch, K2=K2)
+        for b in range(2):
+            alone = pm.relative_pose(batch[b], K2=None if K2 is None else K2[b:b + 1])[0]
+            assert torch.equal(together[b], alone)
 
 
 def test_pnp_with_unknown_focal_sweeps_focals_and_stays_close():
@@ -633,6 +655,13 @@ def test_the_pair_pose_takes_the_direction_from_the_matches_and_the_rotation_fro
         pm.pair_pose(fwd, rev, matches=[])
     with pytest.raises(pm.ShapeError, match=r"K2 expected \[3, 3\] or \[1, 3, 3\]"):
         pm.pair_pose(fwd, rev, K, K[:2])
+    assert torch.equal(pm.pair_pose(fwd, rev, patch=8, pose=plain[None].numpy()), est[None])  # an array is taken
+    # settings checked also where no pair is refined (a model without descriptors): they passed silently before
+    for kw, message in ((dict(patch=0), "patch expected an int >= 1, got 0"),
+                        (dict(threshold_px=float("nan")), "threshold_px expected a finite number > 0, got nan"),
+                        (dict(rotation_prior_deg=-1), "rotation_prior_deg expected None or a number >= 0")):
+        with pytest.raises(pm.ShapeError, match=re.escape(message)):
+            pm.pair_pose(*bare, **kw)
 
 
 def test_a_prediction_refuses_descriptors_that_do_not_come_in_fours_fit_the_grid_or_agree_in_length():

@@ -124,6 +124,22 @@ def test_the_pose_head_moves_view_twos_own_points_rigidly_into_view_one():
     assert torch.allclose(dist(moved), dist(own), atol=1e-5)  # all distances kept: a rigid motion
 
 
+def test_under_bf16_autocast_the_heads_run_in_float32_as_the_heads_of_a_float32_run():
+    # before, autocast ran the heads' linear layers in bf16: float32 tokens, bf16 points and a pose 8e-3 from rigid
+    with_pose, _ = _pose_pair(1)
+    with torch.no_grad():
+        with_pose.pose_head.out.weight.normal_(0, 0.5)
+    img1, img2 = torch.rand(1, 3, 32, 32), torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        e1, e2 = with_pose.encode(img1), with_pose.encode(img2)
+        t1, t2 = with_pose.decode(e1, e2)
+        want = with_pose.heads(t1, t2, e1.grid, e2.grid)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            got = with_pose.heads(t1, t2, e1.grid, e2.grid)
+    for a, b in ((got.pts1_cam1, want.pts1_cam1), (got.pts2_cam1, want.pts2_cam1), (got.cam2_to_cam1, want.cam2_to_cam1)):
+        assert a.dtype == torch.float32 and torch.equal(a, b)
+
+
 def test_rotation_from_6d_returns_the_rotation_its_first_two_columns_came_from():
     from pointmap.model.heads import rotation_from_6d
 
