@@ -51,8 +51,9 @@ def code_digest() -> bytes:
 
 def model_fingerprint(model) -> str:
     """SHA-256 (hex) of what the model computes with: the library's network code (``code_digest``), a PyTorch
-    model's parameters and buffers (names, dtypes, shapes, bytes) with its architecture, or an ONNX export's graph
-    files and metadata. CheckpointError for anything else."""
+    model's parameters and buffers (names, dtypes, shapes, bytes) with its architecture, or the files an ONNX
+    runner loaded (``files_used``: its graphs, their weights, the export's metadata). CheckpointError for anything
+    else."""
     h = hashlib.sha256(code_digest())
     cfg = getattr(model, "cfg", None)
     h.update(repr(cfg.to_dict() if hasattr(cfg, "to_dict") else cfg).encode())
@@ -62,16 +63,13 @@ def model_fingerprint(model) -> str:
             h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
         return h.hexdigest()
-    path = getattr(model, "path", None)
-    if path is not None and Path(path).is_dir():  # an ONNX export: its graphs and sidecar
-        files = sorted(p for p in Path(path).iterdir() if p.is_file() and p.suffix in (".onnx", ".json", ".data"))
-        if files:
-            for p in files:
-                h.update(p.name.encode())
-                with open(p, "rb") as f:
-                    for block in iter(lambda: f.read(1 << 20), b""):
-                        h.update(block)
-            return h.hexdigest()
+    if callable(getattr(model, "files_used", None)):  # an ONNX export: the graphs loaded, their weights, the sidecar
+        for p in model.files_used():
+            h.update(p.name.encode())
+            with open(p, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+        return h.hexdigest()
     raise CheckpointError(f"a prediction cache needs a PyTorch model or an ONNX export directory to fingerprint, "
                           f"got {type(model).__name__}")
 

@@ -170,6 +170,34 @@ def test_an_onnx_export_fingerprints_by_its_files(split_export, full_export):
     assert model_fingerprint(a) == model_fingerprint(b) != model_fingerprint(pm.load_model(full_export))
 
 
+def test_two_exports_side_by_side_in_one_folder_are_two_models_and_external_weights_count(full_export, tmp_path):
+    # before, a lone .onnx file was fingerprinted by every graph of its folder: v1.onnx and v2.onnx shared one key,
+    # and a cache gave v2 the predictions of v1
+    import onnx
+    from onnx import numpy_helper
+
+    proto = onnx.load(str(full_export / "model.onnx"))
+    onnx.save_model(proto, str(tmp_path / "v1.onnx"))
+    init = next(t for t in proto.graph.initializer if t.data_type == onnx.TensorProto.FLOAT and len(t.dims) == 2)
+    init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * 1.5, init.name))
+    onnx.save_model(proto, str(tmp_path / "v2.onnx"))
+    v1, v2 = pm.load_model(tmp_path / "v1.onnx"), pm.load_model(tmp_path / "v2.onnx")
+    assert v1.files_used() == [tmp_path / "v1.onnx"] and v2.files_used() == [tmp_path / "v2.onnx"]
+    assert model_fingerprint(v1) != model_fingerprint(v2)
+    assert model_fingerprint(v1) == model_fingerprint(pm.load_model(tmp_path / "v1.onnx"))
+    (tmp_path / "ext").mkdir()
+    onnx.save_model(proto, str(tmp_path / "ext" / "v2.onnx"), save_as_external_data=True, location="w.bin")
+    ext = pm.load_model(tmp_path / "ext" / "v2.onnx")
+    assert ext.files_used() == [tmp_path / "ext" / "v2.onnx", tmp_path / "ext" / "w.bin"]
+    before = model_fingerprint(ext)
+    with open(tmp_path / "ext" / "w.bin", "r+b") as f:  # other weights in the external file: another model
+        f.seek(100)
+        byte = f.read(1)
+        f.seek(100)
+        f.write(bytes([byte[0] ^ 1]))
+    assert model_fingerprint(ext) != before
+
+
 def test_reconstruct_with_a_cache_runs_the_network_once_and_aligns_the_same(tiny_model, tmp_path):
     rng = np.random.default_rng(5)
     images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(3)]

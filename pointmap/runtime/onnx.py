@@ -227,8 +227,10 @@ class OnnxPointmapModel:
         so = session_options(threads)
         files = [ENCODER_GRAPH, DECODER_GRAPH] if self.split else [FULL_GRAPH]
         self._sessions = {}
+        self.graph_files = []  # the graph files loaded (``files_used``)
         for f in files:
             gp = Path(graph) if graph is not None and not self.split else self.path / f
+            self.graph_files.append(gp)
             if not gp.exists():
                 raise CheckpointError(f"{self.path} is missing {f} (listed as {'split' if self.split else 'full'} export)")
             try:
@@ -251,6 +253,22 @@ class OnnxPointmapModel:
                               f"it runs on {got}", RuntimeWarning, stacklevel=2)
         warn_if_noncommercial(self, self.path, "these weights (derived from official ones)")
         self._warned_unsplit = False
+
+    def files_used(self) -> list[Path]:
+        """The files this runner computes with: the graphs it loaded, their external weights (as each graph names
+        them) and the export's sidecar. What a prediction cache fingerprints: two exports side by side in one folder
+        (``v1.onnx``, ``v2.onnx``, each loaded by its own name) are two models."""
+        import onnx
+        from onnx.external_data_helper import ExternalDataInfo, uses_external_data
+
+        out = []
+        for gp in self.graph_files:
+            out.append(gp)
+            proto = onnx.load(str(gp), load_external_data=False)
+            out += sorted({gp.parent / ExternalDataInfo(t).location for t in proto.graph.initializer
+                           if uses_external_data(t)})
+        side = self.path / SIDECAR
+        return out + ([side] if side.is_file() else [])
 
     # -- torch.nn.Module look-alikes, so code written for PointmapNet runs unchanged -------------------
     @property
