@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--parity", choices=sorted(PARITY_CASES) + ["none"], default="standard",
                     help="parity check against PyTorch eager before writing (default: standard)")
     ap.add_argument("--external-data", action="store_true", help="weights in .onnx.data files even under 2 GB")
-    ap.add_argument("--seed", type=int, default=0, help="seed for preset:NAME random weights")
+    ap.add_argument("--seed", type=int, default=None, help="seed for preset:NAME random weights (default 0)")
     ap.add_argument("--quiet", action="store_true")
     return ap
 
@@ -46,9 +46,13 @@ def main(argv=None) -> int:
     from pointmap.errors import PointmapError
 
     t0 = time.perf_counter()
+    if args.seed is not None and not str(args.model).startswith("preset:"):
+        print(f"error: --seed seeds the random weights of a preset:NAME model; {args.model} has its own weights",
+              file=sys.stderr)
+        return 2
     try:
         check_target(args.out, args.opset)  # before the model loads (a ViT-L checkpoint takes a while)
-        model = resolve_model(args.model, seed=args.seed)
+        model = resolve_model(args.model, seed=args.seed or 0)
         meta = export_model(model, args.out, split=args.split, opset=args.opset, fp16=args.fp16,
                             quantize=args.quantize, parity=args.parity,
                             external_data=True if args.external_data else None)

@@ -161,25 +161,47 @@ def stamp(graph: Path, meta: dict) -> None:
     onnx.save(proto, str(graph))
 
 
+def _foreign_files(folder: Path) -> list[str]:
+    """What a folder holds beside an export's own files (graphs, their weights, the sidecar): a user's notes, a
+    TensorRT engine cache. Replacing the export would delete them."""
+    return sorted(p.name for p in folder.iterdir()
+                  if not (p.is_file() and (p.name == SIDECAR or p.suffix in (".onnx", ".data"))))
+
+
+def _replaceable(out: Path) -> None:
+    """CheckpointError unless ``out`` is absent, an empty folder, or an export holding nothing else."""
+    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return
+    if not (out.is_dir() and (out / SIDECAR).exists()):
+        raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
+    if foreign := _foreign_files(out):
+        raise CheckpointError(f"{out} is an export that also holds {foreign[:5]}, which replacing it would delete: "
+                              "move them, or export to another folder")
+
+
 def _atomic_publish(tmp: Path, out: Path) -> None:
-    """Move the finished temp dir to ``out``; an existing export there is replaced, anything else kept."""
+    """Move the finished temp dir to ``out``; an existing export there (and nothing else) is replaced. The old
+    export is put back if the new one cannot be moved in."""
+    _replaceable(out)
     if out.exists():
-        if out.is_dir() and not any(out.iterdir()):
+        if not any(out.iterdir()):
             out.rmdir()
-        elif out.is_dir() and (out / SIDECAR).exists():
+        else:
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
             os.replace(out, old)
-            os.replace(tmp, out)
+            try:
+                os.replace(tmp, out)
+            except BaseException:
+                os.replace(old, out)
+                raise
             shutil.rmtree(old, ignore_errors=True)
             return
-        else:
-            raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
     os.replace(tmp, out)
 
 
 def check_target(out_dir, opset: int) -> Path:
-    """The export's folder (new, empty, or an earlier export, which is replaced) and opset checked; the folder as a
-    Path. ``python -m export`` calls it before the model loads."""
+    """The export's folder (new, empty, or an earlier export holding nothing else, which is replaced) and opset
+    checked; the folder as a Path. ``python -m export`` calls it before the model loads."""
     import onnx
 
     top = onnx.defs.onnx_opset_version()
@@ -189,8 +211,7 @@ def check_target(out_dir, opset: int) -> Path:
     if not str(out_dir).strip():
         raise ValueError("out_dir expected a folder to export to, got an empty path")
     out = Path(out_dir).resolve()  # '.' has no name to stage beside; a symlink's target is the folder replaced
-    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / SIDECAR).exists())):
-        raise CheckpointError(f"{out} exists and is not a pointmap export: refusing to overwrite it")
+    _replaceable(out)
     return out
 
 

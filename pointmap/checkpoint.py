@@ -353,13 +353,18 @@ def provenance_keeping_licence(model, provenance=None) -> dict:
     """What a file written from ``model`` records as its provenance: ``provenance`` if given, else the model's own;
     either way with the licence the model's weights carry (``model_licence``) when the given one names none, so
     that a caller's provenance cannot drop a non-commercial licence. ShapeError for a provenance that is not a
-    dict, or holding what JSON cannot take (numpy values, tensors and paths become JSON's; ``provenance_json_value``)."""
+    dict, holds what JSON cannot take (numpy values, tensors and paths become JSON's; ``provenance_json_value``), or
+    that ``load_model`` would refuse (``provenance_ok``: an image_size that is not a positive int)."""
     prov = provenance or getattr(model, "provenance", None) or {}
     if not isinstance(prov, dict):
         raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
     lic = model_licence(model)
     prov = {**prov, "licence": lic} if lic and not prov.get("licence") else dict(prov)
-    return json.loads(json.dumps(prov, default=provenance_json_value))
+    prov = json.loads(json.dumps(prov, default=provenance_json_value))
+    if not provenance_ok(prov):  # what load_model (or an export's loader) would refuse is not written
+        raise ShapeError(f"provenance's image_size expected a positive int (the training input size), got "
+                         f"{prov.get('image_size')!r}")
+    return prov
 
 
 def warn_if_noncommercial(model, path, what: str) -> None:
@@ -444,9 +449,6 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     if dtype not in (None, torch.float16, torch.float32, "int8"):
         raise ShapeError(f"dtype expected None, torch.float16, torch.float32 or 'int8', got {dtype!r}")
     prov = provenance_keeping_licence(model, provenance)
-    if not provenance_ok(prov):  # what load_model would refuse is not written
-        raise ShapeError(f"provenance's image_size expected a positive int (the training input size), got "
-                         f"{prov.get('image_size')!r}")
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ShapeError(f"save_model expected a file path, got {path!r}")
     path = Path(path)
@@ -564,11 +566,15 @@ def load_model(src, device="cpu", **kwargs):
     """Load a model from a preset name with shipped weights, our .safetensors, an official .pth, or an
     ONNX export (file or directory): ``pm.load_model("small")``. Returns an eval-mode model on ``device``.
 
-    ``kwargs`` go to the ONNX runner (e.g. ``providers``). Raises CheckpointError with the reason.
+    ``kwargs`` go to the ONNX runner (``providers``, ``threads``); TypeError for them with a PyTorch model. Raises
+    CheckpointError with the reason.
     """
     # before any file is read; an ONNX export's device is onnxruntime's to find, so only its name is checked there
     onnx = isinstance(src, (str, os.PathLike)) and _is_onnx_export(Path(src))
     device = check_device(device, "load_model: device", available=not onnx)
+    if kwargs and not onnx:  # dropped silently before: a misspelt or ONNX-only option did nothing
+        raise TypeError(f"load_model got {sorted(kwargs)}, which only an ONNX export's runner takes (providers, "
+                        f"threads); {src if isinstance(src, (str, os.PathLike)) else type(src).__name__} is a PyTorch model")
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
     if not isinstance(src, (str, os.PathLike)):

@@ -333,6 +333,15 @@ def test_load_model_refuses_what_is_neither_a_name_nor_a_path_nor_a_model(src):
         pm.load_model(src)
 
 
+def test_load_model_refuses_onnx_only_options_for_a_pytorch_model_instead_of_dropping_them(tmp_path):
+    model = pm.PointmapNet(pm.PRESETS["test"])
+    pm.save_model(model, tmp_path / "m.safetensors")
+    for src in (model, tmp_path / "m.safetensors"):
+        with pytest.raises(TypeError, match=r"load_model got \['providers', 'threads'\], which only an ONNX export"):
+            pm.load_model(src, providers=["cuda"], threads=4)
+    assert isinstance(pm.load_model(tmp_path / "m.safetensors"), pm.PointmapNet)
+
+
 def test_save_model_refuses_what_is_not_a_model_a_path_or_a_provenance_and_weights_that_diverged(tmp_path):
     model = pm.PointmapNet(pm.PRESETS["test"])
     for args, kw, named in (((None, tmp_path / "m"), {}, "expected a PointmapNet, got NoneType"),

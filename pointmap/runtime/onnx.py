@@ -372,14 +372,28 @@ def load_onnx(path, providers=None, threads: int | None = None, **kwargs) -> Onn
     providers: None (CPU), "auto" (TensorRT > CUDA > CPU, those installed), or a list of onnxruntime
     provider names / aliases ("cuda", "tensorrt") / (name, options) tuples.
     threads: intra-op threads (default: onnxruntime's choice). Raises CheckpointError with the reason.
-    Other keyword arguments (e.g. ``device`` from ``pm.load_model``) are accepted and ignored, except
-    a non-CPU ``device`` without an explicit ``providers``, which selects "auto".
+    ``device`` (as ``pm.load_model`` passes it), when ``providers`` is not given: "cpu" (the default), "cuda" or
+    "cuda:N" (onnxruntime's CUDA provider on GPU N: CheckpointError when this onnxruntime has none, a warning when it
+    falls back to the CPU) or "auto" (TensorRT > CUDA > CPU, those installed). Any other device is refused.
     """
     device = kwargs.pop("device", None)
     if kwargs:
         raise TypeError(f"load_onnx got unexpected arguments: {sorted(kwargs)}")
-    if providers is None and device is not None and str(device) != "cpu":
-        providers = "auto"
+    if providers is None and device is not None:
+        dev = str(device)
+        if dev == "auto":
+            providers = "auto"
+        elif dev.startswith("cuda"):  # a CPU-only onnxruntime ran "auto" on the CPU without a word, cuda:3 on GPU 0
+            try:
+                index = torch.device(dev).index
+            except RuntimeError:
+                index = -1
+            if index is not None and index < 0:
+                raise CheckpointError(f"device expected 'cpu', 'cuda', 'cuda:N' or 'auto' for an ONNX export, got {dev!r}")
+            providers = [("CUDAExecutionProvider", {"device_id": index or 0})]
+        elif dev != "cpu":
+            raise CheckpointError(f"an ONNX export runs through onnxruntime on 'cpu', 'cuda', 'cuda:N' or 'auto', got "
+                                  f"device {dev!r}")
     path = Path(os.fspath(path))
     if not path.exists():
         raise CheckpointError(f"ONNX export not found: {path}")

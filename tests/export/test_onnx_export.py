@@ -1,6 +1,7 @@
 """ONNX export: graph structure, sidecar, parity against PyTorch eager, CLI and atomic writing."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -10,7 +11,7 @@ import torch
 import pointmap as pm
 from export import PARITY_CASES, check_parity, export_model, resolve_model
 from export.__main__ import main
-from export.exporter import _atomic_publish
+from export.exporter import DEFAULT_OPSET, _atomic_publish, check_target
 from export.parity import RTOL, compare, random_pair
 from pointmap.errors import CheckpointError
 from pointmap.model import PRESETS
@@ -196,7 +197,9 @@ def test_cli_checks_the_output_folder_and_opset_before_it_loads_the_model(tmp_pa
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "notes.txt").write_text("mine")
     for extra, message in ((["--out", str(tmp_path / "full")], "exists and is not a pointmap export"),
-                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int from 18")):
+                           (["--out", str(tmp_path / "new"), "--opset", "16"], "opset expected an int from 18"),
+                           (["--out", str(tmp_path / "new"), "--seed", "3"],  # ignored before, without a word
+                            "--seed seeds the random weights of a preset:NAME model; some/huge.pth has its own")):
         assert main(["--model", "some/huge.pth", *extra]) == 2
         assert message in capsys.readouterr().err
 
@@ -220,6 +223,31 @@ def test_atomic_publish_replaces_only_exports(tmp_path):
     with pytest.raises(CheckpointError):
         _atomic_publish(tmp, other)
     assert (other / "x").exists()
+    # an export that also holds a user's files: they were deleted with it
+    (out / "NOTES.md").write_text("mine")
+    (tmp / "model.onnx").write_text("newer")
+    with pytest.raises(CheckpointError, match=r"also holds \['NOTES.md'\], which replacing it would delete"):
+        _atomic_publish(tmp, out)
+    assert (out / "NOTES.md").read_text() == "mine" and (out / "model.onnx").read_text() == "new"
+    with pytest.raises(CheckpointError, match="also holds"):
+        check_target(out, DEFAULT_OPSET)  # said before minutes of export
+    (out / "NOTES.md").unlink()
+
+
+def test_an_export_that_cannot_be_moved_in_puts_the_old_one_back(tmp_path, monkeypatch):
+    import os
+
+    out, tmp = tmp_path / "exp", tmp_path / ".exp.tmp"
+    for d, text in ((out, "old"), (tmp, "new")):
+        d.mkdir()
+        (d / SIDECAR).write_text("{}")
+        (d / "model.onnx").write_text(text)
+    real = os.replace
+    monkeypatch.setattr(os, "replace", lambda a, b: (_ for _ in ()).throw(OSError("disk gone")) if Path(a) == tmp
+                        else real(a, b))
+    with pytest.raises(OSError, match="disk gone"):
+        _atomic_publish(tmp, out)
+    assert (out / "model.onnx").read_text() == "old"  # before, --out was gone and the old export hidden
 
 
 @pytest.mark.slow
@@ -372,3 +400,12 @@ def test_a_provenance_with_paths_and_numpy_values_is_recorded_as_json_and_an_odd
     assert meta["parity"]["passed"]
     side = json.loads((tmp_path / "odd" / SIDECAR).read_text())
     assert side["provenance"]["source"] == "/data/ckpt.pth" and side["provenance"]["image_size"] == 224
+
+
+def test_a_provenance_the_loader_would_refuse_is_refused_before_anything_is_exported(tmp_path):
+    # before, image_size [384, 512] was exported (with parity "none", a folder that can never be loaded)
+    model = pm.PointmapNet(PRESETS["test"])
+    for parity in ("none", "quick"):
+        with pytest.raises(pm.ShapeError, match=r"image_size expected a positive int .*got \[384, 512\]"):
+            export_model(model, tmp_path / parity, provenance={"image_size": [384, 512]}, parity=parity)
+        assert not (tmp_path / parity).exists() and not list(tmp_path.glob(".*"))

@@ -215,15 +215,25 @@ def test_a_requested_provider_that_onnxruntime_could_not_start_is_reported_not_s
 
 
 def test_an_onnx_export_asked_for_a_gpu_is_left_to_onnxruntime_even_when_torch_has_none(split_export, monkeypatch):
+    import onnxruntime as ort
+
     import pointmap.runtime.onnx as rt
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a CPU-only torch beside onnxruntime-gpu
     asked = []
-    real = rt.load_onnx
-    monkeypatch.setattr(rt, "load_onnx", lambda path, **kw: asked.append(kw.get("device")) or real(path, **kw))
-    for device in ("cuda", "auto"):  # not refused: auto and cuda select onnxruntime's GPU providers when installed
-        assert isinstance(pm.load_model(split_export, device=device), OnnxPointmapModel)
-    assert asked == ["cuda", "auto"]
+    real = rt.resolve_providers
+    monkeypatch.setattr(rt, "resolve_providers", lambda p: asked.append(p) or real(p))
+    assert isinstance(pm.load_model(split_export, device="auto"), OnnxPointmapModel)
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        # before, "cuda" became "auto": a CPU-only onnxruntime ran on the CPU without a word, and cuda:3 on GPU 0
+        for device in ("cuda", "cuda:3"):
+            with pytest.raises(pm.CheckpointError, match="provider 'CUDAExecutionProvider' is not available here"):
+                pm.load_model(split_export, device=device)
+        assert asked == ["auto", [("CUDAExecutionProvider", {"device_id": 0})],
+                         [("CUDAExecutionProvider", {"device_id": 3})]]
+    for device in ("mps", "cuda:x"):
+        with pytest.raises(pm.PointmapError, match="ONNX export|load_model: device expected"):
+            pm.load_model(split_export, device=device)
     with pytest.raises(pm.PointmapError, match="load_model: device expected auto, cpu, cuda, cuda:N or mps"):
         pm.load_model(split_export, device="gpu")
 

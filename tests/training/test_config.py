@@ -43,3 +43,34 @@ def test_a_held_out_set_that_is_also_a_training_set_is_refused_in_one_line(tmp_p
         err = capsys.readouterr().err
         assert "--eval_data expected held-out shards (never trained on)" in err and "Traceback" not in err
     assert TrainConfig.from_args(["--data", a, "--eval_data", str(tmp_path / "eval")]).eval_data == str(tmp_path / "eval")
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--n_corr", "7"], "--n_corr expected >= 8 (the matching losses leave out a pair with fewer"),
+    (["--seed=-1"], "--seed expected an int in [0, 2**31), got -1"),
+    (["--seed", str(2 ** 32)], "--seed expected an int in [0, 2**31)"),
+    (["--coarse_temperature", "0.2", "--coarse_weight", "0"], "--coarse_temperature 0.2 sets a loss that is off: it "
+                                                               "needs --coarse_weight > 0"),
+    (["--attn_heads", "2"], "--attn_heads 2 sets a loss that is off: it needs --attn_weight > 0"),
+    (["--desc_conf_alpha", "5"], "--desc_conf_alpha 5.0 sets a loss that is off: it needs --desc_conf_weight > 0"),
+    (["--temperature", "0.1", "--match_weight", "0"], "--temperature 0.1 sets a loss that is off"),
+    (["--n_corr", "64", "--match_weight", "0"], "--n_corr 64 sets the matching losses, which are off"),
+    (["--keep_decay", "false"], "--keep_decay false acts on resuming a --decay_by_time run"),
+])
+def test_flags_out_of_range_or_of_a_loss_that_is_off_are_refused_in_one_line(flags, message, capsys):
+    # before: n_corr < 8 trained no matching at all, a seed out of numpy's range crashed after setup, and settings
+    # of switched-off losses were silently ignored
+    with pytest.raises(SystemExit) as stop:
+        TrainConfig.from_args(["--data", "x", *flags])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_settings_of_losses_that_are_on_are_taken():
+    cfg = TrainConfig.from_args(["--data", "x", "--n_corr", "8", "--seed", str(2 ** 31 - 1), "--attn_weight", "0.5",
+                                 "--attn_heads", "2", "--desc_conf_weight", "0.1", "--desc_conf_alpha", "5",
+                                 "--match_weight", "0", "--n_corr", "64", "--schedule", "wsd", "--steps", "100",
+                                 "--warmup", "10", "--decay_steps", "20", "--decay_by_time", "true", "--max_minutes", "5",
+                                 "--keep_decay", "false"])
+    assert (cfg.n_corr, cfg.attn_heads, cfg.desc_conf_alpha, cfg.keep_decay) == (64, 2, 5.0, False)

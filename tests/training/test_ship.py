@@ -116,7 +116,7 @@ def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_o
     (tmp_path / "bad.csv").write_text("step,RRA15\n100,lots\n")
     (tmp_path / "train.csv").write_text("step,time,loss,grad_norm,lr\n100,5.0,1.2,0.3,0.0001\n")
     for metrics, message in [(tmp_path / "nope.csv", "which is not a file"),
-                             (tmp_path / "bad.csv", "its last row is not all numbers"),
+                             (tmp_path / "bad.csv", "its row of step 100 is not all numbers"),
                              (tmp_path / "train.csv", "this is a run's train.csv (training losses); expected its")]:
         assert main(["--ckpt", str(ck), "--name", "x", "--metrics", str(metrics), "--out",
                      str(tmp_path / "x.safetensors")]) == 2
@@ -155,7 +155,7 @@ def test_averaging_refuses_bad_weights_and_model_files_alone_in_one_line(tmp_pat
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
     with pytest.raises(pm.CheckpointError, match="at least one training checkpoint"):
-        average_checkpoints([tmp_path / "m.safetensors", tmp_path / "m.safetensors"])
+        average_checkpoints([tmp_path / "m.safetensors"])
     with pytest.raises(pm.CheckpointError, match="model file not found"):
         average_checkpoints([tmp_path / "a.pt", tmp_path / "gone.safetensors"])
     with pytest.raises(pm.CheckpointError, match="one number per checkpoint"):
@@ -182,8 +182,9 @@ def test_the_provenance_tells_apart_inputs_of_the_same_name_from_two_runs(tmp_pa
     assert [d["source"] for d in ck["averaged"]] == ["run_a/train/decay_100.pt", "run_b/train/decay_100.pt"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # one run: nothing to warn about
-        twice = average_checkpoints([paths[0], paths[0]])  # one file given twice stays one short name
-    assert [d["source"] for d in twice["averaged"]] == ["train/decay_100.pt"] * 2
+        _checkpoint(tmp_path / "run_a" / "train" / "decay_200.pt", seed=2, step=200, run_seed=0)
+        one = average_checkpoints([paths[0], tmp_path / "run_a" / "train" / "decay_200.pt"])  # one run: short names
+    assert [d["source"] for d in one["averaged"]] == ["train/decay_100.pt", "train/decay_200.pt"]
 
 
 def test_an_older_checkpoint_without_the_newer_config_fields_averages_with_a_model_file(tmp_path):
@@ -199,17 +200,24 @@ def test_an_older_checkpoint_without_the_newer_config_fields_averages_with_a_mod
     assert not (tmp_path / "x.safetensors").exists()
 
 
-def test_shipping_warns_when_the_metrics_row_is_an_earlier_state_than_the_weights(tmp_path, capsys):
+def test_shipping_records_the_metrics_row_of_the_shipped_step_and_warns_when_there_is_none(tmp_path, capsys):
     ck = tmp_path / "a.pt"
     _checkpoint(ck, 0, 120)  # e.g. a run stopped by SIGTERM at step 120 after its last evaluation at 100
     (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n")
     assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
                  str(tmp_path / "x.safetensors")]) == 0
-    assert "its last row is step 100, the shipped weights' step is 120" in capsys.readouterr().err
-    (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n120,51.0\n")
+    assert ("it has no row of the shipped weights' step 120; its last row is step 100: the recorded held-out metrics "
+            "are an earlier state's") in capsys.readouterr().err
+    # the row of the shipped step is recorded, not the last one (a stable checkpoint shipped from a run evaluated on)
+    (tmp_path / "eval.csv").write_text("step,RRA15\n100,50.0\n120,51.0\n120,51.5\n140,60.0\n")
     assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
                  str(tmp_path / "y.safetensors")]) == 0
     assert "warning" not in capsys.readouterr().err
+    assert pm.load_model(tmp_path / "y.safetensors").provenance["heldout_metrics"] == {"step": 120.0, "RRA15": 51.5}
+    (tmp_path / "eval.csv").write_text("step,RRA15\n140,60.0\n")
+    assert main(["--ckpt", str(ck), "--metrics", str(tmp_path / "eval.csv"), "--out",
+                 str(tmp_path / "z.safetensors")]) == 0
+    assert "its last row is step 140: the recorded held-out metrics are a later state's" in capsys.readouterr().err
 
 
 def test_an_eval_csv_whose_last_row_has_no_step_is_refused_in_one_line(tmp_path, capsys):
@@ -255,7 +263,7 @@ def test_an_averages_metrics_are_recorded_as_one_inputs_and_zero_share_inputs_ar
     paths = [str(tmp_path / "0.pt"), str(tmp_path / "1.pt")]
     assert main(["--ckpt", *paths, "--weights", "1", "3", "--metrics", str(tmp_path / "eval.csv"), "--out",
                  str(tmp_path / "avg.safetensors")]) == 0
-    assert "its last row is step 200's" in capsys.readouterr().err
+    assert "its row is step 200's" in capsys.readouterr().err
     prov = pm.load_model(tmp_path / "avg.safetensors").provenance
     assert "heldout_metrics" not in prov and prov["heldout_metrics_of_input"]["RRA15"] == 50.0
     assert prov["heldout_metrics_of_input"]["source"].endswith("1.pt")  # the input of step 200, in any order
@@ -279,3 +287,15 @@ def test_a_model_file_shipped_with_every_training_checkpoint_at_share_zero_is_re
     err = capsys.readouterr().err
     assert "expected a training checkpoint (.pt) with a share > 0" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_two_inputs_holding_the_same_weights_are_refused_naming_both(tmp_path, capsys):
+    # a run's last.pt is its last decay_<step>.pt: `--ckpt run/*.pt` gave that state twice the share, silently
+    _checkpoint(tmp_path / "decay_4.pt", seed=0, step=4)
+    _checkpoint(tmp_path / "decay_3.pt", seed=1, step=3)
+    _checkpoint(tmp_path / "last.pt", seed=0, step=4)
+    paths = [str(tmp_path / n) for n in ("decay_3.pt", "decay_4.pt", "last.pt")]
+    assert main(["--ckpt", *paths, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert f"{paths[1]} and {paths[2]} hold the same weights" in err and len(err.strip().splitlines()) == 1
+    assert main(["--ckpt", *paths[:2], "--weights", "1", "2", "--out", str(tmp_path / "y")]) == 0
