@@ -222,7 +222,7 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     if cfg.preset not in PRESETS:
         out.append(f"--preset expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
     at_least = {"batch_size": 1, "steps": 1, "log_every": 1, "ckpt_every": 1, "eval_every": 1, "eval_pairs": 1,
-                "n_corr": 1, "warmup": 0, "decay_steps": 0, "workers": 0, "threads": 0, "desc_stem": 0}
+                "warmup": 0, "decay_steps": 0, "workers": 0, "threads": 0, "desc_stem": 0}
     out += [f"--{k} expected >= {v}, got {getattr(cfg, k)}" for k, v in at_least.items() if getattr(cfg, k) < v]
     if not is_input_size(cfg.size):
         out.append(f"--size expected {INPUT_SIZE_RULE}, got {cfg.size}")
@@ -232,6 +232,21 @@ def range_errors(cfg: TrainConfig) -> list[str]:
     nonneg = ("min_lr", "weight_decay", "max_rotation", "max_minutes", "ckpt_minutes")
     out += [f"--{k} expected a finite value >= 0, got {getattr(cfg, k)}" for k in nonneg
             if not 0 <= getattr(cfg, k) < math.inf]
+    if cfg.n_corr < 8:  # a pair with fewer than 8 correspondences is left out of the matching losses
+        out.append(f"--n_corr expected >= 8 (the matching losses leave out a pair with fewer correspondences: fewer "
+                   f"would train nothing), got {cfg.n_corr}")
+    if not 0 <= cfg.seed < 2 ** 31:  # numpy takes seeds below 2**32, and each rank adds its own
+        out.append(f"--seed expected an int in [0, 2**31), got {cfg.seed}")
+    # a setting of a loss or schedule that is off would be ignored: a given value means the user expects it to act
+    owners = (("coarse_temperature", "coarse_weight"), ("attn_heads", "attn_weight"),
+              ("desc_conf_alpha", "desc_conf_weight"), ("temperature", "match_weight"))
+    out += [f"--{k} {getattr(cfg, k)} sets a loss that is off: it needs --{w} > 0" for k, w in owners
+            if getattr(cfg, k) != getattr(TrainConfig, k) and getattr(cfg, w) <= 0]
+    if cfg.n_corr != TrainConfig.n_corr and cfg.match_weight <= 0 and cfg.desc_conf_weight <= 0:
+        out.append(f"--n_corr {cfg.n_corr} sets the matching losses, which are off: it needs --match_weight or "
+                   "--desc_conf_weight > 0")
+    if cfg.keep_decay != TrainConfig.keep_decay and not cfg.decay_by_time:
+        out.append("--keep_decay false acts on resuming a --decay_by_time run: it needs --decay_by_time true")
     if cfg.min_lr > cfg.lr:
         out.append(f"--min_lr expected <= --lr ({cfg.lr}), got {cfg.min_lr}")
     if not 0 < cfg.mask_ratio < 1:

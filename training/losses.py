@@ -197,7 +197,8 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
 
     desc1 [B, H1, W1, D], desc2 [B, H2, W2, D] unit descriptors; corr [B, H1, W1, 2] (u, v) pixel of
     each view-1 pixel in view 2, NaN where not co-visible. Up to ``n_corr`` correspondences per pair.
-    Returns (loss, accuracy of the argmax match) averaged over pairs that have >= 8 correspondences.
+    Returns (loss, accuracy of the argmax match) averaged over pairs that have >= 8 correspondences (a differentiable
+    zero and a NaN accuracy without one).
     """
     _check_descriptors(desc1, desc2, corr, temperature, "matching_loss")
     if not (is_int(n_corr) and n_corr >= 1):
@@ -209,8 +210,8 @@ def matching_loss(desc1: torch.Tensor, desc2: torch.Tensor, corr: torch.Tensor, 
         target = torch.arange(len(d1), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
         accs.append((logits.argmax(1) == target).float().mean())
-    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient)
-        return (desc1.sum() + desc2.sum()) * 0, 0.0
+    if not losses:  # a zero that still reaches both heads (DDP expects every parameter to get a gradient); no
+        return (desc1.sum() + desc2.sum()) * 0, float("nan")  # accuracy to average (a 0 would read as all wrong)
     return torch.stack(losses).mean(), float(torch.stack(accs).mean())
 
 

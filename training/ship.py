@@ -37,9 +37,10 @@ from pointmap.model import ModelConfig, PointmapNet
 from training.loop import load_checkpoint
 
 
-def last_eval(path: Path) -> dict:
-    """The last row of a run's ``eval.csv`` as numbers; ValueError (one line) for a file that is missing, empty or
-    not such a CSV."""
+def eval_row(path: Path, steps: list[int] = ()) -> dict:
+    """The row of a run's ``eval.csv`` (as numbers) of the first of ``steps`` it has a row for (the last such row: a
+    resumed run may have evaluated a step twice), else its last row. ValueError (one line) for a file that is
+    missing, empty or not such a CSV."""
     if not path.is_file():
         raise ValueError(f"--metrics expected a run's eval.csv, got {str(path)!r}, which is not a file")
     with open(path, newline="") as fh:
@@ -49,10 +50,21 @@ def last_eval(path: Path) -> dict:
     if {"loss", "grad_norm"} <= set(rows[-1]):  # the run's other log: its losses are no held-out figure
         raise ValueError(f"--metrics {path}: this is a run's train.csv (training losses); expected its eval.csv "
                          "(held-out metrics)")
-    try:
-        return {k: float(v) for k, v in rows[-1].items() if isinstance(k, str) and v not in (None, "")}
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"--metrics {path}: its last row is not all numbers ({e})") from None
+
+    def numbers(row):
+        try:
+            return {k: float(v) for k, v in row.items() if isinstance(k, str) and v not in (None, "")}
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"--metrics {path}: its row of step {row.get('step')} is not all numbers ({e})") from None
+
+    for step in steps:
+        for row in reversed(rows):
+            try:
+                if float(row.get("step") or "nan") == step:
+                    return numbers(row)
+            except ValueError:
+                continue
+    return numbers(rows[-1])
 
 
 def _load_input(path: Path) -> dict:
@@ -118,6 +130,11 @@ def average_checkpoints(paths, weights=None) -> dict:
         if set(ck["model"]) != set(cks[0]["model"]):
             raise CheckpointError(f"{p} holds other tensors than {paths[0]}: "
                                   f"{sorted(set(ck['model']) ^ set(cks[0]['model']))[:5]}")
+    for j in range(len(cks)):  # a run's last.pt is its last decay_<step>.pt: a glob would weigh that state twice
+        for i in range(j):
+            if all(torch.equal(cks[i]["model"][k], v) for k, v in cks[j]["model"].items()):
+                raise CheckpointError(f"{paths[i]} and {paths[j]} hold the same weights (a run's last.pt is its last "
+                                      "checkpoint's state): give one of them, with --weights for a larger share")
     trained = [i for i, ck in enumerate(cks) if ck["kind"] == "train"]
     if not trained:
         raise CheckpointError("expected at least one training checkpoint (.pt) among the inputs, whose run the "
@@ -186,7 +203,7 @@ def main(argv=None) -> int:
     p.add_argument("--weights", nargs="+", type=float, default=None,
                    help="one non-negative share per --ckpt (normalised to sum 1; default: uniform)")
     p.add_argument("--name", default="small")
-    p.add_argument("--metrics", default=None, help="eval.csv of the run (its last row is recorded)")
+    p.add_argument("--metrics", default=None, help="eval.csv of the run (its row of the shipped step is recorded, else its last)")
     p.add_argument("--note", default="")
     p.add_argument("--out", default=None, help="default: pointmap/weights/NAME.safetensors")
     p.add_argument("--licence", default=None,
@@ -203,7 +220,9 @@ def main(argv=None) -> int:
             print(f"warning: {w.message}", file=sys.stderr)
         model = PointmapNet(ModelConfig.from_dict(ck["model_config"]))
         load_state_strict(model, ck["model"], source=a.ckpt[-1])
-        metrics = last_eval(Path(a.metrics)) if a.metrics else {}
+        # the row of the shipped weights' step, else of the latest input that has one, else the last
+        inputs = sorted({int(d["step"]) for d in ck.get("averaged", [])}, reverse=True)
+        metrics = eval_row(Path(a.metrics), [int(ck["step"]), *inputs]) if a.metrics else {}
         cfg = ck.get("train_config")
         if not isinstance(cfg, dict) or not {"size", "batch_size", "data", "eval_data"} <= set(cfg):
             raise CheckpointError(f"{a.ckpt[-1]}: the run's train_config the shipped file records is missing (size, "
@@ -222,12 +241,13 @@ def main(argv=None) -> int:
     evaluated = None  # for an average: the input whose step the metrics row is
     if metrics and len(a.ckpt) > 1:  # an average was not evaluated: the row is one input's, and recorded as such
         evaluated = next((str(s["source"]) for s in ck["averaged"] if s["step"] == int(metrics["step"])), None)
-        print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}'s"
+        print(f"warning: --metrics {a.metrics}: its row is step {int(metrics['step'])}'s"
               f"{f' ({evaluated})' if evaluated else ', none of the inputs'}, not the average's: recorded as "
               "heldout_metrics_of_input", file=sys.stderr)
     elif metrics and int(metrics["step"]) != int(ck["step"]):  # e.g. a run stopped by SIGTERM: not evaluated
-        print(f"warning: --metrics {a.metrics}: its last row is step {int(metrics['step'])}, the shipped weights' "
-              f"step is {ck['step']}: the recorded held-out metrics are an earlier state's", file=sys.stderr)
+        print(f"warning: --metrics {a.metrics}: it has no row of the shipped weights' step {ck['step']}; its last row "
+              f"is step {int(metrics['step'])}: the recorded held-out metrics are "
+              f"{'an earlier' if metrics['step'] < ck['step'] else 'a later'} state's", file=sys.stderr)
     provenance = {"name": a.name, "image_size": cfg["size"], "steps": ck["step"], "batch_size": cfg["batch_size"],
                   "data": ",".join(Path(r).name for r in cfg["data"].split(",") if r), "eval_data": Path(cfg["eval_data"]).name if cfg["eval_data"] else "",
                   **({"heldout_metrics_of_input": {"source": evaluated, **metrics}} if metrics and len(a.ckpt) > 1
