@@ -81,7 +81,8 @@ def _open_root(root, verify):
     scenes of another seed or outside the sidecar's range) is reported with a warning and left out."""
     root = Path(root)
     if not root.is_dir():
-        raise ShardError(f"dataset directory {root} does not exist")
+        raise ShardError(f"dataset directory {root} is {'a file' if root.exists() else 'missing'}: expected the "
+                         "folder `python -m data.render` wrote")
     cfg_path = root / "config.json"
     if not cfg_path.is_file():
         raise ShardError(f"{root} has no config.json: not a directory written by `python -m data.render`")
@@ -541,6 +542,8 @@ class MultiViewDataset(Dataset):
     either kind."""
 
     def __init__(self, root, *, split: str = "all", val_percent: float = 2.0, verify: bool = True):
+        if not 0 <= val_percent <= 100:  # NaN fails too (as PairDataset's)
+            raise ValueError(f"val_percent expected in [0, 100], got {val_percent}")
         if split not in SPLITS:
             raise ValueError(f"split expected one of {SPLITS}, got {split!r}")
         self.root, self.config, self._store, scenes = _open_root(root, verify)

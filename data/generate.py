@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from data.cameras import MOVES, CameraConfig, DegenerateScene, sample_views
-from data.geom import CORR_MAX, encode_corr
+from data.geom import CORR_MAX, MAX_SIDE, encode_corr
 from data.scene import SCENE_VERSIONS, make_scene
 from data.shards import (
     FORMAT,
@@ -41,6 +41,7 @@ from data.shards import (
     write_atomic,
     write_shard,
 )
+from pointmap.errors import is_int
 
 # Seeds in this range are reserved for held-out evaluation sets (data.heldout); training runs refuse them.
 RESERVED_SEEDS = range(2**31 - 1000, 2**31)
@@ -79,19 +80,22 @@ class GenConfig:
             raise ValueError(f"kind expected 'pairs' or 'views', got {self.kind!r}")
         for name, lo in (("scenes", 1), ("views", 2 if self.kind == "pairs" else 1), ("size", 32), ("shard_size", 1)):
             v = getattr(self, name)
-            if not isinstance(v, int) or v < lo:
+            if not is_int(v) or v < lo:  # a numpy integer is one, a bool is not
                 raise ValueError(f"{name} expected an int >= {lo}, got {v!r}")
+            object.__setattr__(self, name, int(v))  # (frozen) a numpy int stored as the int JSON writes
         if self.views > MAX_VIEWS:  # every pair of a scene's views is stored: the count grows as views squared
             raise ValueError(f"views expected at most {MAX_VIEWS} per scene, got {self.views}")
-        if self.size % 16:
-            raise ValueError(f"size expected a multiple of 16, got {self.size}")
+        if self.size % 16 or self.size > MAX_SIDE:  # (a larger one failed after config.json was written)
+            raise ValueError(f"size expected a multiple of 16 up to {MAX_SIDE} (the renderer's largest side), got "
+                             f"{self.size}")
         if self.version not in SCENE_VERSIONS:
             raise ValueError(f"version expected a generator version of {SCENE_VERSIONS}, got {self.version!r}")
         if self.kind == "pairs" and self.size > MAX_PAIR_SIZE:  # refused before anything is rendered or written
             raise ValueError(f"size expected at most {MAX_PAIR_SIZE} with kind 'pairs' (correspondences are stored as "
                              f"1/64-px fixed point up to pixel {CORR_MAX - 0.5:.2f}, data.geom.CORR_MAX), got {self.size}")
-        if not isinstance(self.seed, int) or self.seed < 0 or self.seed >= 2**31:
+        if not is_int(self.seed) or self.seed < 0 or self.seed >= 2**31:
             raise ValueError(f"seed expected an int in [0, 2**31), got {self.seed!r}")
+        object.__setattr__(self, "seed", int(self.seed))
         if not 0 <= self.low_texture_share <= 1:
             raise ValueError(f"low_texture_share expected in [0, 1], got {self.low_texture_share}")
         if not 0 <= self.photo_share <= 1:
@@ -231,7 +235,8 @@ def write_manifest(out: Path, cfg: GenConfig) -> dict:
 
 
 def prepare_out(out: Path, cfg: GenConfig) -> None:
-    """Create ``out`` with ``config.json``, or check an existing one matches (resume needs the same config)."""
+    """Create ``out`` with ``config.json``, or check an existing one matches (resume needs the same config); one
+    without a shard yet is replaced. ShardError for a config.json that is not a data.render dataset's."""
     try:
         out.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError, PermissionError) as e:
@@ -240,14 +245,22 @@ def prepare_out(out: Path, cfg: GenConfig) -> None:
     want = cfg.to_dict()
     if path.exists():
         have = load_json(path)
-        if have.get("version") != want["version"]:
+        if have.get("format") != FORMAT:  # e.g. a model folder's config.json
+            raise ShardError(f"{out}/config.json is not a data.render dataset's (its format is "
+                             f"{have.get('format')!r}, not {FORMAT!r}): use a new --out directory")
+        # a run that failed before its first shard (a scene it could not make, a size the renderer refuses) left
+        # only its config.json: the corrected command replaces it
+        started = any(p.name.startswith("shard-") for p in out.iterdir())
+        if started and have.get("version") != want["version"]:
             raise ShardError(f"{out} was rendered by generator version {have.get('version')!r}, this run asks for "
                              f"version {want['version']} (other scenes from the same seeds): resume it with "
                              f"--generator-version {have.get('version')!r}, or use a new --out")
-        if have != want:
+        if started and have != want:
             diff = {k: (have.get(k), want.get(k)) for k in set(have) | set(want) if have.get(k) != want.get(k)}
             raise ShardError(f"{out} holds shards of another configuration (existing vs requested: {diff}); "
                              "use a new --out directory")
+        if have != want:
+            write_atomic(path, json_bytes(want))
     else:
         write_atomic(path, json_bytes(want))
     _remove_stale_temps(out)
@@ -333,25 +346,42 @@ def generate(out, cfg: GenConfig, *, shards: range | None = None, workers: int =
                 pairs += render_shard(s, cfg, out, r, progress=bar.update)["pairs"]
                 bar.set_postfix(pairs=pairs)
         else:
+            # an executor, not a multiprocessing.Pool: a Pool replaces a worker that died (the OOM killer, a Mesa
+            # crash) and waits forever for the shard it held; the executor fails with BrokenProcessPool
+            from concurrent.futures import ProcessPoolExecutor
+            from concurrent.futures.process import BrokenProcessPool
+
             ctx = _pool_context()
             q = ctx.Queue()
-            with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(q,)) as pool:
-                results = [pool.apply_async(_worker_shard, ((s, cfg.to_dict(), str(out)),)) for s in todo]
-                pending = list(results)
+            pool = ProcessPoolExecutor(min(workers, len(todo)), mp_context=ctx, initializer=_worker_init,
+                                       initargs=(q,))
+            try:
+                pending = {pool.submit(_worker_shard, (s, cfg.to_dict(), str(out))) for s in todo}
                 while pending:
                     try:
                         bar.update(q.get(timeout=0.2))
                     except queue.Empty:
                         pass
-                    for r in [r for r in pending if r.ready()]:
-                        pairs += r.get()["pairs"]  # re-raises a worker's exception here
+                    for f in [f for f in pending if f.done()]:
+                        try:
+                            pairs += f.result()["pairs"]  # re-raises a worker's exception here
+                        except BrokenProcessPool:
+                            raise ShardError("a render worker died (killed, or out of memory?): the shards it "
+                                             "finished are kept; run the same command again to resume") from None
                         bar.set_postfix(pairs=pairs)
-                        pending.remove(r)
+                        pending.remove(f)
                 while True:
                     try:
                         bar.update(q.get_nowait())
                     except queue.Empty:
                         break
+            except BaseException:  # an error or ^C: the other workers stop now, not after their shards
+                for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                    if proc.is_alive():
+                        proc.terminate()
+                raise
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
     finally:
         bar.close()
     manifest = write_manifest(out, cfg)

@@ -14,6 +14,7 @@ from pointmap.errors import ShapeError
 CORR_SCALE = 64.0        # correspondences are stored as uint16 fixed point, 1/64 px
 CORR_NONE = 65535        # stored value meaning "not co-visible"
 CORR_MAX = (CORR_NONE - 1) / CORR_SCALE
+MAX_SIDE = 8192  # the largest image side the renderer's framebuffer takes (data.render)
 
 
 def intrinsics_from_fov(width: int, height: int, fov_deg: float, *, cx_offset: float = 0.0,

@@ -121,7 +121,8 @@ def main(argv=None) -> int:
         p.error(f"--seed expected an int >= 0, got {args.seed}")
     try:
         if not Path(args.shard).is_file():
-            raise ShardError(f"{args.shard} does not exist")
+            raise ShardError(f"{args.shard} is {'a folder' if Path(args.shard).is_dir() else 'missing'}: expected one "
+                             "shard-NNNNNN.tar of a dataset")
         sheet = contact_sheet(args.shard, max_rows=args.rows, seed=args.seed)
     except ShardError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -21,7 +21,11 @@ import numpy as np  # noqa: E402
 if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses the alias numpy 2 removed
     np.infty = np.inf
 
+import torch  # noqa: E402
+
+from data.geom import MAX_SIDE  # noqa: E402
 from pointmap.errors import ShapeError  # noqa: E402
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid  # noqa: E402
 
 # OpenCV camera (x right, y down, z forward) -> OpenGL camera (x right, y up, z backward)
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -100,8 +104,11 @@ class Renderer:
 
     # --- scenes ----------------------------------------------------------------------------------
     def set_scene(self, scene) -> None:
-        """Build (once per scene) the pyrender scene for a ``data.scene.Scene``."""
-        if self._scene_key is scene:
+        """Build (once per scene) the pyrender scene for a ``data.scene.Scene``; again when the same object was
+        changed since (surfaces added, removed or replaced, other lights, background, ambient light or extent). A
+        mesh or material edited in place is not seen: give the surface a new one."""
+        built = (scene, _scene_state(scene))
+        if self._scene_key is not None and self._scene_key[0] is scene and _same_state(self._scene_key[1], built[1]):
             return
         pr = self._pyrender
         ps = pr.Scene(bg_color=np.r_[scene.bg_color, 1.0], ambient_light=np.asarray(scene.ambient))
@@ -145,7 +152,7 @@ class Renderer:
             kw = {"light": node} if isinstance(node, pr.light.Light) else {}
             ps.add_node(self._Node(len(ps.nodes), matrix=pose, **kw))
         self._pscene = ps
-        self._scene_key = scene
+        self._scene_key = built
         self._cam_node = None
         self._extent = float(scene.extent)
 
@@ -169,9 +176,16 @@ class Renderer:
         cam2world = np.asarray(cam2world, np.float64)
         if K.shape != (3, 3) or cam2world.shape != (4, 4):
             raise ShapeError(f"K expected [3, 3] and cam2world [4, 4], got {list(K.shape)} and {list(cam2world.shape)}")
+        # what the ground truth would silently get wrong: a transposed or mirrored K, a NaN one (all background), a
+        # scaled cam2world (depths scaled by it)
+        if not bool(is_pinhole_K(K)):
+            raise ShapeError(f"K expected pinhole intrinsics {K_LAYOUT} with positive focals, got {K.tolist()}")
+        if not bool(is_rigid(torch.from_numpy(cam2world))):
+            raise ShapeError(f"cam2world expected a finite rigid transform (a rotation and a translation), got "
+                             f"{cam2world.tolist()}")
         if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
-                and 1 <= width <= 8192 and 1 <= height <= 8192):
-            raise ShapeError(f"image size expected ints in [1, 8192], got {width}x{height}")
+                and 1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+            raise ShapeError(f"image size expected ints in [1, {MAX_SIDE}], got {width}x{height}")
         pr = self._pyrender
         self.set_scene(scene)
         self._ensure(int(width), int(height))
@@ -212,6 +226,18 @@ class Renderer:
                 self._plain = None
                 self._size = None
                 self._scene_key = None
+
+
+def _scene_state(scene) -> tuple:
+    """What ``Renderer.set_scene`` builds from: the surfaces' meshes and materials (the objects themselves, compared
+    by identity) and the lights, ambient light, background and extent (by value)."""
+    return (tuple((s.mesh, s.material, s.smooth) for s in scene.surfaces), repr(scene.lights),
+            np.asarray(scene.ambient).tolist(), np.asarray(scene.bg_color).tolist(), float(scene.extent))
+
+
+def _same_state(a: tuple, b: tuple) -> bool:
+    return (len(a[0]) == len(b[0]) and all(x[0] is y[0] and x[1] is y[1] and x[2] == y[2] for x, y in zip(a[0], b[0]))
+            and a[1:] == b[1:])
 
 
 _LEAN = None

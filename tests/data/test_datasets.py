@@ -267,8 +267,14 @@ def test_multiview_dataset_stacks_the_views_of_a_scene(tiny_pairs):
 def test_datasets_validate_their_arguments(tiny_pairs, tmp_path):
     with pytest.raises(ValueError, match="split expected"):
         PairDataset(tiny_pairs, split="test")
-    with pytest.raises(ShardError, match="does not exist"):
+    with pytest.raises(ShardError, match="nope is missing: expected the folder `python -m data.render` wrote"):
         PairDataset(tmp_path / "nope")
+    shard = sorted(tiny_pairs.glob("shard-*.tar"))[0]
+    with pytest.raises(ShardError, match=r"shard-000000.tar is a file: expected the folder"):  # "does not exist" before
+        PairDataset(shard)
+    for bad in (500, -5, float("nan")):  # MultiViewDataset took them: every scene, or none, silently
+        with pytest.raises(ValueError, match="val_percent expected in \\[0, 100\\]"):
+            MultiViewDataset(tiny_pairs, val_percent=bad)
     with pytest.raises(ShardError, match="config.json"):
         PairDataset(tmp_path)
     for text, message in (("{not json", "config.json is not valid JSON"), ("[1, 2]", "expected a JSON object, got list")):

@@ -94,6 +94,22 @@ def test_workers_forked_by_a_process_without_gl_write_the_same_bytes_as_one_work
     assert _files(tmp_path / "one") == _files(tmp_path / "two")
 
 
+def test_a_render_worker_that_dies_stops_the_run_with_a_message_instead_of_a_hang(tmp_path):
+    # a multiprocessing.Pool replaced the killed worker and waited forever for the shard it held
+    p = _run(tmp_path / "d", ["--workers", "2", "--scenes", "40"])
+    t0, workers = time.time(), []
+    while len(workers) < 2 and time.time() - t0 < 120 and p.poll() is None:
+        time.sleep(0.2)
+        found = subprocess.run(["pgrep", "-P", str(p.pid)], capture_output=True, text=True).stdout.split()
+        workers = [int(w) for w in found]
+    assert workers, "no render worker started"
+    time.sleep(1.0)
+    os.kill(max(workers), signal.SIGKILL)  # as the OOM killer would
+    assert p.wait(timeout=180) == 2
+    err = p.stderr.read().decode()
+    assert "a render worker died (killed, or out of memory?)" in err and "Traceback" not in err
+
+
 def test_workers_are_forked_only_while_this_process_has_not_touched_gl(monkeypatch):
     from data.generate import _pool_context
 
@@ -123,6 +139,19 @@ def test_an_overlap_no_scene_can_meet_is_one_line_naming_the_flag(tmp_path, caps
                  "1.0", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no view set overlapped within --overlap 0.999 1.0; widen it" in err[0]
+    # the widened command runs: the failed run left only its config.json (refused as "holds shards" before)
+    assert main(["--out", str(tmp_path / "x"), "--scenes", "1", "--size", "64", "--views", "2", "--quiet"]) == 0
+    assert json.loads((tmp_path / "x" / "config.json").read_text())["overlap_lo"] != 0.999
+
+
+def test_a_folder_whose_config_json_is_not_a_datasets_is_refused_and_left_as_it_was(tmp_path, capsys):
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "config.json").write_text('{"architectures": ["Dust3r"]}')
+    assert main(["--out", str(tmp_path / "model"), "--scenes", "1", "--size", "64", "--views", "2", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "config.json is not a data.render dataset's (its format is None" in err
+    assert "generator-version" not in err  # before: "resume it with --generator-version None"
+    assert (tmp_path / "model" / "config.json").read_text() == '{"architectures": ["Dust3r"]}'
 
 
 def test_resuming_with_another_configuration_is_refused(tmp_path):
@@ -207,3 +236,14 @@ def test_a_run_of_an_older_generator_version_resumes_only_with_that_version_and_
     assert data.heldout(tmp_path / "older", kind="views", size=64, scenes=1, views=2).config["version"] == old
     assert _files(held) == before
     assert data.heldout(tmp_path, kind="views", size=64, scenes=1, views=2).config["version"] == GENERATOR_VERSION
+
+def test_counts_may_be_numpy_integers_but_not_bools_and_the_size_stays_within_the_renderer():
+    # before: np.int64 scenes were refused ("expected an int, got np.int64(2)") and True was taken as 1
+    cfg = GenConfig(kind="pairs", scenes=np.int64(2), views=np.int32(2), size=64, seed=np.int64(3))
+    assert (cfg.scenes, cfg.seed) == (2, 3) and type(cfg.scenes) is int and type(cfg.seed) is int
+    assert json.loads(json.dumps(cfg.to_dict()))["scenes"] == 2
+    for kw, message in ((dict(scenes=True), "scenes expected an int >= 1, got True"),
+                        (dict(seed=True), "seed expected an int in \\[0, 2\\*\\*31\\), got True"),
+                        (dict(kind="views", size=8208), "size expected a multiple of 16 up to 8192")):
+        with pytest.raises(ValueError, match=message):
+            GenConfig(**{"kind": "pairs", "scenes": 1, "size": 64, **kw})

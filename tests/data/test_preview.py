@@ -22,3 +22,9 @@ def test_a_negative_seed_is_refused_in_one_line_like_a_bad_row_count(tiny_pairs,
         with pytest.raises(ValueError, match=text):
             contact_sheet(shard, **kw)
     assert main([shard, "-o", str(out), "--seed", "0"]) == 0 and out.is_file()
+
+
+def test_a_dataset_folder_given_for_a_shard_is_named_as_a_folder(tiny_pairs, tmp_path, capsys):
+    # before: "error: DIR does not exist", for a folder that exists
+    assert main([str(tiny_pairs), "-o", str(tmp_path / "p.png")]) == 2
+    assert f"{tiny_pairs} is a folder: expected one shard-NNNNNN.tar of a dataset" in capsys.readouterr().err

@@ -100,6 +100,25 @@ def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
         renderer.render(plane_scene(1.0), np.eye(3), np.eye(4), 0, 32)
     with pytest.raises(ShapeError, match="cam2world expected"):
         cv_to_gl_pose(np.eye(3))
+    # each rendered wrong ground truth without a word before: a transposed, mirrored or NaN K, a scaled pose
+    K = intrinsics_from_fov(32, 32, 60.0)
+    for bad in (K.T, K * np.array([[-1.0], [1.0], [1.0]]), np.where(np.eye(3) > 0, np.nan, K)):
+        with pytest.raises(ShapeError, match="K expected pinhole intrinsics"):
+            renderer.render(plane_scene(1.0), bad, np.eye(4), 32, 32)
+    scaled = np.diag([2.0, 2.0, 2.0, 1.0])
+    with pytest.raises(ShapeError, match="cam2world expected a finite rigid transform"):
+        renderer.render(plane_scene(1.0), K, scaled, 32, 32)
+
+
+def test_a_scene_changed_after_a_render_is_rendered_as_it_is_now(renderer):
+    # the renderer kept its build of the scene object: a plane added at 1 m did not show
+    K = intrinsics_from_fov(32, 32, 60.0)
+    scene = plane_scene(2.0)
+    assert abs(float(renderer.render(scene, K, np.eye(4), 32, 32)[1][16, 16]) - 2.0) < 1e-4
+    scene.surfaces.append(plane_scene(1.0).surfaces[0])
+    assert abs(float(renderer.render(scene, K, np.eye(4), 32, 32)[1][16, 16]) - 1.0) < 1e-4
+    scene.surfaces.pop()
+    assert abs(float(renderer.render(scene, K, np.eye(4), 32, 32)[1][16, 16]) - 2.0) < 1e-4
 
 
 def test_preview_writes_a_contact_sheet_of_a_shard(tiny_pairs, tmp_path):
