@@ -168,7 +168,10 @@ class PointmapNet(nn.Module):
               local1: torch.Tensor | None = None, local2: torch.Tensor | None = None) -> PairPrediction:
         """The prediction heads in float32, autocast off (as the official code runs them): under bf16 autocast the
         points drifted twice as far from float32's and the pose head's rotation from orthonormal by 8e-3."""
-        with torch.autocast(tok1[-1].device.type, enabled=False):
+        device = tok1[-1].device.type
+        if device == "meta":  # a shape-only copy (the pipeline's cost estimate): no autocast there, none to turn off
+            return self._heads(tok1, tok2, grid1, grid2, local1, local2)
+        with torch.autocast(device, enabled=False):
             return self._heads(tok1, tok2, grid1, grid2, local1, local2)
 
     def _heads(self, tok1, tok2, grid1, grid2, local1, local2) -> PairPrediction:
