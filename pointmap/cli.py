@@ -162,8 +162,11 @@ def cmd_pair(args) -> int:
 
     writable_dir(Path(args.out))
     check_size_graph_budget(args)
-    refuse_ignored(args, [("shared_focal", "--shared-focal", args.focal is None, "without --focal (a given focal "
-                           "is not estimated, shared or not)")])
+    # --no-shared-focal with --focal is what --focal means anyway (reconstruct takes it too): only --shared-focal
+    # would be ignored
+    if args.shared_focal and args.focal is not None:
+        raise PointmapError("--shared-focal applies only without --focal (a given focal is not estimated, shared or "
+                            "not); here it would be ignored")
     from pointmap.io_pair import PAIR_OUTPUTS
 
     mine = {(Path(args.out) / name).resolve() for name in PAIR_OUTPUTS}
@@ -175,6 +178,14 @@ def cmd_pair(args) -> int:
     shared = args.shared_focal
     if shared is None and focal is None:  # two photographs of one camera by their EXIF: one focal
         shared = shared_focals(args.images, {}, note_focal=not args.quiet, note_cameras=not args.quiet) is True
+    if args.shared_focal:  # said before the model loads, in the flag's own words
+        from pointmap.images import image_sizes
+
+        sizes = image_sizes(args.images)
+        if sizes[0] != sizes[1]:
+            raise PointmapError(f"--shared-focal says the two photographs are of one camera, of one size; they are "
+                                f"{sizes[0][0]}x{sizes[0][1]} and {sizes[1][0]}x{sizes[1][1]} (EXIF orientation "
+                                "applied): drop --shared-focal")
     model, size = _model_and_size(args.model, args.size, args.device)
     paths = write_pair_outputs(model, args.images[0], args.images[1], Path(args.out), size=size, quiet=args.quiet,
                                focal=focal, shared_focal=bool(shared), device=args.device)
@@ -248,10 +259,20 @@ def convert_heif(images: list[str], folder: Path, quiet: bool) -> list[str]:
     return out
 
 
+def natural_key(name: str) -> list:
+    """Sort key comparing runs of digits as numbers: frame_2 before frame_10 (as a plain string sort does not: the
+    ``auto`` graph pairs neighbours in file order)."""
+    import re
+
+    return [int(part) if k % 2 else part for k, part in enumerate(re.split(r"(\d+)", name))]
+
+
 def _image_files(folder: Path) -> list[str]:
-    """The folder's image files, sorted; hidden ones (macOS's ``._name.jpg`` resource forks) left out."""
-    return sorted(str(f) for f in folder.iterdir()
-                  if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith("."))
+    """The folder's image files in natural order (``natural_key``); hidden ones (macOS's ``._name.jpg`` resource
+    forks) left out."""
+    return sorted((str(f) for f in folder.iterdir()
+                   if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
+                  key=natural_key)
 
 
 def expand_images(items: list[str], frames_dir: Path | None = None, stride: int | None = None,
@@ -335,8 +356,8 @@ def cameras_from_file(path: str, images: list[str], poses: bool, given: list[str
     Distortion}) for the images named in a nerfstudio transforms.json (``pointmap.io.nerfstudio.read_transforms``)
     or a COLMAP sparse model (a folder, or its cameras file: ``pointmap.io.colmap.read_colmap``), matched by file
     name: the image's, then that of the file it was converted from (``given``, e.g. ``IMG_0001.HEIC`` for
-    ``converted/IMG_0001.jpg``), then the stem. PointmapError when no image is named there, or a stated image size
-    is not the image's."""
+    ``converted/IMG_0001.jpg``), then the stem. PointmapError when no image is named there, a stated image size
+    is not the image's, or the file gives poses alone without ``poses`` (nothing to use)."""
     from pointmap.images import image_sizes
     from pointmap.io.colmap import read_colmap
     from pointmap.io.nerfstudio import intrinsics_from_angle, read_transforms
@@ -360,6 +381,9 @@ def cameras_from_file(path: str, images: list[str], poses: bool, given: list[str
     K = {k: cam["K"] if cam["K"] is not None else intrinsics_from_angle(cam["camera_angle_x"], *wh)
          for (k, cam), wh in zip(matched.items(), sizes) if cam["K"] is not None or cam["camera_angle_x"]} or None
     distortions = {k: cam["distortion"] for k, cam in matched.items() if cam.get("distortion") is not None}
+    if K is None and not poses:  # it would change nothing (and it turned off the shared focal of a video)
+        raise PointmapError(f"--cameras {path} gives no intrinsics for the images it names, only poses: pass "
+                            "--known-poses to use them, or drop --cameras")
     return K, ({k: cam["cam2world"] for k, cam in matched.items()} if poses else None), distortions
 
 
@@ -633,7 +657,7 @@ def prepare_scene(args, inputs: list[str], out: Path) -> dict:
         K, cam2world, distortions = cameras_from_file(args.cameras, images, args.known_poses, given)
     # one focal per camera: for all the images with --shared-focal; with no focal given, for each video's frames and
     # for the photographs of each camera by their EXIF (--no-shared-focal: one focal per image)
-    estimated = args.focal is None and args.cameras is None
+    estimated = args.focal is None and K is None  # (a --cameras file of poses alone leaves the focals to estimate)
     shared = False if not estimated else shared_focals(images, videos, note_focal=not args.quiet,
                                                        note_cameras=not args.quiet and args.shared_focal is None)
     if args.shared_focal is not None:

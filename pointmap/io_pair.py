@@ -67,7 +67,10 @@ PAIR_OUTPUTS = ("pair.npz", "pair.ply", "depth1.png", "depth2.png", "conf1.png",
 
 def write_pair_outputs(model, path1, path2, out: str | Path, *, size: int = 512, quiet: bool = False,
                        focal: tuple | None = None, shared_focal: bool = False, device="cpu") -> list[Path]:
-    """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews).
+    """Pointmaps, matches, relative pose and focals of two images into ``out`` (pair.npz, pair.ply, PNG previews:
+    depth1.png and depth2.png are the z of each view's points in camera 1's frame, on one colour scale, so
+    depth2.png is view 2's depth only where the cameras look alike; conf1/conf2.png the log confidences;
+    matches.png the matches).
 
     The pose is ``pointmap.pose.pair_pose``: the pointmaps' pose refined on the model's own matches (rotation and
     translation direction; models with descriptors) with each view's focal from its own pointmap, or with

@@ -4,6 +4,7 @@ global_align -> refine_epipolar [-> refine_matches]), with a cost estimate print
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import sys
@@ -242,7 +243,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
         counts = cache.hits, cache.misses  # this run's are the difference (a cache may serve many runs)
     if not isinstance(paths_or_arrays, (str, Path, np.ndarray)) and hasattr(paths_or_arrays, "__iter__"):
         paths_or_arrays = list(paths_or_arrays)  # an iterator is read twice: the images, then their sources
-    cfg = align or AlignConfig(quiet=quiet)
+    # quiet=True silences a given AlignConfig's progress too (it printed 44 lines under quiet=True)
+    cfg = AlignConfig(quiet=quiet) if align is None else dataclasses.replace(align, quiet=align.quiet or quiet)
     size = model_input_size(model) if size is None else size
     views = load_images(paths_or_arrays, size=size, whole=whole)
     n = len(views)

@@ -206,7 +206,9 @@ class Reconstruction:
         """The same reconstruction in another world: x -> scale * R x + t (R a rotation [3, 3], t [3], scale > 0).
         Camera centres and orientations move with the world, depths scale by ``scale``; intrinsics, images and
         confidences are unchanged. ``info["transformed"]`` records the similarity from the original world (this
-        one composed with any recorded before)."""
+        one composed with any recorded before, in float64). cam2world keeps its dtype: float32 holds about 7
+        digits, so a georeferencing offset of 4e6 units is rounded to ~0.25 units; add such an offset to the
+        exported files in float64 instead."""
         from dataclasses import replace
 
         R = torch.as_tensor(R, dtype=torch.float64)

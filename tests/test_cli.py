@@ -48,6 +48,20 @@ def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_
 
 
 
+def test_a_folder_of_unpadded_frame_numbers_is_read_in_frame_order(tmp_path):
+    # a plain string sort put frame_10 .. frame_19 between frame_1 and frame_2: the auto graph paired neighbours
+    # in file order, so the wrong ones
+    from pointmap.cli import expand_images, natural_key
+
+    for k in (1, 2, 10, 11, 20, 3):
+        (tmp_path / f"frame_{k}.png").write_bytes(b"")
+    (tmp_path / "frame_2b.png").write_bytes(b"")
+    got = [Path(p).name for p in expand_images([str(tmp_path)])]
+    assert got == ["frame_1.png", "frame_2.png", "frame_2b.png", "frame_3.png", "frame_10.png", "frame_11.png",
+                   "frame_20.png"]
+    assert sorted(["b1", "a10", "a9", "a"], key=natural_key) == ["a", "a9", "a10", "b1"]
+
+
 def test_hidden_files_in_a_folder_are_not_images_and_a_missing_path_is_named(tiny, tmp_path, capsys):
     import shutil
 
@@ -258,6 +272,16 @@ def test_cameras_from_a_transforms_json_are_held_fixed_poses_too_with_known_pose
     cams.write_text(json.dumps(meta))
     assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
     assert "names none of the 3 images" in capsys.readouterr().err
+    # poses alone, without --known-poses: the file changed nothing (and turned off the shared focal of a video)
+    bare = json.loads((first / "transforms.json").read_text())
+    for key in ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y"):
+        bare.pop(key, None)
+        for frame in bare["frames"]:
+            frame.pop(key, None)
+    cams.write_text(json.dumps(bare))
+    assert main([*base, "-o", str(out), "--cameras", str(cams)]) == 2
+    assert "gives no intrinsics for the images it names, only poses: pass --known-poses" in capsys.readouterr().err
+    assert main([*base, "-o", str(out), "--export", "npz", "--cameras", str(cams), "--known-poses"]) == 0
 
 
 def test_masks_from_a_folder_are_matched_by_stem_and_refused_before_the_inference_when_wrong(tiny, tmp_path, capsys,

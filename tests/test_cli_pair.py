@@ -259,9 +259,14 @@ def test_the_pair_command_gives_two_photographs_of_one_camera_one_focal_by_their
     assert "(original pixels, one shared)" in capsys.readouterr().out
     assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--focal", "70", "--shared-focal"]) == 2
     assert "--shared-focal applies only without --focal" in capsys.readouterr().err
+    # --no-shared-focal with --focal: what --focal means anyway, as reconstruct takes it (refused before)
+    assert main(["pair", a, b, "-o", str(out), "--model", str(weights), "--size", "64", "--focal", "70",
+                 "--no-shared-focal"]) == 0
+    capsys.readouterr()
     tall = photo("tall.jpg", shape=(90, 60))
-    assert main(["pair", a, tall, "-o", str(out), "--model", str(weights), "--size", "64", "--shared-focal"]) == 2
-    assert "shared_focal expected two photographs of one camera, of one size; got (90, 60) and (60, 90)" in \
+    assert main(["pair", a, tall, "-o", str(out), "--model", "no/such/model.safetensors", "--size", "64",
+                 "--shared-focal"]) == 2  # said before the model loads (a model that does not exist is not read)
+    assert "--shared-focal says the two photographs are of one camera, of one size; they are 90x60 and 60x90" in \
         capsys.readouterr().err
     with pytest.raises(pm.PointmapError, match="shared_focal expected True or False, and False with a focal given"):
         write_pair_outputs(model, a, b, tmp_path / "lib", size=64, focal=(70, 70), shared_focal=True)

@@ -16,6 +16,11 @@ from pointmap.io.tum import tum_timestamps, write_tum
 FORMATS = ("ply", "glb", "colmap", "colmap_txt", "nerfstudio", "tum", "npz")
 
 
+# what each format writes under out_dir (the COLMAP model's folder for both of its kinds)
+OUTPUT_NAMES = {"ply": "points.ply", "glb": "scene.glb", "colmap": "sparse/0", "colmap_txt": "sparse/0",
+                "nerfstudio": "transforms.json", "tum": "trajectory.txt", "npz": "reconstruction.npz"}
+
+
 def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"), *, min_conf: float | None = None,
                         conf_percentile: float | None = None, max_points: int | None = None,
                         colmap_max_points: int | None = 100_000, colmap_text: bool = False,
@@ -69,6 +74,14 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     if out.exists() and not out.is_dir():
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")
     out.mkdir(parents=True, exist_ok=True)
+    stale = sorted({name for fmt, name in OUTPUT_NAMES.items() if fmt not in formats and (out / name).exists()}
+                   - {OUTPUT_NAMES[f] for f in formats})
+    if stale:  # e.g. a reconstruction.npz of another scene, which `pointmap splat` / `localize` would then read
+        import warnings
+
+        warnings.warn(f"save_reconstruction: {out} holds {', '.join(stale)} of an earlier export, which this one "
+                      f"({', '.join(formats)}) does not rewrite: they describe that run's scene; remove them or "
+                      "write to another folder", stacklevel=2)
     written: dict = {}
     point_formats = sorted({"ply", "glb", "colmap", "colmap_txt", "nerfstudio"} & set(formats))
     if point_formats and not confidence_mask(recon.conf, min_conf, conf_percentile, within=recon.valid()).any():

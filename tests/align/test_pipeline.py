@@ -297,6 +297,13 @@ def test_reconstruct_passes_its_device_and_quiet_to_the_inference(fake_stack, mo
     assert calls["kw"]["device"] == "cuda:1" and calls["kw"]["quiet"] is True
 
 
+def test_quiet_silences_the_progress_of_a_given_align_config_too(fake_stack, capsys):
+    # cfg = align or AlignConfig(quiet=quiet): a caller's AlignConfig printed its progress under quiet=True
+    _, images, _ = fake_stack
+    reconstruct(STAND_IN, images, size=48, quiet=True, epipolar=False, align=AlignConfig(niter=5))
+    assert capsys.readouterr().err == ""
+
+
 def test_reconstruct_defaults_to_the_size_the_model_was_trained_at(fake_stack):
     _, images, calls = fake_stack
     calls["stop"] = True

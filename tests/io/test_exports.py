@@ -1018,3 +1018,21 @@ def test_a_name_that_is_not_utf8_or_a_flag_that_is_not_a_bool_is_refused_before_
             save_reconstruction(recon, tmp_path / "b", formats=("colmap",), **kw)
     with pytest.raises(ShapeError, match="save_reconstruction expected a Reconstruction, got NoneType"):
         save_reconstruction(None, tmp_path / "c")
+
+
+def test_an_export_into_a_folder_of_an_earlier_export_names_the_files_it_leaves_from_that_run(tmp_path):
+    # before: `reconstruct -o out --export ply` over a folder of another scene's run left its reconstruction.npz,
+    # which `pointmap splat out/` then read without a word
+    import warnings
+
+    from pointmap.io import FORMATS, OUTPUT_NAMES
+
+    assert sorted(OUTPUT_NAMES) == sorted(FORMATS)
+    recon = make_recon()
+    save_reconstruction(recon, tmp_path, formats=("npz", "tum"))
+    with pytest.warns(UserWarning, match="holds reconstruction.npz, trajectory.txt of an earlier export, which this "
+                                         "one \\(ply\\) does not rewrite"):
+        save_reconstruction(recon, tmp_path, formats=("ply",))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        save_reconstruction(recon, tmp_path, formats=("ply", "npz", "tum"))  # everything there rewritten
