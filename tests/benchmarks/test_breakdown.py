@@ -111,7 +111,7 @@ def test_the_command_names_what_it_expected_when_given_a_missing_set_or_too_few_
     csv = tmp_path / "a.csv"
     _write(csv, data.name, [(0, 1.0, 2.0, math.nan)])
     assert main([str(csv), "--data", str(tmp_path / "nowhere")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    assert "nowhere is missing: expected the folder `python -m data.render` wrote" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([str(csv), str(csv), "--data", str(data), "--names", "only_one"])
     assert "expected 2 names" in capsys.readouterr().err
