@@ -82,10 +82,12 @@ def read_ply(path) -> dict:
             raw = f.read()
     except OSError as e:
         raise ShapeError(f"{path}: cannot read it ({e.strerror or e.__class__.__name__})") from None
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
+    # header lines end in \n, or \r\n from some Windows writers (the data after the header is the same)
+    newline = b"\r\n" if raw.startswith(b"ply\r\n") else b"\n"
+    end = raw.find(b"end_header" + newline)
+    if not raw.startswith(b"ply" + newline) or end < 0:
         raise ShapeError(f"{path}: not a PLY file (expected a 'ply' header ending in 'end_header')")
-    end += len(b"end_header\n")
+    end += len(b"end_header" + newline)
     lines = raw[:end].decode("ascii", errors="replace").splitlines()
     fmt = next((ln for ln in lines if ln.startswith("format")), "")
     if fmt.split()[:2] != ["format", "binary_little_endian"]:

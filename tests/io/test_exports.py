@@ -688,6 +688,8 @@ def test_read_ply_reads_other_programs_scalar_properties_and_names_files_it_cann
     (tmp_path / "other.ply").write_bytes(head.encode() + body)
     got = read_ply(tmp_path / "other.ply")
     assert got["x"].tolist() == [1.0] and got["red"].tolist() == [7]
+    (tmp_path / "crlf.ply").write_bytes(head.replace("\n", "\r\n").encode() + body)  # "not a PLY file" before
+    assert {k: v.tolist() for k, v in read_ply(tmp_path / "crlf.ply").items()} == {k: v.tolist() for k, v in got.items()}
     (tmp_path / "cut.ply").write_bytes(head.encode() + body[:-3])
     with pytest.raises(ShapeError, match="cut.ply: truncated: 1 vertices of 13 bytes need 13 bytes, the file has 10"):
         read_ply(tmp_path / "cut.ply")
