@@ -74,8 +74,7 @@ def save_reconstruction(recon, out_dir, formats=("ply", "glb", "colmap", "npz"),
     if out.exists() and not out.is_dir():
         raise ShapeError(f"out_dir expected a folder to write into, got {str(out)!r}, which is a file")
     out.mkdir(parents=True, exist_ok=True)
-    stale = sorted({name for fmt, name in OUTPUT_NAMES.items() if fmt not in formats and (out / name).exists()}
-                   - {OUTPUT_NAMES[f] for f in formats})
+    stale = sorted({name for name in OUTPUT_NAMES.values() if (out / name).exists()} - {OUTPUT_NAMES[f] for f in formats})
     if stale:  # e.g. a reconstruction.npz of another scene, which `pointmap splat` / `localize` would then read
         import warnings
 
