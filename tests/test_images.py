@@ -82,6 +82,24 @@ def test_a_photograph_with_a_malformed_exif_block_still_loads_turned_by_its_orie
                           pm.load_images([tmp_path / "r.jpg"], size=64)[0].img)
 
 
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_the_fallback_for_a_malformed_exif_turns_every_orientation_as_pillow_does(orientation, monkeypatch):
+    from PIL import ImageOps
+
+    from pointmap.images import upright
+
+    im = Image.fromarray(np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3))  # no symmetry
+    im.getexif()[0x0112] = orientation
+    want = np.asarray(ImageOps.exif_transpose(im))  # a turned copy (im.copy() would lose the tag)
+    assert im.getexif().get(0x0112) == orientation and (want.shape[0] == 6) == (orientation >= 5)
+
+    def malformed(_):
+        raise TypeError("a rational tag holding text")
+
+    monkeypatch.setattr(ImageOps, "exif_transpose", malformed)
+    assert np.array_equal(np.asarray(upright(im)), want)
+
+
 def test_a_pil_image_is_turned_by_its_exif_as_its_file_and_a_truncated_or_closed_one_is_refused(tmp_path):
     im = Image.fromarray(np.random.default_rng(0).integers(0, 255, (60, 100, 3), dtype=np.uint8))
     exif = im.getexif()

@@ -216,6 +216,23 @@ def test_pointmap_matching_finds_the_true_correspondences_of_exact_pointmaps():
     assert ((uv - m.xy2.double()).norm(dim=-1) < 1.0).float().mean() > 0.95
 
 
+def test_border_drops_exactly_the_matches_near_either_edge_and_the_score_is_the_root_of_the_confidences():
+    p1, p2, *_ = two_views(angle_deg=3.0, t=(0.2, 0.0, 0.0))
+    g = torch.Generator().manual_seed(5)
+    c1, c2 = 1 + 4 * torch.rand(1, H, W, generator=g), 1 + 4 * torch.rand(1, H, W, generator=g)
+    pred = pm.PairPrediction(p1[None].float(), p2[None].float(), c1, c2)
+    every = pm.match(pred, subsample=2, use="pts")
+    x1, y1, x2, y2 = every.xy1[:, 0].long(), every.xy1[:, 1].long(), every.xy2[:, 0].long(), every.xy2[:, 1].long()
+    assert torch.allclose(every.score, (c1[0, y1, x1] * c2[0, y2, x2]).sqrt())
+    for b in (1, 6):
+        inside = [k for k in range(len(every)) if min(x1[k], y1[k], x2[k], y2[k]) >= b
+                  and x1[k] < W - b and x2[k] < W - b and y1[k] < H - b and y2[k] < H - b]
+        kept = pm.match(pred, subsample=2, use="pts", border=b)
+        assert 0 < len(kept) < len(every)
+        assert torch.equal(kept.xy1, every.xy1[inside]) and torch.equal(kept.xy2, every.xy2[inside])
+        assert torch.equal(kept.score, every.score[inside])
+
+
 def test_pointmap_matching_far_from_the_origin_finds_what_the_float64_reference_finds():
     torch.manual_seed(1)
     p1 = torch.rand(H, W, 3) + torch.tensor([100.0, -80.0, 300.0])  # a cloud far from its frame's origin

@@ -19,19 +19,19 @@ def scene():
     return make_scene(4, 32, 48, seed=21)
 
 
-def test_disconnected_graph(scene):
+def test_a_disconnected_graph_is_refused_naming_its_components(scene):
     preds = gt_preds(scene, [(0, 1), (2, 3)], seed=1)
     with pytest.raises(GraphError, match=r"disconnected.*\[0, 1\]; \[2, 3\]"):
         global_align(views_of(scene), preds, config=QUIET)
 
 
-def test_single_image(scene):
+def test_a_single_image_is_refused(scene):
     preds = gt_preds(scene, [(0, 1)], seed=1)
     with pytest.raises(GraphError, match="at least 2 images"):
         global_align(views_of(scene)[:1], preds, config=QUIET)
 
 
-def test_empty_preds(scene):
+def test_an_empty_prediction_dict_is_refused(scene):
     with pytest.raises(GraphError, match="non-empty dict"):
         global_align(views_of(scene), {}, config=QUIET)
 
@@ -56,7 +56,7 @@ def test_one_direction_only_or_first_view_maps_without_a_usable_point_are_explai
     assert any("no finite points" in str(w.message) for w in said)
 
 
-def test_wrong_map_size(scene):
+def test_a_map_of_the_wrong_size_is_refused_naming_its_pair(scene):
     preds = gt_preds(scene, complete_pairs(4), seed=1)
     p = preds[(0, 1)]
     preds[(0, 1)] = PairPrediction(p.pts1_cam1[:, :16], p.pts2_cam1, p.conf1[:, :16], p.conf2)

@@ -70,7 +70,7 @@ def test_chunked_loss_and_gradients_match_reference(setup, chunk):
     assert float(g_ref["log_f"][2].abs().sum()) == 0  # known focal: no gradient
 
 
-def test_loss_matches_explicit_loop(setup):
+def test_the_vectorised_loss_equals_a_per_edge_per_pixel_python_sum(setup):
     """The vectorised residual equals a per-edge, per-pixel Python sum."""
     _, _, stack = setup
     params = _params(stack, seed=1)
@@ -88,7 +88,7 @@ def test_loss_matches_explicit_loop(setup):
         assert float(loss_reference(X, s, R, t, stack)) == pytest.approx(total / count, rel=1e-9)
 
 
-def test_conf_weights():
+def test_confidences_become_weights_by_log_or_minus_one_and_nan_weighs_nothing():
     c = torch.tensor([0.5, 1.0, np.e, float("nan")])
     assert torch.allclose(conf_to_weight(c, "log"), torch.tensor([0.0, 0.0, 1.0, 0.0]))
     assert torch.allclose(conf_to_weight(c, "m1")[2], torch.tensor(np.e - 1, dtype=torch.float32))
@@ -158,37 +158,68 @@ def test_init_exact_on_clean_maps():
     assert torch.allclose(s_b, s_1) and torch.allclose(R_b, R_1) and torch.allclose(t_b, t_1)
 
 
-def test_fused_depth_is_the_weighted_least_squares_solution(setup):
-    sc, preds, stack = setup
-    keys = stack.keys
+def _fuse_inputs(sc, preds, keys):
+    """fuse_depth's arguments with edge similarities mapping each prediction back to the true world (fit on the
+    clean scene points)."""
+    from pointmap.geometry.procrustes import weighted_procrustes
+
     c2w = torch.from_numpy(sc["cam2world"])
     K = torch.from_numpy(sc["K"])
     E = len(keys)
     s, R, t = torch.ones(E, dtype=torch.float64), torch.eye(3, dtype=torch.float64).repeat(E, 1, 1), torch.zeros(E, 3, dtype=torch.float64)
-    # edge similarities mapping each prediction back to the true world: fit on the clean scene points
     for e, (i, j) in enumerate(keys):
-        from pointmap.geometry.procrustes import weighted_procrustes
         src = torch.cat([preds[(i, j)].pts1_cam1[0].reshape(-1, 3), preds[(i, j)].pts2_cam1[0].reshape(-1, 3)]).double()
         dst = torch.from_numpy(np.concatenate([sc["pts_world"][i].reshape(-1, 3), sc["pts_world"][j].reshape(-1, 3)]))
         s[e], R[e], t[e] = weighted_procrustes(src, dst)
-    depths, confs = fuse_depth(preds, keys, [(32, 48)] * 4, c2w, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2],
-                               s, R, t, iters=0)
-    # slow reference for one pixel of image 2
-    v, u = 7, 30
-    ray = torch.tensor([(u - K[2, 0, 2]) / K[2, 0, 0], (v - K[2, 1, 2]) / K[2, 1, 1], 1.0], dtype=torch.float64)
-    num = den = 0.0
-    w2c = torch.linalg.inv(c2w[2])
+    return (preds, keys, [(32, 48)] * 4, c2w, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], s, R, t)
+
+
+def _pixel_terms(args, k, v, u):
+    """Slow reference: image k's pixel (v, u) as its ray and, per edge prediction of it, the point moved into
+    camera k's frame and its weight log(conf)."""
+    preds, keys, _, c2w, fx, fy, cx, cy, s, R, t = args
+    ray = np.array([(u - float(cx[k])) / float(fx[k]), (v - float(cy[k])) / float(fy[k]), 1.0])
+    w2c = torch.linalg.inv(c2w[k])
+    ys, ws = [], []
     for e, (i, j) in enumerate(keys):
         for side, img in ((0, i), (1, j)):
-            if img != 2:
+            if img != k:
                 continue
             p = preds[(i, j)]
             pt = (p.pts1_cam1 if side == 0 else p.pts2_cam1)[0, v, u].double()
             c = (p.conf1 if side == 0 else p.conf2)[0, v, u].double()
-            y = w2c[:3, :3] @ (s[e] * R[e] @ pt + t[e]) + w2c[:3, 3]
-            w = float(torch.log(c))
-            num += w * float(ray @ y)
-            den += w * float(ray @ ray)
-    assert float(depths[2][v, u]) == pytest.approx(num / den, rel=1e-5)
+            ys.append((w2c[:3, :3] @ (s[e] * R[e] @ pt + t[e]) + w2c[:3, 3]).numpy())
+            ws.append(float(torch.log(c)))
+    return ray, np.array(ys), np.array(ws)
+
+
+def test_fused_depth_is_the_weighted_least_squares_solution(setup):
+    sc, preds, stack = setup
+    args = _fuse_inputs(sc, preds, stack.keys)
+    depths, confs = fuse_depth(*args, iters=0)
+    for v, u in ((7, 30), (0, 0), (31, 47), (16, 5)):
+        ray, ys, ws = _pixel_terms(args, 2, v, u)
+        assert float(depths[2][v, u]) == pytest.approx((ws * (ys @ ray)).sum() / (ws.sum() * ray @ ray), rel=1e-5)
     assert float(np.median(np.abs(depths[2].numpy() / sc["depth"][2] - 1))) < 0.01
     assert confs[2].shape == (32, 48) and float(confs[2].min()) >= 3.0
+
+
+def test_each_reweighted_pass_is_one_irls_step_and_the_passes_reach_the_robust_l1_depth():
+    sc = make_scene(4, 32, 48, seed=31)
+    preds = gt_preds(sc, complete_pairs(4), seed=1, noise=0.05)
+    keys = check_preds(preds, 4, [(32, 48)] * 4)
+    args = _fuse_inputs(sc, preds, keys)
+    d0, d1, d30 = (fuse_depth(*args, iters=n)[0][2] for n in (0, 1, 30))
+    assert float((d1 - d0).abs().max()) > 1e-3  # the pass moves depths: the checks below can tell it apart
+    for v, u in ((7, 30), (0, 0), (31, 47), (16, 5)):
+        ray, ys, ws = _pixel_terms(args, 2, v, u)
+        # one pass: weights w / |d0 r - y| at the least-squares depth d0
+        w1 = ws / np.linalg.norm(float(d0[v, u]) * ray - ys, axis=1)
+        assert float(d1[v, u]) == pytest.approx((w1 * (ys @ ray)).sum() / (w1.sum() * ray @ ray), rel=1e-5)
+        # the fixed point minimises sum_e w_e |d r - y_e|: a convex 1-D function, found by ternary search
+        cost = lambda d: float((ws * np.linalg.norm(d * ray - ys, axis=1)).sum())  # noqa: E731
+        lo, hi = 0.1, 20.0
+        for _ in range(200):
+            a, b = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+            lo, hi = (lo, b) if cost(a) < cost(b) else (a, hi)
+        assert float(d30[v, u]) == pytest.approx((lo + hi) / 2, rel=1e-4)

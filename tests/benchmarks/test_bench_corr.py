@@ -21,3 +21,4 @@ def test_the_table_prints_and_bad_input_exits_2_in_one_line(scenes_and_model, tm
     assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
     with pytest.raises(SystemExit):
         main(["--data", str(root), "--pairs", "0"])
+    assert "--pairs expected >= 1, got 0" in capsys.readouterr().err

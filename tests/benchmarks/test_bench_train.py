@@ -44,10 +44,13 @@ def test_the_baseline_rows_come_from_the_baseline_checkouts_code(tmp_path, capsy
     assert set(params) == {"this", "baseline"} and float(params["baseline"]) > float(params["this"]), out
 
 
-def test_the_benchmark_refuses_a_directory_that_is_not_a_checkout_and_zero_steps(tmp_path):
+def test_the_benchmark_refuses_a_directory_that_is_not_a_checkout_and_zero_steps(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--preset", "test", "--baseline-code", str(tmp_path)])
+    assert "--baseline-code expected a checkout of this project" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--preset", "test", "--steps", "0"])
+    assert "--steps expected >= 1, got 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # refused before a baseline's subprocess is started
         main(["--preset", "bogus", "--baseline-code", str(ROOT)])
+    assert "invalid choice: 'bogus'" in capsys.readouterr().err

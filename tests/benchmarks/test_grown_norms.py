@@ -41,3 +41,4 @@ def test_a_model_that_cannot_have_grown_from_the_given_depths_is_refused(tmp_pat
         assert f"was not grown from {depths}" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([str(path), "--grown_from", "x"])
+    assert "--grown_from expected ENC,DEC (two block counts, e.g. 6,4), got 'x'" in capsys.readouterr().err

@@ -122,12 +122,14 @@ def test_correspondence_encoding_round_trips_within_a_128th_of_a_pixel():
     assert np.abs(back[ok] - c[ok]).max() <= 1 / 128 + 1e-5
 
 
-def test_geometry_helpers_reject_bad_shapes():
-    with pytest.raises(ShapeError):
+def test_geometry_helpers_reject_bad_shapes_dtypes_and_fields_of_view():
+    with pytest.raises(ShapeError, match=r"corr expected \[H, W, 2\], got \[4, 4, 3\]"):
         encode_corr(np.zeros((4, 4, 3), np.float32))
-    with pytest.raises(ShapeError):
+    with pytest.raises(ShapeError, match=r"encoded corr expected uint16 \[H, W, 2\], got uint16 \[4, 4, 3\]"):
+        decode_corr(np.zeros((4, 4, 3), np.uint16))
+    with pytest.raises(ShapeError, match=r"encoded corr expected uint16 \[H, W, 2\], got float32 \[4, 4, 2\]"):
         decode_corr(np.zeros((4, 4, 2), np.float32))
-    with pytest.raises(ShapeError):
+    with pytest.raises(ShapeError, match=r"unproject expected depth \[H, W\] and K \[3, 3\], got \(4, 4, 1\)"):
         unproject(np.zeros((4, 4, 1)), np.eye(3))
-    with pytest.raises(ShapeError):
+    with pytest.raises(ShapeError, match=r"fov_deg expected in \(0, 180\), got 190"):
         intrinsics_from_fov(10, 10, 190)

@@ -160,7 +160,7 @@ def test_resuming_with_another_configuration_is_refused(tmp_path):
         generate(tmp_path, GenConfig(kind="views", scenes=1, views=1, size=64, seed=2), progress=False, log=None)
 
 
-def test_shard_range_parsing():
+def test_shard_ranges_parse_as_python_slices_and_a_bare_number_is_refused():
     assert parse_shards("2:5", 10) == range(2, 5)
     assert parse_shards(":3", 10) == range(0, 3) and parse_shards("7:", 10) == range(7, 10)
     with pytest.raises(ValueError, match="A:B"):

@@ -62,7 +62,7 @@ def test_sidecar_describes_the_export(full_export):
     assert embedded["architecture"] == meta["architecture"]
 
 
-def test_split_export_graphs(split_export):
+def test_a_split_export_is_an_encoder_graph_and_a_decoder_graph_with_dynamic_sizes(split_export):
     enc = onnx.load(str(split_export / "encoder.onnx"), load_external_data=False)
     dec = onnx.load(str(split_export / "decoder.onnx"), load_external_data=False)
     C = PRESETS["test"].enc_dim
@@ -171,14 +171,14 @@ def test_export_rejects_bad_arguments(tmp_path, test_model):
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temp dir left behind
 
 
-def test_resolve_model(tmp_path):
+def test_a_preset_resolves_to_seeded_random_weights_and_unknown_or_missing_models_are_refused(tmp_path):
     m = resolve_model("preset:test", seed=3)
     assert m.cfg == PRESETS["test"] and "random" in m.provenance["weights"]
     m2 = resolve_model("preset:test", seed=3)
     assert torch.equal(m.patch_embed.proj.weight, m2.patch_embed.proj.weight)
     with pytest.raises(CheckpointError, match="unknown preset"):
         resolve_model("preset:nope")
-    with pytest.raises(CheckpointError):
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
         resolve_model(str(tmp_path / "missing.pth"))
 
 

@@ -74,6 +74,21 @@ def test_weighted_procrustes_recovers_a_similarity_and_ignores_zero_weight_outli
     assert torch.allclose(transform_points(T, src[20:]), dst[20:], atol=1e-9)
 
 
+@pytest.mark.parametrize("with_scale", [True, False])
+def test_an_integer_weight_counts_as_that_many_copies_of_the_point_on_noisy_data(with_scale):
+    g = torch.Generator().manual_seed(4)
+    src = torch.randn(40, 3, generator=g, dtype=torch.float64)
+    dst = 1.8 * src @ random_rotation(g).T + torch.randn(3, generator=g, dtype=torch.float64)
+    dst += 0.3 * torch.randn(40, 3, generator=g, dtype=torch.float64)  # no exact answer: the weights decide
+    k = torch.randint(0, 5, (40,), generator=g)
+    weighted = weighted_procrustes(src, dst, k.double(), with_scale=with_scale)
+    copies = weighted_procrustes(src.repeat_interleave(k, 0), dst.repeat_interleave(k, 0), with_scale=with_scale)
+    unweighted = weighted_procrustes(src, dst, with_scale=with_scale)
+    for a, b in zip(weighted, copies):
+        assert torch.allclose(a, b, atol=1e-10)
+    assert not torch.allclose(weighted[1], unweighted[1], atol=1e-3)  # the weights changed the answer
+
+
 def test_procrustes_never_returns_a_reflection():
     src = torch.randn(30, 3, dtype=torch.float64)
     dst = src * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # a mirror image

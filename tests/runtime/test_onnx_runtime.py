@@ -30,7 +30,7 @@ def test_load_model_dispatches_to_onnx(split_export, full_export):
 
 
 @pytest.mark.parametrize("kind", ["full", "split"])
-def test_call_matches_eager(kind, full_export, split_export, test_model):
+def test_calling_the_runner_gives_the_eager_models_outputs(kind, full_export, split_export, test_model):
     runner = load_onnx(full_export if kind == "full" else split_export, threads=1)
     assert runner.eval() is runner and runner.to("cpu") is runner
     img1, img2 = torch.rand(2, 3, 64, 96), torch.rand(2, 3, 96, 64)
@@ -134,15 +134,15 @@ def test_predict_pairs_runs_unchanged(kind, full_export, split_export, test_mode
         _close(ref[k], got[k])
 
 
-def test_load_errors(tmp_path, split_export):
+def test_a_missing_empty_corrupt_or_foreign_export_is_refused_with_what_is_wrong(tmp_path, split_export):
     with pytest.raises(CheckpointError, match="not found"):
         load_onnx(tmp_path / "nothing")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(CheckpointError):
+    with pytest.raises(CheckpointError, match="holds no .onnx graph and no pointmap_export.json"):
         load_onnx(tmp_path / "empty")
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"\x08\x07garbage that is not a protobuf" * 10)
-    with pytest.raises(CheckpointError):
+    with pytest.raises(CheckpointError, match="cannot read .*bad.onnx as an ONNX model"):
         load_onnx(bad)
     import onnx
 
@@ -166,7 +166,7 @@ def test_load_errors(tmp_path, split_export):
         load_onnx(split_export, colour="blue")
 
 
-def test_provider_resolution():
+def test_devices_and_provider_lists_resolve_to_onnxruntime_providers_with_cpu_last():
     assert resolve_providers(None) == ["CPUExecutionProvider"]
     assert resolve_providers("cpu") == ["CPUExecutionProvider"]
     assert resolve_providers("auto")[-1] == "CPUExecutionProvider"

@@ -30,14 +30,18 @@ def test_covisibility_drops_points_explained_by_earlier_views():
     assert torch.allclose(g.means[:, 2], torch.full((len(g),), 3.0), atol=1e-5)
 
 
-def test_confidence_ranking_threshold_budget_and_attributes():
+def test_views_go_by_confidence_pixels_below_min_conf_are_dropped_and_the_budget_and_attributes_hold():
     conf = torch.ones(2, 24, 32) * 2
     conf[1] = 5.0                     # view 1 is more confident: it goes first and keeps all pixels
     conf[0, :, :16] = 0.5             # below the threshold
     recon = _plane_recon(conf=conf)
     g = init_from(recon, max_gaussians=None, min_conf=1.0)
     assert g.info["view_order"] == [1, 0]
-    assert len(g) <= 32 * 24 + 2 * 24
+    # view 0's confident right half is all seen by view 1; the 2 new columns it adds without a threshold lie in its
+    # left half, below the threshold: only view 1's pixels survive
+    assert g.info["points_valid"] == 32 * 24 + 16 * 24
+    assert len(g) == 32 * 24
+    assert len(init_from(recon, max_gaussians=None, min_conf=0.0)) == 32 * 24 + 2 * 24
     g2 = init_from(recon, max_gaussians=300)
     assert 0 < len(g2) <= 300
     g3 = init_from(recon, max_gaussians=300, downsample="conf")
@@ -51,7 +55,7 @@ def test_confidence_ranking_threshold_budget_and_attributes():
     assert g2.conf is not None and len(g2.conf) == len(g2)
 
 
-def test_colour_comes_from_pixels():
+def test_each_gaussian_takes_the_colour_of_its_pixel():
     recon = _plane_recon(n=1)
     g = init_from(recon, max_gaussians=None)
     # pixel (u, v) unprojects to x = (u - cx) * 3 / f; recover u, v and compare colours
@@ -61,7 +65,7 @@ def test_colour_comes_from_pixels():
     assert not math.isnan(float(g.sh_dc.sum()))
 
 
-def test_validation():
+def test_a_foreign_input_an_empty_selection_and_bad_options_are_refused():
     recon = _plane_recon()
     with pytest.raises(ShapeError, match="Reconstruction"):
         init_from("not a recon")

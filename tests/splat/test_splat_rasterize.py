@@ -109,7 +109,7 @@ def test_gradcheck_float64_few_gaussians():
     assert torch.autograd.gradcheck(f, ins, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_tile_and_chunk_sizes_agree():
+def test_every_tile_and_chunk_size_renders_the_same_image():
     W, H = 50, 37   # not a multiple of any tile size
     args = [a.float() for a in _scene(300, W, H, seed=2)]
     ref = rasterize(*args, W, H, tile=4, chunk=32).image
@@ -118,7 +118,7 @@ def test_tile_and_chunk_sizes_agree():
         assert (img - ref).abs().max() < 1e-5   # float32; differences come from tile-local coordinates
 
 
-def test_empty_and_behind_camera():
+def test_gaussians_behind_the_camera_leave_the_background_and_no_alpha():
     W, H = 20, 16
     means, quats, scales, opac, cols, w2c, K = [a.float() for a in _scene(10, W, H)]
     means = means.clone()
@@ -129,7 +129,7 @@ def test_empty_and_behind_camera():
     assert float(out.alpha.abs().max()) == 0.0 and int(out.radii.abs().max()) == 0
 
 
-def test_input_validation():
+def test_inputs_of_the_wrong_shape_are_refused_naming_the_argument():
     W, H = 20, 16
     a = [t.float() for t in _scene(5, W, H)]
     with pytest.raises(ShapeError, match="means"):

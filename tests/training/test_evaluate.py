@@ -545,3 +545,24 @@ def test_held_out_completion_feeds_the_model_on_the_device_of_its_weights():
     model = _OnDevice(CrossViewCompletion(PRESETS["test"], mask_ratio=0.5).eval())
     ev = completion_eval(model, PlanePairs(2), n=2)
     assert math.isfinite(ev["completion_loss"]) and set(model.seen) == {"meta"}
+
+
+def test_abs_rel_scales_by_the_lower_median_ratio_in_front_and_averages_over_every_valid_pixel():
+    import numpy as np
+
+    from training.evaluate import abs_rel
+
+    rng = np.random.default_rng(0)
+    true_z = rng.uniform(1.0, 5.0, (12, 16))
+    pred_z = true_z * rng.uniform(0.5, 1.5, true_z.shape)
+    pred_z[0, :3] = -1.0  # behind the camera: full relative error, left out of the scale
+    valid = rng.random(true_z.shape) > 0.2
+    got = abs_rel(torch.from_numpy(pred_z), torch.from_numpy(true_z), torch.from_numpy(valid))
+    # the obviously-correct reference, pixel by pixel
+    p, t = pred_z[valid].tolist(), true_z[valid].tolist()
+    ratios = sorted(ti / pi for pi, ti in zip(p, t) if pi > 0)
+    s = ratios[(len(ratios) - 1) // 2]
+    want = sum(abs(max(pi, 0.0) * s - ti) / ti for pi, ti in zip(p, t)) / len(p)
+    assert got == pytest.approx(want, rel=1e-12)
+    assert math.isnan(abs_rel(torch.from_numpy(pred_z), torch.from_numpy(true_z), torch.zeros(12, 16, dtype=torch.bool)))
+    assert abs_rel(-torch.ones(12, 16), torch.from_numpy(true_z), torch.from_numpy(valid)) == 1.0

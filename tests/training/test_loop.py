@@ -499,9 +499,10 @@ def test_amp_bf16_trains_on_cpu_and_auto_leaves_cpu_training_in_float32(tmp_path
     assert (tmp_path / "bf16" / "last.pt").exists()
 
 
-def test_an_unknown_amp_mode_is_refused_with_the_choices():
+def test_an_unknown_amp_mode_is_refused_with_the_choices(capsys):
     with pytest.raises(SystemExit):
         TrainConfig.from_args(["--data", "x", "--amp", "fp8"])
+    assert "--amp expected 'auto', 'bf16' or 'off', got 'fp8'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["crop_link", "grey_p", "flip_p", "pad_p"])
@@ -1106,7 +1107,7 @@ def test_heads_no_loss_reaches_are_exactly_the_parameters_without_a_gradient_and
         freeze_idle(dataclasses.replace(config(tmp_path, 1), pose_weight=1.0, train_only="focal_head"), model)
 
 
-def test_the_focal_head_loss_is_added_with_its_weight_and_trains_the_focal_head_alone(tmp_path):
+def test_the_focal_head_loss_is_added_with_its_weight_and_trains_the_focal_head_alone(tmp_path, capsys):
     from training.train import check_model_options, freeze_except
 
     model, batch = seeded_model_and_batch(PRESETS["test"].replace(pose_head=True, focal_head=True))
@@ -1127,7 +1128,8 @@ def test_the_focal_head_loss_is_added_with_its_weight_and_trains_the_focal_head_
         check_model_options(dataclasses.replace(cfg, focal_head_weight=1.0),
                             PointmapNet(PRESETS["test"].replace(pose_head=True)))
     with pytest.raises(SystemExit):
-        TrainConfig.from_args(["--focal_head_weight", "-1"])
+        TrainConfig.from_args(["--data", "x", "--focal_head_weight", "-1"])
+    assert "--focal_head_weight expected >= 0" in capsys.readouterr().err
 
 
 def test_a_fresh_focal_head_is_added_to_an_init_model_without_one(tmp_path):

@@ -86,7 +86,42 @@ def test_regression_loss_weighs_errors_by_confidence_and_rewards_confidence_by_i
     assert abs(float(l2) - (2 * err - 2 * 0.2 * torch.log(torch.tensor(2.0)))) < 1e-4
 
 
-def test_invalid_pixels_do_not_contribute():
+@pytest.mark.parametrize("metric", [False, True])
+def test_regression_loss_equals_a_per_pixel_python_sum_with_offsets_confidences_and_invalid_pixels(metric):
+    g = torch.Generator().manual_seed(3)
+    B, H, W, alpha = 2, 5, 6, 0.3
+    v1, v2 = make_views(B, H, W)
+    v1["valid"] = torch.rand(B, H, W, generator=g) > 0.3
+    v2["valid"] = torch.rand(B, H, W, generator=g) > 0.5
+    g1, g2 = gt_points_cam1(v1, v2)
+    p1, p2 = 1.7 * g1 + torch.randn(g1.shape, generator=g), 1.7 * g2 + torch.randn(g2.shape, generator=g)
+    c1, c2 = 1 + 3 * torch.rand(B, H, W, generator=g), 1 + 3 * torch.rand(B, H, W, generator=g)
+    loss, d = regression_loss(pm.PairPrediction(p1, p2, c1, c2), v1, v2, alpha=alpha, metric=metric)
+
+    def mean_dist(a, b, b_idx):  # over both views' valid pixels of pair b_idx
+        pts = [a[b_idx, y, x] for y in range(H) for x in range(W) if v1["valid"][b_idx, y, x]]
+        pts += [b[b_idx, y, x] for y in range(H) for x in range(W) if v2["valid"][b_idx, y, x]]
+        return sum(math.dist(q.tolist(), (0, 0, 0)) for q in pts) / len(pts)
+
+    want, regr = 0.0, {}
+    for name, pr, gt, v, c in (("1", p1, g1, v1["valid"], c1), ("2", p2, g2, v2["valid"], c2)):
+        terms, errs = [], []
+        for b in range(B):
+            s_gt = mean_dist(g1, g2, b)
+            s_pr = s_gt if metric else mean_dist(p1, p2, b)
+            for y in range(H):
+                for x in range(W):
+                    if v[b, y, x]:
+                        e = math.dist((pr[b, y, x] / s_pr).tolist(), (gt[b, y, x] / s_gt).tolist())
+                        terms.append(float(c[b, y, x]) * e - alpha * math.log(float(c[b, y, x])))
+                        errs.append(e)
+        want += sum(terms) / len(terms)
+        regr[f"regr{name}"] = sum(errs) / len(errs)
+    assert float(loss) == pytest.approx(want, rel=1e-5)
+    assert d == pytest.approx(regr, rel=1e-5)
+
+
+def test_invalid_pixels_do_not_contribute_even_far_from_the_truth():
     v1, v2 = make_views()
     g1, g2 = gt_points_cam1(v1, v2)
     bad1 = g1.clone()
