@@ -548,10 +548,21 @@ def shipped_models() -> list[str]:
     return sorted(p.stem for p in WEIGHTS_DIR.glob("*.safetensors"))
 
 
+def _bare_name(src) -> bool:
+    return isinstance(src, str) and bool(src) and not any(sep and sep in src for sep in (os.path.sep, os.path.altsep))
+
+
+def _model_on_disk(path: Path) -> bool:
+    """A file, or a folder holding an ONNX export: what ``load_model`` could read at ``path``."""
+    return path.is_file() or (path.is_dir() and _is_onnx_export(path))
+
+
 def shipped_path(src) -> Path | None:
-    """The shipped weights file ``load_model(src)`` reads when ``src`` names a shipped model (a bare name that is
-    not an existing path), else None."""
-    if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
+    """The shipped weights file ``load_model(src)`` reads when ``src`` names a shipped model (a bare name, without a
+    path separator), else None. A model on disk of that name in the working directory (a file, or an ONNX export's
+    folder) is read instead, with a warning; any other folder of that name (photographs called ``small``) is not a
+    model and does not hide the shipped one."""
+    if _bare_name(src) and not _model_on_disk(Path(src)):
         path = WEIGHTS_DIR / f"{src}.safetensors"
         return path if path.exists() else None
     return None
@@ -582,6 +593,10 @@ def load_model(src, device="cpu", **kwargs):
                               f"PointmapNet, got {type(src).__name__}")
     if (shipped := shipped_path(src)) is not None:
         return load_own(shipped).to(device).eval()
+    if _bare_name(src) and (WEIGHTS_DIR / f"{src}.safetensors").exists():  # a model on disk hides the shipped one
+        warnings.warn(f"{src!r} is a shipped model's name and a {'file' if Path(src).is_file() else 'model folder'} "
+                      f"in the working directory: loading the one on disk; the shipped one is "
+                      f"{WEIGHTS_DIR / (src + '.safetensors')}", stacklevel=2)
     if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
         if src in PRESETS:
             raise CheckpointError(f"preset {src!r} has no shipped weights; shipped: {shipped_models() or 'none'}. "

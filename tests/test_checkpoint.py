@@ -3,6 +3,7 @@
 import argparse
 import json
 import math
+import os
 import re
 
 import numpy as np
@@ -276,6 +277,29 @@ def test_a_safetensors_file_from_another_project_is_refused(tmp_path):
 def test_unknown_names_list_what_is_shipped():
     with pytest.raises(pm.CheckpointError, match="no such file or shipped model"):
         pm.load_model("nonexistent_model_name")
+
+
+def test_a_folder_named_like_a_shipped_model_does_not_hide_it_and_a_model_on_disk_so_named_is_read_with_a_warning(
+        tmp_path, monkeypatch):
+    import warnings
+
+    from pointmap.checkpoint import WEIGHTS_DIR
+
+    name = pm.checkpoint.shipped_models()[0]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / name).mkdir()  # a folder of photographs, say: the shipped model, without a word
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert isinstance(pm.load_model(name), pm.PointmapNet)
+    (tmp_path / name / "model.onnx").write_bytes(b"not really")  # now an export of that name: read, and said
+    with pytest.warns(UserWarning, match=f"'{name}' is a shipped model's name and a model folder in the working "
+                                         f"directory: loading the one on disk; the shipped one is "
+                                         f"{re.escape(str(WEIGHTS_DIR))}"):
+        with pytest.raises(pm.CheckpointError, match="cannot read"):
+            pm.load_model(name)
+    with pytest.raises(pm.CheckpointError, match="cannot read"), warnings.catch_warnings():
+        warnings.simplefilter("error")  # written as a path: no warning
+        pm.load_model(f".{os.sep}{name}")
 
 
 def test_every_shipped_model_fits_the_package_budget_of_25_mb_and_records_its_steps_data_and_licence():
