@@ -229,21 +229,39 @@ def test_int8_files_whose_tensors_or_list_do_not_match_are_refused_in_one_line(t
     def changed(**tensors):
         return {**state, **tensors}
 
-    cases = {"missing scale": ({n: v for n, v in state.items() if n != sk}, meta),
-             "unlisted int8": (state, {**meta, "int8": json.dumps(listed[1:])}),
-             "broken list": (state, {**meta, "int8": "[not json"}),
-             "not a list": (state, {**meta, "int8": json.dumps({"a": 1})}),
-             "repeated name": (state, {**meta, "int8": json.dumps(listed + [k])}),
-             "scale listed": (state, {**meta, "int8": json.dumps(listed + [sk])}),
-             "float tensor listed": (changed(**{k: state[k].float()}), meta),
-             "int8 scale": (changed(**{sk: state[sk].to(torch.int8)}), meta),
-             "short scale": (changed(**{sk: state[sk][:-1]}), meta),
-             "NaN scale": (changed(**{sk: torch.full_like(state[sk], float("nan"))}), meta),
-             "negative scale": (changed(**{sk: -state[sk]}), meta),
-             "0-dim tensor": (changed(**{k: torch.tensor(3, dtype=torch.int8)}), meta)}
-    for name, (tensors, md) in cases.items():
+    # without the checksum, so that each int8 check itself answers (the checksum refuses every changed tensor first;
+    # and this test's folder name holds "int8", so each message is matched after the file name)
+    summed, meta = meta, {a: b for a, b in meta.items() if a != "sha256"}
+    q, listed_k, bad_k = f"'{k}'", re.escape(str([k])), re.escape(str([k, sk]))
+    cases = {"missing scale": ({n: v for n, v in state.items() if n != sk}, meta,
+                               f"int8 tensor {q} expected in the file with its scale .*missing: the scale"),
+             "unlisted int8": (state, {**meta, "int8": json.dumps(listed[1:])},
+                               f"int8 tensors or scales not listed in its metadata: {bad_k}"),
+             "unlisted int8 without its scale": ({n: v for n, v in state.items() if n != sk},
+                                                 {**meta, "int8": json.dumps(listed[1:])},
+                                                 f"int8 tensors or scales not listed in its metadata: {listed_k}"),
+             "broken list": (state, {**meta, "int8": "[not json"}, "has a broken int8 tensor list"),
+             "not a list": (state, {**meta, "int8": json.dumps({"a": 1})},
+                            "int8 metadata expected a list of tensor names, got dict"),
+             "repeated name": (state, {**meta, "int8": json.dumps(listed + [k])},
+                               f"int8 metadata expected distinct weight names, got repeated or scale names {listed_k}"),
+             "scale listed": (state, {**meta, "int8": json.dumps(listed + [sk])},
+                              "int8 metadata expected distinct weight names, got repeated or scale names"),
+             "float tensor listed": (changed(**{k: state[k].float()}), meta,
+                                     "expected a non-empty int8 tensor, got torch.float32"),
+             "int8 scale": (changed(**{sk: state[sk].to(torch.int8)}), meta,
+                            r"expected a float32 scale of shape \[\d+\], got torch.int8"),
+             "short scale": (changed(**{sk: state[sk][:-1]}), meta,
+                             r"expected a float32 scale of shape \[\d+\], got torch.float32"),
+             "NaN scale": (changed(**{sk: torch.full_like(state[sk], float("nan"))}), meta,
+                           "expected finite positive scales"),
+             "negative scale": (changed(**{sk: -state[sk]}), meta, "expected finite positive scales"),
+             "0-dim tensor": (changed(**{k: torch.tensor(3, dtype=torch.int8)}), meta,
+                              r"expected a non-empty int8 tensor, got torch.int8 \(\)"),
+             "checksum": (changed(**{sk: -state[sk]}), summed, "do not match the checksum in its header")}
+    for name, (tensors, md, message) in cases.items():
         save_file(tensors, str(tmp_path / "bad.safetensors"), metadata=md)
-        with pytest.raises(pm.CheckpointError, match="int8") as e:
+        with pytest.raises(pm.CheckpointError, match="bad.safetensors.*" + message) as e:
             pm.load_model(tmp_path / "bad.safetensors")
         assert "\n" not in str(e.value), name
     save_file(state, str(tmp_path / "bad.safetensors"), metadata={**meta, "provenance": "{broken"})

@@ -158,13 +158,16 @@ def test_undistort_photos_writes_the_distorted_ones_with_their_masks_and_leaves_
     for name in ("a.png", "b.jpg"):
         cv2.imwrite(str(tmp_path / name), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
         paths.append(str(tmp_path / name))
-    masks = [np.ones((H, W), bool), None]
-    new_paths, new_K, new_masks = undistort_photos(paths, {0: K, 1: K}, {0: LENSES[0]}, tmp_path / "out", masks)
+    masks = [np.zeros((H, W), bool), None]
+    masks[0][20:90, 30:140] = True  # off-centre: the lens moves its edges
+    new_paths, new_K, new_masks = undistort_photos(paths, {0: K, 1: K}, {0: LENSES[0]}, tmp_path / "out",
+                                                   [m if m is None else m.copy() for m in masks])
     assert new_paths == [str(tmp_path / "out" / "a.png"), paths[1]]
     assert np.allclose(new_K[0], pinhole_for(K, LENSES[0], (W, H))) and np.array_equal(new_K[1], K)
     expected = undistort(read_rgb(paths[0]), K, LENSES[0])
     assert np.array_equal(read_rgb(new_paths[0]), expected)  # PNG: lossless
-    assert new_masks[0].shape == (H, W) and new_masks[0].all() and new_masks[1] is None
+    assert np.array_equal(new_masks[0], undistort(masks[0], K, LENSES[0], nearest=True)) and new_masks[1] is None
+    assert new_masks[0].dtype == bool and not np.array_equal(new_masks[0], masks[0])  # resampled with the photograph
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.png"]  # no temporary left behind
     with pytest.raises(PointmapError, match=r"needs its mask at its own size \[240, 320\]"):
         undistort_photos(paths, {0: K}, {0: LENSES[0]}, tmp_path / "out", [np.ones((10, 10), bool), None])

@@ -33,6 +33,22 @@ def test_one_frame_per_window_and_the_sharpest_of_each(tmp_path):
     assert sharpness(cv2.imread(str(frames[1]))) > 2 * sharpness(cv2.imread(str(first[1])))
 
 
+def test_extracted_frames_keep_the_videos_colours_red_stays_red(tmp_path):
+    from pointmap.images import read_rgb
+
+    writer = cv2.VideoWriter(str(tmp_path / "rgb.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    assert writer.isOpened()
+    for bgr in ((0, 0, 255), (0, 255, 0), (255, 0, 0)):  # red, green, blue frames (OpenCV writes BGR)
+        writer.write(np.full((48, 64, 3), bgr, np.uint8))
+    writer.release()
+    frames = extract_frames(tmp_path / "rgb.avi", tmp_path / "frames", stride=1, pick_sharpest=False)
+    assert len(frames) == 3
+    for k, path in enumerate(frames):
+        rgb = read_rgb(path).astype(np.float64)
+        mean = rgb.reshape(-1, 3).mean(0)
+        assert mean.argmax() == k and mean[k] > 200 and np.delete(mean, k).max() < 60, (path.name, mean)
+
+
 def test_without_a_stride_at_most_max_frames_are_kept_and_a_last_partial_window_counts(tmp_path):
     video = _video(tmp_path / "v.avi", n=25)
     assert len(extract_frames(video, tmp_path / "a", max_frames=10)) == 9  # stride 3: 8 full windows + 1 partial

@@ -148,6 +148,39 @@ def test_glb_has_cloud_and_frustums(tmp_path):
     assert np.allclose(np.asarray(clouds[0].vertices), pts.xyz * flip, atol=1e-5)
 
 
+def test_frustum_corners_are_the_image_corners_rays_through_k_inverse_moved_by_a_turned_camera():
+    from pointmap.geometry import axis_angle_to_matrix
+
+    c2w = np.eye(4)
+    c2w[:3, :3] = axis_angle_to_matrix(torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)).numpy()
+    c2w[:3, 3] = [1.0, -2.0, 0.5]
+    K = np.array([[300.0, 0, 170.0], [0, 250.0, 110.0], [0, 0, 1]])  # fx != fy, principal point off centre
+    segs = frustum_lines(c2w, K, (320, 240), 0.7)
+    corners = [(-0.5, -0.5), (319.5, -0.5), (319.5, 239.5), (-0.5, 239.5)]
+    for k, (u, v) in enumerate(corners):  # the slow reference: K^-1 [u, v, 1] at depth 0.7, into the world
+        want = c2w[:3, :3] @ (np.linalg.inv(K) @ np.array([u, v, 1.0]) * 0.7) + c2w[:3, 3]
+        assert np.allclose(segs[k], [c2w[:3, 3], want], atol=1e-12)  # apex to corner
+        assert np.allclose(segs[4 + k], [want, segs[(k + 1) % 4][1]], atol=1e-12)  # the image's rectangle
+
+
+def test_the_glbs_frustums_stand_a_twentieth_of_the_clouds_extent_in_front_of_each_camera(tmp_path):
+    import trimesh
+
+    recon = make_recon(n=3)
+    save_reconstruction(recon, tmp_path, formats=("glb",), max_points=1000)
+    geoms = list(trimesh.load(tmp_path / "scene.glb").geometry.values())
+    cloud = [g for g in geoms if isinstance(g, trimesh.PointCloud)][0]
+    depth = 0.05 * np.linalg.norm(np.ptp(np.asarray(cloud.vertices), axis=0))  # the default frustum_scale
+    flip = np.array([1.0, -1.0, -1.0])
+    for path in (g for g in geoms if isinstance(g, trimesh.path.Path3D)):
+        world = np.asarray(path.vertices) * flip
+        k = int(np.argmin([np.linalg.norm(world - c, axis=1).min() for c in recon.cam2world[:, :3, 3].numpy()]))
+        w2c = np.linalg.inv(recon.cam2world[k].double().numpy())
+        z = world @ w2c[:3, :3].T + w2c[:3, 3]
+        corners = z[np.linalg.norm(z, axis=1) > 1e-6]
+        assert len(corners) and np.allclose(corners[:, 2], depth, rtol=1e-4)
+
+
 def test_in_the_glb_image_0s_camera_looks_along_minus_z_with_its_image_upright(tmp_path):
     import trimesh
 
