@@ -226,6 +226,58 @@ def test_order_swap_uses_the_stored_reverse_correspondences(tiny_pairs):
     assert (_reprojection_error(v1, v2) <= 0.75).float().mean() > 0.95
 
 
+def test_a_swapped_pair_takes_its_covisible_pixels_from_the_reverse_field_not_the_forward_one(tiny_pairs):
+    from data.geom import decode_corr
+
+    ds = PairDataset(tiny_pairs, size=64, augment=True, split="all", swap_p=1.0, crop_scale=(1.0, 1.0), flip_p=0.0,
+                     pad_p=0.0)
+    landscape = [n for n, hw in enumerate(ds.aspects) if tuple(hw) == (48, 64)][0]  # the renders' own size: no crop
+    checked = 0
+    for idx in range(len(ds)):
+        k, scene, i, j = ds.items[idx]
+        pack = ds._store.reader(k).read_npz(f"{scene}/pair-{i}-{j}.npz")
+        reverse, forward = (np.isfinite(decode_corr(pack[f])).all(-1) for f in ("corr_21", "corr_12"))
+        if reverse.shape != (48, 64) or forward.shape != (48, 64):
+            continue
+        v1, _ = ds[(idx, landscape)]
+        kept = np.isfinite(v1["corr"].numpy()).all(-1)
+        assert kept.sum() > 0.5 * reverse.sum()
+        assert not (kept & ~reverse).any()  # only where view j's stored field says co-visible
+        checked += int((kept & ~forward).any())  # the forward field would have kept other pixels
+    assert checked >= 1
+
+
+def test_the_geometric_field_leaves_out_an_occlusion_pixels_without_depth_and_points_leaving_view_two():
+    from data.datasets import _geometric_corr
+
+    K = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
+    T = np.eye(4)
+    d1 = np.full((24, 32), 2.0)
+    d1[0, 0] = 0.0  # no depth
+    d2 = np.full((24, 32), 2.0)
+    d2[10:14, 10:14] = 1.0  # an occluder only view 2 sees, in front of the plane
+    u, v = np.meshgrid(np.arange(32.0), np.arange(24.0))
+    corr = np.stack([u, v], -1).astype(np.float32)
+    out = _geometric_corr(corr, d1, K, T, d2, K, T)
+    gone = np.isnan(out).all(-1)
+    assert gone[10:14, 10:14].all() and gone[0, 0] and gone.sum() == 17
+    assert np.allclose(out[~gone], corr[~gone], atol=1e-4)
+    T2 = np.eye(4)
+    T2[0, 3] = 0.5  # view 2 moved right by 10 pixels at depth 2: the left 10 columns leave it (u < -0.5)
+    moved = _geometric_corr(corr, np.full((24, 32), 2.0), K, T, np.full((24, 32), 2.0), K, T2)
+    assert np.isnan(moved[:, :10]).all() and np.allclose(moved[:, 10:, 0], u[:, 10:] - 10, atol=1e-4)
+
+
+def test_an_off_grid_crop_resamples_depth_by_nearest_neighbour_without_mixing_edges():
+    from data.datasets import _apply_crop
+
+    depth = np.full((48, 64), 5.0, np.float32)
+    depth[:, 32:] = 1.0  # a step: a bilinear resample would invent depths between the two surfaces
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    _, d, K, _ = _apply_crop(rgb, depth, np.eye(3), (3.3, 2.7, 41.9, 31.4), 64, 48)
+    assert set(np.unique(d).tolist()) <= {1.0, 5.0} and (d == 1.0).any() and (d == 5.0).any()
+
+
 def test_aspect_batch_sampler_gives_one_aspect_ratio_per_batch(tiny_pairs):
     ds = PairDataset(tiny_pairs, size=64, augment=True, split="all")
     sampler = AspectBatchSampler(len(ds), batch_size=2, seed=1)
