@@ -325,9 +325,11 @@ def test_a_cut_out_with_transparency_as_mask_keeps_its_visible_pixels_dark_ones_
     cut = np.zeros((6, 8, 4), np.uint8)  # a background remover's output: a dark object on a transparent ground
     cut[:, 4:, :3], cut[:, 4:, 3] = 10, 255
     cut[0, 5, :3] = 0  # a black pixel of the object: kept
+    cut[2, 3, 3] = 128  # a half-transparent edge pixel (hair, a soft matte): kept
     Image.fromarray(cut).save(tmp_path / "m" / "a.png")
     keep = masks_from_folder(str(tmp_path / "m"), [str(tmp_path / "a.jpg")])[0]
-    assert keep[:, 4:].all() and not keep[:, :4].any()
+    assert keep[:, 4:].all() and keep[2, 3] and keep[:, :4].sum() == 1
+    cut[2, 3, 3] = 0
     Image.fromarray(np.dstack([cut[..., 0], np.full((6, 8), 255, np.uint8)]), "LA").save(tmp_path / "m" / "a.png")
     keep = masks_from_folder(str(tmp_path / "m"), [str(tmp_path / "a.jpg")])[0]  # opaque: the grey levels
     assert keep[:, 4:].sum() == 23 and not keep[:, :4].any()

@@ -273,3 +273,33 @@ def test_pm_localize_stays_the_function_after_its_module_is_imported_and_on_ever
     for _ in range(3):
         assert pm.localize is pointmap.localization.localize and callable(pm.localize)
     assert pm.Localization is pointmap.localization.Localization
+
+
+def test_the_query_scale_is_the_median_depth_ratio_over_the_references_valid_confident_pixels_only():
+    import pointmap as pm
+    from pointmap.localization import depth_scale
+
+    g = torch.Generator().manual_seed(2)
+    h, w = 12, 16
+    z = 1 + torch.rand(1, h, w, generator=g)
+    conf = torch.full((1, h, w), 5.0)
+    z_pred = z / 2.0  # the reconstruction's units are twice the pair's
+    z_pred[0, 0, :5] *= 40  # a few outliers among the valid pixels: a mean would move, the median does not
+    z_rec = z.clone()
+    z_rec[0, 1:4] = 0.0  # no depth there (a quarter of the pixels): the pair's values at them are wild
+    z_pred[0, 1:4] = 1e3
+    conf[0, 4:10] = 1.5  # unconfident pixels, most of the rest and wrong: out below min_conf 2
+    z_pred[0, 4:10] = 1e-3
+    recon = Reconstruction(images=torch.rand(1, h, w, 3, generator=g), cam2world=torch.eye(4)[None],
+                           K=torch.tensor([[[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]]]), depth_z=z_rec, conf=conf)
+    pts = torch.zeros(1, h, w, 3)
+    pts[..., 2] = z_pred
+    pred = pm.PairPrediction(pts, pts.clone(), torch.ones(1, h, w), torch.ones(1, h, w))
+    assert depth_scale(recon, 0, pred, min_conf=2.0) == pytest.approx(2.0, rel=1e-9)
+    assert depth_scale(recon, 0, pred, min_conf=0.0) > 100  # the unconfident pixels count without the threshold
+    few = torch.ones(1, h, w)
+    few[0, 10, :15] = 5.0  # only 15 valid, confident pixels
+    sparse = Reconstruction(images=recon.images, cam2world=recon.cam2world, K=recon.K, depth_z=z_rec, conf=few)
+    assert np.isnan(depth_scale(sparse, 0, pred, min_conf=2.0))
+    few[0, 10, 15] = 5.0
+    assert depth_scale(sparse, 0, pred, min_conf=2.0) == pytest.approx(2.0, rel=1e-9)

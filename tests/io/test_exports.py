@@ -440,6 +440,9 @@ def test_read_colmap_inverts_our_binary_and_text_export(tmp_path):
     ("OPENCV_FISHEYE", [70, 71, 40, 30, 0.03, -0.01, 0.002, 0.0], ("OPENCV_FISHEYE", (0.03, -0.01, 0.002, 0.0))),
     ("RADIAL_FISHEYE", [70, 40, 30, 0.03, -0.01], ("OPENCV_FISHEYE", (0.03, -0.01))),
     ("PINHOLE", [70, 71, 40, 30], None),
+    ("RADIAL", [70, 40, 30, -0.05, 0.01], ("RADIAL", (-0.05, 0.01))),  # k1 before k2
+    ("SIMPLE_PINHOLE", [70, 40, 30], None),
+    ("SIMPLE_RADIAL_FISHEYE", [70, 40, 30, 0.03], ("OPENCV_FISHEYE", (0.03,))),
 ])
 def test_read_colmap_reads_the_cameras_and_lenses_pycolmap_writes(tmp_path, model, params, lens):
     from pointmap.io.colmap import read_colmap
@@ -767,6 +770,9 @@ def test_tum_timestamps_come_from_the_argument_else_the_recorded_times_else_the_
     lines = write_tum(recon, tmp_path / "back.txt", [5.0, 1.0, 3.0]).read_text().splitlines()[1:]
     assert [float(line.split()[0]) for line in lines] == [1.0, 3.0, 5.0]  # in time order
     assert lines[0].split()[1:4] == [f"{v:.9g}" for v in recon.cam2world[1, :3, 3].double().tolist()]  # image 1's
+    frames = [1000.0 + k / 60 for k in range(3)]  # a 60 fps video's presentation times, long into it
+    lines = write_tum(recon, tmp_path / "video.txt", frames).read_text().splitlines()[1:]
+    assert [float(line.split()[0]) for line in lines] == pytest.approx(frames, abs=1e-6)  # microseconds kept
 
 
 def test_colours_on_the_0_255_scale_are_refused_as_floats_and_taken_as_uint8_where_a_reconstruction_is_made():
