@@ -124,6 +124,9 @@ def test_scale_and_centre_averaging_recover_exact_values_and_resist_an_outlier()
     d[5] += 3.0 * np.linalg.norm(d[5])
     assert np.abs(average_log_scales(n, i, j, ratio, np.ones(len(i)), root) - log_lam).max() < 0.02
     assert np.abs(average_centres(n, i, j, d, np.ones(len(i)), root) - C).max() < 0.02
+    for units in (1e-3, 100.0):  # residuals count relative to each edge's baseline: the units change nothing
+        assert np.allclose(average_centres(n, i, j, units * d, np.ones(len(i)), root),
+                           units * average_centres(n, i, j, d, np.ones(len(i)), root), rtol=1e-9, atol=1e-12 * units)
 
 
 @pytest.mark.parametrize("graph", ["complete", "swin-2", "oneref-0"])

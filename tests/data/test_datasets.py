@@ -334,9 +334,9 @@ def test_datasets_validate_their_arguments(tiny_pairs, tmp_path):
         with pytest.raises(ShardError, match=message):
             PairDataset(tmp_path)
     ds = PairDataset(tiny_pairs, size=64, split="all", verify=False)
-    with pytest.raises(IndexError):
+    with pytest.raises(IndexError, match=f"index {len(ds)} out of range for {len(ds)} pairs"):
         ds[len(ds)]
-    with pytest.raises(IndexError):
+    with pytest.raises(IndexError, match=r"aspect index expected in \[0, 3\), got 5"):
         ds[(0, 5)]
     for bad in (2.0, float("nan")):
         with pytest.raises(ValueError, match="swap_p expected a probability in \\[0, 1\\]"):
