@@ -368,6 +368,14 @@ def test_nerf_synthetic_cameras_match_by_stem_and_take_the_focal_from_the_angle_
     K, poses, distortions = cameras_from_file(str(tmp_path / "t.json"), images, poses=True)
     assert sorted(K) == [0, 2] and sorted(poses) == [0, 2] and distortions == {}
     assert np.allclose(K[0], [[80.0, 0, 39.5], [0, 80.0, 29.5], [0, 0, 1]])  # 80 px wide, a 53-degree field of view: f = 40 / tan(26.6 deg)
+    # a file naming an image both in full and by its stem: the full name is that image's, the stem another's
+    turned = np.eye(4)
+    turned[0, 3] = 5.0
+    frames = [{"file_path": "./train/a", "transform_matrix": np.eye(4).tolist()},
+              {"file_path": "./train/a.jpg", "transform_matrix": turned.tolist()}]
+    (tmp_path / "both.json").write_text(json.dumps({"camera_angle_x": 2 * np.arctan(0.5), "frames": frames}))
+    _, poses, _ = cameras_from_file(str(tmp_path / "both.json"), images[:1], poses=True)
+    assert poses[0][0, 3] == 5.0  # the OpenGL -> OpenCV axes change leaves the centre as it is
 
 
 def test_a_transforms_json_lens_is_undone_before_the_model_and_the_exports_carry_the_undistorted_photographs(

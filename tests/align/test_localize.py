@@ -48,6 +48,8 @@ def scene(monkeypatch):
         preds = gt_preds(sc, pairs, seed=3)
         for e in calls.get("broken", ()):  # a pair whose view-1 depth is all behind the camera: no scale
             preds[e].pts1_cam1[..., 2] *= -1
+        for (i, j), p in preds.items():  # view 2's confidence tells the pair apart from view 1's: 10 + j
+            p.conf2[:] = 10.0 + j
         return preds
 
     monkeypatch.setitem(sys.modules, "pointmap.inference",
@@ -64,6 +66,7 @@ def test_queries_land_on_their_true_poses_in_the_reconstructions_world_and_units
         assert_at_true_pose(loc.cam2world[k], sc, q, world_scale)
         assert abs(loc.K[k, 0, 0].item() - sc["K"][q, 0, 0]) / sc["K"][q, 0, 0] < 0.03  # focal estimated
     assert loc.ref == [3, 0] and loc.names == ["image_000.png", "image_001.png"]  # the first reference given
+    assert loc.conf == [14.0, 15.0]  # the median confidence of each query's own map (view 2 of its pair)
 
 
 def test_queries_predicted_a_chunk_at_a_time_get_the_poses_they_get_together(scene, monkeypatch):
