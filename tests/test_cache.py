@@ -211,6 +211,17 @@ def test_reconstruct_with_a_cache_runs_the_network_once_and_aligns_the_same(tiny
     assert torch.allclose(torch.as_tensor(first.cam2world), torch.as_tensor(second.cam2world))
 
 
+def test_the_inference_estimate_falls_by_the_share_of_directed_pairs_already_in_the_cache(tiny_model, tmp_path):
+    rng = np.random.default_rng(6)
+    images = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(4)]
+    kw = dict(size=64, quiet=True, epipolar=False, graph="complete", align=pm.AlignConfig(niter=5, quiet=True))
+    pm.reconstruct(tiny_model, images[:3], cache=tmp_path / "c", **kw)  # 3 of the 6 pairs: 6 of 12 directed
+    fresh = pm.reconstruct(tiny_model, images, **kw).info["pipeline"]["estimate"]
+    half = pm.reconstruct(tiny_model, images, cache=tmp_path / "c", **kw).info["pipeline"]["estimate"]
+    assert half["cached_pairs"] == 6
+    assert half["inference_seconds"] == pytest.approx(fresh["inference_seconds"] * (1 - 6 / 12), rel=1e-9)
+
+
 def test_a_float16_cache_halves_the_files_and_reads_back_close_to_the_fresh_predictions(tiny_model, tmp_path):
     vs = views(2)
     fresh = pm.predict_pairs(tiny_model, vs, [(0, 1)], quiet=True, cache=tmp_path / "full")
