@@ -563,9 +563,13 @@ def shipped_path(src) -> Path | None:
     folder) is read instead, with a warning; any other folder of that name (photographs called ``small``) is not a
     model and does not hide the shipped one."""
     if _bare_name(src) and not _model_on_disk(Path(src)):
-        path = WEIGHTS_DIR / f"{src}.safetensors"
+        path = _shipped_file(src)
         return path if path.exists() else None
     return None
+
+
+def _shipped_file(name: str) -> Path:
+    return WEIGHTS_DIR / f"{name}.safetensors"
 
 
 def _is_onnx_export(path: Path) -> bool:
@@ -593,11 +597,11 @@ def load_model(src, device="cpu", **kwargs):
                               f"PointmapNet, got {type(src).__name__}")
     if (shipped := shipped_path(src)) is not None:
         return load_own(shipped).to(device).eval()
-    if _bare_name(src) and (WEIGHTS_DIR / f"{src}.safetensors").exists():  # a model on disk hides the shipped one
+    if _bare_name(src) and _shipped_file(src).exists():  # a model on disk hides the shipped one
         warnings.warn(f"{src!r} is a shipped model's name and a {'file' if Path(src).is_file() else 'model folder'} "
-                      f"in the working directory: loading the one on disk; the shipped one is "
-                      f"{WEIGHTS_DIR / (src + '.safetensors')}", stacklevel=2)
-    if isinstance(src, str) and os.path.sep not in src and not Path(src).exists():
+                      f"in the working directory: loading the one on disk; the shipped one is {_shipped_file(src)}",
+                      stacklevel=2)
+    if _bare_name(src) and not Path(src).exists():
         if src in PRESETS:
             raise CheckpointError(f"preset {src!r} has no shipped weights; shipped: {shipped_models() or 'none'}. "
                                   f"Use PointmapNet(PRESETS[{src!r}]) for random weights or pass a checkpoint path")
