@@ -83,7 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.subsample < 1 or args.threads < 1:
         ap.error(f"--subsample and --threads expected >= 1, got {args.subsample} and {args.threads}")
     torch.set_num_threads(args.threads)
-    model = pm.load_model(args.model)
+    try:
+        model = pm.load_model(args.model)
+    except pm.PointmapError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(f"pm.match on the demo room pair, model {args.model}, subsample {args.subsample}, "
           f"{args.threads} threads, BLOCK_ENTRIES {matching.BLOCK_ENTRIES:,}\n")
     print("| size | views | blocks | rows per block | matches | seconds | peak RSS GB (prediction loaded) | same |")

@@ -22,7 +22,7 @@ def test_the_budget_blocks_and_fixed_rows_find_the_same_matches_each_in_its_own_
     assert float(peak) >= float(loaded) > 0
 
 
-def test_a_block_count_of_zero_and_a_size_below_16_are_refused(test_model, tmp_path, capsys):
+def test_a_block_count_of_zero_a_size_below_16_and_a_missing_model_are_refused(test_model, tmp_path, capsys):
     import pytest
 
     weights = pm.save_model(test_model, tmp_path / "m.safetensors")
@@ -31,3 +31,7 @@ def test_a_block_count_of_zero_and_a_size_below_16_are_refused(test_model, tmp_p
     assert "--blocks expected 'budget' or a positive row count, got '0'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--model", str(weights), "--sizes", "8"])
+    capsys.readouterr()
+    assert main(["--model", str(tmp_path / "none.safetensors"), "--sizes", "64"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: checkpoint not found")
