@@ -147,6 +147,9 @@ class TrainConfig:
         if cfg.warmup >= cfg.steps:
             print(f"warning: --warmup {cfg.warmup} >= --steps {cfg.steps}: the learning rate never reaches --lr",
                   file=sys.stderr)
+        given = [f"--{k} {getattr(cfg, k)}" for k in ("eval_every", "eval_pairs") if getattr(cfg, k) != getattr(cls, k)]
+        if given and not cfg.eval_data:  # a warning, not an error: "--eval_every 100000" is how runs say "never"
+            print(f"warning: {' and '.join(given)} without --eval_data: the run evaluates nothing", file=sys.stderr)
         from training.loop import check_loop_options
 
         try:

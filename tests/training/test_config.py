@@ -74,3 +74,14 @@ def test_settings_of_losses_that_are_on_are_taken():
                                  "--warmup", "10", "--decay_steps", "20", "--decay_by_time", "true", "--max_minutes", "5",
                                  "--keep_decay", "false"])
     assert (cfg.n_corr, cfg.attn_heads, cfg.desc_conf_alpha, cfg.keep_decay) == (64, 2, 5.0, False)
+
+
+def test_evaluation_settings_without_a_held_out_set_are_warned_about(tmp_path, capsys):
+    # before, --eval_every 500 without --eval_data ran without a single evaluation and said nothing
+    cfg = TrainConfig.from_args(["--data", "x", "--eval_every", "500", "--eval_pairs", "32"])
+    assert (cfg.eval_every, cfg.eval_pairs) == (500, 32)
+    assert "warning: --eval_every 500 and --eval_pairs 32 without --eval_data: the run evaluates nothing" in \
+        capsys.readouterr().err
+    for flags in (["--eval_every", "500", "--eval_data", str(tmp_path / "eval")], []):
+        TrainConfig.from_args(["--data", "x", *flags])
+        assert "evaluates nothing" not in capsys.readouterr().err
