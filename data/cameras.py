@@ -6,7 +6,7 @@ further view is derived from a random earlier one ("reference") by one of six mo
 - ``small``:  translation of 2-25 % of the viewing distance, look-at jitter;
 - ``medium``: orbit of 8-30 degrees about a surface point seen by the reference;
 - ``wide``:   orbit of 30-90 degrees about that point (wide baselines around objects);
-- ``zoom``:   move 25-60 % closer to / further from the point, small rotation;
+- ``zoom``:   move 25-60 % of the way to the point, or back 15-36 % of that distance, small rotation;
 - ``slide``:  the reference's orientation turned by at most 3 degrees, the camera moved 5-40 % of the viewing
   distance sideways (plus a little up/down and forward/back): a stereo rig, a dolly, a walking camera;
 - ``pan``:    the camera turned in place by 8-35 degrees (yaw about the vertical, a little pitch), moved by at
