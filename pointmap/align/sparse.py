@@ -1,11 +1,13 @@
 """Sparse refinement on matches (bundle adjustment in the spirit of MASt3R's second stage).
 
 Each match (xy_i in image i, xy_j in image j, map pixels) defines a 3D point on image i's ray at xy_i,
-its depth d = d0 exp(delta) starting from the dense depth. Poses (cam2world = base @ se3_exp(xi)),
-focal (one log-factor per image, fx and fy scaled together) and optionally the principal point are
-optimised with the depths on the robust (Cauchy) reprojection error of the points into image j, plus a
-weak prior delta^2 that fixes the scale gauge. LBFGS with a strong-Wolfe line search.
-The dense depth maps are then rescaled per image by the median depth change of their matches.
+its depth d = d0 exp(s_i + delta) starting from the dense depth: s_i one log-scale per image (MASt3R's per-image
+depth scale: a view whose whole depth map is off in scale moves as one, instead of through thousands of per-match
+deltas each holding 1/M of the gradient, which left the poses and focals to absorb the error), delta per match.
+Poses (cam2world = base @ se3_exp(xi)), focal (one log-factor per image, fx and fy scaled together) and optionally
+the principal point are optimised with the depths on the robust (Cauchy) reprojection error of the points into
+image j, plus a weak prior (s_i + delta)^2 that fixes the scale gauge. LBFGS with a strong-Wolfe line
+search. The dense depth maps are then rescaled per image by the median depth change of their matches.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from pointmap.reconstruction import K_to_original, Reconstruction
 class SparseConfig:
     """niter: LBFGS iterations; robust_px: Cauchy scale in map pixels (None: min(2, max(h, w) / 100)); depth_prior: weight of delta^2
     (in px^2 per unit log-depth^2); optimize_focal / optimize_pp: which intrinsics move;
-    min_score: matches with a lower score are dropped; max_matches_per_pair: random subsample cap."""
+    min_score: matches with a score at or below it are dropped; max_matches_per_pair: random subsample cap."""
 
     niter: int = 100
     robust_px: float | None = None
@@ -176,6 +178,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     xi = torch.zeros(n, 6, dtype=torch.float64, requires_grad=True)
     dlf = torch.zeros(n, dtype=torch.float64, requires_grad=True)
     dpp = torch.zeros(n, 2, dtype=torch.float64, requires_grad=True)
+    log_scale = torch.zeros(n, dtype=torch.float64, requires_grad=True)
     delta = torch.zeros(len(I), dtype=torch.float64, requires_grad=True)
     wts = score / score.mean().clamp_min(1e-12)
     h, w = recon.depth_z.shape[1:]
@@ -190,7 +193,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
 
     def residuals():
         c2w, fx, fy, pp = state()
-        d = d0 * torch.exp(delta)
+        d = d0 * torch.exp(log_scale[I] + delta)
         ray = torch.stack([(xy_i[:, 0] - pp[I, 0]) / fx[I], (xy_i[:, 1] - pp[I, 1]) / fy[I], torch.ones_like(d)], -1)
         pw = (c2w[I, :3, :3] @ (d[:, None] * ray)[..., None])[..., 0] + c2w[I, :3, 3]
         Rj = c2w[J, :3, :3]
@@ -202,11 +205,12 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     def loss_fn():
         r, _ = residuals()
         robust = sig2 * torch.log1p(r * r / sig2)
-        return (wts * robust).mean() + cfg.depth_prior * (delta * delta).mean()
+        change = log_scale[I] + delta  # each match's log-depth change, held near 0 by the prior
+        return (wts * robust).mean() + cfg.depth_prior * (change * change).mean()
 
     with torch.no_grad():
         r0, _ = residuals()
-    opt = torch.optim.LBFGS([xi, dlf, dpp, delta], lr=1.0, max_iter=cfg.niter, max_eval=cfg.niter * 2,
+    opt = torch.optim.LBFGS([xi, dlf, dpp, log_scale, delta], lr=1.0, max_iter=cfg.niter, max_eval=cfg.niter * 2,
                             history_size=20, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
                             tolerance_change=1e-14)
     evals = [0]
@@ -224,7 +228,11 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
         final = float(loss_fn())
         r1, z1 = residuals()
         c2w, fx, fy, pp = state()
-    if not (math.isfinite(final) and torch.isfinite(c2w).all()) or final > loss0:
+    if not (math.isfinite(final) and torch.isfinite(c2w).all() and torch.isfinite(fx).all()):
+        return replace(recon, info={**recon.info, "sparse": {
+            "applied": False, "reason": "the fit diverged (a non-finite loss, pose or focal): degenerate; the aligned "
+            "result is kept", "init_loss": loss0, "final_loss": final}})
+    if final > loss0:
         return replace(recon, info={**recon.info, "sparse": {"applied": False, "reason": "did not improve",
                                                                  "init_loss": loss0, "final_loss": final}})
     change = fx / K0[:, 0, 0]
@@ -247,7 +255,7 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     for k in fixed_K:
         K[k] = recon.K[k]
     depth = recon.depth_z.clone()
-    ratio = torch.exp(delta.detach())
+    ratio = torch.exp(log_scale.detach()[I] + delta.detach())
     for k in range(n):
         sel = I == k
         if int(sel.sum()) >= 8:

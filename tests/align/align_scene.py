@@ -64,10 +64,10 @@ def texture(pts_world: np.ndarray) -> np.ndarray:
 
 
 def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=(38.0, 52.0), shapes=None,
-               focals=None):
+               focals=None, aspect: float = 1.0):
     """Cameras on a ring (radius ~3) looking at the middle sphere, each with its own focal (drawn from
-    ``focal_range``, or ``focals``: one per view). ``shapes``: one (h, w) per view (portrait among landscape); the
-    per-view maps are then lists, not stacked arrays."""
+    ``focal_range``, or ``focals``: one per view; fy = aspect * fx, non-square pixels when aspect != 1). ``shapes``:
+    one (h, w) per view (portrait among landscape); the per-view maps are then lists, not stacked arrays."""
     rng = np.random.default_rng(seed)
     shapes = shapes or [(h, w)] * n
     cams, Ks, depths = [], [], []
@@ -77,7 +77,7 @@ def make_scene(n: int = 5, h: int = 32, w: int = 48, seed: int = 0, focal_range=
         target = rng.uniform(-0.5, 0.5, 3)
         T = look_at(centre, target)
         f = rng.uniform(*focal_range) if focals is None else focals[k]
-        K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        K = np.array([[f, 0, (w - 1) / 2], [0, f * aspect, (h - 1) / 2], [0, 0, 1.0]])
         cams.append(T)
         Ks.append(K)
         depths.append(ray_cast(T, K, h, w))
