@@ -7,7 +7,9 @@ deltas each holding 1/M of the gradient, which left the poses and focals to abso
 Poses (cam2world = base @ se3_exp(xi)), focal (one log-factor per image, fx and fy scaled together) and optionally
 the principal point are optimised with the depths on the robust (Cauchy) reprojection error of the points into
 image j, plus a weak prior (s_i + delta)^2 that fixes the scale gauge. LBFGS with a strong-Wolfe line
-search. The dense depth maps are then rescaled per image by the median depth change of their matches.
+search. The objective is the one of per-match offsets alone: the per-image scale changes how fast LBFGS gets there,
+not where. The dense depth maps are then rescaled per image by the median depth change of their matches (an image
+with none of its own by the scene's).
 """
 
 from __future__ import annotations
@@ -27,9 +29,10 @@ from pointmap.reconstruction import K_to_original, Reconstruction
 
 @dataclass(frozen=True)
 class SparseConfig:
-    """niter: LBFGS iterations; robust_px: Cauchy scale in map pixels (None: min(2, max(h, w) / 100)); depth_prior: weight of delta^2
-    (in px^2 per unit log-depth^2); optimize_focal / optimize_pp: which intrinsics move;
-    min_score: matches with a score at or below it are dropped; max_matches_per_pair: random subsample cap."""
+    """niter: LBFGS iterations; robust_px: Cauchy scale in map pixels (None: min(2, max(h, w) / 100));
+    depth_prior: weight of each match's squared log-depth change (s_i + delta)^2 (in px^2 per unit log-depth^2);
+    optimize_focal / optimize_pp: which intrinsics move; min_score: matches with a score at or below it are dropped;
+    max_matches_per_pair: random subsample cap."""
 
     niter: int = 100
     robust_px: float | None = None
@@ -228,20 +231,20 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
         final = float(loss_fn())
         r1, z1 = residuals()
         c2w, fx, fy, pp = state()
+
+    def refused(reason):  # the input unchanged, with why
+        return replace(recon, info={**recon.info, "sparse": {"applied": False, "reason": reason, "init_loss": loss0,
+                                                             "final_loss": final}})
+
     if not (math.isfinite(final) and torch.isfinite(c2w).all() and torch.isfinite(fx).all()):
-        return replace(recon, info={**recon.info, "sparse": {
-            "applied": False, "reason": "the fit diverged (a non-finite loss, pose or focal): degenerate; the aligned "
-            "result is kept", "init_loss": loss0, "final_loss": final}})
+        return refused("the fit diverged (a non-finite loss, pose or focal): degenerate; the aligned result is kept")
     if final > loss0:
-        return replace(recon, info={**recon.info, "sparse": {"applied": False, "reason": "did not improve",
-                                                                 "init_loss": loss0, "final_loss": final}})
+        return refused("did not improve")
     change = fx / K0[:, 0, 0]
     moved = [k for k in range(n) if not 1 / MAX_FOCAL_CHANGE <= float(change[k]) <= MAX_FOCAL_CHANGE]
     if moved:  # matches that fit anything (few, or wrong) let a focal run to 0: a degenerate fit, not an answer
-        return replace(recon, info={**recon.info, "sparse": {
-            "applied": False, "reason": f"the fit scaled the focal of image(s) {moved} by "
-            f"{[round(float(change[k]), 4) for k in moved]} (beyond {MAX_FOCAL_CHANGE:g}x either way): degenerate; "
-            "the aligned result is kept", "init_loss": loss0, "final_loss": final}})
+        return refused(f"the fit scaled the focal of image(s) {moved} by {[round(float(change[k]), 4) for k in moved]} "
+                       f"(beyond {MAX_FOCAL_CHANGE:g}x either way): degenerate; the aligned result is kept")
     cam2world = c2w.clone()
     cam2world[:, :3, 3] *= unit
     cam2world = cam2world.float()
@@ -254,15 +257,16 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
     K = K_to_original(K_map, recon.map_from_original.double()).float()
     for k in fixed_K:
         K[k] = recon.K[k]
-    depth = recon.depth_z.clone()
+    # each dense depth map follows its matches' median depth change; an image with no match of its own (only ever
+    # the second image of its pairs) follows the scene's, which the poses' scale followed: depth and poses agree
     ratio = torch.exp(log_scale.detach()[I] + delta.detach())
-    for k in range(n):
-        sel = I == k
-        if int(sel.sum()) >= 8:
-            depth[k] = depth[k] * float(ratio[sel].median())
+    own = [bool((I == k).any()) for k in range(n)]
+    depth_scale = [float(ratio[I == k].median() if own[k] else ratio.median()) for k in range(n)]
+    depth = recon.depth_z * torch.tensor(depth_scale, dtype=recon.depth_z.dtype)[:, None, None]
     report = {"applied": True, "num_matches": int(len(I)), "evaluations": evals[0], "init_loss": loss0,
               "final_loss": final, "median_reproj_px_before": float(r0.median()),
               "median_reproj_px_after": float(r1.median()), "fixed_poses": user_fixed,
-              "held_during_optimisation": fixed_poses,
+              "held_during_optimisation": fixed_poses, "depth_scale": depth_scale,
+              "depth_scale_from_scene": [k for k in range(n) if not own[k]],
               "seconds": time.perf_counter() - t0, "config": asdict(cfg)}
     return replace(recon, cam2world=cam2world, K=K, depth_z=depth, info={**recon.info, "sparse": report})
