@@ -549,7 +549,9 @@ def shipped_models() -> list[str]:
 
 
 def _bare_name(src) -> bool:
-    return isinstance(src, str) and bool(src) and not any(sep and sep in src for sep in (os.path.sep, os.path.altsep))
+    """A name without a path separator (nor ``.`` or ``..``): what can name a shipped model."""
+    return (isinstance(src, str) and src not in ("", ".", "..")
+            and not any(sep and sep in src for sep in (os.path.sep, os.path.altsep)))
 
 
 def _model_on_disk(path: Path) -> bool:
@@ -563,12 +565,16 @@ def shipped_path(src) -> Path | None:
     folder) is read instead, with a warning; any other folder of that name (photographs called ``small``) is not a
     model and does not hide the shipped one."""
     if _bare_name(src) and not _model_on_disk(Path(src)):
-        path = _shipped_file(src)
+        path = shipped_file(src)
         return path if path.exists() else None
     return None
 
 
-def _shipped_file(name: str) -> Path:
+def shipped_file(name: str) -> Path:
+    """Where the package keeps (or ``python -m training.ship`` writes) the shipped model ``name``: a bare name,
+    without a path separator, else CheckpointError."""
+    if not _bare_name(name):
+        raise CheckpointError(f"a shipped model's name expected a bare name without a path separator, got {name!r}")
     return WEIGHTS_DIR / f"{name}.safetensors"
 
 
@@ -592,14 +598,14 @@ def load_model(src, device="cpu", **kwargs):
                         f"threads); {src if isinstance(src, (str, os.PathLike)) else type(src).__name__} is a PyTorch model")
     if isinstance(src, PointmapNet):
         return src.to(device).eval()
-    if not isinstance(src, (str, os.PathLike)):
+    if not isinstance(src, (str, os.PathLike)) or (isinstance(src, str) and not src.strip()):
         raise CheckpointError(f"load_model expected a shipped model's name (e.g. 'small'), a checkpoint path or a "
-                              f"PointmapNet, got {type(src).__name__}")
+                              f"PointmapNet, got {type(src).__name__ if not isinstance(src, str) else repr(src)}")
     if (shipped := shipped_path(src)) is not None:
         return load_own(shipped).to(device).eval()
-    if _bare_name(src) and _shipped_file(src).exists():  # a model on disk hides the shipped one
+    if _bare_name(src) and shipped_file(src).exists():  # a model on disk hides the shipped one
         warnings.warn(f"{src!r} is a shipped model's name and a {'file' if Path(src).is_file() else 'model folder'} "
-                      f"in the working directory: loading the one on disk; the shipped one is {_shipped_file(src)}",
+                      f"in the working directory: loading the one on disk; the shipped one is {shipped_file(src)}",
                       stacklevel=2)
     if _bare_name(src) and not Path(src).exists():
         if src in PRESETS:

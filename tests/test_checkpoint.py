@@ -296,9 +296,12 @@ def test_a_safetensors_file_from_another_project_is_refused(tmp_path):
         pm.load_model(tmp_path / "other.safetensors")
 
 
-def test_unknown_names_list_what_is_shipped():
+def test_unknown_names_list_what_is_shipped_and_an_empty_name_is_no_working_directory():
     with pytest.raises(pm.CheckpointError, match="no such file or shipped model"):
         pm.load_model("nonexistent_model_name")
+    for empty in ("", "  "):  # not the working directory, which Path("") would be
+        with pytest.raises(pm.CheckpointError, match=f"a checkpoint path or a PointmapNet, got {empty!r}"):
+            pm.load_model(empty)
 
 
 def test_a_folder_named_like_a_shipped_model_does_not_hide_it_and_a_model_on_disk_so_named_is_read_with_a_warning(

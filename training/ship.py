@@ -26,12 +26,12 @@ from pathlib import Path
 import torch
 
 from pointmap.checkpoint import (
-    WEIGHTS_DIR,
     CheckpointError,
     load_own,
     load_state_strict,
     model_licence,
     save_model,
+    shipped_file,
 )
 from pointmap.model import ModelConfig, PointmapNet
 from training.loop import load_checkpoint
@@ -202,7 +202,7 @@ def main(argv=None) -> int:
                    help="a training checkpoint, or several of one run to ship their weight average")
     p.add_argument("--weights", nargs="+", type=float, default=None,
                    help="one non-negative share per --ckpt (normalised to sum 1; default: uniform)")
-    p.add_argument("--name", default="small")
+    p.add_argument("--name", default="small", help="the shipped model's name (a bare name): load_model(NAME)")
     p.add_argument("--metrics", default=None, help="eval.csv of the run (its row of the shipped step is recorded, else its last)")
     p.add_argument("--note", default="")
     p.add_argument("--out", default=None, help="default: pointmap/weights/NAME.safetensors")
@@ -227,7 +227,8 @@ def main(argv=None) -> int:
         if not isinstance(cfg, dict) or not {"size", "batch_size", "data", "eval_data"} <= set(cfg):
             raise CheckpointError(f"{a.ckpt[-1]}: the run's train_config the shipped file records is missing (size, "
                                   "batch_size, data, eval_data): not a checkpoint written by python -m training.train")
-        out = Path(a.out) if a.out else WEIGHTS_DIR / f"{a.name}.safetensors"
+        shipped = shipped_file(a.name)  # a bare name, whatever --out is: load_model(name) reads it
+        out = Path(a.out) if a.out else shipped
         if out.is_dir():
             raise ValueError(f"--out expected a file to write the weights to, got the folder {out}")
     except (CheckpointError, OSError, ValueError) as e:

@@ -125,6 +125,20 @@ def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_o
     assert not (tmp_path / "x.safetensors").exists()
 
 
+
+def test_shipping_refuses_a_name_that_is_a_path_whatever_out_is_in_one_line(tmp_path, capsys):
+    ck = tmp_path / "a.pt"
+    _checkpoint(ck, 0, 100)
+    for name in ("../small", "a/b", "..", ""):
+        for out in ([], ["--out", str(tmp_path / "x.safetensors")]):
+            assert main(["--ckpt", str(ck), "--name", name, *out]) == 2
+            err = capsys.readouterr().err
+            assert f"expected a bare name without a path separator, got {name!r}" in err
+            assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.safetensors").exists()
+    assert main(["--ckpt", str(ck), "--name", "tiny_v2", "--out", str(tmp_path / "x.safetensors")]) == 0
+    assert pm.load_model(tmp_path / "x.safetensors").provenance["name"] == "tiny_v2"
+
 def test_a_model_file_averages_with_checkpoints_at_the_shares_weights_give_as_by_hand(tmp_path):
     start = _checkpoint(tmp_path / "s.pt", seed=0, step=50)
     assert main(["--ckpt", str(tmp_path / "s.pt"), "--out", str(tmp_path / "start.safetensors")]) == 0  # fp16
