@@ -10,6 +10,8 @@ on the ground (vertical cylinders around each object) and by stacking only on fl
 from __future__ import annotations
 
 import functools
+import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -757,17 +759,19 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
         raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
     if photo_share > 0 and photos is None:
         raise ValueError("photo_share > 0 needs photos (a data.textures.PhotoCollection)")
-    if version not in SCENE_VERSIONS:
+    if isinstance(version, bool) or version not in SCENE_VERSIONS:
         raise ValueError(f"version expected one of {SCENE_VERSIONS}, got {version!r}")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng expected a numpy.random.Generator, got {type(rng).__name__}")
     if not 0.0 <= float(low_texture_share) <= 1.0:
         raise ValueError(f"low_texture_share expected a probability in [0, 1], got {low_texture_share!r}")
     weights = dict(DEFAULT_KIND_WEIGHTS if kind_weights is None else kind_weights)
-    if set(weights) - set(KINDS) or not weights or min(weights.values()) < 0 or sum(weights.values()) <= 0:
-        raise ValueError(f"kind_weights expected non-negative weights over {KINDS}, got {kind_weights!r}")
-    if kind is None:
-        names = list(weights)
+    if (set(weights) - set(KINDS) or not all(isinstance(w, numbers.Real) and math.isfinite(w) and w >= 0
+                                             for w in weights.values()) or sum(weights.values()) <= 0):
+        raise ValueError(f"kind_weights expected finite non-negative weights over {KINDS} with a positive sum, "
+                         f"got {kind_weights!r}")
+    if kind is None:  # in KINDS' order, whatever the dict's: one seed, one scene
+        names = [k for k in KINDS if k in weights]
         p = np.array([weights[k] for k in names], np.float64)
         kind = names[int(rng.choice(len(names), p=p / p.sum()))]
     if kind not in KINDS:
