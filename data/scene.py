@@ -9,6 +9,7 @@ on the ground (vertical cylinders around each object) and by stacking only on fl
 
 from __future__ import annotations
 
+import contextvars
 import functools
 import math
 import numbers
@@ -20,7 +21,10 @@ import trimesh
 from data.textures import photo_texture, random_color, random_texture
 
 KINDS = ("room", "cluster", "courtyard")
-SCENE_VERSIONS = (1, 2)  # the scene versions make_scene draws (data.generate.GENERATOR_VERSION is the last)
+SCENE_VERSIONS = (1, 2, 3)  # the scene versions make_scene draws (data.generate.GENERATOR_VERSION is the last)
+# the version make_scene is drawing, for the builders whose geometry changed between versions (their own calls,
+# outside make_scene, draw the latest): one seed, one scene, in every version
+_DRAWING = contextvars.ContextVar("scene_version", default=SCENE_VERSIONS[-1])
 DEFAULT_KIND_WEIGHTS = {"room": 0.4, "cluster": 0.35, "courtyard": 0.25}
 
 
@@ -205,10 +209,17 @@ def _rest(m):
 
 
 def _star_prism(rng, radius, height, n=None):
-    """Extrusion of a random star-shaped polygon (fan-triangulated caps, quad sides)."""
+    """Extrusion of a random polygon, star-shaped about its centre (fan-triangulated caps, quad sides), centred in
+    x/y and resting on z = 0. Versions 1-2 (``_DRAWING``): random angles that leave a gap of half a turn or more
+    put the centre outside the polygon (caps with inverted flaps, the whole prism inside-out when all angles fall
+    in one half-turn), and the prism was not centred (a group's parts overlapped); version 3 spaces such angles
+    evenly instead, from the same draws, and centres the prism."""
     n = int(rng.integers(3, 11)) if n is None else n
     ang = np.sort(rng.uniform(0, 2 * np.pi, n)) if rng.random() < 0.5 else np.linspace(0, 2 * np.pi, n, endpoint=False)
     rad = radius * (rng.uniform(0.45, 1.0, n) if rng.random() < 0.6 else np.ones(n))
+    v3 = _DRAWING.get() >= 3
+    if v3 and np.diff(np.r_[ang, ang[0] + 2 * np.pi]).max() >= np.pi * (1 - 1e-9):
+        ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
     verts = np.concatenate([np.c_[ring, np.zeros(n)], np.c_[ring, np.full(n, height)],
                             [[0, 0, 0], [0, 0, height]]])
@@ -217,7 +228,8 @@ def _star_prism(rng, radius, height, n=None):
     for i in range(n):
         j = (i + 1) % n
         faces += [[b, j, i], [t, n + i, n + j], [i, j, n + j], [i, n + j, n + i]]
-    return trimesh.Trimesh(verts, np.array(faces), process=False)
+    m = trimesh.Trimesh(verts, np.array(faces), process=False)
+    return _rest(m) if v3 else m
 
 
 def _primitive(rng, s):
@@ -513,8 +525,20 @@ def _place_discs(rng, parts_list, lo, hi, placed, margin=0.05, tries=60, against
     return out
 
 
-def _stack_small_on(rng, b: _Builder, top_lo, top_hi, n):
-    """Put up to n small objects on a flat top [lo, hi] (x/y box at height hi[2]) without overlap."""
+def _stack_small_on(rng, b: _Builder, support, pose, bounds, shrink, n):
+    """Put up to n small objects, without overlap, on the flat top of ``support`` (an object's parts, placed by the
+    4x4 ``pose``; ``bounds`` its world box, as ``add_object`` gave it), inside the box shrunk by ``shrink`` of its
+    size on each side.
+
+    Version 3 (``_DRAWING``) places them in the support's own frame, on its own box, and keeps those whose centre
+    stands on one of its top faces; versions 1-2 used the world box, whose corners lie off a turned table's top (4
+    of 142 stacked objects stood beside it, in the air) or off a cylinder's or prism's."""
+    if _DRAWING.get() >= 3:
+        lo = np.min([m.bounds[0] for m, _, _ in support], 0)
+        hi = np.max([m.bounds[1] for m, _, _ in support], 0)
+    else:
+        lo, hi = bounds
+    top_lo, top_hi = lo + shrink * (hi - lo), hi - shrink * (hi - lo)
     placed = []
     size = float(min(top_hi[0] - top_lo[0], top_hi[1] - top_lo[1]))
     if size < 0.15:
@@ -523,9 +547,29 @@ def _stack_small_on(rng, b: _Builder, top_lo, top_hi, n):
     for _ in range(n):
         parts, _ = _pick(rng, SMALL_OBJECTS)(rng, size * rng.uniform(0.25, 0.5))
         objs.append(parts)
-    for _, parts, pose, _ in _place_discs(rng, objs, top_lo[:2], top_hi[:2], placed, margin=0.01, tries=20):
-        pose[2, 3] = top_hi[2]
-        b.add_object(parts, pose)
+    for _, parts, on, (x, y, _) in _place_discs(rng, objs, top_lo[:2], top_hi[:2], placed, margin=0.01, tries=20):
+        on[2, 3] = hi[2]
+        if _DRAWING.get() >= 3:
+            if not _stands_on(support, x, y, hi[2]):
+                continue
+            on = pose @ on
+        b.add_object(parts, on)
+
+
+def _stands_on(parts, x, y, z) -> bool:
+    """Whether the point (x, y) lies on an upward face of ``parts`` (an object's meshes in its own frame) at height z."""
+    for m, _, _ in parts:
+        up = (np.asarray(m.face_normals)[:, 2] > 1 - 1e-6) & (np.abs(m.triangles[:, :, 2] - z) < 1e-6).all(1)
+        if not up.any():
+            continue
+        tri = m.triangles[up][:, :, :2]
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        cross = lambda o, p, q: (p[:, 0] - o[:, 0]) * (q[:, 1] - o[:, 1]) - (p[:, 1] - o[:, 1]) * (q[:, 0] - o[:, 0])  # noqa: E731
+        pt = np.broadcast_to([x, y], a.shape)
+        d = np.stack([cross(a, b, pt), cross(b, c, pt), cross(c, a, pt)], 1)
+        if ((d >= -1e-12).all(1)).any():  # counter-clockwise seen from above: inside or on the edge
+            return True
+    return False
 
 
 def _ground(b: _Builder, half: float, material=None, z=0.0):
@@ -557,13 +601,13 @@ def _wall_with_openings(length, height, thick, openings):
     return meshes
 
 
-def _flag_source(k: int, n_placed: int, version: int) -> int:
+def _flag_source(k: int, n_placed: int) -> int:
     """Whose flat-top flag the ``n_placed``-th placed object (object ``k`` of the list) takes: its own (version 2),
     or version 1's, the ``n_placed``-th object's (once an object found no room, the next inherited another's)."""
-    return k if version >= 2 else n_placed
+    return k if _DRAWING.get() >= 2 else n_placed
 
 
-def _room(rng, b: _Builder, version: int = 2):
+def _room(rng, b: _Builder):
     W, D, H = rng.uniform(3.0, 8.0), rng.uniform(3.0, 7.0), rng.uniform(2.4, 3.4)
     t = 0.12
     floor_mat, wall_mat, ceil_mat = b.material(), b.material(), b.material()
@@ -617,12 +661,10 @@ def _room(rng, b: _Builder, version: int = 2):
     against = face_center if rng.random() < 0.6 else None
     for n_placed, (k, parts, pose, _) in enumerate(_place_discs(rng, [p for p, _ in built], (0.05, 0.05),
                                                                 (W - 0.05, D - 0.05), placed, against=against)):
-        flat = built[_flag_source(k, n_placed, version)][1]  # only a flat top takes small objects
+        flat = built[_flag_source(k, n_placed)][1]  # only a flat top takes small objects
         lo, hi = b.add_object(parts, pose)
         if flat and rng.random() < 0.7:
-            top_lo = lo.copy()
-            shrink = 0.15 * (hi - lo)
-            _stack_small_on(rng, b, top_lo + shrink, np.r_[(hi - shrink)[:2], hi[2]], int(rng.integers(1, 4)))
+            _stack_small_on(rng, b, parts, pose, (lo, hi), 0.15, int(rng.integers(1, 4)))
     # wall targets so cameras also look at walls/doors
     for _ in range(3):
         p = np.array([rng.uniform(0.3, W - 0.3), rng.uniform(0.3, D - 0.3), rng.uniform(0.5, H - 0.5)])
@@ -652,7 +694,7 @@ def _room(rng, b: _Builder, version: int = 2):
     return lights, lo, hi, float(np.hypot(W, D) + 25 * any_window)
 
 
-def _cluster(rng, b: _Builder, version: int = 2):
+def _cluster(rng, b: _Builder):
     R = rng.uniform(1.0, 4.0)
     _ground(b, 40.0)
     placed = []
@@ -664,11 +706,10 @@ def _cluster(rng, b: _Builder, version: int = 2):
         objs.append((parts, flat))
     for n_placed, (k, parts, pose, _) in enumerate(_place_discs(rng, [p for p, _ in objs], (-R, -R), (R, R), placed,
                                                                 margin=rng.uniform(0.02, 0.3))):
-        flat = objs[_flag_source(k, n_placed, version)][1]
+        flat = objs[_flag_source(k, n_placed)][1]
         lo, hi = b.add_object(parts, pose)
         if flat and rng.random() < 0.5:
-            shrink = 0.1 * (hi - lo)
-            _stack_small_on(rng, b, lo + shrink, np.r_[(hi - shrink)[:2], hi[2]], int(rng.integers(1, 3)))
+            _stack_small_on(rng, b, parts, pose, (lo, hi), 0.1, int(rng.integers(1, 3)))
     if rng.random() < 0.4:  # backdrop walls far away
         for k in range(int(rng.integers(1, 4))):
             ang = rng.uniform(0, 2 * np.pi)
@@ -752,8 +793,9 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
     low_texture_share: probability in [0, 1] that the scene is low-texture (mostly plain colours).
     photos, photo_share: a data.textures.PhotoCollection and the share of textures cut from its photographs.
     version: the generator version whose scenes to draw (``SCENE_VERSIONS``; data.generate.GENERATOR_VERSION):
-    2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets hold
-    (held-out sets rendered with it render again identically).
+    3 builds every prism star-shaped about its centre and centred, and stands stacked objects on their support's
+    own top; 2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets
+    hold (held-out sets rendered with it render again identically).
     """
     if not 0.0 <= float(photo_share) <= 1.0:
         raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
@@ -776,10 +818,13 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
         kind = names[int(rng.choice(len(names), p=p / p.sum()))]
     if kind not in KINDS:
         raise ValueError(f"scene kind expected one of {KINDS}, got {kind!r}")
-    low = bool(rng.random() < low_texture_share)
-    b = _Builder(rng, low, texture_size, photos, photo_share)
-    build = {"room": _room, "cluster": _cluster, "courtyard": _courtyard}[kind]
-    lights, lo, hi, extent = build(rng, b) if kind == "courtyard" else build(rng, b, version)
+    drawing = _DRAWING.set(version)
+    try:
+        low = bool(rng.random() < low_texture_share)
+        b = _Builder(rng, low, texture_size, photos, photo_share)
+        lights, lo, hi, extent = {"room": _room, "cluster": _cluster, "courtyard": _courtyard}[kind](rng, b)
+    finally:
+        _DRAWING.reset(drawing)
     if not b.targets:
         b.targets.append((lo + hi) / 2)
         b.radii.append(1.0)

@@ -1,3 +1,5 @@
+import hashlib
+
 import numpy as np
 import pytest
 
@@ -97,9 +99,10 @@ def test_small_objects_are_stacked_only_on_objects_drawn_with_a_flat_top_and_ver
         last_added[:] = [parts]
         return add_object(self, parts, pose, target)
 
-    def stack(rng, b, top_lo, top_hi, n):
+    def stack(rng, b, support, pose, bounds, shrink, n):
         stacked_on.append(flat_of[id(last_added[0])])  # stacking follows the add of the object it stacks on
-        return stack_small_on(rng, b, top_lo, top_hi, n)
+        assert support is last_added[0]
+        return stack_small_on(rng, b, support, pose, bounds, shrink, n)
 
     monkeypatch.setattr(S._Builder, "add_object", add)
     monkeypatch.setattr(S, "_stack_small_on", stack)
@@ -111,8 +114,8 @@ def test_small_objects_are_stacked_only_on_objects_drawn_with_a_flat_top_and_ver
     for seed in SEEDS_THAT_STACKED_ON_NON_FLAT_TOPS:  # the scenes datasets of version 1 hold, drawn again
         S.make_scene(np.random.default_rng([1, seed]), version=1)
     assert len([name for name, flat in stacked_on if not flat]) >= len(SEEDS_THAT_STACKED_ON_NON_FLAT_TOPS)
-    with pytest.raises(ValueError, match="version expected one of \\(1, 2\\), got 3"):
-        S.make_scene(np.random.default_rng(0), version=3)
+    with pytest.raises(ValueError, match="version expected one of \\(1, 2, 3\\), got 4"):
+        S.make_scene(np.random.default_rng(0), version=4)
 
 
 def test_make_scene_names_each_bad_argument_and_draws_kinds_whatever_the_weights_order():
@@ -342,28 +345,49 @@ def test_every_directional_light_and_spot_shines_downwards(kind):
     assert lights and all(light.direction[2] < 0 and np.isclose(np.linalg.norm(light.direction), 1) for light in lights)
 
 
-def test_small_objects_stand_on_the_top_they_were_stacked_on_inside_its_box(monkeypatch):
+def _height_under(mesh, x, y):
+    """The highest point of ``mesh`` straight under (x, y) (-inf where there is none), triangle by triangle."""
+    best = -np.inf
+    for a, b, c in mesh.triangles:
+        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        if abs(area) < 1e-15:
+            continue  # seen edge-on from above
+        wb = ((x - a[0]) * (c[1] - a[1]) - (y - a[1]) * (c[0] - a[0])) / area
+        wc = ((b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0])) / area
+        if min(wb, wc, 1 - wb - wc) >= -1e-9:
+            best = max(best, a[2] + wb * (b[2] - a[2]) + wc * (c[2] - a[2]))
+    return best
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_small_objects_stand_on_the_top_they_were_stacked_on_and_from_version_3_on_its_top_face(version, monkeypatch):
     added, stacked = [], []
     add_object, stack_small_on = S._Builder.add_object, S._stack_small_on
 
     def add(self, parts, pose, target=True):
-        added.append(add_object(self, parts, pose, target))
-        return added[-1]
+        added.append((parts, pose.copy(), add_object(self, parts, pose, target)))
+        return added[-1][2]
 
-    def stack(rng, b, top_lo, top_hi, n):
-        support, first = added[-1], len(added)
-        stack_small_on(rng, b, top_lo, top_hi, n)
-        stacked.append((support, added[first:]))
+    def stack(rng, b, support, pose, bounds, shrink, n):
+        first = len(added)
+        stack_small_on(rng, b, support, pose, bounds, shrink, n)
+        stacked.append((added[first - 1], added[first:]))
 
     monkeypatch.setattr(S._Builder, "add_object", add)
     monkeypatch.setattr(S, "_stack_small_on", stack)
     for kind in ("room", "cluster"):
-        _scenes(kind)
-    assert sum(len(on) for _, on in stacked) >= 10
-    for (lo, hi), on in stacked:
-        for lo2, hi2 in on:  # on the top's height, inside its bounding box
-            assert lo2[2] == pytest.approx(hi[2])
-            assert (lo2[:2] >= lo[:2] - 1e-9).all() and (hi2[:2] <= hi[:2] + 1e-9).all()
+        for seed in range(16):
+            S.make_scene(np.random.default_rng([11, seed]), kind, texture_size=16, version=version)
+    assert sum(len(on) for _, on in stacked) >= 15
+    off_top = 0
+    for (parts, pose, (lo, hi)), on in stacked:
+        support = S.trimesh.util.concatenate([m.copy().apply_transform(pose) for m, _, _ in parts])
+        for _, at, (lo2, hi2) in on:
+            assert lo2[2] == pytest.approx(hi[2])  # at the top's height
+            if version == 2:  # inside its box
+                assert (lo2[:2] >= lo[:2] - 1e-9).all() and (hi2[:2] <= hi[:2] + 1e-9).all()
+            off_top += _height_under(support, *at[:2, 3]) != pytest.approx(hi[2])  # nothing under it, or lower
+    assert off_top == 0 if version == 3 else off_top >= 1  # version 2 left some in the air (turned tables)
 
 
 @pytest.mark.parametrize("kind", ["cluster", "courtyard"])
@@ -416,3 +440,50 @@ def test_a_rooms_doors_and_windows_leave_wall_between_them(monkeypatch):
 def test_the_analytic_plane_faces_the_camera_at_the_origin():
     m = S.plane_scene(3.0).surfaces[0].mesh
     assert np.allclose(m.face_normals, [0, 0, -1]) and np.allclose(m.vertices[:, 2], 3.0)
+
+
+def test_every_primitive_of_version_3_is_centred_resting_on_z0_and_a_prism_is_star_shaped_about_its_centre():
+    for seed in range(300):
+        mesh, _, _ = S._primitive(np.random.default_rng([9, seed]), 1.0)
+        lo, hi = mesh.bounds
+        assert np.allclose((lo[:2] + hi[:2]) / 2, 0, atol=1e-9) and abs(lo[2]) < 1e-9, seed
+        prism = S._star_prism(np.random.default_rng(seed), 1.0, 0.5)
+        assert prism.volume > 0 and prism.is_winding_consistent, seed
+        caps = np.abs(prism.face_normals[:, 2]) > 1e-9  # every cap triangle faces out: up on top, down below
+        assert (np.sign(prism.face_normals[caps, 2]) == np.sign(prism.triangles_center[caps, 2] - 0.25)).all(), seed
+    drawing = S._DRAWING.set(2)  # what versions 1-2 drew, for the datasets that hold them
+    try:
+        flaps = [(p := S._star_prism(np.random.default_rng(seed), 1.0, 0.5)).volume <= 0
+                 or (np.sign(p.face_normals[:, 2]) * np.sign(p.triangles_center[:, 2] - 0.25) < 0).any()
+                 for seed in range(300)]
+    finally:
+        S._DRAWING.reset(drawing)
+    assert sum(flaps) >= 20
+
+
+def _geometry_digest(sc):
+    """Every surface's vertices (rounded to 10 um, in sorted order: a library's vertex order is not the scene) and
+    face count, and the obstacle boxes: what a scene is, short of its textures."""
+    d = hashlib.sha256()
+    for s in sc.surfaces:
+        v = np.round(np.asarray(s.mesh.vertices, np.float64), 5) + 0.0
+        d.update(v[np.lexsort(v.T[::-1])].tobytes())
+        d.update(len(s.mesh.faces).to_bytes(4, "little"))
+    d.update((np.round(sc.obstacles, 5) + 0.0).tobytes())
+    return d.hexdigest()[:16]
+
+
+# the scenes versions 1 and 2 drew for default_rng([1, seed]) (a room, a courtyard, a cluster where the two differ)
+# when version 3 was added: the held-out sets and datasets rendered with them must render again identically
+OLDER_VERSIONS_DRAW = {1: {3: "12253bbd0bea85f9", 10: "68d3bf28e0c7e35a", 25: "b1b5a72304b0ade9"},
+                       2: {3: "12253bbd0bea85f9", 10: "68d3bf28e0c7e35a", 25: "55c96f1f6dd37ce0"}}
+
+
+def test_versions_1_and_2_still_draw_the_scenes_their_datasets_hold_and_version_3_draws_others():
+    for version, scenes in OLDER_VERSIONS_DRAW.items():
+        for seed, digest in scenes.items():
+            sc = S.make_scene(np.random.default_rng([1, seed]), texture_size=8, version=version)
+            assert _geometry_digest(sc) == digest, (version, seed)
+    for seed in OLDER_VERSIONS_DRAW[2]:
+        sc = S.make_scene(np.random.default_rng([1, seed]), texture_size=8)
+        assert _geometry_digest(sc) != OLDER_VERSIONS_DRAW[2][seed] and S._DRAWING.get() == 3
