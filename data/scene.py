@@ -558,16 +558,13 @@ def _stack_small_on(rng, b: _Builder, support, pose, bounds, shrink, n):
 
 def _stands_on(parts, x, y, z) -> bool:
     """Whether the point (x, y) lies on an upward face of ``parts`` (an object's meshes in its own frame) at height z."""
+    p = np.array([x, y], np.float64)
     for m, _, _ in parts:
         up = (np.asarray(m.face_normals)[:, 2] > 1 - 1e-6) & (np.abs(m.triangles[:, :, 2] - z) < 1e-6).all(1)
-        if not up.any():
-            continue
-        tri = m.triangles[up][:, :, :2]
-        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-        cross = lambda o, p, q: (p[:, 0] - o[:, 0]) * (q[:, 1] - o[:, 1]) - (p[:, 1] - o[:, 1]) * (q[:, 0] - o[:, 0])  # noqa: E731
-        pt = np.broadcast_to([x, y], a.shape)
-        d = np.stack([cross(a, b, pt), cross(b, c, pt), cross(c, a, pt)], 1)
-        if ((d >= -1e-12).all(1)).any():  # counter-clockwise seen from above: inside or on the edge
+        tri = m.triangles[up][:, :, :2]                                    # [T, 3, 2], counter-clockwise from above
+        edge, to_p = np.roll(tri, -1, axis=1) - tri, p - tri               # [T, 3, 2] each
+        side = edge[..., 0] * to_p[..., 1] - edge[..., 1] * to_p[..., 0]  # >= 0: p left of (or on) the edge
+        if (side >= -1e-12).all(1).any():
             return True
     return False
 
