@@ -3,7 +3,9 @@
 This module is the only place in the project that knows OpenGL camera conventions:
 ``cv_to_gl_pose`` is the ONE conversion between our OpenCV ``cam2world`` and pyrender's camera pose.
 
-One ``Renderer`` per process, reused for every scene (a mesh's GPU buffers belong to one GL context).
+One ``Renderer`` per process (``get_renderer``), reused for every scene (a mesh's GPU buffers belong to one GL
+context) and kept until the process ends: pyrender's context teardown terminates the process's shared EGL display,
+which would end every other renderer in it too, so there is no ``close``.
 Each view is rendered twice: a multisampled colour pass for RGB, and a depth-only pass into a
 framebuffer WITHOUT multisampling, so z-depth is the exact depth at each pixel centre (pyrender's
 own depth comes from one MSAA sub-sample, off the centre; see docs/data.md).
@@ -78,7 +80,6 @@ class Renderer:
     def _ensure(self, width, height):
         if self._r is None:
             self._r = self._pyrender.OffscreenRenderer(width, height)
-            self._r._renderer.__class__ = _lean_renderer_class(self._pyrender)
         if (width, height) != self._size:
             self._r.viewport_width, self._r.viewport_height = width, height
             self._size = (width, height)
@@ -155,12 +156,17 @@ class Renderer:
         self._scene_key = built
         self._cam_node = None
         self._extent = float(scene.extent)
+        # pyrender's depth-only pass culls back faces whatever the material says, though every material here is
+        # double-sided as the colour pass draws it: an open or inside-out surface seen from behind showed in colour
+        # with background depth (0) under it. Scenes of generator versions 1-2 keep that pass (their held-out sets
+        # render again byte for byte); it also breaks ties between coplanar faces its own way (1-3 pixels a view)
+        self._legacy_depth = int(getattr(scene, "version", 3)) < 3
 
     def _set_camera(self, K, cam2world, width, height, znear):
         pr = self._pyrender
         # pyrender puts pixel centres at half-integers: shift the OpenCV principal point by +0.5
         cam = pr.IntrinsicsCamera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]) + 0.5,
-                                  cy=float(K[1, 2]) + 0.5, znear=znear, zfar=max(4 * self._extent, 50.0))
+                                  cy=float(K[1, 2]) + 0.5, znear=znear, zfar=_zfar(self._extent))
         if self._cam_node is not None:
             self._pscene.remove_node(self._cam_node)
         self._cam_node = self._Node(10**6, camera=cam, matrix=cv_to_gl_pose(cam2world))
@@ -183,9 +189,12 @@ class Renderer:
         if not bool(is_rigid(torch.from_numpy(cam2world))):
             raise ShapeError(f"cam2world expected a finite rigid transform (a rotation and a translation), got "
                              f"{cam2world.tolist()}")
-        if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))
-                and 1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
-            raise ShapeError(f"image size expected ints in [1, {MAX_SIDE}], got {width}x{height}")
+        if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and 1 <= n <= MAX_SIDE
+                   for n in (width, height)):
+            raise ShapeError(f"image size expected ints in [1, {MAX_SIDE}], got {width!r}x{height!r}")
+        if not (isinstance(znear, (int, float, np.floating)) and 0 < znear < _zfar(scene.extent)):
+            raise ShapeError(f"znear expected a distance in metres above 0 and below the far plane (4 x the scene's "
+                             f"extent, at least 50 m: {_zfar(scene.extent):g}), got {znear!r}")
         pr = self._pyrender
         self.set_scene(scene)
         self._ensure(int(width), int(height))
@@ -207,32 +216,26 @@ class Renderer:
         saved = inner._main_fb_ms
         inner._main_fb_ms = plain  # draw into the single-sample buffer; pyrender then blits and reads it
         try:
-            depth = self._r.render(self._pscene, flags=pr.RenderFlags.DEPTH_ONLY)
+            if self._legacy_depth:  # what generator versions 1-2 rendered: their datasets render again identically
+                depth = self._r.render(self._pscene, flags=pr.RenderFlags.DEPTH_ONLY)
+            else:  # a flat-shaded pass: depth of every face the colour pass draws, back faces too
+                _, depth = self._r.render(self._pscene, flags=pr.RenderFlags.FLAT)
         finally:
             inner._main_fb_ms = saved
         return np.ascontiguousarray(depth, dtype=np.float32)
 
-    def close(self):
-        if self._r is not None:
-            try:
-                if self._plain is not None:
-                    from OpenGL import GL
-                    self._r._platform.make_current()
-                    GL.glDeleteFramebuffers(1, [self._plain[0]])
-                    GL.glDeleteRenderbuffers(2, [self._plain[1], self._plain[2]])
-                self._r.delete()
-            finally:
-                self._r = None
-                self._plain = None
-                self._size = None
-                self._scene_key = None
+
+def _zfar(extent) -> float:
+    """The far plane for a scene of ``extent`` metres: 4 x its extent, at least 50 m."""
+    return max(4 * float(extent), 50.0)
 
 
 def _scene_state(scene) -> tuple:
     """What ``Renderer.set_scene`` builds from: the surfaces' meshes and materials (the objects themselves, compared
-    by identity) and the lights, ambient light, background and extent (by value)."""
+    by identity) and the lights, ambient light, background, extent and generator version (by value)."""
     return (tuple((s.mesh, s.material, s.smooth) for s in scene.surfaces), repr(scene.lights),
-            np.asarray(scene.ambient).tolist(), np.asarray(scene.bg_color).tolist(), float(scene.extent))
+            np.asarray(scene.ambient).tolist(), np.asarray(scene.bg_color).tolist(), float(scene.extent),
+            getattr(scene, "version", None))
 
 
 def _same_state(a: tuple, b: tuple) -> bool:
@@ -240,79 +243,11 @@ def _same_state(a: tuple, b: tuple) -> bool:
             and a[1:] == b[1:])
 
 
-_LEAN = None
-
-
-def _lean_renderer_class(pr):
-    """pyrender's ``Renderer`` without work whose result we throw away; every pixel stays the same
-    (tests/data/test_render.py compares against pyrender's own path):
-
-    - a colour pass resolves and reads only colour (pyrender also resolves, reads and linearises the
-      multisampled depth, which we never use: exact depth comes from the depth pass);
-    - a depth pass reads the single-sample framebuffer it drew into (``Renderer._depth_pass``) directly,
-      without pyrender's two blits into its main framebuffer;
-    - light uniforms are set once per shader program and frame rather than once per primitive (a
-      program keeps its uniform values, and unless a scene has more lights of a kind than the shader
-      takes, pyrender gives every primitive the same lights), and the texture-unit limit behind the
-      light counts is queried once.
-    """
-    global _LEAN
-    if _LEAN is not None:
-        return _LEAN
-    from OpenGL import GL
-    from pyrender.constants import RenderFlags
-
-    class LeanRenderer(pr.renderer.Renderer):
-        # only the two passes this module renders are lean; any other flags take pyrender's own path
-        def _lean(self, flags):
-            return flags in (RenderFlags.NONE, RenderFlags.DEPTH_ONLY)
-
-        def _forward_pass(self, scene, flags, seg_node_map=None):
-            self._lit = set()
-            return super()._forward_pass(scene, flags, seg_node_map=seg_node_map)
-
-        def _compute_max_n_lights(self, flags):
-            cache = self.__dict__.setdefault("_max_lights", {})
-            if flags not in cache:
-                cache[flags] = tuple(super()._compute_max_n_lights(flags))
-            return list(cache[flags])
-
-        def _bind_lighting(self, scene, program, node, flags):
-            m = self._compute_max_n_lights(flags)
-            if not self._lean(flags) or (len(scene.directional_light_nodes) > m[0] or len(scene.spot_light_nodes) > m[1]
-                    or len(scene.point_light_nodes) > m[2]):  # pyrender then picks the lights nearest each node
-                return super()._bind_lighting(scene, program, node, flags)
-            if id(program) not in self._lit:  # otherwise every node gets all lights, the same uniforms
-                self._lit.add(id(program))
-                super()._bind_lighting(scene, program, node, flags)
-
-        def _read_main_framebuffer(self, scene, flags):
-            if not self._lean(flags) or scene.main_camera_node.camera.zfar is None:
-                return super()._read_main_framebuffer(scene, flags)
-            width, height = self._main_fb_dims
-            if flags & RenderFlags.DEPTH_ONLY:
-                GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
-                buf = GL.glReadPixels(0, 0, width, height, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT)
-                z = np.frombuffer(buf, np.float32).reshape(height, width)[::-1]
-                # pyrender's linearisation, term for term (float32 arithmetic, Python-float constants)
-                zn, zf = scene.main_camera_node.camera.znear, scene.main_camera_node.camera.zfar
-                ndc = 2.0 * z - 1.0
-                lin = (2.0 * zn * zf) / (zf + zn - ndc * (zf - zn))
-                return np.where(z == 1.0, np.float32(0.0), lin)
-            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
-            GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
-            GL.glBlitFramebuffer(0, 0, width, height, 0, 0, width, height, GL.GL_COLOR_BUFFER_BIT, GL.GL_LINEAR)
-            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
-            buf = GL.glReadPixels(0, 0, width, height, GL.GL_RGB, GL.GL_UNSIGNED_BYTE)
-            return np.frombuffer(buf, np.uint8).reshape(height, width, 3)[::-1], None
-
-    _LEAN = LeanRenderer
-    return _LEAN
-
-
 def _light_pose(position, direction):
     """Pose of a pyrender light (it shines along its local -z) at ``position`` pointing ``direction``."""
     d = np.asarray(direction, np.float64)
+    if d.shape != (3,) or not np.isfinite(d).all() or np.linalg.norm(d) < 1e-12:
+        raise ValueError(f"a light's direction expected a finite non-zero 3-vector, got {direction!r}")
     d = d / np.linalg.norm(d)
     z = -d
     x = np.cross([0.0, 0.0, 1.0], z)

@@ -102,6 +102,7 @@ class Scene:
     target_radius: np.ndarray      # [M] rough size of what is at each target (m)
     low_texture: bool = False
     extent: float = 10.0           # rough scene diameter (m), used for near/far planes
+    version: int = SCENE_VERSIONS[-1]  # the generator version that drew it (data.render renders each version's way)
 
     def inside_obstacle(self, p: np.ndarray, margin: float = 0.0) -> bool:
         p = np.asarray(p, np.float64)
@@ -831,7 +832,7 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
                  camera_lo=lo, camera_hi=hi,
                  obstacles=np.array(b.obstacles, np.float64).reshape(-1, 2, 3),
                  targets=np.array(b.targets, np.float64), target_radius=np.array(b.radii, np.float64),
-                 low_texture=low, extent=float(extent))
+                 low_texture=low, extent=float(extent), version=version)
 
 
 def plane_scene(distance: float, size: float = 50.0, texture: np.ndarray | None = None) -> Scene:

@@ -26,18 +26,25 @@ def test_plane_at_known_distance_renders_analytic_depth(renderer):
     assert np.abs(depth - 2.5).max() < 1e-4
 
 
-def test_tilted_plane_renders_analytic_depth_at_every_pixel_centre(renderer):
-    # the plane z = 3 seen by a camera turned 35 degrees: depth_z(u, v) = 3 / (R[2] . ray(u, v))
-    w, h = 72, 56
-    K = intrinsics_from_fov(w, h, 60.0, cx_offset=2.0)
+def _tilted_plane_error(renderer, K, w, h):
+    """The largest relative depth error over the plane z = 3 seen by a camera turned 35 degrees, against
+    depth_z(u, v) = 3 / (R[2] . ray(u, v)) at every pixel centre."""
     a = np.radians(35)
     T = look_at([0, 0, 0], [np.sin(a), 0.1, np.cos(a)], up=(0, -1, 0), roll=0.2)
     _, depth = renderer.render(plane_scene(3.0), K, T, w, h)
     u, v = np.meshgrid(np.arange(w), np.arange(h))
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1)
-    expected = 3.0 / (rays @ T[2, :3])
+    return np.abs(depth / (3.0 / (rays @ T[2, :3])) - 1).max()
+
+
+def test_tilted_plane_renders_analytic_depth_at_every_pixel_centre(renderer):
     # exact at pixel centres (no MSAA sub-sample offset, no half-pixel shift) up to 24-bit depth quantisation
-    assert np.abs(depth / expected - 1).max() < 5e-5
+    assert _tilted_plane_error(renderer, intrinsics_from_fov(72, 56, 60.0, cx_offset=2.0), 72, 56) < 5e-5
+
+
+def test_non_square_pixels_render_the_analytic_depth_of_a_tilted_plane(renderer):
+    K = np.array([[70.0, 0.0, 37.5], [0.0, 45.0, 26.0], [0.0, 0.0, 1.0]])
+    assert _tilted_plane_error(renderer, K, 72, 56) < 5e-5
 
 
 def test_a_point_lands_on_the_pixel_opencv_projection_predicts(renderer):
@@ -69,30 +76,6 @@ def test_renderer_switches_image_sizes_and_stays_exact(renderer):
         assert depth.shape == (h, w) and np.abs(depth - 1.5).max() < 1e-4
 
 
-def test_lean_passes_give_the_same_pixels_and_depth_as_pyrenders_own_renderer(renderer):
-    import pyrender
-
-    from data.cameras import sample_views
-    from data.scene import make_scene
-
-    rng = np.random.default_rng(3)
-    for kind in ("room", "cluster"):  # textured and plain materials, point/spot and directional lights
-        scene = make_scene(rng, kind=kind)
-        vs = sample_views(rng, scene, renderer, 2, 64, color=False)
-        for v in vs.views:
-            lean = renderer.render(scene, v.K, v.cam2world, v.width, v.height)
-            inner = renderer._r._renderer
-            cls = inner.__class__
-            inner.__class__ = pyrender.renderer.Renderer  # pyrender's own passes, read-backs and uniforms
-            try:
-                ref = renderer.render(scene, v.K, v.cam2world, v.width, v.height)
-            finally:
-                inner.__class__ = cls
-            assert cls is not pyrender.renderer.Renderer
-            assert np.array_equal(lean[0], ref[0]) and np.array_equal(lean[1], ref[1])
-            assert np.array_equal(lean[1], v.depth)
-
-
 def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
     with pytest.raises(ShapeError, match="K expected"):
         renderer.render(plane_scene(1.0), np.eye(4), np.eye(4), 32, 32)
@@ -108,6 +91,21 @@ def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
     scaled = np.diag([2.0, 2.0, 2.0, 1.0])
     with pytest.raises(ShapeError, match="cam2world expected a finite rigid transform"):
         renderer.render(plane_scene(1.0), K, scaled, 32, 32)
+    for w, h in ((32, 0), (8193, 32), (32.0, 32), (True, True)):
+        with pytest.raises(ShapeError, match=f"image size expected ints in \\[1, 8192\\], got {w!r}x{h!r}"):
+            renderer.render(plane_scene(1.0), K, np.eye(4), w, h)
+    for znear in (0.0, -1.0, float("nan"), 500.0, "0.1"):  # 0 or NaN rendered everything as background
+        with pytest.raises(ShapeError, match="znear expected a distance in metres above 0 and below the far plane"):
+            renderer.render(plane_scene(1.0), K, np.eye(4), 32, 32, znear=znear)
+    for direction in ([0.0, 0.0, 0.0], [np.nan, 0.0, -1.0]):
+        scene = plane_scene(1.0)
+        scene.lights = [Light("directional", np.ones(3), 1.0, direction=np.array(direction))]
+        with pytest.raises(ValueError, match="a light's direction expected a finite non-zero 3-vector"):
+            renderer.render(scene, K, np.eye(4), 32, 32)
+    scene = plane_scene(1.0)
+    scene.lights = [Light("area", np.ones(3), 1.0)]
+    with pytest.raises(ValueError, match="light kind expected directional/point/spot, got 'area'"):
+        renderer.render(scene, K, np.eye(4), 32, 32)
 
 
 def test_a_scene_changed_after_a_render_is_rendered_as_it_is_now(renderer):
@@ -135,3 +133,101 @@ def test_preview_writes_a_contact_sheet_of_a_shard(tiny_pairs, tmp_path):
     with pytest.raises(SystemExit):  # argparse's one line: no sheet of no rows
         preview_main([str(tiny_pairs / "shard-000000.tar"), "-o", str(tmp_path / "none.png"), "--rows", "0"])
     assert not (tmp_path / "none.png").exists()
+
+
+def _lit_plane(distance=2.0, size=50.0, color=(1.0, 1.0, 1.0), direction=(0.0, 0.0, 1.0), ambient=0.0):
+    """plane_scene's plane (facing a camera at the origin) in ``color``, one directional light travelling along
+    ``direction`` (None: no light), ``ambient`` light, a red background."""
+    scene = plane_scene(distance, size)
+    scene.surfaces[0].material = Material(base_color=np.r_[color, 1.0])
+    scene.lights = [] if direction is None else [Light("directional", np.ones(3), 3.0, direction=np.array(direction))]
+    scene.ambient, scene.bg_color = np.full(3, ambient), np.array([1.0, 0.0, 0.0])
+    return scene
+
+
+def test_near_and_far_planes_clip_only_outside_znear_and_four_extents_or_50_m(renderer):
+    K = intrinsics_from_fov(32, 32, 60.0)
+    close = plane_scene(0.03)
+    assert (renderer.render(close, K, np.eye(4), 32, 32)[1] == 0).all()  # nearer than the default 5 cm
+    assert np.abs(renderer.render(close, K, np.eye(4), 32, 32, znear=0.01)[1] - 0.03).max() < 1e-5
+    for distance, extent, seen in ((30.0, 5.0, True), (70.0, 20.0, True), (90.0, 20.0, False)):
+        scene = plane_scene(distance, size=200.0)
+        scene.extent = extent  # the far plane: max(4 x 5, 50) = 50 m, max(4 x 20, 50) = 80 m
+        depth = renderer.render(scene, K, np.eye(4), 32, 32, color=False)[1]
+        if seen:
+            assert np.abs(depth / distance - 1).max() < 1e-3, (distance, extent)
+        else:
+            assert (depth == 0).all()
+
+
+def test_rendered_images_are_writable_contiguous_arrays_and_color_false_renders_none(renderer):
+    K = intrinsics_from_fov(32, 24, 60.0)
+    rgb, depth = renderer.render(plane_scene(2.0), K, np.eye(4), 32, 24)
+    for a in (rgb, depth):
+        assert a.flags.c_contiguous and a.flags.writeable
+    rgb[0, 0] = 0  # a read-only view of pyrender's buffer raised here
+    assert renderer.render(plane_scene(2.0), K, np.eye(4), 32, 24, color=False)[0] is None
+    assert renderer.render(plane_scene(2.0), K, np.eye(4), 32, 24, depth=False)[1] is None
+
+
+def test_one_renderer_per_process_keeps_one_camera_and_draws_in_insertion_order(renderer):
+    from data.cameras import sample_views
+    from data.render import get_renderer
+    from data.scene import make_scene
+
+    assert get_renderer() is renderer
+    scene = make_scene(np.random.default_rng(3), "room", texture_size=16)
+    sample_views(np.random.default_rng(0), scene, renderer, 3, 48, color=False)
+    ps = renderer._pscene
+    assert len(ps.camera_nodes) == 1
+    for nodes in (ps.mesh_nodes, ps.light_nodes):  # a set, iterated (drawn, lit) the same way in every process
+        seqs = [n._seq for n in nodes]
+        assert len(seqs) >= 2 and seqs == sorted(seqs)
+
+
+def test_colours_lights_background_and_ambient_render_as_described(renderer):
+    K = intrinsics_from_fov(32, 32, 60.0)
+    red = renderer.render(_lit_plane(color=(1.0, 0.1, 0.1)), K, np.eye(4), 32, 32)[0].astype(float)
+    assert red[..., 0].mean() > red[..., 2].mean() + 100  # base colour in RGB order
+    front = renderer.render(_lit_plane(), K, np.eye(4), 32, 32)[0].astype(float).mean()
+    behind = renderer.render(_lit_plane(direction=(0.0, 0.0, -1.0)), K, np.eye(4), 32, 32)[0].astype(float).mean()
+    assert front > behind + 100  # a light shines along its direction: onto the plane's front, or from behind it
+    dark = renderer.render(_lit_plane(direction=None), K, np.eye(4), 32, 32)[0].astype(float).mean()
+    ambient = renderer.render(_lit_plane(direction=None, ambient=0.8), K, np.eye(4), 32, 32)[0].astype(float).mean()
+    assert dark < 5 and ambient > 60
+    small = _lit_plane(size=0.3)
+    rgb = renderer.render(small, K, np.eye(4), 32, 32)[0]
+    assert (rgb[0, 0] == [255, 0, 0]).all()  # the background's colour, in RGB order
+    small.bg_color, small.ambient = np.array([0.0, 0.0, 1.0]), np.full(3, 0.5)  # the same scene object, changed
+    again = renderer.render(small, K, np.eye(4), 32, 32)[0]
+    assert (again[0, 0] == [0, 0, 255]).all() and again[16, 16].astype(int).sum() > rgb[16, 16].astype(int).sum()
+
+
+def test_a_plane_seen_from_behind_has_the_depth_of_what_the_colour_shows(renderer):
+    K = intrinsics_from_fov(32, 32, 60.0)
+    T = look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0])  # behind plane_scene's plane at z = 2, looking back at it
+    rgb, depth = renderer.render(_lit_plane(color=(0.0, 1.0, 0.0), direction=(0.0, 0.0, -1.0)), K, T, 32, 32)
+    assert (rgb[..., 1] > rgb[..., 0]).all()  # the green plane fills the view, no red background
+    assert np.abs(depth - 3.0).max() < 1e-4  # pyrender's depth-only pass culled it: background (0) everywhere
+    legacy = _lit_plane(color=(0.0, 1.0, 0.0), direction=(0.0, 0.0, -1.0))
+    legacy.version = 2  # what versions 1-2 rendered, and their datasets hold
+    assert (renderer.render(legacy, K, T, 32, 32)[1] == 0).all()
+
+
+def test_every_colour_frame_is_antialiased_and_a_smooth_flag_changed_after_a_render_is_seen(renderer):
+    K = intrinsics_from_fov(48, 48, 60.0)
+    T = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], roll=0.3)  # the square's edges run slanted across pixels
+    scene = _lit_plane(size=0.4)
+    first, second = (renderer.render(scene, K, T, 48, 48)[0] for _ in range(2))
+    assert np.array_equal(first, second)
+    partial = (first[..., 1] > 5) & (first[..., 1] < first[..., 1].max() - 5)  # edge pixels partly covered
+    assert partial.sum() >= 20
+    import trimesh
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    ball.apply_translation([0.0, 0.0, 2.0])
+    scene = Scene(**{**_lit_plane().__dict__, "surfaces": [Surface(ball, Material(base_color=np.ones(4)))],
+                     "lights": [Light("directional", np.ones(3), 3.0, direction=np.array([0.3, 0.3, 1.0]))]})
+    faceted = renderer.render(scene, K, np.eye(4), 48, 48)[0]
+    scene.surfaces[0].smooth = True
+    smooth = renderer.render(scene, K, np.eye(4), 48, 48)[0]
+    assert np.abs(smooth.astype(int) - faceted.astype(int)).max() > 10
