@@ -69,11 +69,19 @@ def test_a_point_lands_on_the_pixel_opencv_projection_predicts(renderer):
     assert depth[int(round(v)), int(round(u))] == pytest.approx(pc[2], rel=1e-3)
 
 
-def test_renderer_switches_image_sizes_and_stays_exact(renderer):
+def test_renderer_switches_image_sizes_stays_exact_and_frees_the_buffers_it_outgrew(renderer):
+    from OpenGL import GL
+
     for w, h in ((64, 48), (48, 64), (64, 48)):
         K = intrinsics_from_fov(w, h, 60.0)
         _, depth = renderer.render(plane_scene(1.5), K, np.eye(4), w, h)
         assert depth.shape == (h, w) and np.abs(depth - 1.5).max() < 1e-4
+    assert _tilted_plane_error(renderer, intrinsics_from_fov(1024, 768, 60.0), 1024, 768) < 5e-5  # larger than before
+    old = renderer._plain
+    renderer.render(plane_scene(1.5), intrinsics_from_fov(40, 30, 60.0), np.eye(4), 40, 30)
+    renderer._r._platform.make_current()
+    assert renderer._plain[0] == old[0] or not GL.glIsFramebuffer(old[0])  # deleted (or its name reused)
+    assert all(rb in renderer._plain[1:3] or not GL.glIsRenderbuffer(rb) for rb in old[1:3])
 
 
 def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
