@@ -214,12 +214,12 @@ def test_colours_lights_background_and_ambient_render_as_described(renderer):
 def test_a_plane_seen_from_behind_has_the_depth_of_what_the_colour_shows(renderer):
     K = intrinsics_from_fov(32, 32, 60.0)
     T = look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0])  # behind plane_scene's plane at z = 2, looking back at it
-    rgb, depth = renderer.render(_lit_plane(color=(0.0, 1.0, 0.0), direction=(0.0, 0.0, -1.0)), K, T, 32, 32)
+    plane = _lit_plane(color=(0.0, 1.0, 0.0), direction=(0.0, 0.0, -1.0))
+    rgb, depth = renderer.render(plane, K, T, 32, 32)
     assert (rgb[..., 1] > rgb[..., 0]).all()  # the green plane fills the view, no red background
     assert np.abs(depth - 3.0).max() < 1e-4  # pyrender's depth-only pass culled it: background (0) everywhere
-    legacy = _lit_plane(color=(0.0, 1.0, 0.0), direction=(0.0, 0.0, -1.0))
-    legacy.version = 2  # what versions 1-2 rendered, and their datasets hold
-    assert (renderer.render(legacy, K, T, 32, 32)[1] == 0).all()
+    plane.version = 2  # the same scene, as versions 1-2 rendered it (their datasets hold that)
+    assert (renderer.render(plane, K, T, 32, 32)[1] == 0).all()
 
 
 def test_every_colour_frame_is_antialiased_and_a_smooth_flag_changed_after_a_render_is_seen(renderer):
