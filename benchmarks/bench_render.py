@@ -33,7 +33,8 @@ def run(size, workers, scenes, views, seed, version):
     import resource
 
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    sys.path.insert(0, str(ROOT))
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
     from data.generate import GenConfig, generate
 
     def cpu():
@@ -61,11 +62,13 @@ def main(argv=None):
                    help="generator versions to render the same seeds with (default: the latest)")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # internal: one configuration, JSON out
     a = p.parse_args(argv)
-    sys.path.insert(0, str(ROOT))
-    from data.generate import GENERATOR_VERSION
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    # numpy and trimesh only: the renderer and torch load in each configuration's own process
     from data.scene import SCENE_VERSIONS
 
-    versions = a.versions or [GENERATOR_VERSION]
+
+    versions = a.versions or [SCENE_VERSIONS[-1]]  # data.generate.GENERATOR_VERSION
     if not set(versions) <= set(SCENE_VERSIONS):
         p.error(f"--versions expected generator versions of {SCENE_VERSIONS}, got {versions}")
     if a.one:
@@ -83,7 +86,9 @@ def main(argv=None):
                 out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
                 if out.returncode != 0:
                     sys.exit(f"size {size}, {w} workers, version {v} failed:\n{out.stderr}")
-                pairs, views, dt, dc, nbytes, _ = json.loads(out.stdout.strip().splitlines()[-1])
+                pairs, views, dt, dc, nbytes, recorded = json.loads(out.stdout.strip().splitlines()[-1])
+                if recorded != v:
+                    sys.exit(f"version {v} asked for, the dataset records version {recorded}")
                 print(f"{size:>5} {w:>7} {v:>7} {a.scenes:>6} {pairs:>6} {dt:>8.1f} {pairs / dt:>8.2f} "
                       f"{views / dt:>8.2f} {dc:>7.1f} {pairs / max(dc, 1e-9):>11.2f} "
                       f"{nbytes / max(pairs, 1) / 1e6:>8.2f}", flush=True)

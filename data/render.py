@@ -6,13 +6,15 @@ This module is the only place in the project that knows OpenGL camera convention
 One ``Renderer`` per process (``get_renderer``), reused for every scene (a mesh's GPU buffers belong to one GL
 context) and kept until the process ends: pyrender's context teardown terminates the process's shared EGL display,
 which would end every other renderer in it too, so there is no ``close``.
-Each view is rendered twice: a multisampled colour pass for RGB, and a depth-only pass into a
-framebuffer WITHOUT multisampling, so z-depth is the exact depth at each pixel centre (pyrender's
-own depth comes from one MSAA sub-sample, off the centre; see docs/data.md).
+Each view is rendered twice: a multisampled colour pass for RGB, and a second pass into a framebuffer WITHOUT
+multisampling, so z-depth is the exact depth at each pixel centre (pyrender's own depth comes from one MSAA
+sub-sample, off the centre; see docs/data.md). The second pass is flat-shaded (scenes of generator versions 1-2:
+pyrender's depth-only pass, which culls back faces).
 """
 
 from __future__ import annotations
 
+import numbers
 import os
 import sys
 
@@ -75,6 +77,7 @@ class Renderer:
         self._scene_key = None
         self._pscene = None
         self._cam_node = None
+        self._legacy_depth = False
 
     # --- GL plumbing -----------------------------------------------------------------------------
     def _ensure(self, width, height):
@@ -106,8 +109,11 @@ class Renderer:
     # --- scenes ----------------------------------------------------------------------------------
     def set_scene(self, scene) -> None:
         """Build (once per scene) the pyrender scene for a ``data.scene.Scene``; again when the same object was
-        changed since (surfaces added, removed or replaced, other lights, background, ambient light or extent). A
-        mesh or material edited in place is not seen: give the surface a new one."""
+        changed since (surfaces added, removed or replaced, other lights, background, ambient light, extent or
+        generator version). A mesh or material edited in place is not seen: give the surface a new one."""
+        version = getattr(scene, "version", 3)
+        if not (isinstance(version, (int, np.integer)) and not isinstance(version, bool) and version >= 1):
+            raise ValueError(f"a scene's version expected a generator version (an int >= 1), got {version!r}")
         built = (scene, _scene_state(scene))
         if self._scene_key is not None and self._scene_key[0] is scene and _same_state(self._scene_key[1], built[1]):
             return
@@ -152,15 +158,15 @@ class Renderer:
                 raise ValueError(f"light kind expected directional/point/spot, got {light.kind!r}")
             kw = {"light": node} if isinstance(node, pr.light.Light) else {}
             ps.add_node(self._Node(len(ps.nodes), matrix=pose, **kw))
-        self._pscene = ps
-        self._scene_key = built
-        self._cam_node = None
-        self._extent = float(scene.extent)
         # pyrender's depth-only pass culls back faces whatever the material says, though every material here is
         # double-sided as the colour pass draws it: an open or inside-out surface seen from behind showed in colour
         # with background depth (0) under it. Scenes of generator versions 1-2 keep that pass (their held-out sets
         # render again byte for byte); it also breaks ties between coplanar faces its own way (1-3 pixels a view)
-        self._legacy_depth = int(getattr(scene, "version", 3)) < 3
+        self._legacy_depth = version < 3
+        self._pscene = ps
+        self._scene_key = built
+        self._cam_node = None
+        self._extent = float(scene.extent)
 
     def _set_camera(self, K, cam2world, width, height, znear):
         pr = self._pyrender
@@ -192,7 +198,7 @@ class Renderer:
         if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and 1 <= n <= MAX_SIDE
                    for n in (width, height)):
             raise ShapeError(f"image size expected ints in [1, {MAX_SIDE}], got {width!r}x{height!r}")
-        if not (isinstance(znear, (int, float, np.floating)) and 0 < znear < _zfar(scene.extent)):
+        if not (isinstance(znear, numbers.Real) and not isinstance(znear, bool) and 0 < znear < _zfar(scene.extent)):
             raise ShapeError(f"znear expected a distance in metres above 0 and below the far plane (4 x the scene's "
                              f"extent, at least 50 m: {_zfar(scene.extent):g}), got {znear!r}")
         pr = self._pyrender

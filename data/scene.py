@@ -600,7 +600,7 @@ def _wall_with_openings(length, height, thick, openings):
 
 
 def _flag_source(k: int, n_placed: int) -> int:
-    """Whose flat-top flag the ``n_placed``-th placed object (object ``k`` of the list) takes: its own (version 2),
+    """Whose flat-top flag the ``n_placed``-th placed object (object ``k`` of the list) takes: its own (version 2 on),
     or version 1's, the ``n_placed``-th object's (once an object found no room, the next inherited another's)."""
     return k if _DRAWING.get() >= 2 else n_placed
 
@@ -792,21 +792,21 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
     photos, photo_share: a data.textures.PhotoCollection and the share of textures cut from its photographs.
     version: the generator version whose scenes to draw (``SCENE_VERSIONS``; data.generate.GENERATOR_VERSION):
     3 builds every prism star-shaped about its centre and centred, and stands stacked objects on their support's
-    own top; 2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets
+    own top (a spot whose centre misses the top is left empty, not drawn again); 2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets
     hold (held-out sets rendered with it render again identically).
     """
     if not 0.0 <= float(photo_share) <= 1.0:
         raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
     if photo_share > 0 and photos is None:
         raise ValueError("photo_share > 0 needs photos (a data.textures.PhotoCollection)")
-    if isinstance(version, bool) or version not in SCENE_VERSIONS:
+    if not isinstance(version, int) or isinstance(version, bool) or version not in SCENE_VERSIONS:
         raise ValueError(f"version expected one of {SCENE_VERSIONS}, got {version!r}")
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng expected a numpy.random.Generator, got {type(rng).__name__}")
     if not 0.0 <= float(low_texture_share) <= 1.0:
         raise ValueError(f"low_texture_share expected a probability in [0, 1], got {low_texture_share!r}")
     weights = dict(DEFAULT_KIND_WEIGHTS if kind_weights is None else kind_weights)
-    if (set(weights) - set(KINDS) or not all(isinstance(w, numbers.Real) and math.isfinite(w) and w >= 0
+    if (set(weights) - set(KINDS) or not all(isinstance(w, numbers.Real) and not isinstance(w, bool) and math.isfinite(w) and w >= 0
                                              for w in weights.values()) or sum(weights.values()) <= 0):
         raise ValueError(f"kind_weights expected finite non-negative weights over {KINDS} with a positive sum, "
                          f"got {kind_weights!r}")

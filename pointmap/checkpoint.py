@@ -549,8 +549,9 @@ def shipped_models() -> list[str]:
 
 
 def _bare_name(src) -> bool:
-    """A name without a path separator (nor ``.`` or ``..``): what can name a shipped model."""
-    return (isinstance(src, str) and src not in ("", ".", "..")
+    """A name without a path separator, not ``.``, ``..``, blank or padded with spaces: what can name a shipped
+    model."""
+    return (isinstance(src, str) and src not in (".", "..") and bool(src.strip()) and src == src.strip()
             and not any(sep and sep in src for sep in (os.path.sep, os.path.altsep)))
 
 
@@ -574,7 +575,8 @@ def shipped_file(name: str) -> Path:
     """Where the package keeps (or ``python -m training.ship`` writes) the shipped model ``name``: a bare name,
     without a path separator, else CheckpointError."""
     if not _bare_name(name):
-        raise CheckpointError(f"a shipped model's name expected a bare name without a path separator, got {name!r}")
+        raise CheckpointError(f"a shipped model's name expected a bare name (no path separator, not '.', '..' or "
+                              f"blank, no surrounding spaces), got {name!r}")
     return WEIGHTS_DIR / f"{name}.safetensors"
 
 

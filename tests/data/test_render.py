@@ -102,7 +102,7 @@ def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
     for w, h in ((32, 0), (8193, 32), (32.0, 32), (True, True)):
         with pytest.raises(ShapeError, match=f"image size expected ints in \\[1, 8192\\], got {w!r}x{h!r}"):
             renderer.render(plane_scene(1.0), K, np.eye(4), w, h)
-    for znear in (0.0, -1.0, float("nan"), 500.0, "0.1"):  # 0 or NaN rendered everything as background
+    for znear in (0.0, -1.0, float("nan"), 500.0, "0.1", True):  # 0 or NaN rendered everything as background
         with pytest.raises(ShapeError, match="znear expected a distance in metres above 0 and below the far plane"):
             renderer.render(plane_scene(1.0), K, np.eye(4), 32, 32, znear=znear)
     for direction in ([0.0, 0.0, 0.0], [np.nan, 0.0, -1.0]):
@@ -110,6 +110,13 @@ def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
         scene.lights = [Light("directional", np.ones(3), 1.0, direction=np.array(direction))]
         with pytest.raises(ValueError, match="a light's direction expected a finite non-zero 3-vector"):
             renderer.render(scene, K, np.eye(4), 32, 32)
+    for version in ("2", 2.0, 0, None):  # and the scene rendered next is not drawn the refused one's way
+        scene = plane_scene(1.0)
+        scene.version = version
+        with pytest.raises(ValueError, match=f"a scene's version expected a generator version \\(an int >= 1\\), "
+                                             f"got {version!r}"):
+            renderer.render(scene, K, np.eye(4), 32, 32)
+        assert renderer._scene_key[0] is not scene  # not kept as the built scene, to be drawn some other way
     scene = plane_scene(1.0)
     scene.lights = [Light("area", np.ones(3), 1.0)]
     with pytest.raises(ValueError, match="light kind expected directional/point/spot, got 'area'"):

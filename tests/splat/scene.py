@@ -153,9 +153,6 @@ class SceneRenderer:
         rgb, depth = self.renderer.render(self.scene, flags=flags)
         return rgb.astype(np.float32) / 255.0, depth.astype(np.float32)
 
-    def close(self):
-        self.renderer.delete()
-
 
 def perturb_pose(cam2world: np.ndarray, rot_deg: float, trans: float, rng) -> np.ndarray:
     """Rotate by exactly ``rot_deg`` about a random axis and move the centre by exactly ``trans``."""
@@ -191,7 +188,8 @@ def make_benchmark_scene(width=256, height=192, n_train=4, n_test=3, depth_noise
     test_c2w = cams[test_idx]
     imgs, depths = zip(*(r.render(c, K) for c in train_c2w))
     test_imgs = [r.render(c, K)[0] for c in test_c2w]
-    r.close()
+    # r's context is left to the process's end: pyrender's teardown terminates the process's shared EGL display,
+    # which would end data.render's renderer too (data/render.py)
     depth = np.stack(depths)
     noisy = depth * (1.0 + depth_noise * rng.normal(size=depth.shape)).astype(np.float32)
     noisy[depth <= 0] = 0

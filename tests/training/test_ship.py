@@ -129,11 +129,12 @@ def test_shipping_refuses_a_metrics_file_that_is_missing_or_not_an_eval_csv_in_o
 def test_shipping_refuses_a_name_that_is_a_path_whatever_out_is_in_one_line(tmp_path, capsys):
     ck = tmp_path / "a.pt"
     _checkpoint(ck, 0, 100)
-    for name in ("../small", "a/b", "..", ""):
+    for name in ("../small", "a/b", "..", "", " ", " small"):
         for out in ([], ["--out", str(tmp_path / "x.safetensors")]):
             assert main(["--ckpt", str(ck), "--name", name, *out]) == 2
             err = capsys.readouterr().err
-            assert f"expected a bare name without a path separator, got {name!r}" in err
+            assert f"expected a bare name (no path separator, not '.', '..' or blank, no surrounding spaces), got " \
+                   f"{name!r}" in err
             assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.safetensors").exists()
     assert main(["--ckpt", str(ck), "--name", "tiny_v2", "--out", str(tmp_path / "x.safetensors")]) == 0
