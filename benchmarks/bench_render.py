@@ -67,7 +67,6 @@ def main(argv=None):
     # numpy and trimesh only: the renderer and torch load in each configuration's own process
     from data.scene import SCENE_VERSIONS
 
-
     versions = a.versions or [SCENE_VERSIONS[-1]]  # data.generate.GENERATOR_VERSION
     if not set(versions) <= set(SCENE_VERSIONS):
         p.error(f"--versions expected generator versions of {SCENE_VERSIONS}, got {versions}")

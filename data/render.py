@@ -28,6 +28,7 @@ if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses the alias numpy 2 rem
 import torch  # noqa: E402
 
 from data.geom import MAX_SIDE  # noqa: E402
+from data.scene import SCENE_VERSIONS  # noqa: E402
 from pointmap.errors import ShapeError  # noqa: E402
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid  # noqa: E402
 
@@ -111,10 +112,10 @@ class Renderer:
         """Build (once per scene) the pyrender scene for a ``data.scene.Scene``; again when the same object was
         changed since (surfaces added, removed or replaced, other lights, background, ambient light, extent or
         generator version). A mesh or material edited in place is not seen: give the surface a new one."""
-        version = getattr(scene, "version", 3)
+        version = getattr(scene, "version", SCENE_VERSIONS[-1])
         if not (isinstance(version, (int, np.integer)) and not isinstance(version, bool) and version >= 1):
             raise ValueError(f"a scene's version expected a generator version (an int >= 1), got {version!r}")
-        built = (scene, _scene_state(scene))
+        built = (scene, _scene_state(scene, version))
         if self._scene_key is not None and self._scene_key[0] is scene and _same_state(self._scene_key[1], built[1]):
             return
         pr = self._pyrender
@@ -236,12 +237,11 @@ def _zfar(extent) -> float:
     return max(4 * float(extent), 50.0)
 
 
-def _scene_state(scene) -> tuple:
+def _scene_state(scene, version: int) -> tuple:
     """What ``Renderer.set_scene`` builds from: the surfaces' meshes and materials (the objects themselves, compared
     by identity) and the lights, ambient light, background, extent and generator version (by value)."""
     return (tuple((s.mesh, s.material, s.smooth) for s in scene.surfaces), repr(scene.lights),
-            np.asarray(scene.ambient).tolist(), np.asarray(scene.bg_color).tolist(), float(scene.extent),
-            getattr(scene, "version", None))
+            np.asarray(scene.ambient).tolist(), np.asarray(scene.bg_color).tolist(), float(scene.extent), version)
 
 
 def _same_state(a: tuple, b: tuple) -> bool:

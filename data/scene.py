@@ -534,7 +534,8 @@ def _stack_small_on(rng, b: _Builder, support, pose, bounds, shrink, n):
     Version 3 (``_DRAWING``) places them in the support's own frame, on its own box, and keeps those whose centre
     stands on one of its top faces; versions 1-2 used the world box, whose corners lie off a turned table's top (4
     of 142 stacked objects stood beside it, in the air) or off a cylinder's or prism's."""
-    if _DRAWING.get() >= 3:
+    v3 = _DRAWING.get() >= 3
+    if v3:
         lo = np.min([m.bounds[0] for m, _, _ in support], 0)
         hi = np.max([m.bounds[1] for m, _, _ in support], 0)
     else:
@@ -550,7 +551,7 @@ def _stack_small_on(rng, b: _Builder, support, pose, bounds, shrink, n):
         objs.append(parts)
     for _, parts, on, (x, y, _) in _place_discs(rng, objs, top_lo[:2], top_hi[:2], placed, margin=0.01, tries=20):
         on[2, 3] = hi[2]
-        if _DRAWING.get() >= 3:
+        if v3:
             if not _stands_on(support, x, y, hi[2]):
                 continue
             on = pose @ on
@@ -558,7 +559,8 @@ def _stack_small_on(rng, b: _Builder, support, pose, bounds, shrink, n):
 
 
 def _stands_on(parts, x, y, z) -> bool:
-    """Whether the point (x, y) lies on an upward face of ``parts`` (an object's meshes in its own frame) at height z."""
+    """Whether the point (x, y) lies on an upward face of ``parts`` (an object's meshes in its own frame) at
+    height z."""
     p = np.array([x, y], np.float64)
     for m, _, _ in parts:
         up = (np.asarray(m.face_normals)[:, 2] > 1 - 1e-6) & (np.abs(m.triangles[:, :, 2] - z) < 1e-6).all(1)
@@ -792,8 +794,9 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
     photos, photo_share: a data.textures.PhotoCollection and the share of textures cut from its photographs.
     version: the generator version whose scenes to draw (``SCENE_VERSIONS``; data.generate.GENERATOR_VERSION):
     3 builds every prism star-shaped about its centre and centred, and stands stacked objects on their support's
-    own top (a spot whose centre misses the top is left empty, not drawn again); 2 stacks small objects only on the flat tops they were drawn for; 1 draws the scenes earlier datasets
-    hold (held-out sets rendered with it render again identically).
+    own top (a spot whose centre misses the top is left empty, not drawn again); 2 stacks small objects only on
+    the flat tops they were drawn for; 1 draws the scenes earlier datasets hold (held-out sets rendered with it
+    render again identically).
     """
     if not 0.0 <= float(photo_share) <= 1.0:
         raise ValueError(f"photo_share expected a probability in [0, 1], got {photo_share!r}")
@@ -806,8 +809,9 @@ def make_scene(rng: np.random.Generator, kind: str | None = None, *, low_texture
     if not 0.0 <= float(low_texture_share) <= 1.0:
         raise ValueError(f"low_texture_share expected a probability in [0, 1], got {low_texture_share!r}")
     weights = dict(DEFAULT_KIND_WEIGHTS if kind_weights is None else kind_weights)
-    if (set(weights) - set(KINDS) or not all(isinstance(w, numbers.Real) and not isinstance(w, bool) and math.isfinite(w) and w >= 0
-                                             for w in weights.values()) or sum(weights.values()) <= 0):
+    usable = all(isinstance(w, numbers.Real) and not isinstance(w, bool) and math.isfinite(w) and w >= 0
+                 for w in weights.values())
+    if set(weights) - set(KINDS) or not usable or sum(weights.values()) <= 0:
         raise ValueError(f"kind_weights expected finite non-negative weights over {KINDS} with a positive sum, "
                          f"got {kind_weights!r}")
     if kind is None:  # in KINDS' order, whatever the dict's: one seed, one scene

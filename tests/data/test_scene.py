@@ -156,14 +156,16 @@ def test_inside_obstacle_is_true_outside_the_camera_box_and_within_margin_of_an_
 
 def test_random_materials_stay_in_their_documented_ranges_and_shares(monkeypatch):
     photo_calls = []
-    monkeypatch.setattr(S, "photo_texture", lambda rng, photos, size: photo_calls.append(1) or np.zeros((size, size, 3), np.uint8))
+    monkeypatch.setattr(S, "photo_texture",
+                        lambda rng, photos, size: photo_calls.append(1) or np.zeros((size, size, 3), np.uint8))
     rng = np.random.default_rng(0)
     mats = [S.random_material(rng, texture_size=8) for _ in range(400)]
     low = [S.random_material(rng, texture_size=8, low_texture=True) for _ in range(400)]
     assert all(0.25 <= m.uv_scale <= 3.0 and 0.1 <= m.roughness <= 1.0 and 0.0 <= m.metallic <= 1.0 for m in mats + low)
     assert 0.55 < np.mean([m.metallic == 0.0 for m in mats]) < 0.8  # matte: 70%
     assert 0.08 < np.mean([m.metallic >= 0.6 for m in mats]) < 0.16  # metal: 12%
-    assert 0.1 < np.mean([m.texture is None for m in mats]) < 0.2 and 0.8 < np.mean([m.texture is None for m in low]) < 0.9
+    assert 0.1 < np.mean([m.texture is None for m in mats]) < 0.2
+    assert 0.8 < np.mean([m.texture is None for m in low]) < 0.9
     assert len(photo_calls) == 0
     photos = [S.random_material(rng, texture_size=8, photos=object(), photo_share=1.0) for _ in range(100)]
     assert len(photo_calls) == sum(m.texture is not None for m in photos) > 70  # every texture a photograph's
@@ -284,8 +286,8 @@ def test_a_rooms_walls_stand_on_its_outline_and_its_furniture_inside_it():
             lo, hi = m.bounds
             assert hi[0] <= 1e-9 or lo[0] >= W - 1e-9 or hi[1] <= 1e-9 or lo[1] >= D - 1e-9, (m.bounds, W, D)
             assert (lo[:2] >= -0.12 - 1e-9).all() and hi[0] <= W + 0.12 + 1e-9 and hi[1] <= D + 0.12 + 1e-9
-        sides = {(m.bounds[1, 0] <= 1e-9, m.bounds[0, 0] >= W - 1e-9, m.bounds[1, 1] <= 1e-9, m.bounds[0, 1] >= D - 1e-9)
-                 for m in walls}
+        sides = {(m.bounds[1, 0] <= 1e-9, m.bounds[0, 0] >= W - 1e-9, m.bounds[1, 1] <= 1e-9,
+                  m.bounds[0, 1] >= D - 1e-9) for m in walls}
         assert len(sides) == 4  # all four sides have a wall
         assert (sc.obstacles[:, 0, :2] >= 0).all() and (sc.obstacles[:, 1, 0] <= W).all()
         assert (sc.obstacles[:, 1, 1] <= D).all()
