@@ -88,6 +88,10 @@ def test_hidden_files_in_a_folder_are_not_images_and_a_missing_path_is_named(tin
     (["--conf-percentile", "100"], "--conf-percentile expected a percentile in [0, 100), got 100.0"),
     (["--min-conf", "nan"], "--min-conf expected a finite confidence, got nan"),
     (["--colmap-points", "-5"], "--max-points and --colmap-points expected >= 0 (0: all), got 0 and -5"),
+    (["--max-points", "-5"], "--max-points and --colmap-points expected >= 0 (0: all), got -5 and 100000"),
+    (["--cameras", "sparse/0", "--focal", "70"], "--cameras and --focal both give intrinsics: use one"),
+    (["--head-prior", "inf"], "--head-prior expected a finite weight >= 0 (0: off), got inf"),
+    (["--shared-focal", "--focal", "70,71,72"], "--shared-focal says one camera, but --focal gives 3 different focals"),
 ])
 def test_bad_options_are_refused_before_the_model_is_even_loaded(tiny, tmp_path, capsys, extra, message):
     _, folder = tiny
@@ -808,7 +812,7 @@ def test_a_device_torch_cannot_use_is_refused_in_one_line_before_the_model_loads
 
 
 class _Reached(Exception):
-    """A stand-in stops a command once it has seen the device."""
+    """A stand-in stops a command once it got where the test looks."""
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "pair", "localize", "splat", "demo"])
@@ -1203,3 +1207,299 @@ def test_two_images_of_one_file_name_are_refused_when_cameras_or_masks_match_by_
     with pytest.raises(PointmapError, match="--masks matches images by file name without suffix"):
         masks_from_folder(str(tmp_path / "masks"), images)
     assert len(masks_from_folder(str(tmp_path / "masks"), images[1:])) == 2
+
+
+# what reaches the pipeline, the fit and the exports: defaults and forwarded values (a mutation review of the
+# subcommands found these untested)
+class _SavedRecon:
+    """What pipeline.reconstruct returns in these tests: save() records its keyword arguments."""
+
+    def __init__(self, seen):
+        self.info, self.seen = {}, seen
+
+    def save(self, out, **kw):
+        self.seen["save"] = kw
+        return {}
+
+
+def _save_test_recon(folder):
+    """recon_factory's small reconstruction, saved as an npz in ``folder`` (what splat and localize read)."""
+    from pointmap.io import save_reconstruction
+
+    sys.path.insert(0, str(Path(__file__).parent / "io"))
+    from recon_factory import make_recon
+
+    save_reconstruction(make_recon(), folder, formats=("npz",))
+
+
+def _record_pipeline(monkeypatch, seen):
+    import pointmap.pipeline
+
+    monkeypatch.setattr(pointmap.pipeline, "reconstruct",
+                        lambda model, images, **kw: seen.update(reconstruct=kw) or _SavedRecon(seen))
+
+
+def test_the_point_caps_default_to_all_of_the_cloud_and_100000_colmap_points_and_apply_to_every_export_they_name(
+        tiny, tmp_path, monkeypatch):
+    weights, folder = tiny
+    seen = {}
+    _record_pipeline(monkeypatch, seen)
+    base = ["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", str(weights), "--size", "64"]
+    assert main(base) == 0
+    assert seen["save"]["max_points"] is None and seen["save"]["colmap_max_points"] == 100_000
+    for extra, key, value in ((["--export", "nerfstudio", "--colmap-points", "7"], "colmap_max_points", 7),
+                              (["--export", "glb", "--max-points", "9"], "max_points", 9),
+                              (["--export", "colmap", "--colmap-points", "0"], "colmap_max_points", None)):
+        assert main([*base, *extra]) == 0, extra
+        assert seen["save"][key] == value, extra
+
+
+def test_head_prior_0_is_off_for_any_model_even_one_without_a_pose_head(tiny, tmp_path, monkeypatch):
+    weights, folder = tiny
+    seen = {}
+    _record_pipeline(monkeypatch, seen)
+    assert main(["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", str(weights), "--size",
+                 "64", "--head-prior", "0"]) == 0
+    assert seen["reconstruct"]["align"].head_prior == 0.0
+
+
+def test_the_splat_fit_takes_120_seconds_by_default_the_given_budget_or_no_limit_for_0(tiny, tmp_path, monkeypatch):
+    import pointmap.splat
+
+    weights, folder = tiny
+    budgets = []
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: budgets.append(kw["time_budget"]) or {})
+    _save_test_recon(tmp_path / "rec")
+    for extra in ([], ["--splat-budget", "5"], ["--splat-budget", "0"]):
+        assert main(["--quiet", "splat", str(tmp_path / "rec"), *extra]) == 0
+    seen = {}
+    _record_pipeline(monkeypatch, seen)
+    for extra in ([], ["--splat-budget", "5"], ["--splat-budget", "0"]):
+        assert main(["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", str(weights),
+                     "--size", "64", "--splat", *extra]) == 0
+    assert budgets == [120.0, 5.0, None] * 2
+
+
+def test_a_video_without_stride_gives_at_most_30_frames_or_max_frames(tmp_path, monkeypatch):
+    import pointmap.checkpoint
+    from tests.test_video import _video
+
+    def stop(*a, **k):
+        raise _Reached
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", stop)  # the frames are read before the model loads
+    video = _video(tmp_path / "clip.avi", n=30)
+    for extra, n in (([], 30), (["--max-frames", "5"], 5)):
+        out = tmp_path / f"out{n}"
+        with pytest.raises(_Reached):
+            main(["--quiet", "reconstruct", str(video), "-o", str(out), *extra])
+        assert len(list((out / "frames").glob("clip_*.png"))) == n
+
+
+def test_each_folder_refuses_two_folders_an_absolute_cameras_path_per_image_focals_and_an_unusable_head_prior(
+        tiny, tmp_path, capsys):
+    import shutil
+
+    weights, folder = tiny
+    scenes = tmp_path / "scenes"
+    shutil.copytree(folder, scenes / "one")
+    base = ["reconstruct", str(scenes), "--each-folder", "-o", str(tmp_path / "out"), "--model", str(weights),
+            "--size", "64"]
+    for argv, message in (
+            ([*base[:2], str(folder), *base[2:]], "--each-folder expected one folder whose sub-folders are scenes"),
+            ([*base, "--cameras", str(tmp_path / "sparse")], "relative to each scene folder"),
+            ([*base, "--focal", "70,71,72"], "relative to each scene folder"),
+            ([*base, "--head-prior", "0.5"], "--head-prior applies only to a model with a pose head")):
+        assert main(argv) == 2, argv
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / "one").exists()
+
+
+def test_each_folder_reads_every_scenes_own_depth_maps_and_keeps_their_predictions_in_the_cache(tiny, tmp_path,
+                                                                                                capsys):
+    import shutil
+
+    from pointmap.io import load_npz
+
+    weights, folder = tiny
+    scenes = tmp_path / "scenes"
+    for k, name in enumerate(("one", "two")):
+        shutil.copytree(folder, scenes / name)
+        (scenes / name / "depth").mkdir()
+        np.save(scenes / name / "depth" / "a.npy", np.full((60, 80), 2.0 + 3 * k, np.float32))
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    assert main(["--quiet", "reconstruct", str(scenes), "--each-folder", "-o", str(out), "--model", str(weights),
+                 "--size", "64", "--export", "npz", "--no-epipolar", "--metric-depth", "depth", "--cache",
+                 str(cache)]) == 0, capsys.readouterr().err
+    for k, name in enumerate(("one", "two")):
+        recon = load_npz(out / name / "reconstruction.npz")
+        assert recon.info["metric_depth"]["images"] == 1  # a.jpg's map, from the scene's own depth/
+        cached = recon.info["pipeline"]["cache"]  # scene two holds scene one's photographs: read back
+        assert (cached["misses"] > 0) if name == "one" else (cached["hits"] > 0 and cached["misses"] == 0)
+        d = recon.depth_z[[Path(n).name for n in recon.names].index("a.jpg")].flatten()
+        assert float(d[d > 0].median()) == pytest.approx(2.0 + 3 * k, rel=0.01)
+    assert any(cache.rglob("*.safetensors"))
+
+
+def test_confidence_filters_and_refine_reach_the_pipeline(tiny, tmp_path, monkeypatch):
+    weights, folder = tiny
+    seen = {}
+    _record_pipeline(monkeypatch, seen)
+    base = ["--quiet", "reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", str(weights), "--size", "64"]
+    assert main(base) == 0
+    assert (seen["reconstruct"]["min_conf"], seen["reconstruct"]["conf_percentile"], seen["reconstruct"]["refine"]) \
+        == (None, None, False)
+    assert main([*base, "--min-conf", "3", "--conf-percentile", "40", "--refine"]) == 0
+    assert (seen["reconstruct"]["min_conf"], seen["reconstruct"]["conf_percentile"], seen["reconstruct"]["refine"]) \
+        == (3.0, 40.0, True)
+
+
+def test_metric_depth_for_photographs_with_lens_distortion_is_refused_before_the_model_loads(tiny, tmp_path, capsys):
+    import json
+
+    _, folder = tiny
+    frames = [{"file_path": f"images/{n}", "transform_matrix": np.eye(4).tolist(), "fl_x": 70.0, "fl_y": 70.0,
+               "cx": 40.0, "cy": 30.0, "w": 80, "h": 60, **({"k1": -0.2} if n == "a.jpg" else {})}
+              for n in ("a.jpg", "b.PNG", "c.png")]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    (tmp_path / "depth").mkdir()
+    np.save(tmp_path / "depth" / "a.npy", np.full((60, 80), 5.0, np.float32))
+    assert main(["reconstruct", str(folder), "-o", str(tmp_path / "o"), "--model", "no_such_model", "--cameras",
+                 str(tmp_path / "transforms.json"), "--metric-depth", str(tmp_path / "depth")]) == 2
+    assert "--metric-depth: the photographs have lens distortion" in capsys.readouterr().err
+
+
+def test_more_than_12_photographs_keep_the_wrap_around_pairs_that_only_a_videos_frames_drop(tmp_path, monkeypatch):
+    import pointmap.checkpoint
+
+    rng = np.random.default_rng(0)
+    for k in range(13):
+        cv2.imwrite(str(tmp_path / f"p{k:02d}.png"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pm.PointmapNet(pm.PRESETS["test"]).eval())
+    seen = {}
+    _record_pipeline(monkeypatch, seen)
+    assert main(["--quiet", "reconstruct", str(tmp_path), "-o", str(tmp_path / "o"), "--size", "64"]) == 0
+    assert seen["reconstruct"]["graph"] == "auto"  # photographs: the pipeline's own choice, not a video's -noncyclic
+
+
+def _splat_test_setup(tiny, tmp_path, monkeypatch, ref):
+    """A reconstruction of a.jpg, b.PNG; splat.run returns a refined reconstruction; localize and evaluate_views
+    record what they were given; the one test view is posed against reconstruction view ``ref``."""
+    import pointmap.localization
+    import pointmap.splat
+    import pointmap.splat.outputs
+
+    weights, folder = tiny
+    out = tmp_path / "out"
+    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "-o", str(out), "--model",
+                 str(weights), "--size", "64", "--export", "npz"]) == 0
+    seen = {}
+    refined = object()
+    monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: seen.update(budget=kw["time_budget"]) or
+                        {"fit": "the fit", "recon_refined": refined})
+    K = torch.tensor([[70.0, 0, 39.5], [0, 70.0, 29.5], [0, 0, 1]], dtype=torch.float64)
+
+    def localize(model, recon, images, **kw):
+        seen["localized_in"] = recon
+        return pointmap.localization.Localization(torch.eye(4, dtype=torch.float64)[None], K[None], [ref], [2.0],
+                                                  [1.0], ["c.png"])
+
+    monkeypatch.setattr(pointmap.localization, "localize", localize)
+    monkeypatch.setattr(pointmap.splat.outputs, "evaluate_views",
+                        lambda res, images, c2w, K_map, out_dir, **kw: seen.update(n=len(images), **kw))
+    return weights, folder, out, seen, refined
+
+
+def test_splat_test_views_are_posed_in_the_refined_cameras_and_one_posed_against_view_0_is_scored(
+        tiny, tmp_path, monkeypatch):
+    weights, folder, out, seen, refined = _splat_test_setup(tiny, tmp_path, monkeypatch, ref=0)
+    assert main(["--quiet", "splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights)]) == 0
+    assert seen["localized_in"] is refined and seen["n"] == 1
+    assert seen["align_steps"] == 100 and seen["budget"] == 120.0  # the defaults
+    assert main(["--quiet", "splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights),
+                 "--test-align-steps", "0"]) == 0  # 0: the localized pose
+    assert seen["align_steps"] == 0
+
+
+def test_splat_refuses_a_negative_budget_before_the_fit(tiny, tmp_path, monkeypatch, capsys):
+    import pointmap.splat
+
+    monkeypatch.setattr(pointmap.splat, "run", lambda *a, **k: pytest.fail("the fit ran"))
+    _save_test_recon(tmp_path / "rec")
+    assert main(["splat", str(tmp_path / "rec"), "--splat-budget", "-5"]) == 2
+    assert "--splat-budget expected seconds >= 0" in capsys.readouterr().err
+
+
+def test_localize_names_the_reference_view_it_posed_against_and_pairs_with_2_references_by_default(
+        tiny, tmp_path, monkeypatch):
+    import json
+
+    import pointmap.localization
+
+    weights, folder = tiny
+    rec = tmp_path / "rec"
+    assert main(["--quiet", "reconstruct", str(folder / "a.jpg"), str(folder / "b.PNG"), "--model", str(weights),
+                 "--size", "64", "-o", str(rec), "--export", "npz"]) == 0
+    seen = {}
+
+    def localize(model, recon, images, **kw):
+        seen.update(kw)
+        return pointmap.localization.Localization(torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
+                                                  torch.eye(3, dtype=torch.float64).repeat(2, 1, 1), [0, 1],
+                                                  [1.0, 1.0], [1.0, 1.0], ["c.png", "a.jpg"])
+
+    monkeypatch.setattr(pointmap.localization, "localize", localize)
+    out = tmp_path / "loc"
+    assert main(["--quiet", "localize", str(rec), str(folder / "c.png"), str(folder / "a.jpg"), "--model",
+                 str(weights), "-o", str(out)]) == 0
+    rows = json.loads((out / "localization.json").read_text())["queries"]
+    assert [r["reference"] for r in rows] == ["a.jpg", "b.PNG"] and seen["n_refs"] == 2
+
+
+def test_localize_takes_max_frames_of_a_video_and_one_frame_is_enough(tmp_path, monkeypatch):
+    import pointmap.checkpoint
+    from tests.test_video import _video
+
+    def stop(*a, **k):
+        raise _Reached
+
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", stop)  # the frames are read before the model loads
+    _save_test_recon(tmp_path / "rec")
+    video = _video(tmp_path / "walk.avi", n=12)
+    for n in (3, 1):
+        out = tmp_path / f"loc{n}"
+        with pytest.raises(_Reached):
+            main(["--quiet", "localize", str(tmp_path / "rec"), str(video), "-o", str(out), "--max-frames", str(n)])
+        assert len(list((out / "frames").glob("walk_*.png"))) == n
+
+
+def test_info_says_whether_the_model_has_a_pose_head_and_where_an_official_checkpoint_came_from(tmp_path, capsys):
+    from dataclasses import replace
+
+    plain = pm.save_model(pm.PointmapNet(pm.PRESETS["test"]), tmp_path / "plain.safetensors",
+                          provenance={"note": "a test"})
+    posed = pm.save_model(pm.PointmapNet(replace(pm.PRESETS["test"], pose_head=True)), tmp_path / "posed.safetensors",
+                          provenance={"source": "official", "ctor": "AsymmetricCroCo3DStereo(...)"})
+    assert main(["info", str(plain)]) == 0
+    out = capsys.readouterr().out
+    assert "pose head no" in out and "source: official" not in out and "note: a test" in out
+    assert main(["info", str(posed)]) == 0
+    out = capsys.readouterr().out
+    assert "pose head yes" in out and "source: official checkpoint, AsymmetricCroCo3DStereo(...)" in out
+
+
+def test_demo_runs_the_model_it_is_given(tmp_path, monkeypatch):
+    import pointmap.demo
+
+    seen = {}
+    monkeypatch.setattr(pointmap.demo, "run_demo", lambda out, **kw: seen.update(kw) or 0)
+    assert main(["--quiet", "demo", "-o", str(tmp_path / "d"), "--model", "base", "--device", "cpu"]) == 0
+    assert seen["model_name"] == "base" and seen["quiet"] is True
+
+
+def test_info_counts_an_onnx_graphs_external_data_beside_it_in_its_size(tmp_path):
+    from pointmap.cli import model_summary
+
+    (tmp_path / "m.onnx").write_bytes(b"g" * 100_000)
+    (tmp_path / "m.onnx.data").write_bytes(b"w" * 2_000_000)  # the weights, saved as external data
+    assert model_summary(pm.PointmapNet(pm.PRESETS["test"]), str(tmp_path / "m.onnx"))["megabytes"] == 2.1
