@@ -18,6 +18,7 @@ from align_scene import (
     with_descriptors,
 )
 
+import pointmap.align.epipolar as epi
 from pointmap.align import AlignConfig, EpipolarConfig, global_align, refine_epipolar
 from pointmap.align.epipolar import (
     _cheirality_jacobian,
@@ -263,8 +264,6 @@ def test_cameras_touching_every_reversed_pair_are_few():
 
 
 def test_a_fit_that_reverses_a_direction_is_refitted_with_that_camera_held_then_rejected(mid_scene, monkeypatch):
-    import pointmap.align.epipolar as epi
-
     _, views, preds, recon = mid_scene
     real = epi.solve_poses
     calls = []
@@ -604,8 +603,6 @@ def test_two_centres_the_fit_brings_together_count_as_a_reversed_pair_and_are_re
 
 
 def test_a_fit_that_collapses_two_centres_is_refitted_with_one_of_them_held(mid_scene, monkeypatch):
-    import pointmap.align.epipolar as epi
-
     _, views, preds, recon = mid_scene
     real = epi.solve_poses
     calls = []
@@ -666,3 +663,221 @@ def test_the_depth_refit_does_not_repeat_the_warnings_about_the_views_the_alignm
     again = [str(w.message)[:20] for w in caught[len(first):]]
     assert "identical images [(0" in first and "duplicate image name" in first
     assert "align_refit" in out.info and not [m for m in again if m.startswith(("identical", "duplicate"))], again
+
+
+# gaps a mutation review of epipolar.py found (23 of 52 mutants survived; 14 of them mattered)
+def two_cameras(points, c_j=(1.0, 0.0, 0.0)):
+    """Two cameras with the world's rotation, at the origin and at c_j, and each one's unit ray to every point."""
+    C = np.array([[0.0, 0, 0], list(c_j)])
+    a = points - C[0]
+    b = points - C[1]
+    return np.tile(np.eye(3), (2, 1, 1)), C, a / np.linalg.norm(a, axis=1, keepdims=True), \
+        b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def test_a_pair_index_equal_to_the_number_of_pairs_is_refused():
+    R, C, r1, r2 = two_cameras(np.array([[0.0, 0, 5], [1.0, 1, 5], [-1.0, 0, 4]]))
+    I, J = np.zeros(3, int), np.ones(3, int)
+    with pytest.raises(ShapeError, match="one pair index"):
+        in_front_share(R, C, I, J, r1, r2, 1, np.array([0, 0, 1]))  # pair 1 of 1
+
+
+def test_points_met_behind_one_of_the_two_cameras_are_not_in_front():
+    """Rays that meet at points in front of camera 0 and behind camera 1 (camera 1's ray points away from them)."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-1, 2, 40), rng.uniform(-1, 1, 40), rng.uniform(3, 6, 40)]
+    R, C, r1, r2 = two_cameras(X)
+    I, J, pid = np.zeros(40, int), np.ones(40, int), np.zeros(40, int)
+    share, counted = in_front_share(R, C, I, J, r1, r2, 1, pid)
+    assert counted[0] == 40 and share[0] == 1.0
+    share, counted = in_front_share(R, C, I, J, r1, -r2, 1, pid)  # camera 1's rays reversed: behind it only
+    assert counted[0] == 40 and share[0] == 0.0
+
+
+def test_the_anchor_defaults_to_the_first_held_camera_and_must_be_held(scene):
+    """With two held cameras and keep_scale, the distance kept is the free cameras' mean distance from the first
+    held one (camera 0 here, whatever order held is given in)."""
+    I, J, r1, r2 = stacked(scene)
+    start = perturbed(scene["cam2world"], seed=7, held=(0, 2))
+    args = (start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, np.full(len(I), 0.5 / 45.0))
+    R, C, _ = solve_poses(*args, held=[2, 0], keep_scale=True)
+    R0, C0, _ = solve_poses(*args, held=[2, 0], keep_scale=True, anchor=0)
+    _, C2, _ = solve_poses(*args, held=[2, 0], keep_scale=True, anchor=2)
+    assert np.abs(C0 - C2).max() > 1e-4  # the anchor matters here (the two held centres mostly fix the scale)
+    np.testing.assert_array_equal(C, C0)
+    np.testing.assert_array_equal(R, R0)
+    with pytest.raises(ShapeError, match="anchor"):
+        solve_poses(*args, held=[0, 2], keep_scale=True, anchor=1)
+
+
+def test_a_narrow_rotation_prior_holds_weakly_constrained_rotations_near_the_aligned_ones():
+    """Exact matches of four views, the start 4 degrees off, a wide Cauchy scale (the matches pull weakly): with a
+    0.5-degree prior each rotation stays within about that of where it started; with no prior to speak of the fit
+    takes the whole 4 degrees. (prior_deg is in degrees: left in radians, 0.5 is a 29-degree prior.)"""
+    sc = make_scene(4, 32, 48, seed=61)
+    I, J, r1, r2 = stacked(sc, step=6)
+    start = perturbed(sc["cam2world"], rot_deg=4.0, centre=0.0, seed=1)
+    args = (start[:, :3, :3], start[:, :3, 3], I, J, r1, r2, np.full(len(I), 0.2))
+
+    def moved(R):
+        return max(np.degrees(np.arccos(np.clip((np.trace(R[k].T @ start[k, :3, :3]) - 1) / 2, -1, 1)))
+                   for k in range(1, 4))
+
+    tight, _, _ = solve_poses(*args, held=[0], keep_scale=True, prior_deg=0.5, cheirality=False)
+    loose, _, _ = solve_poses(*args, held=[0], keep_scale=True, prior_deg=1e4, cheirality=False)
+    assert moved(tight) < 1.0 and moved(loose) > 3.5, (moved(tight), moved(loose))
+
+
+def test_a_pair_already_reversed_at_the_start_is_not_charged():
+    """Cameras 0, 1, 3 held; camera 2 starts at x = 0.95, where every match fits exactly, but pair (1, 2)'s matches
+    were made at x = 1.05, so that pair's points meet behind its cameras from the start. Only pairs whose points met
+    mostly in front at the start are charged: the fit has nothing to do and camera 2 stays where it is (charging
+    that pair pushed it through camera 1, against every other pair)."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-2, 3, 300), rng.uniform(-1.5, 2.5, 300), rng.uniform(3, 6, 300)]
+    centres = {0: [0.0, 0, 0], 1: [1.0, 0, 0], 3: [1.0, 1, 0]}
+    here, there = [1.05, 0, 0], [0.95, 0, 0]
+
+    def rays(c):
+        v = X - np.asarray(c)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    I, J, r1, r2 = [], [], [], []
+    for i, j, c2 in ((0, 1, None), (0, 3, None), (1, 3, None), (1, 2, here), (0, 2, there), (2, 3, there)):
+        I.append(np.full(len(X), i))
+        J.append(np.full(len(X), j))
+        r1.append(rays(centres.get(i, c2)))
+        r2.append(rays(centres.get(j, c2)))
+    I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
+    R0, C0 = np.tile(np.eye(3), (4, 1, 1)), np.array([centres[0], centres[1], there, centres[3]])
+    R, C, _ = solve_poses(R0, C0, I, J, r1, r2, np.full(len(I), 1 / 200), held=[0, 1, 3], keep_scale=False)
+    np.testing.assert_allclose(C[2], there, atol=1e-6)
+    np.testing.assert_allclose(R[2], np.eye(3), atol=1e-6)
+
+
+def test_pairs_predicted_only_in_the_reverse_order_are_matched_once():
+    p = object()
+    assert epi._pair_list({(1, 0): p, (2, 0): p, (0, 2): p, (3, 3): p}) == [(0, 2), (1, 0)]
+
+
+def test_the_mirror_check_flags_a_share_under_three_tenths_and_wants_ten_counted_matches():
+    """Pair (0, 1): 80 matches meet in front of both cameras, 20 (both rays turned around) behind both. Camera 1
+    mirrored through camera 0 flips every meeting side: 0.8 in front before, 0.2 after, a reversal (share < 0.3);
+    with only 9 of the matches there are too few to tell."""
+    rng = np.random.default_rng(1)
+    X = np.c_[rng.uniform(-1, 2, 100), rng.uniform(-1, 1, 100), rng.uniform(3, 6, 100)]
+    R, C, r1, r2 = two_cameras(X)
+    r1[80:], r2[80:] = -r1[80:], -r2[80:]
+    I, J = np.zeros(100, int), np.ones(100, int)
+    C_m = C.copy()
+    C_m[1] = -C[1]
+    pid = np.zeros(100, int)
+    assert in_front_share(R, C, I, J, r1, r2, 1, pid)[0][0] == 0.8
+    assert in_front_share(R, C_m, I, J, r1, r2, 1, pid)[0][0] == pytest.approx(0.2)
+    assert mirrored_pairs(R, C, R, C_m, I, J, r1, r2) == [[0, 1]]
+    assert mirrored_pairs(R, C, R, C_m, I[:9], J[:9], r1[:9], r2[:9]) == []  # 9 counted matches: too few
+    assert mirrored_pairs(R, C, R, C_m, I[:10], J[:10], r1[:10], r2[:10]) == [[0, 1]]
+
+
+def test_the_default_threshold_is_the_maps_longer_side_over_56(mid_scene):  # noqa: F811
+    _, views, preds, recon = mid_scene
+    rep = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, refit_depth=False)).info["epipolar"]
+    h, w = recon.depth_z.shape[1:]
+    assert (h, w) == (64, 96) and rep["threshold_px"] == 96 / 56
+
+
+def test_a_known_focal_is_the_one_the_fit_uses_whatever_the_pointmaps_say(mid_scene, monkeypatch):  # noqa: F811
+    sc, views, preds, _ = mid_scene
+    known = {0: torch.from_numpy(sc["K"][0]).float()}
+    recon = global_align(views, preds, K=known, config=AlignConfig(quiet=True))
+    real = epi.own_focals
+    outs = []
+    for f0 in (1.0, 3.0):  # image 0's own-frame focal as the maps give it, then three times that
+        def own(preds_, n, f0=f0):
+            f = real(preds_, n)
+            f[0] *= f0
+            return f
+        monkeypatch.setattr(epi, "own_focals", own)
+        outs.append(refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, refit_depth=False)))
+    assert outs[0].info["epipolar"]["applied"]
+    assert outs[0].info["epipolar"]["median_residual_before"] == outs[1].info["epipolar"]["median_residual_before"]
+    assert torch.equal(outs[0].cam2world, outs[1].cam2world) and torch.equal(outs[1].K[0], known[0])
+
+
+def test_one_known_pose_holds_the_gauge_and_the_free_cameras_keep_their_mean_distance_from_it(mid_scene):  # noqa: F811
+    sc, views, preds, _ = mid_scene
+    recon = global_align(views, preds, cam2world={1: torch.from_numpy(sc["cam2world"][1]).float()},
+                         config=AlignConfig(quiet=True))
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, refit_depth=False))
+    rep = out.info["epipolar"]
+    assert rep["applied"] and rep["held"] == [1]
+    free = [0, 2, 3, 4]
+
+    def mean_dist(c2w):
+        return float((c2w[free, :3, 3].double() - c2w[1, :3, 3].double()).norm(dim=1).mean())
+
+    assert not torch.allclose(out.cam2world[free], recon.cam2world[free], atol=1e-4)  # the free cameras moved
+    assert mean_dist(out.cam2world) == pytest.approx(mean_dist(recon.cam2world), rel=1e-3)
+
+
+def test_with_parallel_is_behind_matches_parallel_at_the_start_cannot_vouch_for_a_pair_after():
+    """Pair (0, 1): 60 matches of points in front, 40 of parallel rays (not counted at the start). Camera 1 mirrored
+    through camera 0 and turned 6 degrees: the 60 meet behind, the 40 now converge in front. Over the matches counted
+    at the start none is in front: reversed; counting the 40 (0.4 in front) hides it."""
+    rng = np.random.default_rng(2)
+    X = np.c_[rng.uniform(-1, 2, 60), rng.uniform(-1, 1, 60), rng.uniform(3, 6, 60)]
+    R0, C0, a, b = two_cameras(X)
+    u = np.c_[rng.uniform(-0.2, 0.2, (40, 2)), np.ones(40)]
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r1, r2 = np.r_[a, u], np.r_[b, u]
+    I, J = np.zeros(100, int), np.ones(100, int)
+    R = R0.copy()
+    R[1] = _rotvec_to_matrix(np.array([0, np.radians(6), 0]))
+    C = C0.copy()
+    C[1] = -C0[1]
+    share, counted = in_front_share(R, C, I, J, r1, r2, 1, np.zeros(100, int))
+    assert counted[0] == 100 and share[0] == pytest.approx(0.4)
+    assert mirrored_pairs(R0, C0, R, C, I, J, r1, r2) == []  # by default over the matches counted after: 0.4
+    assert mirrored_pairs(R0, C0, R, C, I, J, r1, r2, parallel_is_behind=True) == [[0, 1]]
+
+
+def test_each_matchs_cauchy_scale_is_the_threshold_over_the_focal_of_its_first_camera(mid_scene, monkeypatch):  # noqa: F811
+    """The residual is an angle in camera I's frame, so its scale is threshold_px over camera I's focal (the
+    scene's focals differ by up to a third)."""
+    _, views, preds, recon = mid_scene
+    real, seen = epi.solve_poses, []
+
+    def spy(R0, C0, I, J, r1, r2, scale, **kwargs):
+        seen.append((I, J, scale))
+        return real(R0, C0, I, J, r1, r2, scale, **kwargs)
+
+    monkeypatch.setattr(epi, "solve_poses", spy)
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, refit_depth=False))
+    I, J, scale = seen[0]
+    f = out.K[:, 0, 0].double().numpy()  # map pixels: these views are their maps (map_from_original the identity)
+    assert np.ptp(f[I]) > 10 and (f[I] != f[J]).any()
+    np.testing.assert_allclose(scale, out.info["epipolar"]["threshold_px"] / f[I], rtol=1e-5)
+
+
+def test_a_known_intrinsic_comes_back_bit_for_bit_from_maps_smaller_than_the_originals(mid_scene):  # noqa: F811
+    """The same alignment seen as of photographs 1080/224 times the maps' size: a known K in original pixels goes to
+    the map's pixels and back in floating point (one in ten float32 values does not survive the round trip), so
+    the stage hands the given one back, not the round trip's."""
+    from pointmap.reconstruction import K_to_map, K_to_original
+
+    sc, views, preds, _ = mid_scene
+    mfo = torch.tensor([[224 / 1080, 224 / 1080, 0.0, 0.0]]).repeat(5, 1)
+    K0 = K_to_original(torch.from_numpy(sc["K"][0]).float(), mfo[0])
+    # a known K whose map round trip (float32 map, float64 back, float32) changes it
+    for step in range(200):
+        K0[0, 0] = K0[1, 1] = float(K0[0, 0]) + 0.37
+        back = K_to_original(K_to_map(K0, mfo[0]).double(), mfo[0].double()).float()
+        if not torch.equal(back, K0):
+            break
+    assert not torch.equal(back, K0)
+    aligned = global_align(views, preds, K={0: K_to_map(K0, mfo[0])}, config=AlignConfig(quiet=True))
+    recon = dataclasses.replace(aligned, map_from_original=mfo, K=K_to_original(aligned.K, mfo))
+    recon.K[0] = K0
+    assert recon.info["align"]["known_K_indices"] == [0]
+    out = refine_epipolar(views, preds, recon, config=EpipolarConfig(patch=8, refit_depth=False))
+    assert out.info["epipolar"]["applied"] and torch.equal(out.K[0], K0)
