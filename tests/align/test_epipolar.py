@@ -428,11 +428,10 @@ def test_the_cheirality_jacobian_agrees_with_central_differences(wide_scene):
             np.testing.assert_allclose(ana_c, num_c, atol=1e-6)
 
 
-def test_a_camera_pulled_through_its_neighbour_by_other_pairs_passes_without_the_cheirality_residuals_only():
-    """Cameras 0, 1, 3 held; camera 2 seen by pair (1, 2) at x = 1.05, just past camera 1 along the x axis, and by
-    pairs (0, 2) and (2, 3) at x = 0.95, just short of it. x = 0.95 fits every match exactly, with pair (1, 2)'s
-    direction reversed (the epipolar residuals cannot tell): the ring's failure in small. With the cheirality
-    residuals the fit stops at camera 1 instead, its pair's points still in front."""
+def _camera_2_beside_camera_1():
+    """Four cameras looking down +z; 0, 1 and 3 at their places, camera 2 seen by pair (1, 2) at x = 1.05 (just past
+    camera 1 on the x axis) and by pairs (0, 2) and (2, 3) at x = 0.95 (just short of it): the exact rays of 300
+    points for each of six pairs, and the centres."""
     rng = np.random.default_rng(0)
     X = np.c_[rng.uniform(-2, 3, 300), rng.uniform(-1.5, 2.5, 300), rng.uniform(3, 6, 300)]
     centres = {0: [0.0, 0, 0], 1: [1.0, 0, 0], 3: [1.0, 1, 0]}
@@ -449,6 +448,15 @@ def test_a_camera_pulled_through_its_neighbour_by_other_pairs_passes_without_the
         r1.append(rays(centres.get(i, c2)))
         r2.append(rays(centres.get(j, c2)))
     I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
+    return I, J, r1, r2, centres, here, there
+
+
+def test_a_camera_pulled_through_its_neighbour_by_other_pairs_passes_without_the_cheirality_residuals_only():
+    """Cameras 0, 1, 3 held; camera 2 seen by pair (1, 2) at x = 1.05, just past camera 1 along the x axis, and by
+    pairs (0, 2) and (2, 3) at x = 0.95, just short of it. x = 0.95 fits every match exactly, with pair (1, 2)'s
+    direction reversed (the epipolar residuals cannot tell): the ring's failure in small. With the cheirality
+    residuals the fit stops at camera 1 instead, its pair's points still in front."""
+    I, J, r1, r2, centres, here, there = _camera_2_beside_camera_1()
     R0, C0 = np.tile(np.eye(3), (4, 1, 1)), np.array([centres[0], centres[1], here, centres[3]])
     args = (R0, C0, I, J, r1, r2, np.full(len(I), 1 / 200))
     _, C, rep = solve_poses(*args, held=[0, 1, 3], keep_scale=False, cheirality=False)
@@ -733,22 +741,7 @@ def test_a_pair_already_reversed_at_the_start_is_not_charged():
     were made at x = 1.05, so that pair's points meet behind its cameras from the start. Only pairs whose points met
     mostly in front at the start are charged: the fit has nothing to do and camera 2 stays where it is (charging
     that pair pushed it through camera 1, against every other pair)."""
-    rng = np.random.default_rng(0)
-    X = np.c_[rng.uniform(-2, 3, 300), rng.uniform(-1.5, 2.5, 300), rng.uniform(3, 6, 300)]
-    centres = {0: [0.0, 0, 0], 1: [1.0, 0, 0], 3: [1.0, 1, 0]}
-    here, there = [1.05, 0, 0], [0.95, 0, 0]
-
-    def rays(c):
-        v = X - np.asarray(c)
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-    I, J, r1, r2 = [], [], [], []
-    for i, j, c2 in ((0, 1, None), (0, 3, None), (1, 3, None), (1, 2, here), (0, 2, there), (2, 3, there)):
-        I.append(np.full(len(X), i))
-        J.append(np.full(len(X), j))
-        r1.append(rays(centres.get(i, c2)))
-        r2.append(rays(centres.get(j, c2)))
-    I, J, r1, r2 = (np.concatenate(x) for x in (I, J, r1, r2))
+    I, J, r1, r2, centres, here, there = _camera_2_beside_camera_1()
     R0, C0 = np.tile(np.eye(3), (4, 1, 1)), np.array([centres[0], centres[1], there, centres[3]])
     R, C, _ = solve_poses(R0, C0, I, J, r1, r2, np.full(len(I), 1 / 200), held=[0, 1, 3], keep_scale=False)
     np.testing.assert_allclose(C[2], there, atol=1e-6)
