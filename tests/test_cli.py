@@ -27,6 +27,25 @@ def tiny(tmp_path):
     return weights, folder
 
 
+def _save_test_recon(folder):
+    """recon_factory's small reconstruction, saved as an npz in ``folder`` (what splat and localize read)."""
+    from pointmap.io import save_reconstruction
+
+    sys.path.insert(0, str(Path(__file__).parent / "io"))
+    from recon_factory import make_recon
+
+    save_reconstruction(make_recon(), folder, formats=("npz",))
+
+
+class _Reached(Exception):
+    """A stand-in stops a command once it got where the test looks."""
+
+
+def _stop(*args, **kwargs):
+    """A stand-in (e.g. for load_model) that ends the command where the test has seen what it looks for."""
+    raise _Reached
+
+
 def test_a_folder_stands_for_its_images_sorted_by_name_and_flags_may_follow_the_command(tiny, tmp_path, capsys):
     from pointmap.io import load_npz
 
@@ -742,12 +761,7 @@ def test_an_output_path_that_is_a_file_is_refused_before_the_model_is_even_loade
     images = [str(folder / "a.jpg"), str(folder / "c.png")]
     args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path), *images], "demo": []}[command]
     if command == "localize":  # the reconstruction it reads must exist for -o to be the first error
-        from pointmap.io import save_reconstruction
-
-        sys.path.insert(0, str(Path(__file__).parent / "io"))
-        from recon_factory import make_recon
-
-        save_reconstruction(make_recon(), tmp_path, formats=("npz",))
+        _save_test_recon(tmp_path)
     # the model named does not exist: the -o error shows the folder was checked first
     assert main([command, *args, "-o", str(tmp_path / "taken" / "sub"), "--model", "no_such_model"]) == 2
     assert "-o expected a folder to write into, got" in capsys.readouterr().err
@@ -811,10 +825,6 @@ def test_a_device_torch_cannot_use_is_refused_in_one_line_before_the_model_loads
     assert err.startswith("pointmap: error: --device cuda: torch sees 0 CUDA device(s)") and err.count("\n") == 1
 
 
-class _Reached(Exception):
-    """A stand-in stops a command once it got where the test looks."""
-
-
 @pytest.mark.parametrize("command", ["reconstruct", "pair", "localize", "splat", "demo"])
 def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_command(tiny, tmp_path, monkeypatch,
                                                                                   command):
@@ -824,10 +834,6 @@ def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_comman
     import pointmap.localization
     import pointmap.pipeline
     import pointmap.splat
-    from pointmap.io import save_reconstruction
-
-    sys.path.insert(0, str(Path(__file__).parent / "io"))
-    from recon_factory import make_recon
 
     weights, folder = tiny
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # a machine with one GPU: auto takes it
@@ -848,7 +854,7 @@ def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_comman
     for module, name in ((pointmap.pipeline, "reconstruct"), (pointmap.io_pair, "write_pair_outputs"),
                          (pointmap.localization, "localize"), (pointmap.demo, "run_demo"), (pointmap.splat, "run")):
         monkeypatch.setattr(module, name, record(name if name != "run" else "splat"))
-    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    _save_test_recon(tmp_path / "rec")
     images = [str(folder / "a.jpg"), str(folder / "c.png")]
     args = {"reconstruct": images, "pair": images, "localize": [str(tmp_path / "rec"), *images],
             "splat": [str(tmp_path / "rec"), "--test", images[0]], "demo": []}[command]
@@ -865,14 +871,10 @@ def test_the_device_reaches_the_model_and_the_stage_that_runs_it_on_every_comman
 
 def test_splat_without_test_views_never_asks_for_the_device(tiny, tmp_path, monkeypatch):
     import pointmap.splat
-    from pointmap.io import save_reconstruction
-
-    sys.path.insert(0, str(Path(__file__).parent / "io"))
-    from recon_factory import make_recon
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setattr(pointmap.splat, "run", lambda recon, out_dir, **kw: {"fit": None})
-    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    _save_test_recon(tmp_path / "rec")
     assert main(["--quiet", "splat", str(tmp_path / "rec"), "--device", "cuda"]) == 0  # the fit runs on the CPU
 
 
@@ -1143,10 +1145,6 @@ def test_a_warning_during_a_command_is_one_line_and_the_library_formatting_is_re
 
 def test_flags_that_would_be_ignored_are_refused_before_the_model_loads(tiny, tmp_path, capsys, monkeypatch):
     import pointmap.checkpoint
-    from pointmap.io import save_reconstruction
-
-    sys.path.insert(0, str(Path(__file__).parent / "io"))
-    from recon_factory import make_recon
 
     weights, folder = tiny
     monkeypatch.setattr(pointmap.checkpoint, "load_model", lambda *a, **k: pytest.fail("the model loaded"))
@@ -1162,7 +1160,7 @@ def test_flags_that_would_be_ignored_are_refused_before_the_model_loads(tiny, tm
         assert said in capsys.readouterr().err
     assert main(["splat", str(tmp_path / "rec"), "--test-align-steps", "7"]) == 2  # no reconstruction needed first
     assert "no reconstruction.npz" in capsys.readouterr().err
-    save_reconstruction(make_recon(), tmp_path / "rec", formats=("npz",))
+    _save_test_recon(tmp_path / "rec")
     for extra in (["--test-align-steps", "7"], ["--model", "nonexistent_model"]):
         assert main(["splat", str(tmp_path / "rec"), *extra]) == 2
         assert f"{extra[0]} applies only with --test" in capsys.readouterr().err
@@ -1222,16 +1220,6 @@ class _SavedRecon:
         return {}
 
 
-def _save_test_recon(folder):
-    """recon_factory's small reconstruction, saved as an npz in ``folder`` (what splat and localize read)."""
-    from pointmap.io import save_reconstruction
-
-    sys.path.insert(0, str(Path(__file__).parent / "io"))
-    from recon_factory import make_recon
-
-    save_reconstruction(make_recon(), folder, formats=("npz",))
-
-
 def _record_pipeline(monkeypatch, seen):
     import pointmap.pipeline
 
@@ -1284,10 +1272,7 @@ def test_a_video_without_stride_gives_at_most_30_frames_or_max_frames(tmp_path, 
     import pointmap.checkpoint
     from tests.test_video import _video
 
-    def stop(*a, **k):
-        raise _Reached
-
-    monkeypatch.setattr(pointmap.checkpoint, "load_model", stop)  # the frames are read before the model loads
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", _stop)  # the frames are read before the model loads
     video = _video(tmp_path / "clip.avi", n=30)
     for extra, n in (([], 30), (["--max-frames", "5"], 5)):
         out = tmp_path / f"out{n}"
@@ -1460,10 +1445,7 @@ def test_localize_takes_max_frames_of_a_video_and_one_frame_is_enough(tmp_path, 
     import pointmap.checkpoint
     from tests.test_video import _video
 
-    def stop(*a, **k):
-        raise _Reached
-
-    monkeypatch.setattr(pointmap.checkpoint, "load_model", stop)  # the frames are read before the model loads
+    monkeypatch.setattr(pointmap.checkpoint, "load_model", _stop)  # the frames are read before the model loads
     _save_test_recon(tmp_path / "rec")
     video = _video(tmp_path / "walk.avi", n=12)
     for n in (3, 1):
