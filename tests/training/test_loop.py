@@ -522,9 +522,13 @@ def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay
     clock = DecayByTime(cfg, start=0, t0=0.0, warm=5)
     # 1 s per step after a 30 s first step (compilation): the pace is measured from step 5 on
     started = [s for s in range(1, 1000) if clock.update(s, 30.0 + (s - 1) * 1.0)]
-    # at step s, 60 - (29 + s) s are left: the decay starts when that is <= 10 + 2 steps of 1 s, i.e. at s = 19
-    assert started == [19] and cfg.steps == 29
-    assert not clock.update(22, 51.0) and cfg.steps == 29  # fixed once decaying
+    # at step s, 60 - (29 + s) s are left: the decay starts when that is <= 10 * 1.1 + 2 steps of 1 s (the decay's
+    # steps counted 10% slower), i.e. at s = 18; with no margin, when it is <= 10 + 2 steps, at s = 19
+    assert started == [18] and cfg.steps == 28
+    assert not clock.update(22, 51.0) and cfg.steps == 28  # fixed once decaying
+    exact = DecayByTime(dataclasses.replace(cfg, steps=1000), start=0, t0=0.0, warm=5, margin=0.0)
+    assert [s for s in range(1, 1000) if exact.update(s, 30.0 + (s - 1) * 1.0)] == [19]
+
     late = dataclasses.replace(cfg, steps=1000, warmup=500)
     assert not any(DecayByTime(late, 0, 0.0, warm=5).update(s, 30.0 + s) for s in range(1, 500))  # not in warmup
 
@@ -540,10 +544,10 @@ def test_a_stall_of_the_process_does_not_start_the_decay_by_time_early(tmp_path)
         return 30.0 + (s - 1) + (120.0 if s > 5 else 0.0)
 
     started = [s for s in range(1, 1000) if clock.update(s, t(s))]
-    # the decay starts when 600 - t(s) s fit 12 steps of 1 s (the stall, counted as 4 steps while in the window,
-    # has left it by then): at s = 439. Read from the stalled step alone, the pace was 121 s and the decay started
-    # at step 6
-    assert started == [439] and clock.pace() == pytest.approx(1.0)
+    # the decay starts when 600 - t(s) s fit 10 * 1.1 + 2 steps of 1 s (the stall, counted as 4 steps while in the
+    # window, has left it by then): at s = 438. Read from the stalled step alone, the pace was 121 s and the decay
+    # started at step 6
+    assert started == [438] and clock.pace() == pytest.approx(1.0)
     early = DecayByTime(dataclasses.replace(cfg, steps=100_000), start=0, t0=0.0, warm=5)
     assert not any(early.update(s, t(s)) for s in range(1, 12))
     assert 1.0 < early.pace() <= 1.6  # the stall counted as 4 steps of the first 6
