@@ -113,8 +113,8 @@ class Renderer:
         changed since (surfaces added, removed or replaced, other lights, background, ambient light, extent or
         generator version). A mesh or material edited in place is not seen: give the surface a new one."""
         version = getattr(scene, "version", SCENE_VERSIONS[-1])
-        if not (isinstance(version, (int, np.integer)) and not isinstance(version, bool) and version >= 1):
-            raise ValueError(f"a scene's version expected a generator version (an int >= 1), got {version!r}")
+        if not (isinstance(version, (int, np.integer)) and not isinstance(version, bool) and version in SCENE_VERSIONS):
+            raise ValueError(f"a scene's version expected a generator version (one of {SCENE_VERSIONS}), got {version!r}")
         built = (scene, _scene_state(scene, version))
         if self._scene_key is not None and self._scene_key[0] is scene and _same_state(self._scene_key[1], built[1]):
             return

@@ -1,9 +1,11 @@
+import re
+
 import numpy as np
 import pytest
 
 from data.geom import intrinsics_from_fov, look_at
 from data.render import cv_to_gl_pose, gl_to_cv_pose
-from data.scene import Light, Material, Scene, Surface, plane_scene
+from data.scene import SCENE_VERSIONS, Light, Material, Scene, Surface, plane_scene
 from pointmap.errors import ShapeError
 
 
@@ -110,13 +112,16 @@ def test_render_rejects_bad_camera_inputs_with_clear_errors(renderer):
         scene.lights = [Light("directional", np.ones(3), 1.0, direction=np.array(direction))]
         with pytest.raises(ValueError, match="a light's direction expected a finite non-zero 3-vector"):
             renderer.render(scene, K, np.eye(4), 32, 32)
-    for version in ("2", 2.0, 0, None):  # and the scene rendered next is not drawn the refused one's way
+    # and the scene rendered next is not drawn the refused one's way; 4 is no version make_scene draws (yet)
+    kept = plane_scene(1.0)
+    renderer.render(kept, K, np.eye(4), 32, 32)
+    for version in ("2", 2.0, 0, None, 4):
         scene = plane_scene(1.0)
         scene.version = version
-        with pytest.raises(ValueError, match=f"a scene's version expected a generator version \\(an int >= 1\\), "
-                                             f"got {version!r}"):
+        with pytest.raises(ValueError, match=re.escape(f"a scene's version expected a generator version (one of "
+                                                       f"{SCENE_VERSIONS}), got {version!r}")):
             renderer.render(scene, K, np.eye(4), 32, 32)
-        assert renderer._scene_key[0] is not scene  # not kept as the built scene, to be drawn some other way
+        assert renderer._scene_key[0] is kept  # the refused scene is not kept as the built one, to be drawn some other way
     scene = plane_scene(1.0)
     scene.lights = [Light("area", np.ones(3), 1.0)]
     with pytest.raises(ValueError, match="light kind expected directional/point/spot, got 'area'"):
