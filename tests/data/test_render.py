@@ -251,3 +251,88 @@ def test_every_colour_frame_is_antialiased_and_a_smooth_flag_changed_after_a_ren
     scene.surfaces[0].smooth = True
     smooth = renderer.render(scene, K, np.eye(4), 48, 48)[0]
     assert np.abs(smooth.astype(int) - faceted.astype(int)).max() > 10
+
+
+def _grey(renderer, scene, size=64):
+    """The mean over RGB of ``scene`` rendered by an identity camera with a 60 degree field of view, and its K."""
+    K = intrinsics_from_fov(size, size, 60.0)
+    return renderer.render(scene, K, np.eye(4), size, size)[0].astype(float).mean(-1), K
+
+
+def _plane_lit_by(lights, distance=2.0, material=None):
+    """plane_scene's plane lit only by ``lights`` (no ambient light), in ``material`` when given."""
+    scene = plane_scene(distance)
+    scene.lights, scene.ambient = lights, np.zeros(3)
+    if material is not None:
+        scene.surfaces[0].material = material
+    return scene
+
+
+def test_a_point_light_falls_off_with_the_square_of_distance_and_shines_from_where_it_is(renderer):
+    def linear(v):  # pyrender writes sRGB-like colours: v = 255 * linear ** (1 / 2.2)
+        return (v / 255.0) ** 2.2
+
+    def centre(intensity, distance):
+        return _grey(renderer, _plane_lit_by([Light("point", np.ones(3), intensity, position=np.zeros(3))],
+                                             distance))[0][32, 32]
+
+    # the plane's centre faces a light at the camera: its irradiance is intensity / distance^2
+    assert linear(centre(2.0, 2.0)) / linear(centre(2.0, 4.0)) == pytest.approx(4.0, rel=0.15)
+    assert linear(centre(4.0, 4.0)) / linear(centre(2.0, 4.0)) == pytest.approx(2.0, rel=0.15)
+    right, _ = _grey(renderer, _plane_lit_by([Light("point", np.ones(3), 2.0, position=np.array([1.0, 0.0, 1.5]))]))
+    assert right[:, 40:].mean() > 2 * right[:, :24].mean()  # a light at +x (the image's right) lights that side
+
+
+def test_a_spot_light_lights_only_its_cone_and_inside_its_inner_cone_is_a_point_light(renderer):
+    inner, outer = np.radians(8.0), np.radians(12.0)
+    spot = Light("spot", np.ones(3), 10.0, position=np.zeros(3), direction=np.array([0.0, 0.0, 1.0]),
+                 inner_cone=inner, outer_cone=outer)
+    lit, K = _grey(renderer, _plane_lit_by([spot]))
+    point, _ = _grey(renderer, _plane_lit_by([Light("point", np.ones(3), 10.0, position=np.zeros(3))]))
+    u, v = np.meshgrid(np.arange(64), np.arange(64))
+    angle = np.arctan(np.hypot(u - K[0, 2], v - K[1, 2]) / K[0, 0])  # off the spot's axis, seen from the light
+    assert (lit[angle > outer + np.radians(1.5)] == 0).all() and (angle > outer + np.radians(1.5)).sum() > 2000
+    assert lit[angle < inner].min() > 100
+    assert np.abs(lit - point)[angle < inner - np.radians(1.5)].max() <= 2
+    between = (angle > inner + np.radians(1.0)) & (angle < outer - np.radians(1.0))
+    assert (lit[between] < point[between] - 5).all()  # dimmed from the inner cone to the outer one
+
+
+def test_a_smooth_metal_plane_mirrors_a_directional_light_where_the_reflection_law_puts_it(renderer):
+    def lit_by(a, material, intensity=1.0):
+        light = Light("directional", np.ones(3), intensity, direction=np.array([np.sin(a), 0.0, np.cos(a)]))
+        return _grey(renderer, _plane_lit_by([light], material=material))
+
+    mirror = Material(np.array([0.8, 0.8, 0.8, 1.0]), metallic=1.0, roughness=0.02)
+    for a in np.radians([0.0, 15.0]):
+        metal, K = lit_by(a, mirror)
+        # the light travels along (sin a, 0, cos a) and leaves the plane z = 2 along (sin a, 0, -cos a): into the
+        # camera from the point x = -2 tan a, whose pixel is (cx - f tan a, cy)
+        v, u = np.nonzero(metal > 0.5 * metal.max())
+        assert metal.max() > 200 and len(u) < 200  # a small bright highlight
+        assert abs(u.mean() - (K[0, 2] - K[0, 0] * np.tan(a))) < 1.5 and abs(v.mean() - K[1, 2]) < 1.5
+    matte_material = Material(np.array([0.8, 0.8, 0.8, 1.0]), metallic=0.0, roughness=0.8)
+    matte, _ = lit_by(np.radians(15.0), matte_material)
+    assert matte.std() < 5  # a matte plane under a directional light is evenly lit, in proportion to its intensity...
+    # Lambert's law in pyrender's units: radiance = albedo (0.8, less the 4% a dielectric reflects) / pi * intensity
+    # * cos(incidence), written sRGB-like (255 * linear ** (1 / 2.2)); the specular lobe adds about 1% at roughness 0.8
+    lambert = 0.8 * 0.96 / np.pi * np.cos(np.radians(15.0))
+    assert (matte / 255.0) ** 2.2 == pytest.approx(np.full_like(matte, lambert), rel=0.1)
+    assert (lit_by(np.radians(15.0), matte_material, intensity=2.0)[0] / 255.0) ** 2.2 == pytest.approx(
+        np.full_like(matte, 2 * lambert), rel=0.1)
+    assert np.median(metal) < 0.25 * np.median(matte)  # ...and a metal, which has no diffuse light, dark off the highlight
+
+
+def test_a_fine_texture_seen_from_afar_is_filtered_through_its_mipmaps_not_aliased(renderer):
+    checker = np.where(np.add.outer(np.arange(64), np.arange(64))[..., None] % 2 == 1, 255, 0).astype(np.uint8)
+    checker = np.repeat(checker, 3, axis=-1)
+
+    def seen(distance):
+        scene = plane_scene(distance, size=100.0, texture=checker)
+        scene.lights, scene.ambient = [], np.ones(3)
+        return _grey(renderer, scene)[0]
+
+    # 128 texels a metre: a pixel spans about 0.2 texels at 10 cm, and about 46 at 20 m
+    near, far = seen(0.1), seen(20.0)
+    assert near.std() > 25  # magnified, the checker shows (blurred by linear filtering)
+    assert far.std() < 3 and abs(far.mean() - near.mean()) < 10  # minified, its mean; sampled without mipmaps, std 37
