@@ -177,8 +177,11 @@ def build_stack(preds: dict, keys: list, shapes: list[tuple[int, int]], stride: 
             out_p[e, :counts[img]] = torch.where(ok[:, None], sub, torch.zeros_like(sub))
             out_w[e, :counts[img]] = torch.where(ok, conf_to_weight(c, conf_transform), torch.zeros_like(c))
         # the pair's score (DUSt3R's mean conf1 x mean conf2) counts the pixels whose points alignment can use:
-        # a pair with a few usable points and full confidences elsewhere would otherwise lead the spanning tree
-        c1, c2 = (torch.where(torch.isfinite(c) & _valid_points(pts.detach()[0].double()), c, torch.zeros_like(c)).mean()
+        # a pair with a few usable points and full confidences elsewhere would otherwise lead the spanning tree.
+        # A negative confidence counts 0, as it weighs nothing in the pixel weights: a block of them made every
+        # score negative and the averaging start gave up ("all weights zero") for the spanning tree
+        c1, c2 = (torch.where(torch.isfinite(c) & _valid_points(pts.detach()[0].double()), c.clamp(min=0),
+                              torch.zeros_like(c)).mean()
                   for c, pts in ((p.conf1.detach().double()[0], p.pts1_cam1), (p.conf2.detach().double()[0], p.pts2_cam1)))
         score[e] = c1 * c2
     heads = [preds[k].cam2_to_cam1 for k in keys]

@@ -205,6 +205,22 @@ def test_a_failed_averaging_falls_back_to_the_spanning_tree_with_a_warning(monke
     assert pose_errors(recon.cam2world.numpy(), sc["cam2world"])[0] < 0.05  # the tree's exact start
 
 
+def test_negative_confidences_count_nothing_in_the_pair_scores_so_the_averaging_start_stands():
+    """A block of negative confidence in every pair's first map weighs nothing in the pixel weights; in the pairs'
+    scores (mean conf1 x mean conf2) it made every score negative, and the averaging start gave up for the tree."""
+    import warnings
+
+    sc = make_scene(4, 32, 48, seed=3)
+    preds = gt_preds(sc, complete_pairs(4), seed=4)
+    for p in preds.values():
+        p.conf1[0, :12, :16] = -50.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback and no warning
+        recon = global_align(views_of(sc), preds, config=AlignConfig(quiet=True, niter=0))
+    assert recon.info["align"]["init"] == "averaging"
+    assert pose_errors(recon.cam2world.numpy(), sc["cam2world"])[0] < 0.05
+
+
 def test_the_report_names_the_start_and_its_root():
     sc = make_scene(4, 24, 32, seed=0)
     preds = gt_preds(sc, complete_pairs(4), seed=2)
