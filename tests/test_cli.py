@@ -1367,9 +1367,9 @@ def test_more_than_12_photographs_keep_the_wrap_around_pairs_that_only_a_videos_
     assert seen["reconstruct"]["graph"] == "auto"  # photographs: the pipeline's own choice, not a video's -noncyclic
 
 
-def _splat_test_setup(tiny, tmp_path, monkeypatch, ref):
+def _splat_test_setup(tiny, tmp_path, monkeypatch):
     """A reconstruction of a.jpg, b.PNG; splat.run returns a refined reconstruction; localize and evaluate_views
-    record what they were given; the one test view is posed against reconstruction view ``ref``."""
+    record what they were given; the one test view is posed against reconstruction view 0."""
     import pointmap.localization
     import pointmap.splat
     import pointmap.splat.outputs
@@ -1386,7 +1386,7 @@ def _splat_test_setup(tiny, tmp_path, monkeypatch, ref):
 
     def localize(model, recon, images, **kw):
         seen["localized_in"] = recon
-        return pointmap.localization.Localization(torch.eye(4, dtype=torch.float64)[None], K[None], [ref], [2.0],
+        return pointmap.localization.Localization(torch.eye(4, dtype=torch.float64)[None], K[None], [0], [2.0],
                                                   [1.0], ["c.png"])
 
     monkeypatch.setattr(pointmap.localization, "localize", localize)
@@ -1397,7 +1397,7 @@ def _splat_test_setup(tiny, tmp_path, monkeypatch, ref):
 
 def test_splat_test_views_are_posed_in_the_refined_cameras_and_one_posed_against_view_0_is_scored(
         tiny, tmp_path, monkeypatch):
-    weights, folder, out, seen, refined = _splat_test_setup(tiny, tmp_path, monkeypatch, ref=0)
+    weights, folder, out, seen, refined = _splat_test_setup(tiny, tmp_path, monkeypatch)
     assert main(["--quiet", "splat", str(out), "--test", str(folder / "c.png"), "--model", str(weights)]) == 0
     assert seen["localized_in"] is refined and seen["n"] == 1
     assert seen["align_steps"] == 100 and seen["budget"] == 120.0  # the defaults
