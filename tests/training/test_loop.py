@@ -21,8 +21,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def config(out, steps):
+    """A tiny run's config. The wall-time checkpoint is off (ckpt_minutes=0; its test sets it): a test's checkpoints
+    do not depend on how long it ran (a run stopped 45 minutes by kill -STOP wrote an extra one inside its decay)."""
     return TrainConfig(data="synthetic", out=str(out), preset="test", batch_size=2, steps=steps, warmup=2,
-                       ckpt_every=1, eval_every=1000, workers=0, quiet=True, n_corr=64)
+                       ckpt_every=1, ckpt_minutes=0.0, eval_every=1000, workers=0, quiet=True, n_corr=64)
 
 
 def tick_clock(monkeypatch, seconds=0.05):
@@ -941,8 +943,8 @@ def test_a_csv_row_torn_by_a_killed_run_is_cut_before_the_next_row_is_appended(t
 def test_sigterm_checkpoints_the_current_step_and_a_resumed_run_ends_as_an_uninterrupted_one(tmp_path):
     import signal
 
-    straight = run(tmp_path / "a", 6, ckpt_every=1000, ckpt_minutes=0.0)
-    cfg = dataclasses.replace(config(tmp_path / "b", 6), ckpt_every=1000, ckpt_minutes=0.0)
+    straight = run(tmp_path / "a", 6, ckpt_every=1000)
+    cfg = dataclasses.replace(config(tmp_path / "b", 6), ckpt_every=1000)
     step = make_step(cfg)
 
     def signalled_step(model, batch, k):
@@ -956,7 +958,7 @@ def test_sigterm_checkpoints_the_current_step_and_a_resumed_run_ends_as_an_unint
     assert result["step"] == 3 and result["terminated"]
     assert torch.load(tmp_path / "b" / "last.pt", weights_only=True)["step"] == 3
     assert signal.getsignal(signal.SIGTERM) is before  # the handler is the loop's only while it runs
-    resumed = run(tmp_path / "b", 6, ckpt_every=1000, ckpt_minutes=0.0)
+    resumed = run(tmp_path / "b", 6, ckpt_every=1000)
     for k, v in straight.state_dict().items():
         assert torch.allclose(v, resumed.state_dict()[k], atol=1e-6), k
 
@@ -1045,7 +1047,7 @@ def test_a_sigterm_during_the_last_update_keeps_its_decay_checkpoint_and_the_res
     import signal
 
     cfg = dataclasses.replace(config(tmp_path / "a", 8), schedule="wsd", decay_steps=4, ckpt_every=2,
-                              decay_ckpts=True, ckpt_minutes=0.0)
+                              decay_ckpts=True)
     step, evals = make_step(cfg), []
 
     def signalled_step(model, batch, k):
