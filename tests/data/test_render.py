@@ -155,12 +155,21 @@ def test_preview_writes_a_contact_sheet_of_a_shard(tiny_pairs, tmp_path):
     assert not (tmp_path / "none.png").exists()
 
 
-def _lit_plane(distance=2.0, size=50.0, color=(1.0, 1.0, 1.0), direction=(0.0, 0.0, 1.0), ambient=0.0):
-    """plane_scene's plane (facing a camera at the origin) in ``color``, one directional light travelling along
-    ``direction`` (None: no light), ``ambient`` light, a red background."""
+def _plane_lit_by(lights, distance=2.0, material=None, size=50.0):
+    """plane_scene's plane (facing a camera at the origin) lit only by ``lights`` (no ambient light), in
+    ``material`` when given."""
     scene = plane_scene(distance, size)
-    scene.surfaces[0].material = Material(base_color=np.r_[color, 1.0])
-    scene.lights = [] if direction is None else [Light("directional", np.ones(3), 3.0, direction=np.array(direction))]
+    scene.lights, scene.ambient = lights, np.zeros(3)
+    if material is not None:
+        scene.surfaces[0].material = material
+    return scene
+
+
+def _lit_plane(distance=2.0, size=50.0, color=(1.0, 1.0, 1.0), direction=(0.0, 0.0, 1.0), ambient=0.0):
+    """plane_scene's plane in ``color``, one directional light travelling along ``direction`` (None: no light),
+    ``ambient`` light, a red background."""
+    lights = [] if direction is None else [Light("directional", np.ones(3), 3.0, direction=np.array(direction))]
+    scene = _plane_lit_by(lights, distance, Material(base_color=np.r_[color, 1.0]), size)
     scene.ambient, scene.bg_color = np.full(3, ambient), np.array([1.0, 0.0, 0.0])
     return scene
 
@@ -259,26 +268,19 @@ def _grey(renderer, scene, size=64):
     return renderer.render(scene, K, np.eye(4), size, size)[0].astype(float).mean(-1), K
 
 
-def _plane_lit_by(lights, distance=2.0, material=None):
-    """plane_scene's plane lit only by ``lights`` (no ambient light), in ``material`` when given."""
-    scene = plane_scene(distance)
-    scene.lights, scene.ambient = lights, np.zeros(3)
-    if material is not None:
-        scene.surfaces[0].material = material
-    return scene
+def _linear(v):
+    """Linear light from a rendered colour: pyrender writes sRGB-like values, v = 255 * linear ** (1 / 2.2)."""
+    return (np.asarray(v, float) / 255.0) ** 2.2
 
 
 def test_a_point_light_falls_off_with_the_square_of_distance_and_shines_from_where_it_is(renderer):
-    def linear(v):  # pyrender writes sRGB-like colours: v = 255 * linear ** (1 / 2.2)
-        return (v / 255.0) ** 2.2
-
     def centre(intensity, distance):
         return _grey(renderer, _plane_lit_by([Light("point", np.ones(3), intensity, position=np.zeros(3))],
                                              distance))[0][32, 32]
 
     # the plane's centre faces a light at the camera: its irradiance is intensity / distance^2
-    assert linear(centre(2.0, 2.0)) / linear(centre(2.0, 4.0)) == pytest.approx(4.0, rel=0.15)
-    assert linear(centre(4.0, 4.0)) / linear(centre(2.0, 4.0)) == pytest.approx(2.0, rel=0.15)
+    assert _linear(centre(2.0, 2.0)) / _linear(centre(2.0, 4.0)) == pytest.approx(4.0, rel=0.15)
+    assert _linear(centre(4.0, 4.0)) / _linear(centre(2.0, 4.0)) == pytest.approx(2.0, rel=0.15)
     right, _ = _grey(renderer, _plane_lit_by([Light("point", np.ones(3), 2.0, position=np.array([1.0, 0.0, 1.5]))]))
     assert right[:, 40:].mean() > 2 * right[:, :24].mean()  # a light at +x (the image's right) lights that side
 
@@ -315,10 +317,10 @@ def test_a_smooth_metal_plane_mirrors_a_directional_light_where_the_reflection_l
     matte, _ = lit_by(np.radians(15.0), matte_material)
     assert matte.std() < 5  # a matte plane under a directional light is evenly lit, in proportion to its intensity...
     # Lambert's law in pyrender's units: radiance = albedo (0.8, less the 4% a dielectric reflects) / pi * intensity
-    # * cos(incidence), written sRGB-like (255 * linear ** (1 / 2.2)); the specular lobe adds about 1% at roughness 0.8
+    # * cos(incidence); the specular lobe adds about 1% at roughness 0.8
     lambert = 0.8 * 0.96 / np.pi * np.cos(np.radians(15.0))
-    assert (matte / 255.0) ** 2.2 == pytest.approx(np.full_like(matte, lambert), rel=0.1)
-    assert (lit_by(np.radians(15.0), matte_material, intensity=2.0)[0] / 255.0) ** 2.2 == pytest.approx(
+    assert _linear(matte) == pytest.approx(np.full_like(matte, lambert), rel=0.1)
+    assert _linear(lit_by(np.radians(15.0), matte_material, intensity=2.0)[0]) == pytest.approx(
         np.full_like(matte, 2 * lambert), rel=0.1)
     assert np.median(metal) < 0.25 * np.median(matte)  # ...and a metal, which has no diffuse light, dark off the highlight
 

@@ -530,7 +530,6 @@ def test_decay_by_time_starts_the_decay_when_the_minutes_left_fit_just_the_decay
     assert not clock.update(22, 51.0) and cfg.steps == 28  # fixed once decaying
     exact = DecayByTime(dataclasses.replace(cfg, steps=1000), start=0, t0=0.0, warm=5, margin=0.0)
     assert [s for s in range(1, 1000) if exact.update(s, 30.0 + (s - 1) * 1.0)] == [19]
-
     late = dataclasses.replace(cfg, steps=1000, warmup=500)
     assert not any(DecayByTime(late, 0, 0.0, warm=5).update(s, 30.0 + s) for s in range(1, 500))  # not in warmup
 
