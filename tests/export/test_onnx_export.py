@@ -286,48 +286,60 @@ def test_official_size_exports_pass_parity(preset, tmp_path):
     assert runner.cfg == PRESETS[preset]
 
 
-def test_a_pose_head_model_exports_with_parity(tmp_path):
+@pytest.fixture(scope="module")
+def heads_export(tmp_path_factory):
+    """(model, folder): one test-preset model with every optional head (pose, focal, descriptor stem), each moved off
+    the neutral start it is initialised at so its path shows in the outputs, exported once as split graphs (the
+    stem's local features must cross from the encoder graph to the decoder graph). One export instead of one per
+    head: each takes 1-3 minutes on 2 cores."""
     torch.manual_seed(0)
-    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True)).eval()
+    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True, focal_head=True, desc_stem=4)).eval()
     with torch.no_grad():
         model.pose_head.out.weight.normal_(0, 0.3)  # far from the identity it starts at
-    export_model(model, tmp_path / "pose", parity="quick", quiet=True)
-    runner = pm.load_model(tmp_path / "pose")
-    report = check_parity(model, runner, [(64, 96, 96, 64, 2)])
-    assert report["passed"], report["cases"]
-    assert "cam2_to_cam1" in report["cases"][0]["outputs"]  # the pose head's transform is a graph output
-    # an export written before that output existed: its predictions come without it (relative_pose then uses
-    # the Procrustes of the pointmaps) instead of failing
-    import onnx
-
-    graph = onnx.load(str(tmp_path / "pose" / "model.onnx"))
-    keep = [o for o in graph.graph.output if o.name != "cam2_to_cam1"]
-    del graph.graph.output[:]
-    graph.graph.output.extend(keep)
-    onnx.save(graph, str(tmp_path / "pose" / "model.onnx"))
-    img1, img2 = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 96, 64)
-    old = pm.load_model(tmp_path / "pose")(img1, img2)
-    assert old.cam2_to_cam1 is None and torch.allclose(old.pts1_cam1, model(img1, img2).pts1_cam1, atol=1e-4)
-
-
-def test_a_focal_head_model_exports_both_focals_with_parity(tmp_path):
-    torch.manual_seed(0)
-    model = pm.PointmapNet(PRESETS["test"].replace(pose_head=True, focal_head=True)).eval()
-    with torch.no_grad():
         model.focal_head.out.weight.normal_(0, 0.3)  # a correction that depends on the image
-        for h in (model.downstream_head1, model.downstream_head2):  # points in front: a focal to start from
-            h.dpt.head[4].bias[2] += 6.0
-    export_model(model, tmp_path / "focal", parity="quick", quiet=True)
-    runner = pm.load_model(tmp_path / "focal")
+        for h in (model.downstream_head1, model.downstream_head2):
+            h.dpt.head[4].bias[2] += 6.0  # points in front: a focal to start from
+            h.desc_fuse.weight.normal_(0, 0.5)  # away from the zero-initialised fuse: the stem's path is exercised
+    out = tmp_path_factory.mktemp("heads") / "export"
+    export_model(model, out, split=True, parity="quick", quiet=True)
+    return model, out
+
+
+def test_a_model_with_pose_focal_and_stem_heads_exports_every_output_with_parity(heads_export):
+    model, folder = heads_export
+    runner = pm.load_model(folder)
+    assert runner.split and runner.cfg == model.cfg
     report = check_parity(model, runner, [(64, 96, 96, 64, 2)])
     assert report["passed"], report["cases"]
-    assert {"focal1", "focal2"} <= set(report["cases"][0]["outputs"])
+    assert {"cam2_to_cam1", "focal1", "focal2", "desc1", "desc2"} <= set(report["cases"][0]["outputs"])
     img1, img2 = torch.rand(2, 3, 64, 96), torch.rand(2, 3, 96, 64)
     with torch.no_grad():
         want = model(img1, img2)
     got = runner(img1, img2)
     assert got.focal1.shape == (2,) and torch.allclose(got.focal1, want.focal1, rtol=1e-3)
     assert torch.allclose(got.focal2, want.focal2, rtol=1e-3)
+    assert torch.allclose(got.cam2_to_cam1, want.cam2_to_cam1, atol=1e-4)
+
+
+def test_an_export_from_before_the_pose_output_existed_predicts_without_it(heads_export, tmp_path):
+    """Exports written before the pose head's transform was a graph output: their predictions come without it
+    (relative_pose then uses the Procrustes of the pointmaps) instead of failing."""
+    import shutil
+
+    model, folder = heads_export
+    old = shutil.copytree(folder, tmp_path / "old")
+    graph = onnx.load(str(old / "decoder.onnx"))
+    keep = [o for o in graph.graph.output if o.name != "cam2_to_cam1"]
+    assert len(keep) == len(graph.graph.output) - 1
+    del graph.graph.output[:]
+    graph.graph.output.extend(keep)
+    onnx.save(graph, str(old / "decoder.onnx"))
+    img1, img2 = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 96, 64)
+    pred = pm.load_model(old)(img1, img2)
+    with torch.no_grad():
+        want = model(img1, img2)
+    assert pred.cam2_to_cam1 is None and torch.allclose(pred.pts1_cam1, want.pts1_cam1, atol=1e-4)
+    assert pred.focal1 is not None  # only the missing output is dropped
 
 
 @pytest.mark.parametrize("extra, module", [(dict(pose_head=True), "pose_head.out"),
@@ -345,19 +357,11 @@ def test_the_half_precision_graph_keeps_the_pose_and_focal_heads_and_the_descrip
     assert all(torch.isfinite(o).all() for o in out)
 
 
-def test_a_descriptor_stem_model_exports_split_with_its_local_features_between_the_graphs(tmp_path):
+def test_a_descriptor_stem_export_carries_its_local_features_between_the_graphs(heads_export):
     from pointmap.model.net import Encoded
 
-    torch.manual_seed(0)
-    model = pm.PointmapNet(PRESETS["test"].replace(desc_stem=4)).eval()
-    with torch.no_grad():  # away from the zero-initialised fuse, so the stem's path is exercised
-        for head in (model.downstream_head1, model.downstream_head2):
-            head.desc_fuse.weight.normal_(0, 0.5)
-    export_model(model, tmp_path / "stem", split=True, parity="quick", quiet=True)
-    runner = pm.load_model(tmp_path / "stem")
+    runner = pm.load_model(heads_export[1])
     assert runner.cfg.desc_stem == 4
-    report = check_parity(model, runner, [(64, 96, 96, 64, 2)])
-    assert report["passed"], report["cases"]
     enc = runner.encode(torch.rand(1, 3, 32, 48))
     assert enc.local.shape == (1, 6, 4 * 16 * 16)
     with pytest.raises(pm.ShapeError, match="enc1.local expected the descriptor stem's local features"):
