@@ -58,6 +58,7 @@ def test_the_constructor_grammar_refuses_anything_but_literals(text, message):
         parse_ctor(text)
 
 
+@pytest.mark.filterwarnings("ignore:.*non-commercial use only:UserWarning")  # the licence warning has its own test
 def test_an_official_checkpoint_with_alias_keys_and_a_namespace_loads_into_identical_outputs(tmp_path):
     model, path = tiny_official(tmp_path)
     loaded = pm.load_model(path)
@@ -82,6 +83,7 @@ def test_an_official_checkpoint_says_it_is_non_commercial_and_a_saved_copy_keeps
     assert model_licence(pm.PointmapNet(pm.PRESETS["test"])) is None
 
 
+@pytest.mark.filterwarnings("ignore:.*non-commercial use only:UserWarning")  # the licence warning has its own test
 def test_an_official_checkpoint_runs_at_the_size_its_constructor_names(tmp_path):
     from pointmap.checkpoint import model_input_size
 

@@ -794,7 +794,8 @@ def test_a_run_from_non_commercial_weights_records_their_licence_in_every_checkp
     nc.provenance = {"source": "official", "licence": OFFICIAL_LICENCE}
     init = pm.save_model(nc, tmp_path / "nc.safetensors")
     cfg = dataclasses.replace(config(tmp_path / "run", 2), init=str(init), preset="test")
-    model = build_model(cfg)
+    with pytest.warns(UserWarning, match=r"licensed CC-BY-NC-SA-4.0 \(non-commercial use only\)"):
+        model = build_model(cfg)
     assert model.licence == OFFICIAL_LICENCE and lineage_extra(model) == {"licence": OFFICIAL_LICENCE}
     fit(cfg, model, PlanePairs(4), collate, make_step(cfg), extra=lineage_extra(model))
     ck = torch.load(tmp_path / "run" / "last.pt", weights_only=True)

@@ -95,7 +95,12 @@ def test_the_shipped_licence_is_the_projects_unless_an_input_records_another_whi
 
     def shipped(*args):
         assert main([*args, "--out", str(tmp_path / "m.safetensors")]) == 0
-        return pm.load_model(tmp_path / "m.safetensors").provenance["licence"]
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            licence = pm.load_model(tmp_path / "m.safetensors").provenance["licence"]
+        # the loader warns exactly when the shipped file carries the non-commercial licence
+        assert any("non-commercial use only" in str(w.message) for w in seen) == (OFFICIAL_LICENCE in licence)
+        return licence
 
     assert shipped("--ckpt", str(tmp_path / "own.pt")) == "Apache-2.0"
     assert shipped("--ckpt", str(tmp_path / "nc.pt")) == OFFICIAL_LICENCE
