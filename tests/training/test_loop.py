@@ -1225,7 +1225,7 @@ def test_the_descriptor_confidence_loss_joins_a_step_after_the_matching_loss_wit
     on, d_on = make_step(dataclasses.replace(cfg, desc_conf_weight=0.5))(model, batch, 0)
     assert "desc_conf_loss" not in d_off and d_on["desc_conf"] > 0
     assert d_on["match_loss"] == d_off["match_loss"] and d_on["match_acc"] == d_off["match_acc"]
-    assert float(on) == pytest.approx(float(off) + 0.5 * d_on["desc_conf_loss"], rel=1e-5)
+    assert float(on.detach()) == pytest.approx(float(off.detach()) + 0.5 * d_on["desc_conf_loss"], rel=1e-5)
     # a head without its own confidence (two_confs false) reports the pointmap's: training it would train that
     one_conf, _ = seeded_model_and_batch(dataclasses.replace(PRESETS["test"], two_confs=False))
     with pytest.raises(ValueError, match="--desc_conf_weight needs a model whose descriptor head predicts its own"):
