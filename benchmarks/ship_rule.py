@@ -12,7 +12,9 @@ The rule (docs/training-log.md, session 42), one row per criterion; the candidat
 no other criterion fails:
 
 1. **count**: the candidate's exact count (rotations + directions within 15 degrees, of the pointmaps' pose and of
-   the pipeline's, over the four card sets: ``compare_cards.exact_count``) exceeds the incumbent's;
+   the pipeline's, over the four card sets: ``compare_cards.exact_count``), plus (with ``--ga``, since session 88)
+   its global alignment's rotations + directions within 15 degrees over the camera pairs (``ga_count``), exceeds
+   the incumbent's;
 2. **pair by pair**: none of ``paired.py``'s four pooled McNemar tests (rotation, direction, the pipeline's
    rotation and direction, over every shared pair) goes against the candidate at p < 0.05;
 3. **depth**: the candidate's AbsRel, averaged over the eval sets both cards hold, is at most 0.01 above the
@@ -88,6 +90,13 @@ def record_baseline(card, pairs, ga, weights=SHIPPED_WEIGHTS, folder=BASELINE) -
     write_bytes(folder / "weights.sha256", f"{sha256_file(weights)}  {Path(weights).name}\n".encode())
 
 
+def ga_count(per_pair: dict, tol: float = 15.0) -> int:
+    """Global alignment's share of the count: rotations + directions within ``tol`` degrees over every camera pair
+    of a ``bench_ga.py`` per-pair file (read by ``paired.read_per_pair``). A failed alignment is written there as
+    180 degrees; a NaN error is a miss too."""
+    return sum(int(v[c] < tol) for v in per_pair.values() for c in (0, 1))
+
+
 def _mcnemar_row(criterion: str, res: dict, errors: tuple) -> tuple:
     """A criterion row from the pooled ("all") rows of a ``paired`` result: it fails when any of ``errors`` goes
     against B (the candidate) at McNemar p < ALPHA; the detail names those losses, or every pooled row."""
@@ -133,8 +142,12 @@ def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga
     ci, cc = exact_count(inc_pairs), exact_count(cand_pairs)
     if ci is None or cc is None:
         rows.append(("count", ci, cc, None, "a per-pair file lacks a card set or the pipeline's columns"))
-    else:
-        rows.append(("count", ci, cc, cc > ci, f"{cc - ci:+d} pairs"))
+    elif ga is None:
+        rows.append(("count", ci, cc, cc > ci, f"{cc - ci:+d} pairs (two-view alone: no --ga files)"))
+    else:  # session 88: two-view and global alignment, each pose judged within 15 degrees counting once
+        gi, gc = ga_count(ga[0]), ga_count(ga[1])
+        rows.append(("count", ci + gi, cc + gc, cc + gc > ci + gi,
+                     f"{cc + gc - ci - gi:+d}: two-view {ci} -> {cc}, global alignment {gi} -> {gc}"))
 
     res, _ = paired(inc_pairs, cand_pairs)
     rows.append(_mcnemar_row("pair by pair", res, POOLED))

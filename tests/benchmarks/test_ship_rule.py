@@ -5,7 +5,7 @@ import pytest
 from benchmarks import ship_rule
 from benchmarks.compare_cards import exact_count, parse_card
 from benchmarks.paired import read_per_pair
-from benchmarks.ship_rule import check, main, record_baseline, shipped_baseline, ships
+from benchmarks.ship_rule import check, ga_count, main, record_baseline, shipped_baseline, ships
 from data.shards import sha256_file
 from training.evaluate import PairResult, write_per_pair
 
@@ -38,7 +38,7 @@ def test_a_candidate_with_more_pairs_and_no_significant_loss_ships(tmp_path, cap
     rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--names", "old", "new"])
     out = capsys.readouterr().out  # global alignment not checked: the rule is not met without it
     assert rc == 1 and "new does not ship under the rule (not checked: global alignment; --partial lets" in out
-    assert "| count | 160 | 176 | PASS | +16 pairs |" in out  # 4 sets x 10 pairs x 4 errors, then 4 x 11 x 4
+    assert "| count | 160 | 176 | PASS | +16 pairs (two-view alone: no --ga files) |" in out  # 4 x 10 x 4, 4 x 11 x 4
     rc = main(["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--names", "old", "new", "--partial"])
     assert rc == 0 and "new ships under the rule (not checked: global alignment)." in capsys.readouterr().out
 
@@ -81,6 +81,26 @@ def test_depth_global_alignment_and_the_real_photographs_each_can_stop_a_ship(tm
     assert ships(rows) and all(r[3] is True for r in rows)
 
 
+def test_the_count_adds_global_alignments_poses_so_a_gain_there_outweighs_a_smaller_two_view_loss(tmp_path):
+    """Session 88: two candidates lost 2 and 5 of some 2,470 two-view poses (noise: about 120 flipped each way)
+    while one gained 35 of global alignment's; the count now holds both."""
+    card = parse_card(_card(tmp_path, "c", (0.3, 0.3, 0.3)).read_text())
+    inc, cand = read_per_pair(_pairs(tmp_path, "i", 10)), read_per_pair(_pairs(tmp_path, "c", 9))  # 160 -> 144
+    nan = float("nan")
+    ga_inc = {("eval_s424242", i): (5.0 if i < 20 else 40.0, 40.0, 10.0 + i, nan, nan) for i in range(60)}
+    assert ga_count(ga_inc) == 20
+    for gained, ships_ in ((17, True), (16, False)):  # 16 directions gained only ties the 16 two-view poses lost
+        ga_cand = {k: (v[0], 5.0 if k[1] >= 60 - gained else 40.0, *v[2:]) for k, v in ga_inc.items()}
+        rows = check(card, inc, card, cand, ga=(ga_inc, ga_cand))
+        assert rows[0][1:4] == (160 + 20, 144 + 20 + gained, ships_)
+        assert rows[0][4] == f"{gained - 16:+d}: two-view 160 -> 144, global alignment 20 -> {20 + gained}"
+        assert ships(rows) is ships_  # no global-alignment loss: 17 or 16 directions gained, none lost
+    failed = {k: (180.0, 180.0, *v[2:]) if k[1] < 20 else v for k, v in ga_inc.items()}  # as bench_ga writes one
+    assert ga_count(failed) == 0 and ga_count({k: (nan, nan, *v[2:]) for k, v in ga_inc.items()}) == 0
+    rows = check(card, inc, card, inc, ga=(ga_inc, failed))
+    assert rows[0][1:4] == (180, 160, False) and rows[3][3] is False  # and global alignment's McNemar fails too
+
+
 def test_unreadable_inputs_exit_with_status_2_and_say_what_was_expected(tmp_path, capsys):
     good = _pairs(tmp_path, "p", 10)
     not_a_card = tmp_path / "x.txt"
@@ -102,8 +122,8 @@ def test_the_committed_baseline_was_measured_on_the_shipped_weights_and_reads_ba
     # the baseline against its own files: the same count, so it does not ship (the count must rise)
     rc = main(["--incumbent", "shipped", "--candidate", str(card), str(pairs), "--ga", str(ga)])
     out = capsys.readouterr().out
-    n = exact_count(read_per_pair(pairs))
-    assert rc == 1 and f"| count | {n} | {n} | FAIL | +0 pairs |" in out
+    n = exact_count(read_per_pair(pairs)) + ga_count(read_per_pair(ga))
+    assert rc == 1 and f"| count | {n} | {n} | FAIL | +0: two-view " in out
     assert "| global alignment |  |  | PASS | rotation " in out  # the committed GA file was read and compared
 
 
