@@ -1,7 +1,7 @@
 """Slow splatting tests (the PSNR/time bar on the rendered scene) run only with ``-m slow``; the suite runs
 single-threaded (see tests/conftest.py)."""
 
-import sys
+import importlib
 
 import pytest
 import torch
@@ -17,12 +17,16 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture
-def spy(monkeypatch):
+def fit_module():
+    """The module ``pointmap.splat.fit`` (the package exports the function ``fit`` under the same name)."""
+    return importlib.import_module("pointmap.splat.fit")
+
+
+@pytest.fixture
+def spy(monkeypatch, fit_module):
     """``spy(name, keep=...)`` -> a list that records every call of ``pointmap.splat.fit``'s ``name`` for the
     test: (its positional arguments, tensors copied as they were at the call; its keywords; ``keep(result)``).
     The calls pass through unchanged."""
-    fit_module = sys.modules["pointmap.splat.fit"]  # the package exports the function fit under the same name
-
     def install(name, keep=lambda out: out):
         calls, real = [], getattr(fit_module, name)
 

@@ -282,16 +282,14 @@ def test_the_canvas_padding_of_views_of_several_sizes_is_neither_a_gaussian_nor_
     assert not torch.equal(c.gaussians.sh_dc, run_fit(dataclasses.replace(green, map_sizes=None)).gaussians.sh_dc)
 
 
-def test_each_views_intrinsics_at_a_working_level_are_scaled_as_its_own_image_was(tiny):
+def test_each_views_intrinsics_at_a_working_level_are_scaled_as_its_own_image_was(tiny, fit_module):
     """A view narrower than the canvas is resized to its rounded share of the level: 61 px at 40/96 becomes 25 px
     (x 0.410), not x 0.417 (the canvas's factor, which its intrinsics were scaled by: half a level pixel off at the
     view's right edge)."""
     import dataclasses
-    import sys
 
     from pointmap.geometry.cameras import project
 
-    fit_module = sys.modules["pointmap.splat.fit"]  # pointmap.splat.fit is the function; the module holds the levels
     d, _, _ = tiny
     recon = dataclasses.replace(d["recon"], map_sizes=[(96, 72), (61, 72), (96, 41)])
     lv = (40, 30)

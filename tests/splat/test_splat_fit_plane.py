@@ -3,7 +3,6 @@ coarse-to-fine schedule, option checks, masks, pose updates and rates, and densi
 through spies on its internals (the ``spy`` fixture of tests/splat/conftest.py)."""
 
 import dataclasses
-import sys
 
 import pytest
 import torch
@@ -12,8 +11,6 @@ from pointmap.errors import ShapeError
 from pointmap.splat import Gaussians, fit, init_from
 from pointmap.splat.fit import photometric_loss
 from tests.splat.test_splat_init import _plane_recon
-
-fit_module = sys.modules["pointmap.splat.fit"]  # pointmap.splat.fit is the function
 
 
 def _plane(n=2, **kw):
@@ -70,7 +67,7 @@ def test_a_fit_whose_masks_keep_every_pixel_is_the_unmasked_fit():
     assert res.config["masked"] is False and torch.equal(res.gaussians.sh_dc, plain.gaussians.sh_dc)
 
 
-def test_a_view_whose_mask_keeps_pixels_only_at_the_working_size_is_still_fitted():
+def test_a_view_whose_mask_keeps_pixels_only_at_the_working_size_is_still_fitted(fit_module):
     recon = _plane_recon(n=2, W=64, H=48)
     masks = torch.ones(2, 48, 64, dtype=torch.bool)
     masks[1] = False
@@ -169,7 +166,7 @@ def test_the_pose_rates_decay_tenfold_over_the_run_and_each_step_moves_only_the_
         assert all(not bool(grad[others].any()) for grad in grads), it   # no gradient left from an earlier step
 
 
-def test_a_loss_that_is_not_finite_stops_the_fit_naming_the_step(monkeypatch):
+def test_a_loss_that_is_not_finite_stops_the_fit_naming_the_step(monkeypatch, fit_module):
     recon, g = _plane()
     calls = []
 
