@@ -310,8 +310,9 @@ class Logger:
         path = self.out / "eval.csv"
         if not path.exists():
             return False
-        with open(path, newline="") as fh:
-            return any(row.get("step") == str(step) for row in csv.DictReader(fh))
+        text = path.read_text()
+        text = text[: text.rfind("\n") + 1]  # a row torn by a kill is not a row
+        return any(row.get("step") == str(step) for row in csv.DictReader(io.StringIO(text, newline="")))
 
     def log(self, kind: str, step: int, values: dict) -> None:
         if not self.enabled:
@@ -489,7 +490,9 @@ def fit(cfg: TrainConfig, model: torch.nn.Module, dataset, collate, step_fn, eva
 
     killed = False
     with sigterm_flag() as terminated:
+        torch_state = torch.get_rng_state()  # the loader draws its workers' base seed from the global generator
         batches = iter(loader)
+        torch.set_rng_state(torch_state)
         try:
             for batch in batches:
                 batch = _to(batch, device)
