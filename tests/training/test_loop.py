@@ -312,7 +312,7 @@ def test_a_compiled_training_step_gives_the_eager_loss_with_every_auxiliary_loss
     cfg = dataclasses.replace(config(tmp_path, 1), attn_weight=0.5, attn_heads=1, pose_weight=1.0, coarse_weight=0.5)
     eager, d0 = make_step(cfg)(model, batch, 0)
     compiled, d1 = make_step(cfg)(torch.compile(model), batch, 0)
-    assert abs(float(eager) - float(compiled)) < 1e-4 * max(1.0, abs(float(eager)))
+    assert abs(eager.item() - compiled.item()) < 1e-4 * max(1.0, abs(eager.item()))
     assert d0.keys() == d1.keys() and d1["attn_loss"] > 0 and d1["pose_loss"] > 0
 
 
@@ -576,7 +576,7 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
     out = tmp_path / "run"
     model = run(out, 400, schedule="wsd", decay_steps=6, max_minutes=0.15, decay_by_time=True, log_every=1,
                 decay_ckpts=True)
-    rows = list(csv.DictReader(open(out / "train.csv")))
+    rows = list(csv.DictReader((out / "train.csv").read_text().splitlines()))
     end = int(rows[-1]["step"])
     assert 20 < end < 400, end                      # ended by the clock, long before the --steps bound
     kept = sorted(int(p.stem.split("_")[1]) for p in out.glob("decay_*.pt"))
@@ -613,7 +613,7 @@ def test_a_decay_by_time_run_ends_decayed_when_its_minutes_run_out_and_a_resume_
     shutil.copy(tmp_path / f"ckpt_{end - 3}.pt", out3 / "last.pt")
     fit(dataclasses.replace(cfg, out=str(out3), keep_decay=False), PointmapNet(PRESETS["test"]), PlanePairs(6),
         collate, make_step(cfg))
-    lr3 = {int(r["step"]): float(r["lr"]) for r in csv.DictReader(open(out3 / "train.csv"))}
+    lr3 = {int(r["step"]): float(r["lr"]) for r in csv.DictReader((out3 / "train.csv").read_text().splitlines())}
     assert lr3[end - 2] == pytest.approx(2e-4) and max(lr3) > end
     # a --steps that ends inside the placed decay is refused (it would start the decay over from --steps)
     from pointmap.errors import CheckpointError
@@ -652,7 +652,7 @@ def test_a_run_stopped_by_the_clock_evaluates_its_last_state(tmp_path, monkeypat
     result = fit(cfg, PointmapNet(PRESETS["test"]), PlanePairs(6), collate, make_step(cfg),
                  eval_fn=lambda model: calls.append(1) or {"evaluated": float(len(calls))})
     assert 2 < result["step"] < 400, result["step"]  # stopped by the clock
-    rows = list(csv.DictReader(open(out / "eval.csv")))
+    rows = list(csv.DictReader((out / "eval.csv").read_text().splitlines()))
     assert len(calls) == 1 and [int(r["step"]) for r in rows] == [result["step"]]
     assert torch.load(out / "last.pt", weights_only=True)["step"] == result["step"]
 
