@@ -308,11 +308,7 @@ class Logger:
     def has_eval(self, step: int) -> bool:
         """Whether ``eval.csv`` already holds a row for ``step``."""
         path = self.out / "eval.csv"
-        if not path.exists():
-            return False
-        text = path.read_text()
-        text = text[: text.rfind("\n") + 1]  # a row torn by a kill is not a row
-        return any(row.get("step") == str(step) for row in csv.DictReader(io.StringIO(text, newline="")))
+        return path.exists() and any(row.get("step") == str(step) for row in _whole_rows(path)[1])
 
     def log(self, kind: str, step: int, values: dict) -> None:
         if not self.enabled:
@@ -324,11 +320,7 @@ class Logger:
         if known is not None and set(fields) <= set(known):
             fields = known
         elif path.exists():
-            text = path.read_bytes().decode()
-            if text and not text.endswith("\n"):  # a row torn by a kill: dropped, as append_line would cut it
-                text = text[: text.rfind("\n") + 1]
-            reader = csv.DictReader(io.StringIO(text, newline=""))
-            header, rows = list(reader.fieldnames or []), list(reader)
+            header, rows = _whole_rows(path)
             if header != fields:  # columns changed (e.g. a resumed run with new metrics): one header for all rows
                 fields = header + [f for f in fields if f not in header]
                 with atomic_open(path, "w") as fh:
@@ -346,6 +338,14 @@ class Logger:
             for k, v in values.items():
                 self.tb.add_scalar(f"{kind}/{k}", v, step)
             self.tb.flush()
+
+
+def _whole_rows(path: Path) -> tuple[list, list]:
+    """(header, rows as dicts) of a CSV log, without a last row torn by a kill (no newline), which
+    ``append_line`` would cut before its next write."""
+    text = path.read_bytes().decode()
+    reader = csv.DictReader(io.StringIO(text[: text.rfind("\n") + 1], newline=""))
+    return list(reader.fieldnames or []), list(reader)
 
 
 def append_line(path: Path, data: bytes) -> None:
