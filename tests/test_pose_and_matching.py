@@ -42,6 +42,11 @@ def as_pred(p1, p2):
     return pm.PairPrediction(p1[None].float(), p2[None].float(), torch.ones(1, H, W) * 2, torch.ones(1, H, W) * 2)
 
 
+def reverse_pass(p1, d2, gt, scale=0.5):
+    """The exact reverse prediction (view 2, view 1) at another scale: view 2 in its own frame, view 1 in it."""
+    return as_pred(depth_to_points_cam(d2, K) * scale, transform_points(invert_rigid(gt), p1) * scale)
+
+
 def pose_errors(pred_c2w, gt_c2w):
     r = relative_rotation_error_deg(pred_c2w[:3, :3].double(), gt_c2w[:3, :3])
     t = translation_angle_deg(pred_c2w[:3, 3].double(), gt_c2w[:3, 3])
@@ -94,8 +99,7 @@ def test_pnp_with_unknown_focal_sweeps_focals_and_stays_close():
 
 def test_procrustes_on_the_reverse_prediction_recovers_the_pose_without_intrinsics():
     p1, p2, _, d2, gt = two_views()
-    own2 = depth_to_points_cam(d2, K)  # view 2 in its own frame, as the reverse pass predicts it
-    rev = as_pred(own2 * 0.5, transform_points(invert_rigid(gt), p1) * 0.5)  # another scale on purpose
+    rev = reverse_pass(p1, d2, gt)  # at another scale on purpose
     est = pm.relative_pose(as_pred(p1, p2), pred_reverse=rev)[0]
     r, t = pose_errors(est, gt)
     assert r < 1e-3 and t < 1e-2
@@ -118,7 +122,7 @@ def test_the_two_pass_pose_averages_both_directions_and_its_rotation_inverts_the
     assert translation_angle_deg(back[:3, 3], est[:3, 3].double()) < 0.5
     # one way unusable (no finite own-frame points): the other alone, exact here
     blind = as_pred(p1 * float("nan"), p2)
-    one = pm.relative_pose(blind, pred_reverse=as_pred(own2 * 0.5, transform_points(invert_rigid(gt), p1) * 0.5))[0]
+    one = pm.relative_pose(blind, pred_reverse=reverse_pass(p1, d2, gt))[0]
     r, t = pose_errors(one, gt)
     assert r < 1e-3 and t < 1e-2
 

@@ -23,14 +23,10 @@ from tests.test_pose_and_matching import (
     _with_head,
     as_pred,
     pose_errors,
+    reverse_pass,
     true_matches,
     two_views,
 )
-
-
-def _reverse_pass(p1, d2, gt, scale=0.5):
-    """The exact reverse prediction (view 2, view 1) at another scale: view 2 in its own frame, view 1 in it."""
-    return as_pred(depth_to_points_cam(d2, K) * scale, transform_points(invert_rigid(gt), p1) * scale)
 
 
 def _with_conf(pred, conf1=None, conf2=None):
@@ -202,7 +198,7 @@ def test_the_seed_chooses_the_pnp_subsample_of_a_large_pointmap():
 
 def test_relative_pose_refuses_a_reverse_prediction_of_another_batch_or_size_and_matches_beside_it():
     p1, p2, _, d2, gt = two_views()
-    fwd, rev = as_pred(p1, p2), _reverse_pass(p1, d2, gt)
+    fwd, rev = as_pred(p1, p2), reverse_pass(p1, d2, gt)
     with pytest.raises(pm.ShapeError, match="pred_reverse batch size 2 differs from pred's 1"):
         pm.relative_pose(fwd, pred_reverse=pm.PairPrediction.cat([rev, rev]))
     with pytest.raises(pm.ShapeError, match="and no pred_reverse"):
@@ -216,7 +212,7 @@ def test_relative_pose_refuses_a_reverse_prediction_of_another_batch_or_size_and
 
 def test_the_two_pass_pose_leaves_out_pixels_either_pass_is_unsure_of():
     p1, p2, _, d2, gt = two_views()
-    rev = _reverse_pass(p1, d2, gt)
+    rev = reverse_pass(p1, d2, gt)
     warped = rev.pts1_cam1.clone()
     warped[:, : H // 5] *= 1.5  # the top rows of the reverse pass's own view 2 are wrong ...
     unsure = torch.full((H, W), 2.0)
@@ -230,7 +226,7 @@ def test_the_two_pass_pose_leaves_out_pixels_either_pass_is_unsure_of():
 
 def test_the_two_pass_pose_from_one_direction_alone_keeps_the_full_baseline():
     p1, p2, _, d2, gt = two_views()
-    rev = _reverse_pass(p1, d2, gt)
+    rev = reverse_pass(p1, d2, gt)
     blind = as_pred(p1 * float("nan"), p2)  # view 1's own pointmap unusable: the reverse direction is dropped
     est = pm.relative_pose(blind, pred_reverse=rev)[0]
     assert torch.allclose(est[:3, 3].double(), gt[:3, 3], atol=1e-3)
@@ -238,7 +234,7 @@ def test_the_two_pass_pose_from_one_direction_alone_keeps_the_full_baseline():
 
 def test_the_two_pass_pose_leaves_out_pixels_without_a_finite_own_frame_point():
     p1, p2, _, d2, gt = two_views()
-    rev = _reverse_pass(p1, d2, gt)
+    rev = reverse_pass(p1, d2, gt)
     holes1, holes2 = p1.clone(), rev.pts1_cam1[0].clone()
     holes1[3:6, 10:20] = float("nan")
     holes2[30:33, 5:9] = float("inf")
@@ -250,7 +246,7 @@ def test_the_two_pass_pose_leaves_out_pixels_without_a_finite_own_frame_point():
 
 def test_the_reverse_pose_heads_translation_is_brought_to_the_forward_units_before_averaging():
     p1, p2, _, d2, gt = two_views()
-    rev = _reverse_pass(p1, d2, gt, scale=0.5)
+    rev = reverse_pass(p1, d2, gt, scale=0.5)
     other = gt.clone()
     other[:3, 3] = torch.tensor([0.1, 0.5, 0.3], dtype=torch.float64)  # the reverse head sees another direction
     rev_T = invert_rigid(other)
