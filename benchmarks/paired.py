@@ -48,7 +48,7 @@ def read_per_pair(path) -> dict:
     before the pipeline's columns existed reads them as NaN); PairedError for anything else."""
     path = Path(path)
     try:
-        width, rows = read_per_pair_csv(path)
+        width, rows, _ = read_per_pair_csv(path)
     except (OSError, UnicodeDecodeError) as e:
         raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
     except ValueError as e:  # a foreign header
@@ -69,6 +69,15 @@ def read_per_pair(path) -> dict:
             raise PairedError(f"{path}, line {n}: pair {key[1]} of set {key[0]!r} appears twice")
         out[key] = vals
     return out
+
+
+def read_conditions(path) -> dict:
+    """{set: the measurement conditions it was written under} of a per-pair CSV (``evaluate.measurement_conditions``
+    fields; a set written before session 89 has none); PairedError when the file is not a per-pair CSV."""
+    try:
+        return read_per_pair_csv(Path(path))[2]
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise PairedError(f"{path}: cannot read a per-pair CSV ({e})") from e
 
 
 def binomial_two_sided(k: int, n: int) -> float:

@@ -30,7 +30,9 @@ with the held-out sets re-rendered compares a candidate without carding the incu
 
     python benchmarks/ship_rule.py --incumbent shipped --candidate new.txt new_pairs.csv --ga new_ga-GA_auto+E.csv
 
-refuses a baseline whose recorded hash is not the shipped file's (a ship that did not update it). When a candidate
+refuses a baseline whose recorded hash is not the shipped file's (a ship that did not update it). Per-pair files
+measured under different conditions (torch's thread count, package versions: each set's ``# conditions`` row,
+session 89) are refused too: card the candidate as the baseline was carded. When a candidate
 ships, ``--record`` writes its files there (after the weights are copied into the package).
 
 A criterion reads "not checked" when its files or sets are missing (no ``--ga``, no ``real_*`` set, cards without
@@ -48,7 +50,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.compare_cards import CARD_SETS, EVAL_SETS, exact_count, parse_card  # noqa: E402
-from benchmarks.paired import paired, read_per_pair  # noqa: E402
+from benchmarks.paired import paired, read_conditions, read_per_pair  # noqa: E402
 from data.shards import sha256_file  # noqa: E402
 from pointmap.atomic import write_bytes  # noqa: E402
 
@@ -123,6 +125,22 @@ def _same_pairs(inc: dict, cand: dict, what: str, card_only: bool = False) -> No
         raise ValueError(f"the {what} hold the same pair names but {len(moved)} true rotations differ (e.g. "
                          f"{moved[0]}: {inc[moved[0]][2]:.4f} against {cand[moved[0]][2]:.4f} degrees): the "
                          "sets were rendered anew; card both on the same renders")
+
+
+def same_conditions(inc: dict, cand: dict, what: str) -> list:
+    """The sets of two per-pair files' conditions (``paired.read_conditions``) that record none on one side
+    (files before session 89), after a ValueError when any set records different ones: a pair's pipeline pose
+    and global alignment move with torch's thread count (``evaluate.measurement_conditions``), so such files
+    would credit the candidate with the change of conditions."""
+    differ = [s for s in sorted(inc.keys() & cand.keys()) if inc[s] != cand[s]]
+    if differ:
+        s = differ[0]
+        a, b = dict(f.split("=", 1) for f in inc[s].split(";")), dict(f.split("=", 1) for f in cand[s].split(";"))
+        diff = ", ".join(f"{k} {a.get(k)} against {b.get(k)}" for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k))
+        raise ValueError(f"the {what} were measured under other conditions on {len(differ)} set(s) (e.g. {s}: "
+                         f"{diff}, the incumbent's first): measure both alike (model_card.sh's THREADS, "
+                         "bench_ga.py --threads) on one machine")
+    return sorted(inc.keys() ^ cand.keys())
 
 
 def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga: tuple | None = None) -> list:
@@ -230,6 +248,11 @@ def main(argv=None) -> int:
         inc_card, cand_card = (parse_card(Path(f).read_text()) for f in (a.incumbent[0], a.candidate[0]))
         inc_pairs, cand_pairs = read_per_pair(a.incumbent[1]), read_per_pair(a.candidate[1])
         ga = None if a.ga is None else (read_per_pair(a.ga[0]), read_per_pair(a.ga[1]))
+        unrecorded = same_conditions(read_conditions(a.incumbent[1]), read_conditions(a.candidate[1]),
+                                     "per-pair files")
+        if a.ga is not None:
+            unrecorded += same_conditions(read_conditions(a.ga[0]), read_conditions(a.ga[1]),
+                                          "global-alignment files")
         rows = check(inc_card, inc_pairs, cand_card, cand_pairs, ga)
     except (OSError, ValueError) as e:  # CardError, PairedError, or a figure that is not a number
         print(f"error: {e}", file=sys.stderr)
@@ -239,6 +262,9 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|")
     for name, vi, vc, ok, detail in rows:
         print(f"| {name} | {'-' if vi is None else vi} | {'-' if vc is None else vc} | {verdicts[ok]} | {detail} |")
+    if unrecorded:
+        print(f"\nconditions (threads, package versions) not recorded on both sides for {', '.join(unrecorded)} "
+              "(files before session 89): make sure both were measured alike")
     ok = ships(rows, a.partial)
     unchecked = [r[0] for r in rows if r[3] is None]
     print(f"\n{a.names[1]} {'ships' if ok else 'does not ship'} under the rule"

@@ -41,10 +41,33 @@ PER_PAIR_HEADER = ("set", "pair", "rot_err", "dir_err", "true_rot", "pair_rot_er
 PER_PAIR_HEADER_V1 = PER_PAIR_HEADER[:5]  # files written before session 42 (no pipeline pose): read as NaN
 
 
-def read_per_pair_csv(path) -> tuple[int, list]:
-    """(the number of columns of the file's header, its data rows as lists of strings) of a per-pair CSV written
-    by ``write_per_pair``, this version's or one before session 42 (without the pipeline's two columns); OSError
-    when it cannot be read, ValueError naming the header otherwise."""
+CONDITIONS_TAG = "# conditions"  # a per-pair CSV's rows of that first field: (tag, set, measurement_conditions())
+CONDITIONS_PACKAGES = ("torch", "numpy", "opencv-contrib-python-headless", "kornia", "scipy")
+
+
+def measurement_conditions() -> str:
+    """What a pair's errors depend on besides the model and the pair, as ``key=value`` fields joined by ``;``:
+    torch's thread count and the versions of Python and of the packages that compute them. The same model on the
+    same renders gives other pipeline poses and global alignments at another thread count (session 89: 21 of
+    ``eval_s424242``'s 139 pipeline directions and 9 of 1,008 aligned camera pairs moved, by up to 19 and 71
+    degrees, between 2 threads and 1), so a comparison must be between files written under the same conditions."""
+    import importlib.metadata
+    import platform
+
+    fields = [f"threads={torch.get_num_threads()}", f"python={platform.python_version()}"]
+    for name in CONDITIONS_PACKAGES:
+        try:
+            fields.append(f"{name}={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:
+            fields.append(f"{name}=none")
+    return ";".join(fields)
+
+
+def read_per_pair_csv(path) -> tuple[int, list, dict]:
+    """(the number of columns of the file's header, its data rows as lists of strings, {set: the conditions it
+    was measured under}) of a per-pair CSV written by ``write_per_pair``, this version's or one before session 42
+    (without the pipeline's two columns; files before session 89 record no conditions); OSError when it cannot
+    be read, ValueError naming the header otherwise."""
     import csv
 
     with open(path, newline="") as f:
@@ -52,26 +75,28 @@ def read_per_pair_csv(path) -> tuple[int, list]:
     if not rows or tuple(rows[0]) not in (PER_PAIR_HEADER, PER_PAIR_HEADER_V1):
         raise ValueError(f"{path}: expected the header {','.join(PER_PAIR_HEADER)} (or, before session 42, "
                          f"{','.join(PER_PAIR_HEADER_V1)}), got {','.join(rows[0]) if rows else 'an empty file'}")
-    return len(rows[0]), rows[1:]
+    conditions = {r[1]: r[2] for r in rows[1:] if r and r[0] == CONDITIONS_TAG and len(r) == 3}
+    return len(rows[0]), [r for r in rows[1:] if not (r and r[0] == CONDITIONS_TAG)], conditions
 
 
-def _per_pair_rows_kept(path, set_name: str) -> list:
-    """The rows of other sets in an existing per-pair CSV at ``path`` ([] when there is none), after checking
-    ``set_name`` and that the file is a per-pair CSV; ValueError otherwise (nothing written)."""
+def _per_pair_rows_kept(path, set_name: str) -> tuple[list, dict]:
+    """The rows of other sets in an existing per-pair CSV at ``path`` and their conditions (([], {}) when there
+    is none), after checking ``set_name`` and that the file is a per-pair CSV; ValueError otherwise (nothing
+    written)."""
     from pathlib import Path
 
-    if not set_name or set_name == "all" or any(c in set_name for c in ',"\n\r'):
+    if not set_name or set_name == "all" or set_name == CONDITIONS_TAG or any(c in set_name for c in ',"\n\r'):
         raise ValueError(f"set_name expected a non-empty name without commas, quotes or newlines, other than 'all' "
                          f"(paired.py's pooled row), got {set_name!r}")
     path = Path(path)
     if not path.exists():
-        return []
+        return [], {}
     try:
-        width, old = read_per_pair_csv(path)
+        width, old, conditions = read_per_pair_csv(path)
     except ValueError as e:
         raise ValueError(f"{e}; refusing to overwrite it") from None
     pad = ["nan"] * (len(PER_PAIR_HEADER) - width)  # an older file's rows gain the pipeline's columns
-    return [r + pad for r in old if r and r[0] != set_name]
+    return [r + pad for r in old if r and r[0] != set_name], {k: v for k, v in conditions.items() if k != set_name}
 
 
 def check_per_pair(path, set_name: str) -> None:
@@ -84,7 +109,8 @@ def write_per_pair(path, set_name: str, rows) -> None:
     """Save per-pair results (``PairResult`` rows of one held-out set) as CSV, atomically; the file
     ``benchmarks/paired.py`` reads. Several sets may share a file (the ``set`` column tells them apart):
     ``rows`` are appended to the file's existing rows of other sets, and replace its rows of ``set_name``.
-    Errors are written at full precision (a 14.99996 stays under 15, as the card counted it)."""
+    Errors are written at full precision (a 14.99996 stays under 15, as the card counted it). Each set's
+    ``measurement_conditions()`` at the time it is written close the file, one ``# conditions`` row per set."""
     import csv
     import io
 
@@ -94,12 +120,14 @@ def write_per_pair(path, set_name: str, rows) -> None:
     for r in rows:
         if not isinstance(r, PairResult):
             raise ValueError(f"write_per_pair expected PairResult rows, got {type(r).__name__} {r!r}")
-    kept = _per_pair_rows_kept(path, set_name)
+    kept, conditions = _per_pair_rows_kept(path, set_name)
+    conditions[set_name] = measurement_conditions()
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(PER_PAIR_HEADER)
     w.writerows(kept)
     w.writerows([set_name, int(r.pair), *(repr(float(v)) for v in r[1:])] for r in rows)
+    w.writerows([CONDITIONS_TAG, s, c] for s, c in conditions.items())
     with atomic_open(path, "w") as f:
         f.write(buf.getvalue())
 

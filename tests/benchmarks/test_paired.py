@@ -3,6 +3,7 @@ import math
 import random
 
 import pytest
+import torch
 
 from benchmarks.paired import (
     PairedError,
@@ -12,9 +13,10 @@ from benchmarks.paired import (
     compare_errors,
     main,
     paired,
+    read_conditions,
     read_per_pair,
 )
-from training.evaluate import PairResult, write_per_pair
+from training.evaluate import PairResult, measurement_conditions, write_per_pair
 
 
 def _brute_two_sided(k, n):
@@ -141,6 +143,29 @@ def test_files_written_before_the_pipeline_columns_read_as_nan_and_gain_them_whe
     bad.write_text("set,pair,rot_err,dir_err,true_rot,pair_rot_err,pair_dir_err\neval_a,0,1,2,3\n")
     with pytest.raises(PairedError, match="line 2"):
         read_per_pair(bad)
+
+
+def test_each_set_records_the_threads_and_packages_it_was_measured_under_and_old_files_record_none(tmp_path):
+    f, threads = tmp_path / "pairs.csv", torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        write_per_pair(f, "eval_a", [PairResult(0, 1.0, 2.0, 3.0)])
+        torch.set_num_threads(2)
+        write_per_pair(f, "eval_b", [PairResult(0, 1.0, 2.0, 3.0)])
+    finally:
+        torch.set_num_threads(threads)
+    got = read_conditions(f)
+    assert got["eval_a"].startswith("threads=1;python=") and got["eval_b"].startswith("threads=2;python=")
+    assert f"torch={torch.__version__}" in got["eval_a"]
+    assert set(read_per_pair(f)) == {("eval_a", 0), ("eval_b", 0)}  # the conditions rows are not pairs
+    write_per_pair(f, "eval_a", [PairResult(1, 1.0, 2.0, 3.0)])  # a rewritten set takes this process's
+    assert read_conditions(f) == {"eval_a": measurement_conditions(), "eval_b": got["eval_b"]}
+    assert f.read_text().splitlines()[0].startswith("set,pair,")  # the header stays the first line
+    old = tmp_path / "old.csv"
+    old.write_text("set,pair,rot_err,dir_err,true_rot\neval_a,0,1.0,2.0,3.0\n")
+    assert read_conditions(old) == {}
+    with pytest.raises(ValueError, match="set_name expected"):
+        write_per_pair(f, "# conditions", [PairResult(0, 1.0, 2.0, 3.0)])
 
 
 def test_the_pipeline_pose_is_compared_only_on_the_sets_where_both_files_hold_it(tmp_path, capsys):

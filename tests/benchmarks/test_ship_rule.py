@@ -1,6 +1,7 @@
 import json
 
 import pytest
+import torch
 
 from benchmarks import ship_rule
 from benchmarks.compare_cards import exact_count, parse_card
@@ -191,6 +192,29 @@ def test_files_carded_on_different_pairs_or_renders_are_unreadable_not_compared(
     with pytest.raises(ValueError, match="the global-alignment files hold different pairs"):
         check(inc_card, read_per_pair(inc[1]), inc_card, read_per_pair(inc[1]),
               (ga, {k: v for k, v in ga.items() if k[1] != 0}))
+
+
+def test_files_measured_at_another_thread_count_are_refused_and_files_without_conditions_are_noted(tmp_path,
+                                                                                                   capsys):
+    inc = (_card(tmp_path, "inc", (0.30, 0.27, 0.36)), _pairs(tmp_path, "inc", 10))
+    cand = (_card(tmp_path, "cand", (0.30, 0.27, 0.36)), _pairs(tmp_path, "cand", 11))
+    ga_inc, ga_cand = _pairs(tmp_path, "ga_inc", 10), _pairs(tmp_path, "ga_cand", 10)
+    args = ["--incumbent", *map(str, inc), "--candidate", *map(str, cand), "--ga", str(ga_inc), str(ga_cand)]
+    assert main(args) == 0 and "not recorded" not in capsys.readouterr().out  # written alike: compared
+    for f, what in ((cand[1], "per-pair files"), (ga_cand, "global-alignment files")):
+        text = f.read_text()
+        f.write_text(text.replace(f"bench_s525252,threads={torch.get_num_threads()};",
+                                  f"bench_s525252,threads={torch.get_num_threads() + 1};"))
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert f"the {what} were measured under other conditions on 1 set(s) (e.g. bench_s525252: threads " \
+               f"{torch.get_num_threads()} against {torch.get_num_threads() + 1}, the incumbent's first)" in err
+        f.write_text(text)
+    # a file written before session 89 records none: compared, with a note naming the sets
+    inc[1].write_text("".join(line for line in inc[1].read_text().splitlines(True) if not line.startswith("#")))
+    assert main(args) == 0
+    assert "conditions (threads, package versions) not recorded on both sides for bench_s525252, eval_cam_s464646" \
+           in capsys.readouterr().out
 
 
 def test_the_rule_refuses_global_alignment_files_of_other_renders_and_nan_errors_on_card_pairs(tmp_path):
