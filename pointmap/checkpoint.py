@@ -50,6 +50,8 @@ def parse_ctor(text: str) -> tuple[str, dict]:
     for kw in call.keywords:
         if kw.arg is None:
             raise CheckpointError(f"'**' is not allowed in the architecture string {text[:120]!r}")
+        if kw.arg in kwargs:  # Python refuses a repeated keyword too: a corrupt string, not the last one wins
+            raise CheckpointError(f"the architecture string names {kw.arg!r} twice: {text[:120]!r}")
         kwargs[kw.arg] = _literal(kw.value, text)
     return call.func.id, kwargs
 
@@ -355,7 +357,7 @@ def provenance_keeping_licence(model, provenance=None) -> dict:
     that a caller's provenance cannot drop a non-commercial licence. ShapeError for a provenance that is not a
     dict, holds what JSON cannot take (numpy values, tensors and paths become JSON's; ``provenance_json_value``), or
     that ``load_model`` would refuse (``provenance_ok``: an image_size that is not a positive int)."""
-    prov = provenance or getattr(model, "provenance", None) or {}
+    prov = (getattr(model, "provenance", None) or {}) if provenance is None else provenance
     if not isinstance(prov, dict):
         raise ShapeError(f"provenance expected a dict, got {type(prov).__name__}")
     lic = model_licence(model)
@@ -451,11 +453,11 @@ def save_model(model: PointmapNet, path, *, provenance: dict | None = None, dtyp
     prov = provenance_keeping_licence(model, provenance)
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ShapeError(f"save_model expected a file path, got {path!r}")
-    path = Path(path)
-    if path.is_dir():
-        raise ShapeError(f"save_model expected a file path, got the folder {path}")
-    if path.suffix != ".safetensors":  # appended, not swapped: run.step1000 and run.step2000 stay two files
-        path = path.with_name(path.name + ".safetensors")
+    given = Path(path)
+    path = given if given.suffix == ".safetensors" else given.with_name(given.name + ".safetensors")  # appended,
+    for p in (given, path):  # not swapped: run.step1000 and run.step2000 stay two files
+        if p.is_dir():
+            raise ShapeError(f"save_model expected a file path, got the folder {p}")
     tensors, quantized = {}, []
     for k, v in model.state_dict().items():
         v = v.detach().cpu()
