@@ -48,9 +48,10 @@ CONDITIONS_PACKAGES = ("torch", "numpy", "opencv-contrib-python-headless", "korn
 def measurement_conditions() -> str:
     """What a pair's errors depend on besides the model and the pair, as ``key=value`` fields joined by ``;``:
     torch's thread count and the versions of Python and of the packages that compute them. The same model on the
-    same renders gives other pipeline poses and global alignments at another thread count (session 89: 21 of
-    ``eval_s424242``'s 139 pipeline directions and 9 of 1,008 aligned camera pairs moved, by up to 19 and 71
-    degrees, between 2 threads and 1), so a comparison must be between files written under the same conditions."""
+    same renders gives other pipeline poses and global alignments at another thread count (session 89: at 1 thread
+    against the baseline's 2, 21 of ``eval_s424242``'s 139 pipeline directions moved, by up to 19 degrees; global
+    alignment at 1 thread moved 9 of the baseline's 1,008 camera pairs, by up to 71), so a comparison must be
+    between files written under the same conditions."""
     import importlib.metadata
     import platform
 
