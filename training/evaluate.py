@@ -88,7 +88,7 @@ def _per_pair_rows_kept(path, set_name: str) -> tuple[list, dict]:
 
     if not set_name or set_name == "all" or set_name == CONDITIONS_TAG or any(c in set_name for c in ',"\n\r'):
         raise ValueError(f"set_name expected a non-empty name without commas, quotes or newlines, other than 'all' "
-                         f"(paired.py's pooled row), got {set_name!r}")
+                         f"(paired.py's pooled row) and {CONDITIONS_TAG!r}, got {set_name!r}")
     path = Path(path)
     if not path.exists():
         return [], {}
