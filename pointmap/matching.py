@@ -151,8 +151,9 @@ def match(pred: PairPrediction, *, subsample: int = 8, max_iter: int = 10, use: 
     else:
         s = max(int(subsample), 1)
         dev = f1.device
-        ys, xs = torch.meshgrid(torch.arange(s // 2, H1, s, device=dev), torch.arange(s // 2, W1, s, device=dev),
-                                indexing="ij")
+        # half a step in from the corner, but inside a map narrower than that (else it would have no seed at all)
+        ys, xs = torch.meshgrid(torch.arange(min(s // 2, H1 - 1), H1, s, device=dev),
+                                torch.arange(min(s // 2, W1 - 1), W1, s, device=dev), indexing="ij")
         seed_pix = (ys * W1 + xs).reshape(-1)
         lookup = torch.full((H1 * W1,), -1, dtype=torch.long, device=dev)
         lookup[ids1] = torch.arange(ids1.numel(), device=dev)
@@ -219,7 +220,7 @@ def match_coarse(pred: PairPrediction, patch: int = 16, refine: bool = True) -> 
 
 def _refine_in_cells(q: torch.Tensor, d2: torch.Tensor, cells: torch.Tensor, w2: int, patch: int) -> torch.Tensor:
     """For each query descriptor q[k] [M, D], the pixel (u, v) of d2 [H, W, D] with the highest dot product in
-    view-2 cell ``cells[k]`` grown by patch // 2 on each side (clipped to the image)."""
+    view-2 cell ``cells[k]`` grown by patch // 2 on each side (clipped to the image), among its finite pixels."""
     H, W = d2.shape[:2]
     half = patch // 2
     off = torch.arange(-half, patch + half)
@@ -228,6 +229,8 @@ def _refine_in_cells(q: torch.Tensor, d2: torch.Tensor, cells: torch.Tensor, w2:
     cols = (left[:, None] + off).clamp(0, W - 1)  # [M, S]
     win = d2[rows[:, :, None], cols[:, None, :]]  # [M, S, S, D]
     sim = (win * q[:, None, None, :]).sum(-1).flatten(1)  # [M, S*S]
+    # a non-finite pixel of a neighbouring cell in the grown window never wins (the cell's own are finite)
+    sim = sim.masked_fill(~torch.isfinite(win).all(-1).flatten(1), -math.inf)
     best = sim.argmax(1)
     S = off.numel()
     r, c = best // S, best % S
