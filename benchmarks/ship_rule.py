@@ -128,19 +128,20 @@ def _same_pairs(inc: dict, cand: dict, what: str, card_only: bool = False) -> No
 
 
 def same_conditions(inc: dict, cand: dict, what: str) -> list:
-    """The sets of two per-pair files' conditions (``paired.read_conditions``) that record none on one side
-    (files before session 89), after a ValueError when any set records different ones: a pair's pipeline pose
+    """["<what> <the sets that record no conditions on one side (files before session 89)>"], or [] when there are
+    none, of two per-pair files' conditions (``paired.read_conditions``), after a ValueError when any set records different ones: a pair's pipeline pose
     and global alignment move with torch's thread count (``evaluate.measurement_conditions``), so such files
     would credit the candidate with the change of conditions."""
     differ = [s for s in sorted(inc.keys() & cand.keys()) if inc[s] != cand[s]]
     if differ:
         s = differ[0]
-        a, b = dict(f.split("=", 1) for f in inc[s].split(";")), dict(f.split("=", 1) for f in cand[s].split(";"))
+        a, b = (dict(f.partition("=")[::2] for f in c.split(";")) for c in (inc[s], cand[s]))  # key=value fields
         diff = ", ".join(f"{k} {a.get(k)} against {b.get(k)}" for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k))
         raise ValueError(f"the {what} were measured under other conditions on {len(differ)} set(s) (e.g. {s}: "
                          f"{diff}, the incumbent's first): measure both alike (model_card.sh's THREADS, "
                          "bench_ga.py --threads) on one machine")
-    return sorted(inc.keys() ^ cand.keys())
+    unrecorded = sorted(inc.keys() ^ cand.keys())
+    return [f"{what} {', '.join(unrecorded)}"] if unrecorded else []
 
 
 def check(inc_card: dict, inc_pairs: dict, cand_card: dict, cand_pairs: dict, ga: tuple | None = None) -> list:
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
     for name, vi, vc, ok, detail in rows:
         print(f"| {name} | {'-' if vi is None else vi} | {'-' if vc is None else vc} | {verdicts[ok]} | {detail} |")
     if unrecorded:
-        print(f"\nconditions (threads, package versions) not recorded on both sides for {', '.join(unrecorded)} "
+        print(f"\nconditions (threads, package versions) not recorded on both sides for the {'; the '.join(unrecorded)} "
               "(files before session 89): make sure both were measured alike")
     ok = ships(rows, a.partial)
     unchecked = [r[0] for r in rows if r[3] is None]
