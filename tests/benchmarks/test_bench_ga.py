@@ -1,21 +1,12 @@
-import csv
-
 import numpy as np
 import pytest
 import torch
 
 import pointmap as pm
 from benchmarks.bench_ga import main
-from training.evaluate import CONDITIONS_TAG
 
 
-def _rows(path):
-    """A per-pair file's pair rows as dicts (without its rows of measurement conditions)."""
-    with open(path, newline="") as f:
-        return [r for r in csv.DictReader(f) if r["set"] != CONDITIONS_TAG]
-
-
-def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_aligned(scenes_and_model, tmp_path):
+def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_aligned(scenes_and_model, tmp_path, pair_rows):
     from data.datasets import MultiViewDataset
     from pointmap.align import AlignConfig, global_align
     from pointmap.geometry.rotations import relative_rotation_error_deg
@@ -24,7 +15,7 @@ def test_the_ga_benchmark_scores_every_camera_pair_of_every_scene_pairwise_and_a
     prefix = tmp_path / "pp"
     assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1",
                  "--settings", "log", "id", "id+K", "id+S", "id+E", "--per-pair", str(prefix)]) == 0
-    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("pairwise", "pairwise_+_matches", "GA_log", "GA_id", "GA_id+K",
+    rows = {m: pair_rows(f"{prefix}-{m}.csv") for m in ("pairwise", "pairwise_+_matches", "GA_log", "GA_id", "GA_id+K",
                                                      "GA_id+S", "GA_id+E")}
     assert all(len(r) == 2 * 3 for r in rows.values())  # 2 scenes x 3 camera pairs
     # the first scene's pair (0, 1) aligned with conf itself, recomputed here

@@ -1,23 +1,14 @@
-import csv
-
 import numpy as np
 import pytest
 import torch
 
 import pointmap as pm
 from benchmarks.bench_localize import main
-from training.evaluate import CONDITIONS_TAG
-
-
-def _rows(path):
-    """A per-pair file's pair rows as dicts (without its rows of measurement conditions)."""
-    with open(path, newline="") as f:
-        return [r for r in csv.DictReader(f) if r["set"] != CONDITIONS_TAG]
 
 
 def test_the_localize_benchmark_poses_each_view_in_the_reconstruction_of_the_others_three_ways(scenes_and_model,
                                                                                                 tmp_path, capsys,
-                                                                                                monkeypatch):
+                                                                                                monkeypatch, pair_rows):
     from data.datasets import MultiViewDataset
     from pointmap.localization import Localization
 
@@ -41,7 +32,7 @@ def test_the_localize_benchmark_poses_each_view_in_the_reconstruction_of_the_oth
     assert main(["--model", str(model_path), "--data", str(data), "--size", "64", "--threads", "1",
                  "--shared-focal", "--per-pair", str(prefix)]) == 0
     assert "| overall | 12 | recon focal |" in capsys.readouterr().out
-    rows = {m: _rows(f"{prefix}-{m}.csv") for m in ("estimated", "recon_focal", "true_K")}
+    rows = {m: pair_rows(f"{prefix}-{m}.csv") for m in ("estimated", "recon_focal", "true_K")}
     assert all(len(r) == 2 * 3 * 2 for r in rows.values())  # 2 scenes x 3 queries x 2 reconstruction views
     for m, r in rows.items():  # against the first reconstruction view the pose is the true one; the last is not posed
         assert all(float(r[k]["rot_err"]) < 1e-3 and float(r[k]["dir_err"]) < 1e-2 for k in range(0, 10, 2)), m
