@@ -17,8 +17,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from pointmap.errors import PointmapError
+from pointmap.errors import ConventionError, PointmapError
+from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid
 from pointmap.io.atomic import atomic_open, atomic_path
 from pointmap.io.points import PointSet
 
@@ -66,6 +68,17 @@ def _model(recon, points: PointSet, shared_camera: bool | None):
     K = recon.K.double().numpy()
     sizes = [tuple(int(x) for x in s) for s in recon.original_sizes]
     share = check_shared_camera(recon, shared_camera)
+    # checked before any file is written: a Reconstruction's tensors can be changed after it was built, and a NaN
+    # or mirrored pose would be written as a line COLMAP (and read_colmap) refuses, or as some other rotation
+    for k in range(n):
+        if not bool(is_rigid(recon.cam2world[k])) or not bool(torch.isfinite(recon.cam2world[k]).all()):
+            raise ConventionError(f"COLMAP export: cam2world[{k}] ({recon.names[k]}) is not a finite rigid transform "
+                                  "(orthonormal rotation with det +1, last row 0 0 0 1)")
+        if not bool(is_pinhole_K(recon.K[k])):
+            raise ConventionError(f"COLMAP export: K[{k}] ({recon.names[k]}) expected finite pinhole intrinsics "
+                                  f"{K_LAYOUT} with fx, fy > 0, got {recon.K[k].tolist()}")
+    for name in recon.names:  # UnicodeEncodeError here, not after cameras.* was replaced (a mixed model)
+        name.encode("utf-8")
     firsts, cam_of = [], []  # the first image of each camera; each image's camera_id
     for k in range(n):  # an image takes the first camera of its size and intrinsics (any one, when all share it)
         c = next((c for c, r in enumerate(firsts) if share or (shared_camera is None and sizes[r] == sizes[k] and
@@ -316,6 +329,8 @@ def _read_binary(folder: Path):
                 raise PointmapError(f"{folder}: COLMAP camera model id {mid} is not one pointmap can undistort (it "
                                     f"reads {', '.join(_LENSES)})")
             name, n = CAMERA_MODELS[mid]
+            if cid in cams:  # the reader's ValueError: "not a readable COLMAP model"
+                raise ValueError(f"camera id {cid} appears twice")
             cams[cid] = (name, int(w), int(h), struct.unpack(f"<{n}d", f.read(8 * n)))
     with open(folder / "images.bin", "rb") as f:
         for _ in range(struct.unpack("<Q", f.read(8))[0]):
@@ -337,6 +352,8 @@ def _read_text(folder: Path):
         line = line.strip()
         if line and not line.startswith("#"):
             tok = line.split()
+            if int(tok[0]) in cams:
+                raise ValueError(f"camera id {int(tok[0])} appears twice")
             cams[int(tok[0])] = (tok[1], int(tok[2]), int(tok[3]), tuple(float(v) for v in tok[4:]))
     lines = (folder / "images.txt").read_text(encoding="utf-8-sig").splitlines()
     i = 0
@@ -388,6 +405,8 @@ def read_colmap(path) -> dict:
         if cid not in cams:
             raise PointmapError(f"{where} refers to camera {cid}, which cameras.{'bin' if binary else 'txt'} lacks")
         model, w, h, params = cams[cid]
+        if not (w > 0 and h > 0):
+            raise PointmapError(f"{where}: camera {cid} has a size of {w} x {h} pixels")
         if len(params) != dict(CAMERA_MODELS.values()).get(model, len(params)):
             raise PointmapError(f"{where}: camera {cid} ({model}) has {len(params)} parameters")
         K, dist = _camera(model, params, where)
