@@ -62,6 +62,9 @@ def _as_list(paths_or_arrays, caller: str):
 
     if isinstance(paths_or_arrays, (str, os.PathLike, np.ndarray, Image.Image)):
         return [paths_or_arrays]
+    if isinstance(paths_or_arrays, (bytes, bytearray)):  # iterated, it would be a list of ints
+        raise ImageError(f"{caller} expected a list of image paths, arrays or PIL images, got bytes (a path as bytes: "
+                         "pass os.fsdecode(path))")
     if not hasattr(paths_or_arrays, "__iter__"):
         raise ImageError(f"{caller} expected a list of image paths, arrays or PIL images, got "
                          f"{type(paths_or_arrays).__name__}")
@@ -129,8 +132,9 @@ def _read(src, index: int):
         raise ImageError(f"expected an image file, got a directory: {path}")
     open_heif_ready(path)
     try:
-        im = Image.open(path)
-        im.load()
+        with Image.open(path) as im:  # closed once turned: a multi-frame file (GIF, TIFF) keeps its file open
+            im.load()
+            im = upright(im)
     except Image.DecompressionBombError as e:
         raise ImageError(f"{path} is too large to read safely ({e}); downscale it first") from None
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
@@ -141,7 +145,7 @@ def _read(src, index: int):
                              f"read their frames; pointmap.video.extract_frames writes them as images)") from None
         raise ImageError(f"not a readable image: {path} ({e.__class__.__name__})") from None
     try:
-        return _to_rgb(upright(im)), path.name
+        return _to_rgb(im), path.name
     except ValueError as e:
         raise ImageError(f"{path}: {e}") from None
 
@@ -179,7 +183,7 @@ def _to_rgb(im):
     if im.mode in ("I;16", "I;16B", "I;16L", "I"):
         a = np.clip(np.asarray(im).astype(np.float64) / 257.0, 0, 255).round().astype(np.uint8)
         return Image.fromarray(a).convert("RGB")
-    if im.mode in ("RGBA", "LA", "P", "PA"):
+    if im.mode in ("RGBA", "LA", "P", "PA") or (im.mode in ("L", "RGB") and "transparency" in im.info):
         im = im.convert("RGBA")
         bg = Image.new("RGBA", im.size, (255, 255, 255, 255))
         return Image.alpha_composite(bg, im).convert("RGB")
