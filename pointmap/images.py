@@ -125,6 +125,8 @@ def _read(src, index: int):
         raise ImageError(f"image {index}: expected a path, an HxWx3 numpy array or a PIL image, got "
                          f"{type(src).__name__}" + (" (a [3, H, W] tensor: pass img.permute(1, 2, 0).numpy())"
                                                     if isinstance(src, torch.Tensor) else ""))
+    if os.fspath(src) in ("", b""):  # Path("") is the working directory
+        raise ImageError(f"image {index}: expected a path, got an empty one")
     path = Path(src)
     if not path.exists():
         raise ImageError(f"image not found: {path}")

@@ -288,3 +288,8 @@ def test_a_bytes_path_given_alone_is_named_as_a_path_not_as_its_first_byte(tmp_p
     path = str(tmp_path / "a.png").encode()
     with pytest.raises(pm.ImageError, match="got bytes .*os.fsdecode"):  # not "image 0: ... got int"
         pm.load_images(path, size=32)
+
+
+def test_an_empty_path_is_refused_as_empty_not_as_the_working_directory():
+    with pytest.raises(pm.ImageError, match="image 1: expected a path, got an empty one"):
+        pm.load_images([np.zeros((32, 32, 3), np.uint8), ""], size=32)
