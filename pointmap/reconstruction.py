@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from pointmap.errors import ShapeError, is_int
+from pointmap.errors import ShapeError, is_int, is_number
 from pointmap.geometry.cameras import (
     K_LAYOUT,
     depth_to_points_world,
@@ -64,7 +65,7 @@ class Reconstruction:
         for name in ("images", "cam2world", "K", "depth_z", "conf", "map_from_original", "masks"):
             t = getattr(self, name)
             if isinstance(t, np.ndarray):  # arrays are taken as they are; anything else is a mistake
-                setattr(self, name, torch.from_numpy(t))
+                setattr(self, name, torch.from_numpy(np.ascontiguousarray(t)))  # negative strides: img[..., ::-1]
             elif isinstance(t, torch.Tensor) and t.requires_grad:  # a result, not a graph: exports call .numpy()
                 setattr(self, name, t.detach())
             elif not isinstance(t, torch.Tensor) and (t is not None or name in _REQUIRED):
@@ -75,6 +76,8 @@ class Reconstruction:
         if n == 0:
             raise ShapeError("a Reconstruction expected at least one view, got depth_z of shape "
                              f"{list(self.depth_z.shape)}")
+        if h == 0 or w == 0:
+            raise ShapeError(f"depth_z expected maps of at least one pixel, got {list(self.depth_z.shape)}")
         for name in ("cam2world", "K", "depth_z", "conf"):  # real numbers (complex or bool ones are a mistake)
             t = getattr(self, name)
             if not t.is_floating_point():
@@ -130,6 +133,8 @@ class Reconstruction:
                              f"{list(got)[:4] if hasattr(got, '__len__') else type(got).__name__}")
         if self.names is None:
             self.names = [f"view_{i:03d}.png" for i in range(n)]
+        if isinstance(self.names, str):  # list("ab") would name two views "a" and "b"
+            raise ShapeError(f"names expected {n} non-empty strings, got the single string {self.names!r}")
         self.names = list(self.names)
         if len(self.names) != n or not all(isinstance(nm, str) and nm for nm in self.names):
             raise ShapeError(f"names expected {n} non-empty strings, got {self.names!r}")
@@ -213,8 +218,11 @@ class Reconstruction:
 
         R = torch.as_tensor(R, dtype=torch.float64)
         t = torch.as_tensor(t, dtype=torch.float64)
+        if not (is_number(scale) or (isinstance(scale, torch.Tensor) and scale.numel() == 1
+                                     and scale.dtype != torch.bool)):
+            raise ShapeError(f"transformed expected scale > 0, a real number, got {scale!r}")
         scale = float(scale)
-        if tuple(R.shape) != (3, 3) or tuple(t.shape) != (3,) or not (scale > 0 and torch.isfinite(R).all()
+        if tuple(R.shape) != (3, 3) or tuple(t.shape) != (3,) or not (0 < scale < math.inf and torch.isfinite(R).all()
                                                                          and torch.isfinite(t).all()):
             raise ShapeError(f"transformed expected scale > 0, R [3, 3] and t [3], finite; got {scale}, "
                              f"{list(R.shape)}, {list(t.shape)}")
@@ -243,6 +251,9 @@ def to_canvas(maps: list, fill=0) -> tuple[torch.Tensor, list]:
     ``fill`` elsewhere; with the (width, height) of each, ``Reconstruction.map_sizes``."""
     if not maps:
         raise ShapeError("to_canvas expected at least one map, got none")
+    if not all(isinstance(m, torch.Tensor) and m.ndim >= 2 for m in maps):
+        raise ShapeError(f"to_canvas expected maps as tensors [h_k, w_k, ...], got "
+                         f"{[tuple(getattr(m, 'shape', ())) or type(m).__name__ for m in maps][:4]}")
     if len({(m.dtype, tuple(m.shape[2:])) for m in maps}) != 1:
         raise ShapeError(f"to_canvas expected maps of one dtype and trailing shape, got "
                          f"{sorted({(str(m.dtype), tuple(m.shape)) for m in maps})[:4]}")
