@@ -51,14 +51,21 @@ def code_digest() -> bytes:
 
 def model_fingerprint(model) -> str:
     """SHA-256 (hex) of what the model computes with: the library's network code (``code_digest``), a PyTorch
-    model's parameters and buffers (names, dtypes, shapes, bytes) with its architecture, or the files an ONNX
-    runner loaded (``files_used``: its graphs, their weights, the export's metadata). CheckpointError for anything
-    else."""
+    model's parameters and buffers, non-persistent ones too (names, dtypes, shapes, bytes) with its architecture,
+    or the files an ONNX runner loaded (``files_used``: its graphs, their weights, the export's metadata).
+    CheckpointError for anything else."""
     h = hashlib.sha256(code_digest())
     cfg = getattr(model, "cfg", None)
     h.update(repr(cfg.to_dict() if hasattr(cfg, "to_dict") else cfg).encode())
     if isinstance(model, torch.nn.Module):
-        for name, t in sorted(model.state_dict().items()):
+        tensors = sorted(model.state_dict().items())
+        # and the buffers state_dict leaves out (persistent=False: PointmapNet's img_mean / img_std, the normalisation
+        # every image goes through), so an in-place change to them is another model; module by module under their own
+        # names (torch names no public list of them), so a wrapper of a model fingerprints as that model
+        tensors += [(f"~{name}", module._buffers[name]) for module in model.modules()
+                    for name in sorted(getattr(module, "_non_persistent_buffers_set", ()))
+                    if module._buffers.get(name) is not None]
+        for name, t in tensors:
             t = t.detach().cpu().contiguous()
             h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
@@ -111,6 +118,7 @@ class PredictionCache:
         self.hits = self.misses = 0
         self.dtype = dtype
         self.writable = True
+        self._autocast_logged = False
 
     @contextlib.contextmanager
     def _vouched(self, model):
@@ -218,7 +226,8 @@ class PredictionCache:
 
     def put(self, key: str, pred: PairPrediction) -> Path | None:
         """Write one pair's prediction (batch of one) atomically, in the cache's ``dtype``; None when writing
-        failed or the prediction was made under ``torch.autocast`` (logged once; no later write is tried)."""
+        failed (logged once; no later write is tried) or the prediction was made under ``torch.autocast`` (logged
+        once; a later prediction in full precision is written)."""
         from safetensors.torch import save_file
 
         if pred.batch_size != 1:
@@ -226,9 +235,10 @@ class PredictionCache:
         if not self.writable:
             return None
         if any(autocast_on(d) for d in ("cpu", "cuda")):  # lower precision than the key says
-            log.warning("prediction cache: predictions made under torch.autocast are not stored (the key holds the "
-                        "weights and pixels, not the precision); the cache stops writing for this run")
-            self.writable = False
+            if not self._autocast_logged:
+                log.warning("prediction cache: predictions made under torch.autocast are not stored (the key holds "
+                            "the weights and pixels, not the precision)")
+                self._autocast_logged = True
             return None
         big = torch.finfo(self.dtype).max
         tensors = {fl.name: getattr(pred, fl.name).detach().to("cpu", torch.float32).clamp(-big, big)
