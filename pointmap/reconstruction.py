@@ -222,8 +222,8 @@ class Reconstruction:
                                      and scale.dtype != torch.bool)):
             raise ShapeError(f"transformed expected scale > 0, a real number, got {scale!r}")
         scale = float(scale)
-        if tuple(R.shape) != (3, 3) or tuple(t.shape) != (3,) or not (0 < scale < math.inf and torch.isfinite(R).all()
-                                                                         and torch.isfinite(t).all()):
+        if tuple(R.shape) != (3, 3) or tuple(t.shape) != (3,) or not (
+                0 < scale < math.inf and torch.isfinite(R).all() and torch.isfinite(t).all()):
             raise ShapeError(f"transformed expected scale > 0, R [3, 3] and t [3], finite; got {scale}, "
                              f"{list(R.shape)}, {list(t.shape)}")
         if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-5) or float(torch.det(R)) < 0:
