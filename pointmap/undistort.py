@@ -54,11 +54,16 @@ class Distortion:
         model = str(model).upper()
         if model not in MODELS:
             raise PointmapError(f"distortion model expected one of {', '.join(MODELS)}, got {model!r}")
-        extra = {k: v for k, v in values.items() if k not in MODELS[model] and v not in (None, 0, 0.0)}
+        names = tuple(MODELS[model])
+        try:  # numbers only ("abc", a list, an array: refused here, not with a raw ValueError / TypeError)
+            values = {k: 0.0 if v is None else float(v) for k, v in values.items()}
+        except (TypeError, ValueError):
+            raise PointmapError(f"{model} expected numbers for {', '.join(names)}, got {values!r}") from None
+        extra = {k: v for k, v in values.items() if k not in names and v != 0.0}
         if extra:
             raise PointmapError(f"{model} has no coefficient{'s' if len(extra) > 1 else ''} {', '.join(extra)} "
-                                f"(it has {', '.join(MODELS[model])}), got {extra}")
-        return cls(model, tuple(float(values.get(k) or 0.0) for k in MODELS[model]))
+                                f"(it has {', '.join(names)}), got {extra}")
+        return cls(model, tuple(values.get(k, 0.0) for k in names))
 
     @property
     def fisheye(self) -> bool:
