@@ -128,10 +128,10 @@ def _same_pairs(inc: dict, cand: dict, what: str, card_only: bool = False) -> No
 
 
 def same_conditions(inc: dict, cand: dict, what: str) -> list:
-    """["<what> <the sets that record no conditions on one side (files before session 89)>"], or [] when there are
-    none, of two per-pair files' conditions (``paired.read_conditions``), after a ValueError when any set records different ones: a pair's pipeline pose
-    and global alignment move with torch's thread count (``evaluate.measurement_conditions``), so such files
-    would credit the candidate with the change of conditions."""
+    """``["<what> <sets>"]`` naming the sets that record conditions on one side only (files before session 89), or
+    ``[]``, of two per-pair files' conditions (``paired.read_conditions``). ValueError when any set records
+    different ones: a pair's pipeline pose and global alignment move with torch's thread count
+    (``evaluate.measurement_conditions``), so such files would credit the candidate with the change of conditions."""
     differ = [s for s in sorted(inc.keys() & cand.keys()) if inc[s] != cand[s]]
     if differ:
         s = differ[0]

@@ -54,7 +54,7 @@ class Distortion:
         model = str(model).upper()
         if model not in MODELS:
             raise PointmapError(f"distortion model expected one of {', '.join(MODELS)}, got {model!r}")
-        names = tuple(MODELS[model])
+        names = MODELS[model]
         try:  # numbers only ("abc", a list, an array: refused here, not with a raw ValueError / TypeError)
             values = {k: 0.0 if v is None else float(v) for k, v in values.items()}
         except (TypeError, ValueError):

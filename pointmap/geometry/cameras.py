@@ -105,15 +105,15 @@ def head_translation(t_head: torch.Tensor, t_points: torch.Tensor) -> torch.Tens
 
 
 def is_rigid(T: torch.Tensor, atol: float = 1e-3) -> torch.Tensor:
-    """[...] bool: whether each [..., 4, 4] ``T`` is a rigid transform [R t; 0 0 0 1]: R^T R within ``atol`` of the
-    identity with det +1 (>= 0.99), the last row within 1e-6 of (0, 0, 0, 1)."""
+    """[...] bool: whether each [..., 4, 4] ``T`` is a finite rigid transform [R t; 0 0 0 1]: R^T R within ``atol`` of
+    the identity with det +1 (>= 0.99), the last row within 1e-6 of (0, 0, 0, 1), t finite."""
     check_shape("T", T, (..., 4, 4))
     Td = T.double()
     R = Td[..., :3, :3]
     eye = torch.eye(3, dtype=torch.float64, device=T.device)
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=T.device)
     return (((R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2)) <= atol) & (torch.det(R) >= 0.99)
-            & ((Td[..., 3, :] - bottom).abs().amax(-1) <= 1e-6))
+            & ((Td[..., 3, :] - bottom).abs().amax(-1) <= 1e-6) & torch.isfinite(Td).all(-1).all(-1))
 
 
 K_LAYOUT = "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"  # pinhole intrinsics in pixels, as is_pinhole_K accepts them

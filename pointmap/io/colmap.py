@@ -17,7 +17,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from pointmap.errors import ConventionError, PointmapError
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K, is_rigid
@@ -71,7 +70,7 @@ def _model(recon, points: PointSet, shared_camera: bool | None):
     # checked before any file is written: a Reconstruction's tensors can be changed after it was built, and a NaN
     # or mirrored pose would be written as a line COLMAP (and read_colmap) refuses, or as some other rotation
     for k in range(n):
-        if not bool(is_rigid(recon.cam2world[k])) or not bool(torch.isfinite(recon.cam2world[k]).all()):
+        if not bool(is_rigid(recon.cam2world[k])):
             raise ConventionError(f"COLMAP export: cam2world[{k}] ({recon.names[k]}) is not a finite rigid transform "
                                   "(orthonormal rotation with det +1, last row 0 0 0 1)")
         if not bool(is_pinhole_K(recon.K[k])):

@@ -159,7 +159,7 @@ def _check_image(image, name="image") -> torch.Tensor:
 
 def _check_pose(T, name) -> torch.Tensor:
     T = torch.as_tensor(T, dtype=torch.float32)
-    if tuple(T.shape) != (4, 4) or not bool(torch.isfinite(T).all()) or not bool(is_rigid(T)):
+    if tuple(T.shape) != (4, 4) or not bool(is_rigid(T)):  # is_rigid: finite too
         raise ShapeError(f"{name} expected a finite [4, 4] cam2world, rigid [R t; 0 0 0 1] with R a rotation, got "
                          f"{list(T.shape) if tuple(T.shape) != (4, 4) else T.tolist()}")
     return T

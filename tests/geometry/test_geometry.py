@@ -304,3 +304,11 @@ def test_procrustes_in_float32_keeps_the_scale_of_a_cloud_far_from_the_origin_an
         eps = torch.finfo(torch.float32).eps
         one = (offset * (1 + eps * torch.randn(500, 3, generator=g, dtype=torch.float64))).float()  # rounding only
         assert float(weighted_procrustes(one, torch.randn(500, 3, generator=g))[0]) == 0.0
+
+
+def test_is_rigid_is_false_for_a_transform_with_a_nan_or_infinite_translation():
+    from pointmap.geometry.cameras import is_rigid
+
+    T = torch.eye(4).repeat(3, 1, 1)
+    T[1, 0, 3], T[2, 2, 3] = float("nan"), float("inf")
+    assert is_rigid(T).tolist() == [True, False, False]
