@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pointmap.align.edges import choose_stride, sample_index
 from pointmap.align.optimize import AlignConfig, check_cameras, global_align
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.io.points import check_conf_filter, confidence_mask
@@ -101,11 +102,8 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     h, w = map_hw
     E = 2 * n_pairs
     P = h * w
-    if cfg.stride or cfg.max_opt_pixels:
-        stride = cfg.stride or max(1, math.ceil(math.sqrt(P / cfg.max_opt_pixels)))
-        P_opt = math.ceil(h / stride) * math.ceil(w / stride)
-    else:
-        P_opt = P
+    rows, cols = sample_index(h, w, choose_stride([map_hw], E, cfg.max_opt_pixels, cfg.stride))
+    P_opt = len(rows) * len(cols)
     arch = getattr(model, "cfg", None)
     arch = arch if isinstance(arch, ModelConfig) else PRESETS["dust3r_512_dpt"]
     p = arch.patch_size

@@ -8,7 +8,6 @@ edges stack into dense tensors ``[E, P, 3]``; padded or unusable pixels carry we
 
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass
 
@@ -197,9 +196,9 @@ def drop_empty_edges(stack: EdgeStack, conf_transform: str = "log") -> EdgeStack
     alive = (stack.w_i.sum(1) > 0) & (stack.w_j.sum(1) > 0)
     if bool(alive.all()):
         return stack
-    why = ("no finite points, or every confidence <= 1 under conf_transform='log' (conf_transform='id' weighs "
-           "them), or masked out" if conf_transform in ("log", "m1") else
-           "confidence 0 (masked out) or not finite, or no finite points")
+    why = (f"no finite points, or every confidence <= 1 under conf_transform={conf_transform!r} "
+           "(conf_transform='id' weighs them), or masked out" if conf_transform in ("log", "m1") else
+           "confidence <= 0 (masked out) or not finite, or no finite points")
     if not bool(alive.any()):
         raise GraphError(f"every pair has zero weight in view 1 or view 2 ({why}); nothing to align")
     dead = [stack.keys[e] for e in range(stack.num_edges) if not alive[e]]
@@ -230,6 +229,7 @@ def check_connected(n_images: int, keys: list) -> None:
     if len(comps) > 1:
         groups = sorted(comps.values(), key=lambda g: g[0])
         shown = "; ".join(str(g[:10]) + ("..." if len(g) > 10 else "") for g in groups[:5])
+        shown += f"; and {len(groups) - 5} more" if len(groups) > 5 else ""
         raise GraphError(f"the pair graph is disconnected: {len(groups)} groups of images share no pair "
                          f"({shown}). Add pairs linking them (e.g. graph='complete' or a larger window).")
 
@@ -243,10 +243,11 @@ def choose_stride(shapes: list[tuple[int, int]], n_edges: int, max_opt_pixels: i
         return int(stride)
     if not max_opt_pixels:
         return 1
-    biggest = max(h * w for h, w in shapes)
-    stride = max(1, math.ceil(math.sqrt(biggest / max_opt_pixels)))
-    # the square root ignores the rounding up of rows and columns (a 176 x 960 map at 1000 pixels kept 1036)
-    while stride < max(max(s) for s in shapes) and max(
-            len(r) * len(c) for r, c in (sample_index(h, w, stride) for h, w in shapes)) > max_opt_pixels:
+    # the smallest stride that fits, counted as sample_index keeps them (cell centres: a square root of the area
+    # ratio is off both ways, e.g. a 176 x 960 map at 1000 pixels kept 1036, an 8 x 78 one at 17 kept 11 of 13)
+    sides = set(shapes)
+    stride = 1
+    while stride < max(max(s) for s in sides) and max(
+            len(r) * len(c) for r, c in (sample_index(h, w, stride) for h, w in sides)) > max_opt_pixels:
         stride += 1
     return stride

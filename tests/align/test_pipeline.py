@@ -173,6 +173,17 @@ def test_auto_graph_and_estimates():
     assert big["align_seconds"] > small["align_seconds"] > 0 and big["memory_gb"] > small["memory_gb"] > 0
 
 
+def test_the_estimate_counts_the_pixels_the_alignment_samples_at_the_stride_it_chooses():
+    from pointmap.align.edges import choose_stride
+
+    assert choose_stride([(8, 78)], 2, 17, None) == 6  # the alignment's own choice (sqrt(624 / 17) would say 7)
+    capped = estimate_cost(3, 3, (8, 78), config=AlignConfig(max_opt_pixels=17))
+    assert capped == estimate_cost(3, 3, (8, 78), config=AlignConfig(stride=6, max_opt_pixels=None))
+    assert capped["align_seconds"] > estimate_cost(3, 3, (8, 78), config=AlignConfig(stride=7))["align_seconds"]
+    full = estimate_cost(3, 3, (8, 78), config=AlignConfig(max_opt_pixels=None))
+    assert full["memory_gb"] > capped["memory_gb"]
+
+
 def test_the_alignment_estimate_adds_the_pose_refinement_on_matches_for_a_model_with_descriptors():
     from pointmap.align.epipolar import EpipolarConfig
     from pointmap.errors import PointmapError
