@@ -47,7 +47,13 @@ class Localization:
         return len(self.names)
 
     def subset(self, keep: list) -> Localization:
-        """The queries at indices ``keep``, in that order."""
+        """The queries at indices ``keep``, in that order; or where ``keep``, len(self) bools, is True."""
+        keep = _plain(keep)
+        if isinstance(keep, list) and keep and all(isinstance(b, bool) for b in keep):  # a mask, not 0 / 1
+            if len(keep) != len(self):
+                raise ShapeError(f"subset expected query indices or a mask of {len(self)} bools, "
+                                 f"got {len(keep)} bools")
+            keep = [k for k, b in enumerate(keep) if b]
         return Localization(self.cam2world[keep], self.K[keep], [self.ref[k] for k in keep],
                             [self.conf[k] for k in keep], [self.scale[k] for k in keep], [self.names[k] for k in keep])
 
@@ -175,10 +181,17 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
             K = torch.as_tensor(K, dtype=torch.float64)
         except (TypeError, ValueError):  # ragged or non-numeric: said with the layout expected
             raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, got {K!r}") from None
-        K = K.expand(m, 3, 3) if K.shape == (3, 3) else K
-        if tuple(K.shape) != (m, 3, 3) or not bool(is_pinhole_K(K).all()):
+        one = K.shape == (3, 3)
+        K = K.expand(m, 3, 3) if one else K
+        if tuple(K.shape) != (m, 3, 3):
             raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, "
                              f"finite with positive focals, got {K.tolist() if K.numel() <= 9 else list(K.shape)}")
+        bad = (~is_pinhole_K(K)).nonzero().flatten().tolist()
+        if bad:  # the right shape: say which query's K is wrong, with its values
+            which = "" if one else f"K[{bad[0]}] = "
+            more = f" (and the K of queries {bad[1:]})" if len(bad) > 1 and not one else ""
+            raise ShapeError(f"K expected [3, 3] or [{m}, 3, 3] intrinsics {K_LAYOUT}, finite with positive focals, "
+                             f"got {which}{K[bad[0]].tolist()}{more}")
     warn_mixed_intrinsics(recon, K is not None)
     refs_views = reference_views(recon)
     if refs is None:
@@ -193,7 +206,7 @@ def localize(model, recon: Reconstruction, images, refs=None, *, K=None, n_refs:
     refs = [_plain(r) for r in refs]  # e.g. an argmax's 0-d tensors, or a row of a [M, k] array
     refs = [[int(r)] if is_int(r) else [int(k) if is_int(k) else k for k in r]
             if hasattr(r, "__iter__") and not isinstance(r, (str, bytes)) else r for r in refs]
-    if len(refs) != m or any(not isinstance(r, list) or not r or any(not isinstance(k, int) or not 0 <= k < n
+    if len(refs) != m or any(not isinstance(r, list) or not r or any(not is_int(k) or not 0 <= k < n
                                                                      for k in r) for r in refs):
         raise GraphError(f"refs expected, for each of the {m} queries, a non-empty list of view indices in 0..{n - 1}, "
                          f"got {refs}")
