@@ -98,13 +98,18 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
             raise ShapeError(f"matches keys expected (i, j) image indices in 0..{n - 1}, got {key!r}")
     g = torch.Generator().manual_seed(seed)
     I, J, A, B, S = [], [], [], [], []
+    given = low_score = outside = no_depth = 0
     for (i, j), m in matches.items():
         if i == j:
             continue
         xy1, xy2, score = _unpack(m, (i, j))
-        keep = (score > cfg.min_score) & torch.isfinite(score) & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
+        good_score = (score > cfg.min_score) & torch.isfinite(score)
+        keep = good_score & torch.isfinite(xy1).all(1) & torch.isfinite(xy2).all(1)
+        given += len(score)
+        low_score += int((~good_score).sum())
         for xy, (w, h) in ((xy1, recon.map_sizes[i]), (xy2, recon.map_sizes[j])):  # inside each view's own map
             keep &= (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
+        outside += int(good_score.sum()) - int(keep.sum())
         idx = keep.nonzero()[:, 0]
         if len(idx) > cfg.max_matches_per_pair:
             idx = idx[torch.randperm(len(idx), generator=g)[: cfg.max_matches_per_pair]]
@@ -112,6 +117,7 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
         v = xy1[idx, 1].round().long()
         d0 = recon.depth_z[i].double()[v, u]
         ok = d0 > 0
+        no_depth += int((~ok).sum())
         idx = idx[ok]
         I.append(torch.full((len(idx),), i))
         J.append(torch.full((len(idx),), j))
@@ -119,7 +125,10 @@ def gather_matches(recon: Reconstruction, matches: dict, cfg: SparseConfig, seed
         B.append(xy2[idx])
         S.append(score[idx].clamp_min(0))
     if not I or sum(len(x) for x in I) == 0:
-        raise ShapeError("refine_matches: no usable matches (inside both images, with depth at xy1)")
+        raise ShapeError(f"refine_matches: no usable matches of {given} given: {low_score} scored at or below "
+                         f"min_score={cfg.min_score}, {outside} outside image i or j (or not finite), {no_depth} "
+                         f"without depth at xy1 (expected matches in map pixels, score > min_score, inside both "
+                         f"images, with depth at xy1)")
     return torch.cat(I), torch.cat(J), torch.cat(A), torch.cat(B), torch.cat(S)
 
 
