@@ -148,6 +148,20 @@ def gt_preds(scene, pairs, *, seed: int = 0, noise: float = 0.0, outliers: float
     return out
 
 
+def recon_of(scene, n: int, world_scale: float = 1.0, conf: float = 3.0):
+    """A Reconstruction of the scene's first ``n`` views at their true cameras and depths, in units ``world_scale``
+    times the scene's (what localisation must land its queries in)."""
+    from pointmap.reconstruction import Reconstruction
+
+    h, w = scene["depth"].shape[1:]
+    recon = Reconstruction(
+        images=torch.from_numpy(scene["images"][:n]).float(),
+        cam2world=torch.from_numpy(scene["cam2world"][:n]).clone(), K=torch.from_numpy(scene["K"][:n]),
+        depth_z=torch.from_numpy(scene["depth"][:n]).float() * world_scale, conf=torch.full((n, h, w), conf))
+    recon.cam2world[:, :3, 3] *= world_scale
+    return recon
+
+
 def complete_pairs(n: int) -> list:
     return [(i, j) for i in range(n) for j in range(i + 1, n)]
 

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from align_scene import STAND_IN, gt_preds, make_scene
+from align_scene import STAND_IN, gt_preds, make_scene, recon_of
 
 from pointmap.errors import GraphError, PointmapError, ShapeError
 from pointmap.localization import (
@@ -46,12 +46,7 @@ def scene(monkeypatch):
     (``calls``: its arguments; ``calls["preds"]``: what it returned)."""
     sc = make_scene(6, 32, 48, seed=7, focals=FOCALS)
     world_scale = 2.5
-    recon = Reconstruction(
-        images=torch.from_numpy(sc["images"][:N_REC]).float(),
-        cam2world=torch.from_numpy(sc["cam2world"][:N_REC]).clone(), K=torch.from_numpy(sc["K"][:N_REC]),
-        depth_z=torch.from_numpy(sc["depth"][:N_REC]).float() * world_scale,
-        conf=torch.full((N_REC, 32, 48), 3.0))
-    recon.cam2world[:, :3, 3] *= world_scale
+    recon = recon_of(sc, N_REC, world_scale)
     calls = {}
 
     def predict_pairs(model, views, pairs, batch_size=8, **kw):
