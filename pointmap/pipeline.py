@@ -16,7 +16,7 @@ import torch
 
 from pointmap.align.edges import choose_stride, sample_index
 from pointmap.align.optimize import AlignConfig, check_cameras, global_align
-from pointmap.errors import GraphError, PointmapError, ShapeError
+from pointmap.errors import GraphError, PointmapError, ShapeError, is_int
 from pointmap.io.points import check_conf_filter, confidence_mask
 from pointmap.reconstruction import to_canvas
 
@@ -98,6 +98,11 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
     from pointmap.model import PRESETS, ModelConfig
 
     check_stages(epipolar, refine)
+    if not (is_int(n_images) and n_images >= 1 and is_int(n_pairs) and n_pairs >= 0):
+        raise PointmapError(f"estimate_cost expected n_images >= 1 and n_pairs >= 0 (integers), got {n_images!r} "
+                            f"and {n_pairs!r}")
+    if not (isinstance(map_hw, (tuple, list)) and len(map_hw) == 2 and all(is_int(x) and x >= 1 for x in map_hw)):
+        raise ShapeError(f"map_hw expected (height, width) in pixels, two integers >= 1, got {map_hw!r}")
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs

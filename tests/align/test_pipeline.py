@@ -11,7 +11,7 @@ import torch
 from align_scene import STAND_IN, StandInNet, gt_preds, make_scene, pose_errors, with_descriptors
 
 from pointmap.align import AlignConfig, EpipolarConfig
-from pointmap.errors import PointmapError
+from pointmap.errors import PointmapError, ShapeError
 from pointmap.matching import match_coarse
 from pointmap.pipeline import auto_graph, estimate_cost, masks_to_maps, reconstruct
 
@@ -182,6 +182,18 @@ def test_the_estimate_counts_the_pixels_the_alignment_samples_at_the_stride_it_c
     assert capped["align_seconds"] > estimate_cost(3, 3, (8, 78), config=AlignConfig(stride=7))["align_seconds"]
     full = estimate_cost(3, 3, (8, 78), config=AlignConfig(max_opt_pixels=None))
     assert full["memory_gb"] > capped["memory_gb"]
+
+
+@pytest.mark.parametrize("hw", [(-5, 10), (0, 10), (10.5, 10), (224,), "224x224", None])
+def test_the_estimate_refuses_a_map_size_that_is_not_two_positive_integers(hw):
+    with pytest.raises(ShapeError, match=r"map_hw expected \(height, width\) in pixels, two integers >= 1, got"):
+        estimate_cost(3, 3, hw)
+
+
+@pytest.mark.parametrize("n_images, n_pairs", [(0, 3), (3, -1), (3.0, 3), (True, 3), (3, None)])
+def test_the_estimate_refuses_counts_that_are_not_whole_numbers(n_images, n_pairs):
+    with pytest.raises(PointmapError, match="estimate_cost expected n_images >= 1 and n_pairs >= 0"):
+        estimate_cost(n_images, n_pairs, (32, 48))
 
 
 def test_the_alignment_estimate_adds_the_pose_refinement_on_matches_for_a_model_with_descriptors():
@@ -441,8 +453,6 @@ def test_the_retrieval_estimate_adds_the_token_comparisons_and_no_second_encodin
 
 @pytest.mark.parametrize("bad", [0, 2.5, "8"])
 def test_reconstruct_refuses_a_batch_size_before_anything_runs(fake_stack, bad):
-    from pointmap.errors import ShapeError
-
     _, images, calls = fake_stack
     with pytest.raises(ShapeError, match="batch_size expected an int >= 1"):
         reconstruct(STAND_IN, images, graph="retrieval-2", size=48, quiet=True, batch_size=bad)
