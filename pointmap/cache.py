@@ -69,6 +69,10 @@ def model_fingerprint(model) -> str:
             t = t.detach().cpu().contiguous()
             h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
             h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        # and the rotary tables' base as each module runs it (``.rope``; in no weight), should a caller have given a
+        # model tables of another base than its config says
+        bases = [m.rope.base for m in model.modules() if hasattr(getattr(m, "rope", None), "base")]
+        h.update(f"|rope {bases}|".encode())
         return h.hexdigest()
     if callable(getattr(model, "files_used", None)):  # an ONNX export: the graphs loaded, their weights, the sidecar
         for p in model.files_used():

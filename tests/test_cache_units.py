@@ -108,6 +108,28 @@ def test_the_same_weights_under_another_config_miss_the_cache(tiny_model, tmp_pa
     assert not torch.equal(out[(0, 1)].conf1, pm.predict_pairs(tiny_model, imgs, [(0, 1)], quiet=True)[(0, 1)].conf1)
 
 
+def test_a_model_running_other_rotary_tables_than_its_config_says_misses_the_cache(tiny_model, tmp_path):
+    # the rotary base lives in no weight: a model given tables of another base computes another prediction
+    from pointmap.model.blocks import RopeCache
+
+    imgs = _imgs()
+    pm.predict_pairs(tiny_model, imgs, [(0, 1)], quiet=True, cache=tmp_path)
+    other = pm.PointmapNet(tiny_model.cfg).eval()
+    other.load_state_dict(tiny_model.state_dict())
+    other.rope = RopeCache(tiny_model.cfg.rope_base * 3)
+    cache = PredictionCache(tmp_path, other)
+    out = pm.predict_pairs(other, imgs, [(0, 1)], quiet=True, cache=cache)
+    assert cache.hits == 0 and model_fingerprint(other) != model_fingerprint(tiny_model)
+    assert not torch.equal(out[(0, 1)].pts2_cam1, pm.predict_pairs(tiny_model, imgs, [(0, 1)], quiet=True)[(0, 1)].pts2_cam1)
+
+
+def test_the_rotary_base_of_a_built_model_cannot_be_changed_in_place(tiny_model):
+    # its tables are built once and cached, and the config (which checkpoints and caches record) says the base
+    with pytest.raises(AttributeError, match=r"read-only \(it is 100.0, asked 200\).*rope_base"):
+        tiny_model.rope.base = 200
+    assert tiny_model.rope.base == tiny_model.cfg.rope_base == 100.0
+
+
 @pytest.mark.parametrize("which", [0, -1])
 def test_a_change_to_the_last_element_of_the_first_or_last_weight_by_one_ulp_changes_the_fingerprint(tiny_model,
                                                                                                       which):

@@ -50,11 +50,22 @@ def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.T
 
 
 class RopeCache:
-    """cos/sin tables per (grid h, w, head_dim, device, dtype), built once (not while tracing/exporting)."""
+    """cos/sin tables per (grid h, w, head_dim, device, dtype), built once (not while tracing/exporting). ``base``
+    is read-only: the tables already built hold it, and a model's config (which checkpoints, exports and prediction
+    caches record) says it; another base is another model, built from a config that says so."""
 
     def __init__(self, base: float) -> None:
-        self.base = base
+        self._base = float(base)
         self._cache: dict = {}
+
+    @property
+    def base(self) -> float:
+        return self._base
+
+    @base.setter
+    def base(self, value) -> None:
+        raise AttributeError(f"RopeCache.base is read-only (it is {self._base}, asked {value!r}): build the model "
+                             "from a config with rope_base set, e.g. dataclasses.replace(model.cfg, rope_base=...)")
 
     def __call__(self, h: int, w: int, head_dim: int, device, dtype):
         key = (h, w, head_dim, str(device), dtype)
