@@ -103,6 +103,8 @@ def estimate_cost(n_images: int, n_pairs: int, map_hw: tuple, model=None, config
                             f"and {n_pairs!r}")
     if not (isinstance(map_hw, (tuple, list)) and len(map_hw) == 2 and all(is_int(x) and x >= 1 for x in map_hw)):
         raise ShapeError(f"map_hw expected (height, width) in pixels, two integers >= 1, got {map_hw!r}")
+    if config is not None and not isinstance(config, AlignConfig):
+        raise PointmapError(f"estimate_cost expected config an AlignConfig (or None), got {type(config).__name__}")
     cfg = config or AlignConfig()
     h, w = map_hw
     E = 2 * n_pairs
@@ -145,6 +147,9 @@ def masks_to_maps(masks, views) -> list:
 
     if not hasattr(masks, "__len__") or isinstance(masks, (str, bytes)):
         raise ShapeError(f"masks expected a list of per-image masks, got {type(masks).__name__}")
+    if isinstance(masks, dict):  # iterated, a dict gives its keys: each image index read as a mask
+        raise ShapeError("masks expected a list of per-image masks, got dict (one mask per image, in the images' "
+                         "order; K and cam2world are the ones keyed by image index)")
     if len(masks) != len(views):
         raise ShapeError(f"masks expected one per image ({len(views)}), got {len(masks)}")
     out = []
@@ -232,6 +237,8 @@ def reconstruct(model, paths_or_arrays, graph="auto", *, size: int | None = None
     if align is not None and not isinstance(align, AlignConfig):
         raise PointmapError(f"align expected an AlignConfig (or None), got {type(align).__name__}")
     check_stages(epipolar, refine)
+    if not isinstance(quiet, bool):  # AlignConfig refused it as its own field, or a given one's quiet=True hid it
+        raise PointmapError(f"reconstruct expected quiet True or False, got {quiet!r}")
     device = check_model_device(model, device, "reconstruct")  # a missing GPU refused before any image is read
     if not (is_int(batch_size) and batch_size >= 1):
         raise ShapeError(f"batch_size expected an int >= 1, got {batch_size!r}")
