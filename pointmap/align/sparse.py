@@ -19,6 +19,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 
 import torch
+from tqdm import tqdm
 
 from pointmap.align.gauge import anchor_to_first
 from pointmap.align.inputs import camera_index
@@ -32,7 +33,7 @@ class SparseConfig:
     """niter: LBFGS iterations; robust_px: Cauchy scale in map pixels (None: min(2, max(h, w) / 100));
     depth_prior: weight of each match's squared log-depth change (s_i + delta)^2 (in px^2 per unit log-depth^2);
     optimize_focal / optimize_pp: which intrinsics move; min_score: matches with a score at or below it are dropped;
-    max_matches_per_pair: random subsample cap."""
+    max_matches_per_pair: random subsample cap; quiet: no progress bar (over the fit's loss evaluations)."""
 
     niter: int = 100
     robust_px: float | None = None
@@ -226,16 +227,21 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
                             history_size=20, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
                             tolerance_change=1e-14)
     evals = [0]
+    bar = tqdm(total=cfg.niter * 2, desc="sparse refinement", unit="eval", disable=cfg.quiet, leave=False)
 
     def closure():
         opt.zero_grad()
         loss = loss_fn()
         loss.backward()
         evals[0] += 1
+        bar.update()
         return loss
 
     loss0 = float(loss_fn().detach())
-    opt.step(closure)
+    try:
+        opt.step(closure)
+    finally:
+        bar.close()
     with torch.no_grad():
         final = float(loss_fn())
         r1, z1 = residuals()

@@ -232,6 +232,14 @@ def test_scaling_every_score_by_one_factor_changes_nothing():
     assert out[1]["depth_scale"] == pytest.approx(out[0]["depth_scale"], rel=1e-5), out
 
 
+def test_the_fit_shows_a_progress_bar_unless_quiet(capsys):
+    recon = two_view_recon(depth0=torch.full((H, W), 2.4))
+    for quiet in (False, True):
+        refine_matches(recon, _two_view_matches(), config=SparseConfig(quiet=quiet, niter=5), fixed_poses=True)
+        err = capsys.readouterr().err
+        assert ("sparse refinement" in err) is not quiet, (quiet, err)
+
+
 def test_a_held_principal_point_is_held_during_the_fit_not_only_in_the_result():
     recon = two_view_recon(pp_shift=(0.0, 1.5))  # image 1's principal point 1.5 px low: across the epipolar lines
     cfg = SparseConfig(quiet=True, niter=50, optimize_pp=True, optimize_focal=False)
