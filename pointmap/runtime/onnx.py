@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from pointmap.checkpoint import provenance_ok, warn_if_noncommercial
-from pointmap.errors import CheckpointError, ShapeError
+from pointmap.errors import CheckpointError, ShapeError, is_int
 from pointmap.model.config import ModelConfig
 from pointmap.model.net import Encoded, PointmapNet
 from pointmap.prediction import PairPrediction
@@ -80,8 +80,14 @@ def resolve_providers(providers=None) -> list:
         providers = ["CPUExecutionProvider"]
     elif isinstance(providers, str):
         providers = [p for p in _AUTO_ORDER if p in available] if providers == "auto" else [providers]
+    elif not isinstance(providers, (list, tuple)):
+        raise CheckpointError(f"providers expected None, 'auto', a provider name or a list of names and "
+                              f"(name, options) tuples, got {type(providers).__name__}")
     out = []
     for p in providers:
+        if not (isinstance(p, str) or (isinstance(p, tuple) and len(p) == 2 and isinstance(p[0], str)
+                                       and isinstance(p[1], (dict, type(None))))):
+            raise CheckpointError(f"providers expected provider names and (name, options) tuples, got {p!r}")
         name, opts = (p if isinstance(p, tuple) else (p, None))
         name = PROVIDER_ALIASES.get(str(name).lower(), name)
         if name not in available:
@@ -100,8 +106,8 @@ def session_options(threads: int | None = None):
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     if threads is not None:
-        if int(threads) < 1:
-            raise ValueError(f"threads expected >= 1, got {threads}")
+        if not is_int(threads) or int(threads) < 1:
+            raise ValueError(f"threads expected an int >= 1, got {threads!r}")
         so.intra_op_num_threads = int(threads)
         so.inter_op_num_threads = 1
     so.log_severity_level = 3  # errors only: the dynamo graphs make ORT warn about unused initialisers
@@ -168,8 +174,11 @@ def _check_io(graph: Path, session, meta: dict, file: str) -> None:
     """CheckpointError unless the loaded graph takes the inputs and gives the outputs its description lists (a
     graph without the description's metadata, e.g. from another export, would otherwise fail inside onnxruntime at
     the first call); the pose head's transform may be missing (exports before session 49)."""
-    listed = next((g for g in (meta.get("graphs") or {}).values() if isinstance(g, dict) and g.get("file") == file),
-                  None)
+    graphs = meta.get("graphs") or {}
+    if not isinstance(graphs, dict):
+        raise CheckpointError(f"{graph}: its export metadata's graphs expected a JSON object (role -> graph "
+                              f"description), got {type(graphs).__name__}")
+    listed = next((g for g in graphs.values() if isinstance(g, dict) and g.get("file") == file), None)
     if listed is None:
         return
     ins = [i.name for i in session.get_inputs()]
