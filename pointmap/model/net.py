@@ -129,7 +129,7 @@ class PointmapNet(nn.Module):
                              "alone (export.graphs.half_backbone) or run under torch.autocast, not model.half() / "
                              ".to(torch.bfloat16)")
         if img.numel():
-            lo, hi = float(img.min()), float(img.max())
+            lo, hi = float(img.detach().min()), float(img.detach().max())  # no autograd warning for a leaf
             if not (lo >= -1e-3 and hi <= 1 + 1e-3):  # also catches NaN
                 raise ShapeError(f"{name} expected values in [0, 1], got range [{lo:.3g}, {hi:.3g}]")
 

@@ -49,6 +49,17 @@ def test_wrong_image_shapes_raise_a_shape_error_naming_the_expected_layout(tiny_
         tiny_model(torch.rand(shape), torch.rand(1, 3, 32, 32))
 
 
+def test_checking_images_that_require_grad_gives_no_autograd_warning(tiny_model):
+    import warnings
+
+    img = torch.rand(1, 3, 32, 32, requires_grad=True)  # an image optimised through the network, say
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tiny_model.check_images("img", img)
+    with pytest.raises(pm.ShapeError, match=r"\[0, 1\]"):
+        tiny_model.check_images("img", (img * 3).detach().requires_grad_())
+
+
 def test_out_of_range_or_nan_or_integer_images_are_refused(tiny_model):
     ok = torch.rand(1, 3, 32, 32)
     with pytest.raises(pm.ShapeError, match=r"\[0, 1\]"):
