@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+import types
 
 import numpy as np
 import torch
@@ -160,6 +162,25 @@ def recon_of(scene, n: int, world_scale: float = 1.0, conf: float = 3.0):
         depth_z=torch.from_numpy(scene["depth"][:n]).float() * world_scale, conf=torch.full((n, h, w), conf))
     recon.cam2world[:, :3, 3] *= world_scale
     return recon
+
+
+def stand_in_modules(monkeypatch, calls: dict, inference: dict, matching: dict) -> None:
+    """Replace the network modules ``reconstruct`` imports when it runs with stand-ins: ``pointmap.pairs`` whose
+    ``make_pairs`` records the graph asked for in ``calls["graph"]`` and pairs every image with every other (the
+    graph parsers are the real ones), and ``pointmap.inference`` / ``pointmap.matching`` holding the functions
+    ``inference`` / ``matching`` name."""
+    from pointmap.pairs import pairs_from_list, pairs_from_similarity, parse_graph
+
+    def make_pairs(n, graph):
+        calls["graph"] = graph
+        return complete_pairs(n)
+
+    pairs = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list,
+             "pairs_from_similarity": pairs_from_similarity, "parse_graph": parse_graph}
+    for name, fns in (("pointmap.pairs", pairs), ("pointmap.inference", inference), ("pointmap.matching", matching)):
+        mod = types.ModuleType(name)
+        mod.__dict__.update(fns)
+        monkeypatch.setitem(sys.modules, name, mod)
 
 
 def complete_pairs(n: int) -> list:

@@ -3,12 +3,19 @@ ground truth of the analytic scene."""
 
 import sys
 import time
-import types
 
 import numpy as np
 import pytest
 import torch
-from align_scene import STAND_IN, StandInNet, gt_preds, make_scene, pose_errors, with_descriptors
+from align_scene import (
+    STAND_IN,
+    StandInNet,
+    gt_preds,
+    make_scene,
+    pose_errors,
+    stand_in_modules,
+    with_descriptors,
+)
 
 from pointmap.align import AlignConfig, EpipolarConfig
 from pointmap.errors import PointmapError, ShapeError
@@ -22,10 +29,6 @@ def fake_stack(monkeypatch, request):
     sc = make_scene(5, 32, 48, seed=51, shapes=[(48, 32) if k % 2 else (32, 48) for k in range(5)] if portrait else None)
     calls = {"descriptors": "descriptors" in request.node.name,
              "varied": "varied_confidences" in request.node.name}  # a little noise: confidences 3 + U(0, 1)
-
-    def make_pairs(n, graph):
-        calls["graph"] = graph
-        return [(i, j) for i in range(n) for j in range(i + 1, n)]
 
     def predict_pairs(model, views, pairs, batch_size=8, **kw):
         calls["pairs"], calls["kw"], calls["shapes"] = list(pairs), kw, [v.shape for v in views]
@@ -45,15 +48,7 @@ def fake_stack(monkeypatch, request):
 
     inference = {"predict_pairs": predict_pairs_with_descriptors if calls.get("descriptors") else predict_pairs,
                  "encode_views": encode_views}
-    from pointmap.pairs import pairs_from_list, pairs_from_similarity, parse_graph
-
-    pairs_module = {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list,
-                    "pairs_from_similarity": pairs_from_similarity, "parse_graph": parse_graph}
-    for name, fns in (("pointmap.pairs", pairs_module), ("pointmap.inference", inference),
-                      ("pointmap.matching", {"match": match, "match_coarse": match_coarse})):
-        mod = types.ModuleType(name)
-        mod.__dict__.update(fns)
-        monkeypatch.setitem(sys.modules, name, mod)
+    stand_in_modules(monkeypatch, calls, inference, {"match": match, "match_coarse": match_coarse})
     images = [(im * 255).astype(np.uint8) for im in sc["images"]]
     return sc, images, calls
 

@@ -10,7 +10,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from align_scene import STAND_IN, StandInNet, make_scene, recon_of
+from align_scene import STAND_IN, StandInNet, make_scene, recon_of, stand_in_modules
 
 import pointmap.pipeline as pipeline
 from pointmap.align import AlignConfig, EpipolarConfig, SparseConfig
@@ -214,10 +214,6 @@ def stand_ins(monkeypatch):
     sc = make_scene(3, 32, 48, seed=3)
     calls = {"stop": False, "matched": []}
 
-    def make_pairs(n, graph):
-        calls["graph"] = graph
-        return [(i, j) for i in range(n) for j in range(i + 1, n)]
-
     def predict_pairs(model, views, pairs, batch_size=8, **kw):
         calls["batch_size"], calls["kw"] = batch_size, kw
         if calls["stop"]:
@@ -232,16 +228,7 @@ def stand_ins(monkeypatch):
         calls["align"] = kw
         return recon_of(sc, len(views))
 
-    from pointmap.pairs import pairs_from_list, pairs_from_similarity, parse_graph
-
-    for name, fns in (("pointmap.pairs", {"make_pairs": make_pairs, "pairs_from_list": pairs_from_list,
-                                          "pairs_from_similarity": pairs_from_similarity,
-                                          "parse_graph": parse_graph}),
-                      ("pointmap.inference", {"predict_pairs": predict_pairs}),
-                      ("pointmap.matching", {"match": match})):
-        mod = types.ModuleType(name)
-        mod.__dict__.update(fns)
-        monkeypatch.setitem(sys.modules, name, mod)
+    stand_in_modules(monkeypatch, calls, {"predict_pairs": predict_pairs}, {"match": match})
     monkeypatch.setattr(pipeline, "global_align", global_align)
     # the estimate's FLOPs of the official-size model (STAND_IN has no cfg) cost a second a map size: not tested here
     monkeypatch.setattr(pipeline, "inference_gflop", lambda cfg, hw: (1.0, 1.0))

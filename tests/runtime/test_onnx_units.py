@@ -47,10 +47,6 @@ def _set_graph_meta(graph, text, out=None):
     onnx.save(proto, str(out or graph))
 
 
-def _copy(src, dst):
-    return shutil.copytree(src, dst)
-
-
 def _fake_ort(monkeypatch, available):
     monkeypatch.setattr(rt, "_ort", lambda: types.SimpleNamespace(get_available_providers=lambda: list(available)))
 
@@ -157,7 +153,7 @@ def test_no_fallback_warning_when_the_gpu_provider_asked_for_runs(full_export, m
 
 # -- foreign, corrupt or partial exports --------------------------------------------------------------------------
 def test_a_sidecar_that_is_not_json_or_not_a_file_is_a_checkpoint_error_naming_it(tmp_path, full_export):
-    bad = _copy(full_export, tmp_path / "bad")
+    bad = shutil.copytree(full_export, tmp_path / "bad")
     (bad / SIDECAR).write_text("{not json")
     with pytest.raises(CheckpointError, match=f"bad/{SIDECAR} is not valid JSON"):
         load_onnx(bad)
@@ -169,7 +165,7 @@ def test_a_sidecar_that_is_not_json_or_not_a_file_is_a_checkpoint_error_naming_i
 
 def test_a_graph_without_its_description_is_described_by_the_sidecar_beside_it_and_refused_without_one(
         tmp_path, full_export):
-    beside = _copy(full_export, tmp_path / "beside")
+    beside = shutil.copytree(full_export, tmp_path / "beside")
     _set_graph_meta(beside / FULL_GRAPH, None)
     runner = load_onnx(beside / FULL_GRAPH)
     assert runner.meta == json.loads((full_export / SIDECAR).read_text())
@@ -191,7 +187,7 @@ def test_an_export_of_another_format_is_refused_naming_what_it_is_and_what_is_ex
 
 
 def test_a_graph_of_another_export_in_the_folder_is_refused_naming_it_and_both_creation_times(tmp_path, split_export):
-    mixed = _copy(split_export, tmp_path / "mixed")
+    mixed = shutil.copytree(split_export, tmp_path / "mixed")
     meta = _graph_meta(mixed / DECODER_GRAPH)
     ours = meta["provenance"]["created"]
     meta["provenance"]["created"] = "2001-01-01T00:00:00+00:00"
@@ -204,7 +200,7 @@ def test_a_graph_of_another_export_in_the_folder_is_refused_naming_it_and_both_c
 
 @pytest.mark.parametrize("text", ["{not json", "[1, 2]"])
 def test_a_graph_whose_own_description_is_unreadable_is_judged_by_its_folders_description(tmp_path, full_export, text):
-    odd = _copy(full_export, tmp_path / "odd")
+    odd = shutil.copytree(full_export, tmp_path / "odd")
     _set_graph_meta(odd / FULL_GRAPH, text)
     img = torch.rand(1, 3, 32, 32)
     assert load_onnx(odd)(img, img).pts1_cam1.shape == (1, 32, 32, 3)
@@ -212,7 +208,7 @@ def test_a_graph_whose_own_description_is_unreadable_is_judged_by_its_folders_de
 
 def test_a_graph_with_the_outputs_but_not_the_inputs_its_description_lists_is_refused_at_load(tmp_path, full_export,
                                                                                               split_export):
-    odd = _copy(split_export, tmp_path / "odd")
+    odd = shutil.copytree(split_export, tmp_path / "odd")
     _set_graph_meta(full_export / FULL_GRAPH, None, odd / DECODER_GRAPH)  # same outputs, inputs img1 and img2
     with pytest.raises(CheckpointError, match=r"decoder.onnx takes inputs \['img1', 'img2'\] and lacks outputs \[\], "
                                               r"but its export's description lists inputs \{'tokens1': .*'tokens2'"):
@@ -220,7 +216,7 @@ def test_a_graph_with_the_outputs_but_not_the_inputs_its_description_lists_is_re
 
 
 def test_a_graph_lacking_an_output_its_description_lists_is_refused_naming_it(tmp_path, full_export):
-    odd = _copy(full_export, tmp_path / "odd")
+    odd = shutil.copytree(full_export, tmp_path / "odd")
     proto = onnx.load(str(odd / FULL_GRAPH))
     keep = [o for o in proto.graph.output if o.name != "conf2"]
     del proto.graph.output[:]
@@ -242,7 +238,7 @@ def test_a_lone_graph_is_checked_against_its_exports_description_whatever_its_fi
 
 def test_a_minimal_description_loads_as_fp32_without_provenance_or_graphs_table(tmp_path, full_export):
     meta = json.loads((full_export / SIDECAR).read_text())
-    small = _copy(full_export, tmp_path / "small")
+    small = shutil.copytree(full_export, tmp_path / "small")
     _set_graph_meta(small / FULL_GRAPH, None)
     (small / SIDECAR).write_text(json.dumps({k: meta[k] for k in ("format", "architecture", "split")}))
     runner = load_onnx(small)
@@ -260,21 +256,21 @@ def test_a_description_without_an_architecture_is_refused_saying_so(tmp_path, fu
 
 
 def test_a_split_export_missing_its_decoder_is_refused_naming_the_file_and_the_kind(tmp_path, split_export):
-    half = _copy(split_export, tmp_path / "half")
+    half = shutil.copytree(split_export, tmp_path / "half")
     (half / DECODER_GRAPH).unlink()
     with pytest.raises(CheckpointError, match=r"half is missing decoder.onnx \(listed as split export\)"):
         load_onnx(half)
 
 
 def test_a_graph_onnxruntime_cannot_load_beside_a_valid_description_is_a_checkpoint_error(tmp_path, full_export):
-    bad = _copy(full_export, tmp_path / "bad")
+    bad = shutil.copytree(full_export, tmp_path / "bad")
     (bad / FULL_GRAPH).write_bytes(b"\x08\x07junk" * 20)
     with pytest.raises(CheckpointError, match="onnxruntime cannot load .*bad/model.onnx"):
         load_onnx(bad)
 
 
 def test_a_non_commercial_licence_in_the_exports_provenance_is_warned_about(tmp_path, full_export):
-    nc = _copy(full_export, tmp_path / "nc")
+    nc = shutil.copytree(full_export, tmp_path / "nc")
     meta = json.loads((nc / SIDECAR).read_text())
     meta["provenance"]["licence"] = "CC-BY-NC-SA-4.0"
     _set_graph_meta(nc / FULL_GRAPH, None)
