@@ -234,8 +234,7 @@ def check_connected(n_images: int, keys: list) -> None:
                          f"({shown}). Add pairs linking them (e.g. graph='complete' or a larger window).")
 
 
-def choose_stride(shapes: list[tuple[int, int]], n_edges: int, max_opt_pixels: int | None,
-                  stride: int | None) -> int:
+def choose_stride(shapes: list[tuple[int, int]], max_opt_pixels: int | None, stride: int | None) -> int:
     """Stride giving at most ``max_opt_pixels`` sampled pixels per image (None/0 = full resolution)."""
     if stride is not None:
         if stride < 1:

@@ -197,7 +197,7 @@ def global_align(views, preds: dict, K=None, cam2world=None, *, config: AlignCon
     camera = camera_index(cfg.shared_focal, n)
     check_cameras(camera, info.original_sizes, info.map_from_original, K_known, fx)
     known_poses = parse_known_poses(cam2world, n, pose_mask)
-    stride = choose_stride(info.shapes, len(keys), cfg.max_opt_pixels, cfg.stride)
+    stride = choose_stride(info.shapes, cfg.max_opt_pixels, cfg.stride)
     conf_transform = resolve_conf_transform(cfg.conf_transform, preds, keys)
     stack = drop_empty_edges(build_stack(preds, keys, info.shapes, stride, conf_transform), conf_transform)
     if len(stack.keys) < len(keys):

@@ -298,41 +298,41 @@ def test_a_disconnected_graph_lists_its_groups_in_order_of_their_first_image_up_
 # ---------------------------------------------------------------- choose_stride
 
 def test_an_explicit_stride_is_returned_as_a_python_int_and_one_below_one_is_refused():
-    assert choose_stride([(10, 10)], 1, 4, 3) == 3
-    s = choose_stride([(10, 10)], 1, None, np.int64(2))  # AlignConfig accepts NumPy ints; the report is JSON
+    assert choose_stride([(10, 10)], 4, 3) == 3
+    s = choose_stride([(10, 10)], None, np.int64(2))  # AlignConfig accepts NumPy ints; the report is JSON
     assert s == 2 and type(s) is int
-    assert choose_stride([(10, 10)], 1, None, 1) == 1
+    assert choose_stride([(10, 10)], None, 1) == 1
     for bad in (0, -2):
         with pytest.raises(ValueError, match=f"stride expected >= 1, got {bad}"):
-            choose_stride([(10, 10)], 1, None, bad)
+            choose_stride([(10, 10)], None, bad)
 
 
 def test_without_a_pixel_cap_the_stride_is_one():
-    assert choose_stride([(40, 60)], 1, None, None) == 1
-    assert choose_stride([(40, 60)], 1, 0, None) == 1
+    assert choose_stride([(40, 60)], None, None) == 1
+    assert choose_stride([(40, 60)], 0, None) == 1
 
 
 def test_the_automatic_stride_keeps_every_image_under_the_cap_and_no_smaller_stride_keeps_more():
     shapes = [(4, 6), (30, 40)]
     for cap in (1, 2, 12, 20, 100, 300, 1199, 1200, 5000):
-        s = choose_stride(shapes, 1, cap, None)
+        s = choose_stride(shapes, cap, None)
         kept = max(len(r) * len(c) for r, c in (sample_index(h, w, s) for h, w in shapes))
         assert kept <= cap or s >= 40, (cap, s)
         if s > 1:
             smaller = max(len(r) * len(c) for r, c in (sample_index(h, w, s - 1) for h, w in shapes))
             assert smaller > cap or smaller == kept, (cap, s)  # no smaller stride keeps more pixels under the cap
-    assert choose_stride(shapes, 1, 1200, None) == 1  # exactly at the cap: full resolution
+    assert choose_stride(shapes, 1200, None) == 1  # exactly at the cap: full resolution
 
 
 def test_the_automatic_stride_is_the_smallest_that_fits_even_below_the_square_root_of_the_area_ratio():
     # cell centres keep fewer rows and columns than h / s rounded up: an 8 x 78 map at 17 pixels fits at stride 6
     # (1 x 13 kept), though sqrt(624 / 17) rounds up to 7 (1 x 11)
     for h, w, cap in [(8, 78, 17), (904, 1600, 10000), (30, 40, 100), (224, 224, 96 * 64)]:
-        s = choose_stride([(h, w)], 1, cap, None)
+        s = choose_stride([(h, w)], cap, None)
         kept = [len(r) * len(c) for r, c in (sample_index(h, w, t) for t in range(1, s + 1))]
         assert kept[-1] <= cap and all(k > cap for k in kept[:-1]), (h, w, cap, s, kept)
-    assert choose_stride([(8, 78)], 1, 17, None) == 6
-    assert choose_stride([(224, 224)], 1, 96 * 64, None) == 3  # the default cap at the shipped size: as before
+    assert choose_stride([(8, 78)], 17, None) == 6
+    assert choose_stride([(224, 224)], 96 * 64, None) == 3  # the default cap at the shipped size: as before
 
 
 # ---------------------------------------------------------------- warnings through global_align

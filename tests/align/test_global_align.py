@@ -126,10 +126,10 @@ def test_the_automatic_stride_keeps_at_most_max_opt_pixels_per_image():
 
     # the square root alone rounds rows and columns up past the cap: 176 x 960 kept 1036 of 1000, 8 x 11 kept 12 of 10
     for (h, w), cap in (((176, 960), 1000), ((8, 11), 10), ((20, 8), 1), ((384, 512), 96 * 64)):
-        stride = choose_stride([(h, w)], 1, cap, None)
+        stride = choose_stride([(h, w)], cap, None)
         rows, cols = sample_index(h, w, stride)
         assert 1 <= len(rows) * len(cols) <= cap, (h, w, cap, stride, len(rows) * len(cols))
-    assert choose_stride([(384, 512)], 1, 96 * 64, None) == 6  # where the root already fits, it is kept
+    assert choose_stride([(384, 512)], 96 * 64, None) == 6  # where the root already fits, it is kept
 
 
 def test_chunk_size_does_not_change_the_result(scene):

@@ -171,7 +171,7 @@ def test_auto_graph_and_estimates():
 def test_the_estimate_counts_the_pixels_the_alignment_samples_at_the_stride_it_chooses():
     from pointmap.align.edges import choose_stride
 
-    assert choose_stride([(8, 78)], 2, 17, None) == 6  # the alignment's own choice (sqrt(624 / 17) would say 7)
+    assert choose_stride([(8, 78)], 17, None) == 6  # the alignment's own choice (sqrt(624 / 17) would say 7)
     capped = estimate_cost(3, 3, (8, 78), config=AlignConfig(max_opt_pixels=17))
     assert capped == estimate_cost(3, 3, (8, 78), config=AlignConfig(stride=6, max_opt_pixels=None))
     assert capped["align_seconds"] > estimate_cost(3, 3, (8, 78), config=AlignConfig(stride=7))["align_seconds"]
