@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import torch
 
-from pointmap.errors import ConventionError, ShapeError, is_int
+from pointmap.errors import ConventionError, ShapeError, is_int, is_number
 from pointmap.geometry.cameras import K_LAYOUT, is_pinhole_K
 
 ALPHA_MIN = 1.0 / 255.0
@@ -450,8 +450,13 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
     if not bool(is_pinhole_K(K.detach())):
         raise ConventionError(f"K expected pinhole intrinsics {K_LAYOUT} with positive focals and zero skew (a "
                               f"transposed K puts cx, cy in the bottom row), got {K.detach().tolist()}")
-    if tile < 1 or chunk < 1:
-        raise ShapeError(f"tile and chunk must be >= 1, got {tile}, {chunk}")
+    if not (is_int(tile) and is_int(chunk) and tile >= 1 and chunk >= 1):
+        raise ShapeError(f"tile and chunk expected ints >= 1, got {tile!r}, {chunk!r}")
+    if not all(is_number(x) and math.isfinite(x) and x >= 0 for x in (near, eps2d)):
+        raise ShapeError(f"near and eps2d expected finite numbers >= 0, got {near!r}, {eps2d!r}")
+    bad = opacities.detach()[(opacities.detach() < 0) | (opacities.detach() > 1)]
+    if bad.numel():  # the radius bound takes opacity <= 1: above it, tile culling would cut into the footprint
+        raise ShapeError(f"opacities expected values in [0, 1], got {bad.numel()} outside (first {float(bad[0])!r})")
     if backend not in ("torch", "gsplat", "auto"):
         raise ShapeError(f"backend must be 'torch', 'gsplat' or 'auto', got {backend!r}")
     dtype = means.dtype  # every input computed in the means' dtype (float64 colours with float32 means failed deep inside)
