@@ -26,7 +26,7 @@ from export.graphs import graph_specs
 from pointmap.checkpoint import provenance_keeping_licence
 from pointmap.errors import CheckpointError
 from pointmap.model.net import PointmapNet
-from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR
+from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR, file_digests
 
 log = logging.getLogger(__name__)
 
@@ -162,10 +162,21 @@ def stamp(graph: Path, meta: dict) -> None:
 
 
 def _foreign_files(folder: Path) -> list[str]:
-    """What a folder holds beside an export's own files (graphs, their weights, the sidecar): a user's notes, a
-    TensorRT engine cache. Replacing the export would delete them."""
-    return sorted(p.name for p in folder.iterdir()
-                  if not (p.is_file() and (p.name == SIDECAR or p.suffix in (".onnx", ".data"))))
+    """What a folder holds beside an export's own files: a user's notes, a TensorRT engine cache, results saved as
+    ``.data``. Replacing the export would delete them. Its own are the sidecar and the files the sidecar lists
+    (``files``, since session 93), or for an older export (or an unreadable sidecar) every graph and ``.data`` file."""
+    try:
+        listed = json.loads((folder / SIDECAR).read_text(encoding="utf-8")).get("files")
+    except (OSError, ValueError, AttributeError):  # no sidecar, not JSON (UTF-8), or not an object
+        listed = None
+    if not isinstance(listed, dict):
+        listed = None
+
+    def own(p: Path) -> bool:
+        return p.is_file() and (p.name == SIDECAR or (p.name in listed if listed is not None
+                                                      else p.suffix in (".onnx", ".data")))
+
+    return sorted(p.name for p in folder.iterdir() if not own(p))
 
 
 def _replaceable(out: Path) -> None:
@@ -235,11 +246,17 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
 
     if not isinstance(model, PointmapNet):
         raise CheckpointError(f"export needs a PointmapNet (PyTorch) model, got {type(model).__name__}")
+    for name, flag in (("split", split), ("fp16", fp16), ("quiet", quiet)):
+        if not isinstance(flag, bool):  # split="no" would write a split export recorded as "split": "no"
+            raise ValueError(f"{name} expected True or False, got {flag!r}")
+    if external_data is not None and not isinstance(external_data, bool):
+        raise ValueError(f"external_data expected True or False (or None: only past protobuf's 2 GB limit), "
+                         f"got {external_data!r}")
     if fp16 and quantize:
         raise ValueError("choose one of fp16 and quantize, not both")
     if quantize not in (None, "int8"):
         raise ValueError(f"quantize expected None or 'int8', got {quantize!r}")
-    if parity not in PARITY_CASES and parity != "none":
+    if not isinstance(parity, str) or (parity not in PARITY_CASES and parity != "none"):
         raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
     out = check_target(out_dir, opset)
     prov = provenance_keeping_licence(model, provenance)  # checked (JSON values) before minutes of export
@@ -278,6 +295,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
                 "exporter": "torch.onnx.export(dynamo=True)", "created": _dt.datetime.now(_dt.timezone.utc)
                 .isoformat(timespec="seconds"), "versions": _versions(), "parameters_bytes_fp32": nbytes,
                 "export_seconds": {s["role"]: s["export_seconds"] for s in specs},
+                **({"convert_seconds": {s["role"]: s["convert_seconds"] for s in specs}} if quantize else {}),
             },
         }
         for spec in specs:  # the graphs carry their description even when copied alone
@@ -294,6 +312,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
                 raise CheckpointError(
                     f"ONNX parity check failed: worst {worst['worst_output']} at {worst['case']} differs by "
                     f"{worst['worst_ratio']:.3g}x the tolerance 1e-4 (1 + max|ref|); nothing was written")
+        meta["files"] = file_digests(tmp)  # every graph and weights file, checked by load_onnx
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
         _atomic_publish(tmp, out)
     finally:

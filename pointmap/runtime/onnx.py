@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 FORMAT = "pointmap-onnx/1"
 SIDECAR = "pointmap_export.json"          # next to the graphs; also embedded in each graph's metadata
 METADATA_KEY = "pointmap"                 # ModelProto.metadata_props key holding the sidecar JSON
+AFTER_STAMP = ("parity", "files")         # sidecar keys written after the graphs were stamped (not in their metadata)
 FULL_GRAPH, ENCODER_GRAPH, DECODER_GRAPH = "model.onnx", "encoder.onnx", "decoder.onnx"
 PRED_FIELDS = ("pts1_cam1", "pts2_cam1", "conf1", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2",
                "cam2_to_cam1", "focal1", "focal2")
@@ -154,17 +155,71 @@ def read_metadata(path) -> dict:
     return meta
 
 
+def _with_weights(graph: Path) -> list[Path]:
+    """The graph file and the external weights files it names (none when its weights are inline)."""
+    import onnx
+    from onnx.external_data_helper import ExternalDataInfo, uses_external_data
+
+    proto = onnx.load(str(graph), load_external_data=False)
+    return [graph] + sorted({graph.parent / ExternalDataInfo(t).location for t in proto.graph.initializer
+                             if uses_external_data(t)})
+
+
+def _sha256(f: Path) -> str:
+    """The SHA-256 (hex) of one file, read in 4 MB blocks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(f, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_digests(folder: Path) -> dict:
+    """{name: {"bytes", "sha256"}} of every file in ``folder``: what the exporter lists in the sidecar (``files``)
+    and ``load_onnx`` checks each graph and weights file against before onnxruntime reads it."""
+    return {f.name: {"bytes": f.stat().st_size, "sha256": _sha256(f)}
+            for f in sorted(p for p in Path(folder).iterdir() if p.is_file())}
+
+
+def _check_digests(meta: dict, folder: Path, used: list[Path]) -> None:
+    """CheckpointError unless each file in ``used`` that the sidecar's ``files`` lists (files in the export's own
+    folder; exports before session 93 list none and load unchecked) has the listed size and SHA-256: a graph or
+    weights file truncated, corrupted or replaced since the export would otherwise load, and compute with weights
+    the description does not describe."""
+    files = meta.get("files")
+    if files is None:
+        return
+    if not (isinstance(files, dict) and all(isinstance(v, dict) and is_int(v.get("bytes"))
+                                            and isinstance(v.get("sha256"), str) for v in files.values())):
+        raise CheckpointError(f"{folder}: its export metadata's files expected a JSON object of file name -> "
+                              f"{{'bytes': int, 'sha256': str}}, got {str(files)[:200]}")
+    for f in used:
+        listed = files.get(f.name) if f.parent.resolve() == folder.resolve() else None
+        if listed is None:
+            continue
+        size = f.stat().st_size
+        if size != listed["bytes"]:
+            raise CheckpointError(f"{f} is {size} bytes where its export lists {listed['bytes']} (truncated or "
+                                  "replaced since the export?): export again")
+        if _sha256(f) != listed["sha256"]:
+            raise CheckpointError(f"{f} does not match the SHA-256 its export lists (corrupted or modified since the "
+                                  "export): export again")
+
+
 def _check_same_export(graph: Path, session, meta: dict) -> None:
     """CheckpointError unless the description ``graph`` carries (stamped by the exporter, read from its loaded
-    ``session``; old graphs may carry none) is ``meta``'s, the parity report aside (added after the stamp): a folder
-    holding graphs of different exports would otherwise run weights the description does not describe."""
+    ``session``; old graphs may carry none) is ``meta``'s, the parity report and the file digests aside (added after
+    the stamp): a folder holding graphs of different exports would otherwise run weights the description does not
+    describe."""
     try:
         text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
         own = json.loads(text) if text is not None else None
     except Exception:  # noqa: BLE001 - unreadable metadata: read_metadata reports it where it is the source
         return
-    if isinstance(own, dict) and {k: v for k, v in own.items() if k != "parity"} != \
-            {k: v for k, v in meta.items() if k != "parity"}:
+    if isinstance(own, dict) and {k: v for k, v in own.items() if k not in AFTER_STAMP} != \
+            {k: v for k, v in meta.items() if k not in AFTER_STAMP}:
         raise CheckpointError(f"{graph} belongs to another export than the description it was loaded with (created "
                               f"{own.get('provenance', {}).get('created')!r}, the description "
                               f"{meta.get('provenance', {}).get('created')!r}): export again into a folder of its own")
@@ -248,6 +303,8 @@ class OnnxPointmapModel:
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
             _check_same_export(gp, self._sessions[f], meta)
             _check_io(gp, self._sessions[f], meta, f)
+            if meta.get("files") is not None:  # last: the checks above say more about a graph of another export
+                _check_digests(meta, self.path, _with_weights(gp))
         # an export written before the pose head's transform was a graph output (session 49) lacks it: the
         # prediction then has no cam2_to_cam1, and relative_pose falls back to the pointmaps' Procrustes
         have = {o.name for o in self._sessions[files[-1]].get_outputs()}
@@ -267,15 +324,7 @@ class OnnxPointmapModel:
         """The files this runner computes with: the graphs it loaded, their external weights (as each graph names
         them) and the export's sidecar. What a prediction cache fingerprints: two exports side by side in one folder
         (``v1.onnx``, ``v2.onnx``, each loaded by its own name) are two models."""
-        import onnx
-        from onnx.external_data_helper import ExternalDataInfo, uses_external_data
-
-        out = []
-        for gp in self.graph_files:
-            out.append(gp)
-            proto = onnx.load(str(gp), load_external_data=False)
-            out += sorted({gp.parent / ExternalDataInfo(t).location for t in proto.graph.initializer
-                           if uses_external_data(t)})
+        out = [f for gp in self.graph_files for f in _with_weights(gp)]
         side = self.path / SIDECAR
         return out + ([side] if side.is_file() else [])
 

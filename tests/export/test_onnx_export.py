@@ -328,6 +328,9 @@ def test_an_export_from_before_the_pose_output_existed_predicts_without_it(heads
 
     model, folder = heads_export
     old = shutil.copytree(folder, tmp_path / "old")
+    meta = json.loads((old / "pointmap_export.json").read_text())
+    del meta["files"]  # nor did their sidecars list the files' digests (session 93)
+    (old / "pointmap_export.json").write_text(json.dumps(meta))
     graph = onnx.load(str(old / "decoder.onnx"))
     keep = [o for o in graph.graph.output if o.name != "cam2_to_cam1"]
     assert len(keep) == len(graph.graph.output) - 1

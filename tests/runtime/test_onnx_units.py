@@ -47,6 +47,15 @@ def _set_graph_meta(graph, text, out=None):
     onnx.save(proto, str(out or graph))
 
 
+def _without_digests(folder):
+    """Make ``folder``'s sidecar one of an export from before the sidecar listed its files' digests (session 93),
+    whose graphs load unchecked: so a test may rewrite a graph's own description and load it from the folder."""
+    meta = json.loads((folder / SIDECAR).read_text())
+    meta.pop("files", None)
+    (folder / SIDECAR).write_text(json.dumps(meta))
+    return folder
+
+
 def _fake_ort(monkeypatch, available):
     monkeypatch.setattr(rt, "_ort", lambda: types.SimpleNamespace(get_available_providers=lambda: list(available)))
 
@@ -167,8 +176,10 @@ def test_a_graph_without_its_description_is_described_by_the_sidecar_beside_it_a
         tmp_path, full_export):
     beside = shutil.copytree(full_export, tmp_path / "beside")
     _set_graph_meta(beside / FULL_GRAPH, None)
-    runner = load_onnx(beside / FULL_GRAPH)
-    assert runner.meta == json.loads((full_export / SIDECAR).read_text())
+    with pytest.raises(CheckpointError, match=r"beside/model.onnx is \d+ bytes where its export lists \d+"):
+        load_onnx(beside / FULL_GRAPH)  # the sidecar lists the graph as exported, with its description
+    runner = load_onnx(_without_digests(beside) / FULL_GRAPH)
+    assert runner.meta == json.loads((beside / SIDECAR).read_text())
     alone = tmp_path / "alone"
     alone.mkdir()
     shutil.copy(beside / FULL_GRAPH, alone / "m.onnx")
@@ -200,7 +211,7 @@ def test_a_graph_of_another_export_in_the_folder_is_refused_naming_it_and_both_c
 
 @pytest.mark.parametrize("text", ["{not json", "[1, 2]"])
 def test_a_graph_whose_own_description_is_unreadable_is_judged_by_its_folders_description(tmp_path, full_export, text):
-    odd = shutil.copytree(full_export, tmp_path / "odd")
+    odd = _without_digests(shutil.copytree(full_export, tmp_path / "odd"))
     _set_graph_meta(odd / FULL_GRAPH, text)
     img = torch.rand(1, 3, 32, 32)
     assert load_onnx(odd)(img, img).pts1_cam1.shape == (1, 32, 32, 3)
@@ -270,13 +281,78 @@ def test_a_graph_onnxruntime_cannot_load_beside_a_valid_description_is_a_checkpo
 
 
 def test_a_non_commercial_licence_in_the_exports_provenance_is_warned_about(tmp_path, full_export):
-    nc = shutil.copytree(full_export, tmp_path / "nc")
+    nc = _without_digests(shutil.copytree(full_export, tmp_path / "nc"))
     meta = json.loads((nc / SIDECAR).read_text())
     meta["provenance"]["licence"] = "CC-BY-NC-SA-4.0"
     _set_graph_meta(nc / FULL_GRAPH, None)
     (nc / SIDECAR).write_text(json.dumps(meta))
     with pytest.warns(UserWarning, match="licensed CC-BY-NC-SA-4.0 \\(non-commercial use only\\)"):
         load_onnx(nc)
+
+
+# -- the files' digests -------------------------------------------------------------------------------------------
+def test_the_sidecar_lists_every_graph_of_the_export_with_its_size_and_sha256(split_export):
+    import hashlib
+
+    files = json.loads((split_export / SIDECAR).read_text())["files"]
+    assert sorted(files) == [DECODER_GRAPH, ENCODER_GRAPH]
+    for name, listed in files.items():
+        data = (split_export / name).read_bytes()
+        assert listed == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def _change_a_weight(graph):
+    """Add 1 to one weight matrix of ``graph`` in place (the file keeps its size); returns that weight's name."""
+    from onnx import numpy_helper
+
+    proto = onnx.load(str(graph))
+    init = next(t for t in proto.graph.initializer if t.data_type == onnx.TensorProto.FLOAT and len(t.dims) == 2)
+    init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) + 1, init.name))
+    onnx.save(proto, str(graph))
+    return init.name
+
+
+def test_a_graph_whose_weights_changed_after_the_export_is_refused_naming_it(tmp_path, full_export):
+    odd = shutil.copytree(full_export, tmp_path / "odd")
+    _change_a_weight(odd / FULL_GRAPH)
+    assert (odd / FULL_GRAPH).stat().st_size == (full_export / FULL_GRAPH).stat().st_size
+    with pytest.raises(CheckpointError, match="odd/model.onnx does not match the SHA-256 its export lists "
+                                              r"\(corrupted or modified since the export\): export again"):
+        load_onnx(odd)
+    img = torch.rand(1, 3, 32, 32)  # what the check prevents: without the digests the graph loads, other weights
+    assert not torch.equal(load_onnx(_without_digests(odd))(img, img).pts1_cam1, load_onnx(full_export)(img, img).pts1_cam1)
+
+
+def test_external_weights_are_checked_too_and_a_truncated_weights_file_is_refused_by_its_size(tmp_path, full_export):
+    ext = shutil.copytree(full_export, tmp_path / "ext")
+    proto = onnx.load(str(ext / FULL_GRAPH))
+    onnx.save_model(proto, str(ext / FULL_GRAPH), save_as_external_data=True, all_tensors_to_one_file=True,
+                    location="model.onnx.data")
+    meta = json.loads((ext / SIDECAR).read_text())
+    meta["files"] = {k: v for k, v in rt.file_digests(ext).items() if k != SIDECAR}
+    (ext / SIDECAR).write_text(json.dumps(meta))
+    assert sorted(meta["files"]) == [FULL_GRAPH, "model.onnx.data"]
+    img = torch.rand(1, 3, 32, 32)
+    assert torch.equal(load_onnx(ext)(img, img).pts1_cam1, load_onnx(full_export)(img, img).pts1_cam1)
+    data = (ext / "model.onnx.data").read_bytes()
+    (ext / "model.onnx.data").write_bytes(data[:-64] + bytes(64))  # the last weights zeroed: the same size
+    with pytest.raises(CheckpointError, match="model.onnx.data does not match the SHA-256 its export lists"):
+        load_onnx(ext)
+    (ext / "model.onnx.data").write_bytes(data + bytes(8))  # a longer file onnxruntime still reads
+    with pytest.raises(CheckpointError, match=f"model.onnx.data is {len(data) + 8} bytes where its export lists "
+                                              f"{len(data)} \\(truncated or replaced since the export\\?\\)"):
+        load_onnx(ext)
+
+
+@pytest.mark.parametrize("files", [[], {FULL_GRAPH: "abc"}, {FULL_GRAPH: {"bytes": "12", "sha256": "ab"}},
+                                   {FULL_GRAPH: {"bytes": 12}}])
+def test_a_sidecar_whose_files_table_is_malformed_is_a_checkpoint_error_showing_it(tmp_path, full_export, files):
+    odd = shutil.copytree(full_export, tmp_path / "odd")
+    meta = json.loads((odd / SIDECAR).read_text())
+    (odd / SIDECAR).write_text(json.dumps({**meta, "files": files}))
+    with pytest.raises(CheckpointError, match="odd: its export metadata's files expected a JSON object of file name "
+                                              r"-> \{'bytes': int, 'sha256': str\}, got "):
+        load_onnx(odd)
 
 
 # -- the runner ---------------------------------------------------------------------------------------------------
