@@ -532,25 +532,6 @@ def test_replacing_an_export_leaves_a_users_folder_named_like_a_backup_alone(tmp
     assert (backup / "mine.txt").read_text() == "keep" and sorted(os.listdir(tmp_path)) == ["exp", "exp.old"]
 
 
-def test_an_interrupt_while_the_new_export_moves_in_puts_the_old_one_back(tmp_path, monkeypatch):
-    out, tmp = tmp_path / "exp", tmp_path / ".exp.tmp"
-    for d, text in ((out, "old"), (tmp, "new")):
-        d.mkdir()
-        (d / SIDECAR).write_text("{}")
-        (d / "model.onnx").write_text(text)
-    real = os.replace
-
-    def replace(a, b):
-        if a == tmp:
-            raise KeyboardInterrupt
-        real(a, b)
-
-    monkeypatch.setattr(os, "replace", replace)
-    with pytest.raises(KeyboardInterrupt):
-        _atomic_publish(tmp, out)
-    assert (out / "model.onnx").read_text() == "old"
-
-
 def test_the_newest_opset_onnx_knows_is_accepted_and_opsets_that_are_not_ints_are_refused(tmp_path):
     assert check_target(tmp_path / "a", TOP) == tmp_path / "a"
     for bad in (18.0, "18", True):

@@ -234,7 +234,9 @@ def test_atomic_publish_replaces_only_exports(tmp_path):
     (out / "NOTES.md").unlink()
 
 
-def test_an_export_that_cannot_be_moved_in_puts_the_old_one_back(tmp_path, monkeypatch):
+@pytest.mark.parametrize("error", [OSError("disk gone"), KeyboardInterrupt("disk gone")])
+def test_an_export_that_cannot_be_moved_in_or_is_interrupted_moving_in_puts_the_old_one_back(tmp_path, monkeypatch,
+                                                                                            error):
     import os
 
     out, tmp = tmp_path / "exp", tmp_path / ".exp.tmp"
@@ -243,9 +245,8 @@ def test_an_export_that_cannot_be_moved_in_puts_the_old_one_back(tmp_path, monke
         (d / SIDECAR).write_text("{}")
         (d / "model.onnx").write_text(text)
     real = os.replace
-    monkeypatch.setattr(os, "replace", lambda a, b: (_ for _ in ()).throw(OSError("disk gone")) if Path(a) == tmp
-                        else real(a, b))
-    with pytest.raises(OSError, match="disk gone"):
+    monkeypatch.setattr(os, "replace", lambda a, b: (_ for _ in ()).throw(error) if Path(a) == tmp else real(a, b))
+    with pytest.raises(type(error), match="disk gone"):
         _atomic_publish(tmp, out)
     assert (out / "model.onnx").read_text() == "old"  # before, --out was gone and the old export hidden
 
