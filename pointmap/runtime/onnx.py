@@ -178,7 +178,7 @@ def _sha256(f: Path) -> str:
 
 def file_digests(folder: Path) -> dict:
     """{name: {"bytes", "sha256"}} of every file in ``folder``: what the exporter lists in the sidecar (``files``)
-    and ``load_onnx`` checks each graph and weights file against before onnxruntime reads it."""
+    and ``load_onnx`` checks each graph and weights file it loads against before it computes with them."""
     return {f.name: {"bytes": f.stat().st_size, "sha256": _sha256(f)}
             for f in sorted(p for p in Path(folder).iterdir() if p.is_file())}
 
