@@ -24,7 +24,7 @@ import torch
 
 from export.graphs import graph_specs
 from pointmap.checkpoint import provenance_keeping_licence
-from pointmap.errors import CheckpointError
+from pointmap.errors import CheckpointError, is_int
 from pointmap.model.net import PointmapNet
 from pointmap.runtime.onnx import FORMAT, METADATA_KEY, SIDECAR, file_digests
 
@@ -216,7 +216,7 @@ def check_target(out_dir, opset: int) -> Path:
     import onnx
 
     top = onnx.defs.onnx_opset_version()
-    if not (isinstance(opset, int) and not isinstance(opset, bool) and 18 <= opset <= top):
+    if not (is_int(opset) and 18 <= opset <= top):
         raise ValueError(f"opset expected an int from 18 (the dynamo exporter's own; it cannot convert down to 17) to "
                          f"{top} (the newest this onnx knows), got {opset!r}")
     if not str(out_dir).strip():
@@ -259,6 +259,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     if not isinstance(parity, str) or (parity not in PARITY_CASES and parity != "none"):
         raise ValueError(f"parity expected one of {sorted(PARITY_CASES) + ['none']}, got {parity!r}")
     out = check_target(out_dir, opset)
+    opset = int(opset)  # a NumPy int is an opset too; the sidecar and torch's exporter get a Python int
     prov = provenance_keeping_licence(model, provenance)  # checked (JSON values) before minutes of export
     model = copy.deepcopy(model).float().eval().cpu()  # the caller's model keeps its mode, dtype and device
     out.parent.mkdir(parents=True, exist_ok=True)

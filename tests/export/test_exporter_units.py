@@ -532,8 +532,15 @@ def test_replacing_an_export_leaves_a_users_folder_named_like_a_backup_alone(tmp
     assert (backup / "mine.txt").read_text() == "keep" and sorted(os.listdir(tmp_path)) == ["exp", "exp.old"]
 
 
+def test_a_numpy_opset_reaches_the_exporter_and_the_sidecar_as_a_python_int(tmp_path, stand_ins, model):
+    meta = export_model(model, tmp_path / "out", opset=np.int64(DEFAULT_OPSET), parity="none")
+    assert type(stand_ins.export[0]["opset"]) is int and type(meta["opset"]) is int
+    assert json.loads((tmp_path / "out" / SIDECAR).read_text())["opset"] == DEFAULT_OPSET
+
+
 def test_the_newest_opset_onnx_knows_is_accepted_and_opsets_that_are_not_ints_are_refused(tmp_path):
     assert check_target(tmp_path / "a", TOP) == tmp_path / "a"
+    assert check_target(tmp_path / "a", np.int64(DEFAULT_OPSET)) == tmp_path / "a"  # a NumPy int is an int
     for bad in (18.0, "18", True):
         with pytest.raises(ValueError, match="opset expected an int from 18"):
             check_target(tmp_path / "a", bad)
