@@ -106,10 +106,10 @@ def _radii(cov_abc, opacities, ok):
     a, b, c, det = cov_abc
     mid = 0.5 * (a + c)
     lam = mid + torch.sqrt((mid * mid - det).clamp_min(0.1))
-    o = opacities.clamp(max=1.0)
-    ext2 = 2.0 * torch.log((255.0 * o).clamp_min(1.0))
+    # opacities are in [0, 1] (rasterize refuses others): alpha = o exp(-q/2) falls below 1/255 past q = 2 ln(255 o)
+    ext2 = 2.0 * torch.log((255.0 * opacities).clamp_min(1.0))
     r = torch.ceil(torch.sqrt(ext2 * lam))
-    r = torch.where(ok & (o > ALPHA_MIN), r, torch.zeros_like(r))
+    r = torch.where(ok & (opacities > ALPHA_MIN), r, torch.zeros_like(r))
     return r
 
 
@@ -454,7 +454,8 @@ def rasterize(means, quats, scales, opacities, colors, world2cam, K, width, heig
         raise ShapeError(f"tile and chunk expected ints >= 1, got {tile!r}, {chunk!r}")
     if not all(is_number(x) and math.isfinite(x) and x >= 0 for x in (near, eps2d)):
         raise ShapeError(f"near and eps2d expected finite numbers >= 0, got {near!r}, {eps2d!r}")
-    bad = opacities.detach()[(opacities.detach() < 0) | (opacities.detach() > 1)]
+    o = opacities.detach()
+    bad = o[(o < 0) | (o > 1)]
     if bad.numel():  # the radius bound takes opacity <= 1: above it, tile culling would cut into the footprint
         raise ShapeError(f"opacities expected values in [0, 1], got {bad.numel()} outside (first {float(bad[0])!r})")
     if backend not in ("torch", "gsplat", "auto"):

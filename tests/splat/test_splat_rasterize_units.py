@@ -2,7 +2,10 @@
 comparisons in test_splat_rasterize.py do not reach: the near plane and the frustum clamp with fx != fy, radii,
 images not a multiple of the tile, equal depths, more tiles than int16 ids hold, alphas at the 0.999 clamp (image
 and gradients), termination, normalised depth and means2d, the gsplat dispatch and the input checks. Everything is
-checked against the float64 reference in tests/splat/reference.py where an image or a gradient is compared."""
+checked against the float64 reference in tests/splat/reference.py where an image or a gradient is compared. Last,
+tests of the bugs it found: inputs ``rasterize`` took without a word and then drew wrong (opacities above 1 lost the
+rim of their footprint to tile culling; a NaN near plane or low-pass drew nothing) or crashed on deep inside (a
+float tile or chunk)."""
 
 import importlib
 import math
@@ -347,3 +350,45 @@ def test_a_ragged_list_is_refused_naming_the_argument():
     args = _valid(2)
     with pytest.raises(ShapeError, match="scales expected a tensor or an array of numbers, got list"):
         rasterize(args[0], args[1], [[0.1, 0.1, 0.1], [0.1, 0.1]], *args[3:], 12, 10)
+
+
+# -- the bugs the review found ------------------------------------------------------------------------------------
+def _one_view(opacity=0.9, W=12, H=10):
+    """One round Gaussian on the optical axis and the camera looking at it: rasterize's positional arguments."""
+    return [*_one(scale=0.2, opacity=opacity), *_camera(W, H), W, H]
+
+
+@pytest.mark.parametrize("opacity", [20.0, 1.5, -0.5])
+def test_opacities_outside_0_1_are_refused_naming_them(opacity):
+    """The radius took min(opacity, 1) while the alpha takes the opacity itself: at opacity 20 the tiles beyond
+    sqrt(2 ln 255 lambda) were culled though alpha there is above 1/255 (up to 0.05 of the image lost)."""
+    with pytest.raises(ShapeError, match=rf"opacities expected values in \[0, 1\], got 1 outside \(first {opacity}\)"):
+        rasterize(*_one_view(opacity=opacity))
+
+
+@pytest.mark.parametrize("opacity", [0.0, 1.0])
+def test_opacities_of_exactly_0_and_1_are_taken(opacity):
+    out = rasterize(*_one_view(opacity=opacity))
+    assert bool(torch.isfinite(out.image).all())
+
+
+@pytest.mark.parametrize("tile,chunk", [(4.0, 32), (2.5, 32), (4, 32.0), (True, 32), (4, True)])
+def test_a_tile_or_chunk_that_is_not_an_int_is_refused(tile, chunk):
+    with pytest.raises(ShapeError, match=rf"tile and chunk expected ints >= 1, got {tile!r}, {chunk!r}"):
+        rasterize(*_one_view(), tile=tile, chunk=chunk)
+
+
+@pytest.mark.parametrize("near,eps2d", [(float("nan"), 0.3), (-1.0, 0.3), (0.01, float("nan")), (0.01, -1.0),
+                                        (0.01, True), (float("inf"), 0.3)])
+def test_a_near_plane_or_low_pass_that_is_not_a_finite_number_at_least_zero_is_refused(near, eps2d):
+    """A NaN near plane or eps2d drew an empty image without a word; a negative near plane drew Gaussians behind the
+    camera, mirrored."""
+    with pytest.raises(ShapeError, match=rf"near and eps2d expected finite numbers >= 0, got {near!r}, {eps2d!r}"):
+        rasterize(*_one_view(), near=near, eps2d=eps2d)
+
+
+def test_a_numpy_tile_chunk_near_and_eps2d_are_taken():
+    np = pytest.importorskip("numpy")
+    a = rasterize(*_one_view())
+    b = rasterize(*_one_view(), tile=np.int64(4), chunk=np.int32(32), near=np.float64(0.01), eps2d=np.float32(0.3))
+    assert torch.allclose(a.image, b.image, atol=1e-7)
