@@ -223,11 +223,12 @@ def refine_matches(recon: Reconstruction, matches: dict, *, config: SparseConfig
 
     with torch.no_grad():
         r0, _ = residuals()
-    opt = torch.optim.LBFGS([xi, dlf, dpp, log_scale, delta], lr=1.0, max_iter=cfg.niter, max_eval=cfg.niter * 2,
+    max_eval = cfg.niter * 2  # the loss evaluations LBFGS may spend, line searches included: the bar's length
+    opt = torch.optim.LBFGS([xi, dlf, dpp, log_scale, delta], lr=1.0, max_iter=cfg.niter, max_eval=max_eval,
                             history_size=20, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
                             tolerance_change=1e-14)
     evals = [0]
-    bar = tqdm(total=cfg.niter * 2, desc="sparse refinement", unit="eval", disable=cfg.quiet, leave=False)
+    bar = tqdm(total=max_eval, desc="sparse refinement", unit="eval", disable=cfg.quiet, leave=False)
 
     def closure():
         opt.zero_grad()
