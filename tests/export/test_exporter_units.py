@@ -2,7 +2,9 @@
 pin: what ``export_graphs`` asks torch's exporter for and does to the graph it gets back, the weight-transpose fold,
 the metadata stamped into each graph and the sidecar, the external-data and precision choices, the parity gate, and
 the staging folder and its atomic publish. ``torch.onnx.export``, the parity run, the runner and int8 quantisation
-are replaced by stand-ins that write or check tiny graphs: every test here runs in well under a second."""
+are replaced by stand-ins that write or check tiny graphs: every test here runs in well under a second. Last, tests
+of the bug it found: ``export_model`` took any value for its flags (``split="no"`` wrote a split export whose sidecar
+said ``"split": "no"``) and a parity name that is not a string failed with a bare TypeError."""
 
 import datetime
 import json
@@ -550,3 +552,20 @@ def test_a_blank_output_path_is_refused_as_empty(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ValueError, match="out_dir expected a folder to export to, got an empty path"):
         check_target("  ", DEFAULT_OPSET)
+
+
+# -- the bug the review found ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name, value", [("split", "no"), ("split", 1), ("fp16", "false"), ("quiet", None),
+                                         ("external_data", "no"), ("external_data", 0)])
+def test_export_model_refuses_a_flag_that_is_not_true_or_false_naming_it_before_anything_is_exported(
+        tmp_path, stand_ins, model, name, value):
+    with pytest.raises(ValueError, match=f"{name} expected True or False.*got {value!r}"):
+        export_model(model, tmp_path / "out", parity="none", **{name: value})
+    assert stand_ins.export == [] and list(tmp_path.iterdir()) == []
+
+
+def test_export_model_refuses_a_parity_that_is_not_a_name_with_the_parity_message(tmp_path, stand_ins, model):
+    with pytest.raises(ValueError, match=r"parity expected one of \['full', 'quick', 'standard', 'none'\], "
+                                         r"got \['quick'\]"):
+        export_model(model, tmp_path / "out", parity=["quick"])
+    assert stand_ins.export == []
