@@ -3,6 +3,10 @@
     python benchmarks/bench_onnx.py --models small,dust3r_224_linear --res 224 --threads 2
     python benchmarks/bench_onnx.py --quick          # 'small' at 224 only, few repeats
 
+It also times ``load_onnx`` of each export twice, interleaved: as written (every graph and weights file checked
+against the SHA-256 its sidecar lists) and from a copy whose sidecar lists no digests (loaded unchecked, as exports
+before session 93 are), so the second table's difference is what the check costs a load (``--load-repeats``).
+
 For each model (a shipped model name or preset: random weights when none is shipped; latency does not
 depend on the weights) the script exports the single-graph variants into a temp dir, then times one
 pair (batch 1, both views at the same resolution) for every backend, interleaving the backends in each
@@ -21,6 +25,8 @@ AbsRel and matching precision for eager and every exported variant on the same p
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
 import statistics
 import sys
 import tempfile
@@ -33,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from export import export_model, resolve_model  # noqa: E402
 from export.parity import compare, random_pair  # noqa: E402
-from pointmap.runtime.onnx import load_onnx  # noqa: E402
+from pointmap.runtime.onnx import SIDECAR, load_onnx  # noqa: E402
 
 
 def get_model(name: str):
@@ -63,17 +69,19 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-data", default=None, help="held-out pair shards: add task metrics per variant")
     ap.add_argument("--eval-size", type=int, default=None, help="eval resolution (default: the model's own)")
     ap.add_argument("--eval-pairs", type=int, default=10_000, help="at most this many held-out pairs")
+    ap.add_argument("--load-repeats", type=int, default=5,
+                    help="loads timed per export with and without the digest check (0: skip that table)")
     args = ap.parse_args(argv)
     if args.quick:
         args.models, args.res, args.repeats = "small", "224", 3
     variants = args.variants.split(",")
     unknown = sorted(set(variants) - {"fp32", "int8", "fp16"})
-    if unknown or args.repeats < 1:
-        ap.error(f"--variants expected names from fp32,int8,fp16 and --repeats >= 1, got {unknown or variants} and "
-                 f"{args.repeats}")
+    if unknown or args.repeats < 1 or args.load_repeats < 0:
+        ap.error(f"--variants expected names from fp32,int8,fp16, --repeats >= 1 and --load-repeats >= 0, got "
+                 f"{unknown or variants}, {args.repeats} and {args.load_repeats}")
     tmp = tempfile.TemporaryDirectory() if args.workdir is None else None
     work = Path(args.workdir or tmp.name)
-    rows, eval_rows = [], []
+    rows, eval_rows, load_rows = [], [], []
     print(f"torch {torch.__version__}, threads {args.threads}, median of {args.repeats} (after 1 warm-up)", flush=True)
     for name in args.models.split(","):
         model, weights = get_model(name)
@@ -83,6 +91,8 @@ def main(argv=None) -> int:
             if not (out / "pointmap_export.json").exists():
                 export_model(model, out, fp16=v == "fp16", quantize="int8" if v == "int8" else None, parity="none")
             print(f"  {name}: {v} export ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+        if args.load_repeats:
+            load_rows += load_times(name, work, variants, args.load_repeats, int(str(args.threads).split(",")[-1]))
         for threads in [int(t) for t in str(args.threads).split(",")]:
             torch.set_num_threads(threads)
             runners = {v: load_onnx(work / f"{name}-{v}", threads=threads) for v in variants}
@@ -117,6 +127,11 @@ def main(argv=None) -> int:
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in rows:
         print("| " + " | ".join(r) + " |")
+    if load_rows:
+        head = ["model", "backend", "export MB", "load ms, digests checked", "load ms, unchecked", "check cost ms"]
+        print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+        for r in load_rows:
+            print("| " + " | ".join(r) + " |")
     if eval_rows:
         head = ["model", "backend", "pairs", "RRA@15 %", "RTA@15 %", "rot err med (deg)", "AbsRel", "match prec"]
         print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
@@ -125,6 +140,37 @@ def main(argv=None) -> int:
     if tmp is not None:
         tmp.cleanup()
     return 0
+
+
+def load_times(name: str, work: Path, variants: list[str], repeats: int, threads: int) -> list[list[str]]:
+    """Median ``load_onnx`` time of each variant's export as written (its files checked against the SHA-256 digests
+    its sidecar lists) and of a copy whose sidecar lists none (loaded unchecked), interleaved in each round after one
+    warm-up load of each, so the file cache and machine load are the same for both. Rows for the load table."""
+    rows = []
+    for v in variants:
+        folder = work / f"{name}-{v}"
+        bare = work / f"{name}-{v}-unchecked"
+        shutil.rmtree(bare, ignore_errors=True)  # a copy of this run's export, not an earlier run's
+        shutil.copytree(folder, bare)
+        meta = json.loads((bare / SIDECAR).read_text())
+        if "files" not in meta:
+            raise SystemExit(f"{folder}: its sidecar lists no file digests (an export from before session 93?): "
+                             "remove it and run again")
+        del meta["files"]
+        (bare / SIDECAR).write_text(json.dumps(meta, indent=1))
+        times = {"checked": [], "unchecked": []}
+        for i in range(repeats + 1):
+            for k, f in (("checked", folder), ("unchecked", bare)):
+                t0 = time.perf_counter()
+                load_onnx(f, threads=threads)
+                if i:  # the first round warms the file cache and onnxruntime
+                    times[k].append(time.perf_counter() - t0)
+        med = {k: statistics.median(t) * 1000 for k, t in times.items()}
+        mb = sum(p.stat().st_size for p in folder.iterdir() if p.is_file()) / 1e6
+        rows.append([name, f"onnxruntime {v}", f"{mb:.1f}", f"{med['checked']:.0f}", f"{med['unchecked']:.0f}",
+                     f"{med['checked'] - med['unchecked']:.0f}"])
+        print(f"  {name} {v} load: checked {med['checked']:.0f} ms, unchecked {med['unchecked']:.0f} ms", flush=True)
+    return rows
 
 
 def task_metrics(name, model, runners, args) -> list[list[str]]:
