@@ -262,14 +262,16 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     opset = int(opset)  # a NumPy int is an opset too; the sidecar and torch's exporter get a Python int
     prov = provenance_keeping_licence(model, provenance)  # checked (JSON values) before minutes of export
     model = copy.deepcopy(model).float().eval().cpu()  # the caller's model keeps its mode, dtype and device
+    new_dirs = [d for d in (out.parent, *out.parent.parents) if not d.exists()]  # innermost first
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
     nbytes = param_bytes(model)
     external = bool(external_data) if external_data is not None else nbytes > PROTO_LIMIT
     precision = "fp16" if fp16 else "int8" if quantize else "fp32"
+    published = False
     try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
         specs = export_graphs(model, tmp, split=split, opset=opset, external=external, fp16=fp16, quiet=quiet)
         if quantize:
             for spec in specs:
@@ -316,6 +318,13 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
         meta["files"] = file_digests(tmp)  # every graph and weights file, checked by load_onnx
         (tmp / SIDECAR).write_text(json.dumps(meta, indent=2) + "\n")
         _atomic_publish(tmp, out)
+        published = True
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        if not published:  # a failed export leaves no folder it made either ("nothing was written")
+            for d in new_dirs:
+                try:
+                    d.rmdir()
+                except OSError:  # not empty (something else wrote there meanwhile) or not ours to remove
+                    break
     return meta

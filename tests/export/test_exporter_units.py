@@ -460,6 +460,28 @@ def test_an_unexpected_error_while_exporting_leaves_no_staging_folder(tmp_path, 
     assert os.listdir(tmp_path) == []
 
 
+def test_a_failed_export_removes_the_parent_folders_it_created_and_keeps_those_that_existed(tmp_path, stand_ins,
+                                                                                           model):
+    stand_ins.report = {"passed": False, "cases": [{"case": "224x224 b1", "worst_output": "conf1",
+                                                    "worst_ratio": 2.0}]}
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(CheckpointError, match="parity check failed"):
+        export_model(model, tmp_path / "mine" / "a" / "b" / "out", parity="standard")
+    assert os.listdir(tmp_path) == ["mine"] and os.listdir(tmp_path / "mine") == []
+
+
+def test_a_failed_export_keeps_a_new_parent_folder_that_something_else_wrote_into_meanwhile(tmp_path, stand_ins,
+                                                                                           model, monkeypatch):
+    def broken(graph, meta):  # another writer fills the folder the export created, then the export fails
+        (tmp_path / "a" / "theirs.txt").write_text("x")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ex, "stamp", broken)
+    with pytest.raises(OSError, match="disk full"):
+        export_model(model, tmp_path / "a" / "b" / "out", parity="none")
+    assert os.listdir(tmp_path / "a") == ["theirs.txt"]
+
+
 def test_replacing_a_split_export_by_a_single_graph_one_leaves_none_of_the_old_files(tmp_path, stand_ins, model):
     out = tmp_path / "out"
     out.mkdir()
