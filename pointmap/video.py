@@ -24,9 +24,15 @@ def is_video(path) -> bool:
 
 
 def sharpness(frame_bgr: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey frame: higher is sharper."""
+    """Variance of the Laplacian of the grey frame: higher is sharper. ``frame_bgr``: HxWx3 BGR (or HxWx4 BGRA),
+    uint8 or uint16, as OpenCV decodes frames; ImageError for anything else."""
     import cv2
 
+    if not (isinstance(frame_bgr, np.ndarray) and frame_bgr.ndim == 3 and frame_bgr.shape[2] in (3, 4)
+            and frame_bgr.size > 0 and frame_bgr.dtype in (np.uint8, np.uint16)):
+        got = (f"shape {tuple(frame_bgr.shape)} {frame_bgr.dtype}" if isinstance(frame_bgr, np.ndarray)
+               else type(frame_bgr).__name__)
+        raise ImageError(f"sharpness expected an HxWx3 BGR frame of uint8 or uint16, got {got}")
     return float(cv2.Laplacian(cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY), cv2.CV_64F).var())
 
 
@@ -57,6 +63,9 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
         raise ImageError(f"stride expected a positive integer, got {stride!r}")
     if not (is_int(max_frames) and max_frames >= 1):
         raise ImageError(f"max_frames expected an integer >= 1, got {max_frames!r}")
+    for name, flag in (("pick_sharpest", pick_sharpest), ("with_times", with_times)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ImageError(f"{name} expected True or False, got {flag!r}")
     out_dir = Path(out_dir)
     if stride is not None:
         kept, _, fps = _read_windows(video, out_dir, stride, pick_sharpest, None)
