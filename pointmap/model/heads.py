@@ -21,19 +21,6 @@ def tokens_to_map(tokens: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return tokens.transpose(1, 2).reshape(tokens.shape[0], tokens.shape[2], h, w)
 
 
-class LinearHead(nn.Module):
-    """Linear(dec_dim -> C * p^2) per token, then pixel shuffle to full resolution."""
-
-    def __init__(self, dim: int, out_channels: int, patch: int) -> None:
-        super().__init__()
-        self.patch = patch
-        self.proj = nn.Linear(dim, out_channels * patch * patch)
-
-    def forward(self, tokens: list, H: int, W: int) -> torch.Tensor:
-        p = self.patch
-        return F.pixel_shuffle(tokens_to_map(self.proj(tokens[-1]), H // p, W // p), p)
-
-
 class ResidualConvUnit(nn.Module):
     def __init__(self, ch: int) -> None:
         super().__init__()
