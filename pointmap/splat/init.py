@@ -130,6 +130,9 @@ def init_from(recon: Reconstruction, max_gaussians: int | None = 20_000, *, min_
         raise ShapeError(f"min_conf expected a finite confidence, got {min_conf!r}")
     if not (is_number(covis_tol) and 0 < covis_tol < math.inf):
         raise ShapeError(f"covis_tol expected a finite relative depth tolerance > 0, got {covis_tol!r}")
+    for name, flag in (("covisibility", covisibility), ("rank_by_conf", rank_by_conf)):
+        if not isinstance(flag, bool):  # "no" is truthy: it would prune or rank what the caller meant to leave alone
+            raise ShapeError(f"{name} expected True or False, got {flag!r}")
     seed = check_seed(seed)
     check_has_points(recon, min_conf)
     valid = recon.valid(min_conf)
