@@ -183,11 +183,11 @@ def file_digests(folder: Path) -> dict:
             for f in sorted(p for p in Path(folder).iterdir() if p.is_file())}
 
 
-def _check_digests(meta: dict, folder: Path, used: list[Path]) -> None:
-    """CheckpointError unless each file in ``used`` that the sidecar's ``files`` lists (files in the export's own
-    folder; exports before session 93 list none and load unchecked) has the listed size and SHA-256: a graph or
-    weights file truncated, corrupted or replaced since the export would otherwise load, and compute with weights
-    the description does not describe."""
+def _check_digests(meta: dict, folder: Path, graph: Path) -> None:
+    """CheckpointError unless ``graph`` and each weights file it names, where the sidecar's ``files`` lists them
+    (files in the export's own folder; exports before session 93 list none and load unchecked, without parsing the
+    graph), have the listed size and SHA-256: a graph or weights file truncated, corrupted or replaced since the
+    export would otherwise load, and compute with weights the description does not describe."""
     files = meta.get("files")
     if files is None:
         return
@@ -195,7 +195,7 @@ def _check_digests(meta: dict, folder: Path, used: list[Path]) -> None:
                                             and isinstance(v.get("sha256"), str) for v in files.values())):
         raise CheckpointError(f"{folder}: its export metadata's files expected a JSON object of file name -> "
                               f"{{'bytes': int, 'sha256': str}}, got {str(files)[:200]}")
-    for f in used:
+    for f in _with_weights(graph):
         listed = files.get(f.name) if f.parent.resolve() == folder.resolve() else None
         if listed is None:
             continue
@@ -303,8 +303,7 @@ class OnnxPointmapModel:
                 raise CheckpointError(f"onnxruntime cannot load {gp}: {str(e).splitlines()[0][:300]}") from None
             _check_same_export(gp, self._sessions[f], meta)
             _check_io(gp, self._sessions[f], meta, f)
-            if meta.get("files") is not None:  # last: the checks above say more about a graph of another export
-                _check_digests(meta, self.path, _with_weights(gp))
+            _check_digests(meta, self.path, gp)  # last: the checks above say more about a graph of another export
         # an export written before the pose head's transform was a graph output (session 49) lacks it: the
         # prediction then has no cam2_to_cam1, and relative_pose falls back to the pointmaps' Procrustes
         have = {o.name for o in self._sessions[files[-1]].get_outputs()}
