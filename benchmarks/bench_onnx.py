@@ -88,7 +88,7 @@ def main(argv=None) -> int:
         for v in variants:
             t0 = time.perf_counter()
             out = work / f"{name}-{v}"
-            if not (out / "pointmap_export.json").exists():
+            if not (out / SIDECAR).exists():
                 export_model(model, out, fp16=v == "fp16", quantize="int8" if v == "int8" else None, parity="none")
             print(f"  {name}: {v} export ready ({time.perf_counter() - t0:.0f} s)", flush=True)
         if args.load_repeats:

@@ -266,7 +266,7 @@ def export_model(model: PointmapNet, out_dir, *, split: bool = False, opset: int
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     nbytes = param_bytes(model)
-    external = bool(external_data) if external_data is not None else nbytes > PROTO_LIMIT
+    external = external_data if external_data is not None else nbytes > PROTO_LIMIT  # a bool: checked above
     precision = "fp16" if fp16 else "int8" if quantize else "fp32"
     published = False
     try:

@@ -32,7 +32,7 @@ def sharpness(frame_bgr: np.ndarray) -> float:
             and frame_bgr.size > 0 and frame_bgr.dtype in (np.uint8, np.uint16)):
         got = (f"shape {tuple(frame_bgr.shape)} {frame_bgr.dtype}" if isinstance(frame_bgr, np.ndarray)
                else type(frame_bgr).__name__)
-        raise ImageError(f"sharpness expected an HxWx3 BGR frame of uint8 or uint16, got {got}")
+        raise ImageError(f"sharpness expected an HxWx3 BGR frame (or HxWx4 BGRA) of uint8 or uint16, got {got}")
     return float(cv2.Laplacian(cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2GRAY), cv2.CV_64F).var())
 
 
@@ -64,7 +64,7 @@ def extract_frames(video, out_dir, *, stride: int | None = None, max_frames: int
     if not (is_int(max_frames) and max_frames >= 1):
         raise ImageError(f"max_frames expected an integer >= 1, got {max_frames!r}")
     for name, flag in (("pick_sharpest", pick_sharpest), ("with_times", with_times)):
-        if not isinstance(flag, (bool, np.bool_)):
+        if not isinstance(flag, bool):  # as every other flag check in pointmap
             raise ImageError(f"{name} expected True or False, got {flag!r}")
     out_dir = Path(out_dir)
     if stride is not None:
